@@ -1,0 +1,29 @@
+"""One artificial cilium: a naturally curved, active (polyelectrolyte hydrogel) filament,
+clamped at one end, that flutters under a steady uniform field.
+
+The model and its conventions are in MODEL.md (shared with the project): dimensionless groups
+``chi_E`` (stimulus), ``eta`` (drag vs bending), ``chi_N`` (natural curvature); the field is
+along ``e2``; ``theta`` is the tangent angle from ``e2``, anticlockwise.
+
+Front doors
+-----------
+CiliumParams      the three groups (and SI conversion)
+equilibrium       closed-form equilibrium theta(s); limit_angle, equilibrium_shape
+Mesh              graded spectral-element mesh of the arc length
+simulate          nonlinear dynamics (Galerkin in space, Radau IIA(5) in time) with error estimates
+"""
+__version__ = "0.1.0"
+
+from .params import CiliumParams, PhysicalCilium
+from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
+from .mesh import Mesh
+from .filament import Filament
+from .radau import ConvergenceError
+from .progress import Progress, TqdmProgress
+from .dynamics import Simulation, simulate
+
+__all__ = [
+    "CiliumParams", "PhysicalCilium", "equilibrium", "equilibrium_shape", "limit_angle",
+    "NoLimitAngleError", "Mesh", "Filament", "simulate", "Simulation", "ConvergenceError",
+    "Progress", "TqdmProgress", "__version__",
+]

@@ -1,0 +1,249 @@
+"""The semi-discrete filament: a Galerkin (spectral-element) discretisation of MODEL.md section 2.
+
+Weak form
+---------
+With kappa frozen, the dynamics is the gradient flow of the bending energy
+``E = 1/2 int_0^1 (theta_s - kappa - chi_N)^2 ds`` in the dissipation metric of resistive force
+theory, ``R = eta/2 int_0^1 (v_par^2 + 2 v_perp^2) ds`` with ``v(s) = int_0^s n theta_t``.
+Rayleigh's principle, for every test function ``dtheta`` with ``dtheta(0) = 0``::
+
+    eta int (v_par dv_par + 2 v_perp dv_perp) ds + int (theta_s - kappa - chi_N) dtheta_s ds = 0,
+
+with ``dv = int_0^s n dtheta``. Integrating by parts gives back ``M_s + V = 0`` with
+``V = n . int_s^1 d`` and the tip condition ``M(1) = 0`` as the *natural* boundary condition, so
+no algebraic constraint is imposed on the state and every smooth initial state is admissible
+(the discrete tip condition holds in the weak sense at every time).
+
+Discretisation
+--------------
+theta and kappa are continuous piecewise polynomials on a :class:`~single_cilium.mesh.Mesh`
+(nodal values at the GLL points; ``theta(0) = 0`` is the clamp, ``phi = 0``). All integrals use
+the composite GLL rule. The result is
+
+    D(theta) theta_t = -K theta + B (kappa + chi_N)        (rows of the free nodes 1..n-1)
+    kappa_t          = -kappa - chi_E sin(theta)            (every node)
+
+with ``K`` the stiffness matrix, ``B`` the load matrix (``B[i, q] = int kappa_q-basis phi_i'``)
+and ``D(theta)`` the symmetric positive definite drag (resistance) matrix
+``D_ij = eta sum_q w_q I_qi I_qj [sin(th_q - th_i) sin(th_q - th_j) + 2 cos(th_q - th_i) cos(th_q - th_j)]``,
+``I`` the cumulative integration matrix. It is never formed in the residual: ``D theta_t`` is
+applied matrix-free, as the physics reads: velocity by cumulative integration, drag density,
+then ``(D theta_t)_i = -n_i . int phi_i C`` with ``C = int_s^1 d``.
+
+With kappa frozen the semi-discrete energy ``E_h = 1/2 sum_q w_q (theta_s - kappa - chi_N)^2``
+(element-wise derivative at the nodes) obeys ``dE_h/dt = -theta_t^T D theta_t <= 0`` exactly.
+
+State vector
+------------
+``y = [theta_1, ..., theta_{n-1}, kappa_0, ..., kappa_{n-1}]`` (length ``2n - 1``). Helpers
+:meth:`Filament.split` and :meth:`Filament.join` convert to and from full nodal arrays.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+
+from .equilibrium import equilibrium
+from .mesh import Mesh
+from .params import CiliumParams
+
+__all__ = ["Filament"]
+
+
+@dataclass(frozen=True, eq=False)
+class Filament:
+    """Semi-discrete equations of one filament on a mesh (see the module docstring).
+
+    Implements the problem interface of :class:`single_cilium.radau.Radau` for
+    ``M(y) y' = f(y)`` with ``M = diag(D(theta), I)``.
+    """
+
+    params: CiliumParams
+    mesh: Mesh
+    _K: np.ndarray = field(init=False, repr=False)
+    _B: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        m = self.mesh
+        n = m.n_nodes
+        K = np.zeros((n, n))
+        B = np.zeros((n, n))
+        _, wr, Dx, _ = m._reference
+        for e in range(m.n_elements):
+            idx = m.element_nodes[e]
+            K[np.ix_(idx, idx)] += (2.0 / m.sizes[e]) * (Dx.T * wr) @ Dx
+            B[np.ix_(idx, idx)] += Dx.T * wr
+        object.__setattr__(self, "_K", K)
+        object.__setattr__(self, "_B", B)
+
+    # ------------------------------------------------------------------ bookkeeping
+    @property
+    def n(self) -> int:
+        """Number of nodes."""
+        return self.mesh.n_nodes
+
+    @property
+    def size(self) -> int:
+        """Length of the state vector, ``2n - 1``."""
+        return 2 * self.n - 1
+
+    def split(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Full nodal ``theta`` (with the clamp value 0) and ``kappa`` from state(s) ``y`` (..., 2n-1)."""
+        y = np.asarray(y)
+        n = self.n
+        theta = np.concatenate([np.zeros(y.shape[:-1] + (1,)), y[..., : n - 1]], axis=-1)
+        return theta, y[..., n - 1:]
+
+    def join(self, theta: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+        """State vector from full nodal ``theta`` (its clamp value is dropped) and ``kappa``."""
+        return np.concatenate([np.asarray(theta)[..., 1:], np.asarray(kappa)], axis=-1)
+
+    @property
+    def scale(self) -> np.ndarray:
+        """Typical size of each state component (1 for theta, ``max(1, |chi_E|, |chi_N|)`` for kappa),
+        used to set absolute tolerances."""
+        p = self.params
+        ks = max(1.0, abs(p.chi_E), abs(p.chi_N))
+        return np.concatenate([np.ones(self.n - 1), np.full(self.n, ks)])
+
+    # ------------------------------------------------------------------ physics
+    def drag(self, theta: np.ndarray, theta_t: np.ndarray) -> np.ndarray:
+        """Drag density ``d`` (force per length of the fluid ON the filament) at the nodes.
+
+        ``d = -eta (v_par t + 2 v_perp n)``, ``v = int_0^s n theta_t``.
+        Shapes: ``theta``, ``theta_t`` (..., n) full nodal arrays; returns (..., n, 2).
+        """
+        c, s = np.cos(theta), np.sin(theta)
+        I = self.mesh.cumulative
+        a = (c * theta_t) @ I.T  # v_x = -a
+        b = (s * theta_t) @ I.T  # v_y = -b
+        v_par = a * s - b * c
+        v_perp = a * c + b * s
+        eta = self.params.eta
+        dx = eta * (v_par * s + 2.0 * v_perp * c)
+        dy = eta * (-v_par * c + 2.0 * v_perp * s)
+        return np.stack([dx, dy], axis=-1)
+
+    def resistance(self, theta: np.ndarray, theta_t: np.ndarray) -> np.ndarray:
+        """``D(theta) theta_t`` on the free nodes, matrix-free. Shapes (..., n) -> (..., n-1)."""
+        d = self.drag(theta, theta_t)
+        w = self.mesh.weights
+        I = self.mesh.cumulative
+        Px = (w * d[..., 0]) @ I  # P[i] = sum_q w_q I_qi d_q  (= int phi_i C)
+        Py = (w * d[..., 1]) @ I
+        return (np.cos(theta) * Px + np.sin(theta) * Py)[..., 1:]
+
+    def resistance_matrix(self, theta: np.ndarray) -> np.ndarray:
+        """The SPD matrix ``D(theta)`` on the free nodes, shape (n-1, n-1)."""
+        I = self.mesh.cumulative[:, 1:]
+        w = self.mesh.weights
+        dth = theta[:, None] - theta[None, 1:]
+        Wt = I * np.sin(dth)
+        Wn = I * np.cos(dth)
+        wc = w[:, None]
+        return self.params.eta * (Wt.T @ (wc * Wt) + 2.0 * (Wn.T @ (wc * Wn)))
+
+    def rhs(self, y: np.ndarray) -> np.ndarray:
+        """``f(y)``: elastic force on the free nodes and the kappa relaxation. Shape (..., 2n-1)."""
+        theta, kappa = self.split(y)
+        p = self.params
+        f_theta = (kappa + p.chi_N) @ self._B.T - theta @ self._K.T
+        f_kappa = -kappa - p.chi_E * np.sin(theta)
+        return np.concatenate([f_theta[..., 1:], f_kappa], axis=-1)
+
+    def mass_apply(self, y: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``M(y) v`` with ``M = diag(D(theta), I)``. Shapes (..., 2n-1)."""
+        theta, _ = self.split(y)
+        n = self.n
+        theta_t = np.concatenate([np.zeros(v.shape[:-1] + (1,)), v[..., : n - 1]], axis=-1)
+        return np.concatenate([self.resistance(theta, theta_t), v[..., n - 1:]], axis=-1)
+
+    def factor(self, y: np.ndarray, sigma: complex) -> "_SchurFactor":
+        """Factorisation of ``sigma M(y) - J(y)`` (``J = df/dy``; the derivative of ``D(theta)``
+        with respect to theta is left out, as in a simplified Newton method).
+
+        The kappa block is diagonal, so it is eliminated (Schur complement) and only an
+        ``(n-1) x (n-1)`` matrix is LU-factorised.
+        """
+        theta, _ = self.split(y)
+        D = self.resistance_matrix(theta)
+        return self._factor_with(D, theta, sigma)
+
+    def _factor_with(self, D: np.ndarray, theta: np.ndarray, sigma: complex) -> "_SchurFactor":
+        p = self.params
+        coupling = p.chi_E * np.cos(theta[1:])  # d kappa_t / d theta = -chi_E cos theta
+        Br = self._B[1:, :]
+        A = sigma * D + self._K[1:, 1:] + Br[:, 1:] * (coupling / (sigma + 1.0))[None, :]
+        return _SchurFactor(sla.lu_factor(A, check_finite=False), Br, coupling, sigma, self.n)
+
+    def velocity(self, y: np.ndarray) -> np.ndarray:
+        """``y' = M(y)^{-1} f(y)`` (Cholesky solve with the SPD drag matrix). Shape (2n-1,)."""
+        f = self.rhs(y)
+        theta, _ = self.split(y)
+        D = self.resistance_matrix(theta)
+        out = f.copy()
+        out[: self.n - 1] = sla.cho_solve(sla.cho_factor(D, check_finite=False), f[: self.n - 1],
+                                          check_finite=False)
+        return out
+
+    # ------------------------------------------------------------------ observables
+    def shape(self, theta: np.ndarray) -> np.ndarray:
+        """Positions ``r(s) = int_0^s t`` at the nodes, ``t = (-sin theta, cos theta)``. (..., n) -> (..., n, 2)."""
+        I = self.mesh.cumulative
+        return np.stack([(-np.sin(theta)) @ I.T, np.cos(theta) @ I.T], axis=-1)
+
+    def clamp_force(self, drag: np.ndarray) -> np.ndarray:
+        """``F = -int_0^1 d ds`` (the force the filament exerts on the fluid). (..., n, 2) -> (..., 2)."""
+        return -np.einsum("q,...qk->...k", self.mesh.weights, drag)
+
+    def bending_energy(self, theta: np.ndarray, kappa: np.ndarray) -> np.ndarray:
+        """Discrete ``E_h = 1/2 sum_q w_q (theta_s - kappa - chi_N)^2`` (element-wise ``theta_s``)."""
+        m = self.mesh
+        theta = np.asarray(theta)
+        kappa = np.asarray(kappa)
+        ts = np.einsum("eab,...eb->...ea", m.element_derivative, theta[..., m.element_nodes])
+        g = ts - kappa[..., m.element_nodes] - self.params.chi_N
+        wloc = 0.5 * m.sizes[:, None] * m._reference[1][None, :]
+        return 0.5 * np.einsum("ea,...ea->...", wloc, g * g)
+
+    # ------------------------------------------------------------------ equilibrium
+    def equilibrium_state(self, tol: float = 1e-13, max_iter: int = 30) -> np.ndarray:
+        """The discrete equilibrium (state vector): ``K theta = B (kappa + chi_N)``,
+        ``kappa = -chi_E sin theta``, solved by Newton's method from the closed form of
+        MODEL.md section 3 interpolated at the nodes. It differs from the closed form by the
+        discretisation error, and stays put to round-off under :func:`~single_cilium.simulate`.
+        """
+        p = self.params
+        theta = equilibrium(p, self.mesh.nodes)
+        theta[0] = 0.0
+        Kr, Br = self._K[1:, 1:], self._B[1:, :]
+        for _ in range(max_iter):
+            g = Kr @ theta[1:] + Br @ (p.chi_E * np.sin(theta) - p.chi_N)
+            J = Kr + Br[:, 1:] * (p.chi_E * np.cos(theta[1:]))[None, :]
+            step = np.linalg.solve(J, g)
+            theta[1:] -= step
+            if np.max(np.abs(step)) <= tol * max(1.0, np.max(np.abs(theta))):
+                break
+        else:
+            raise RuntimeError("Newton's method for the discrete equilibrium did not converge")
+        return self.join(theta, -p.chi_E * np.sin(theta))
+
+
+class _SchurFactor:
+    """Solves ``(sigma M - J) x = b`` given the LU factors of the theta Schur complement."""
+
+    __slots__ = ("lu", "Br", "coupling", "sigma", "n")
+
+    def __init__(self, lu, Br, coupling, sigma, n):
+        self.lu, self.Br, self.coupling, self.sigma, self.n = lu, Br, coupling, sigma, n
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        n = self.n
+        bt, bk = b[: n - 1], b[n - 1:]
+        denom = self.sigma + 1.0
+        xt = sla.lu_solve(self.lu, bt + self.Br @ bk / denom, check_finite=False)
+        xk = bk / denom
+        xk[1:] -= self.coupling * xt / denom
+        return np.concatenate([xt, xk])

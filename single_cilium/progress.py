@@ -1,0 +1,50 @@
+"""Progress reporting strategies passed to long computations (``progress=`` arguments).
+
+A computation calls ``start(total, desc)``, then ``update(done)`` with the absolute amount done
+(e.g. the simulated time reached), then ``close()``. :class:`Progress` itself is silent; pass
+:class:`TqdmProgress` for a progress bar (the CLI does).
+"""
+from __future__ import annotations
+
+__all__ = ["Progress", "TqdmProgress"]
+
+
+class Progress:
+    """Silent progress reporter: the base class and the default."""
+
+    def start(self, total: float, desc: str = "") -> None:
+        pass
+
+    def update(self, done: float) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
+class TqdmProgress(Progress):
+    """A tqdm progress bar (on stderr), shown only for runs longer than ``delay`` seconds."""
+
+    def __init__(self, delay: float = 1.0, **tqdm_kwargs):
+        self.delay = delay
+        self.kwargs = tqdm_kwargs
+        self._bar = None
+        self._done = 0.0
+
+    def start(self, total: float, desc: str = "") -> None:
+        from tqdm.auto import tqdm
+
+        self._bar = tqdm(total=float(total), desc=desc, delay=self.delay, unit="t",
+                         bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]",
+                         **self.kwargs)
+        self._done = 0.0
+
+    def update(self, done: float) -> None:
+        if self._bar is not None and done > self._done:
+            self._bar.update(done - self._done)
+            self._done = done
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
