@@ -58,10 +58,14 @@ class Filament:
 
     Implements the problem interface of :class:`single_cilium.radau.Radau` for
     ``M(y) y' = f(y)`` with ``M = diag(D(theta), I)``.
+
+    ``kappa_frozen=True`` replaces the activity law by ``kappa_t = 0`` (a passive filament with a
+    fixed spontaneous curvature): the dynamics is then a pure gradient flow of the bending energy.
     """
 
     params: CiliumParams
     mesh: Mesh
+    kappa_frozen: bool = False
     _K: np.ndarray = field(init=False, repr=False)
     _B: np.ndarray = field(init=False, repr=False)
 
@@ -150,7 +154,10 @@ class Filament:
         theta, kappa = self.split(y)
         p = self.params
         f_theta = (kappa + p.chi_N) @ self._B.T - theta @ self._K.T
-        f_kappa = -kappa - p.chi_E * np.sin(theta)
+        if self.kappa_frozen:
+            f_kappa = np.zeros_like(kappa)
+        else:
+            f_kappa = -kappa - p.chi_E * np.sin(theta)
         return np.concatenate([f_theta[..., 1:], f_kappa], axis=-1)
 
     def mass_apply(self, y: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -173,10 +180,12 @@ class Filament:
 
     def _factor_with(self, D: np.ndarray, theta: np.ndarray, sigma: complex) -> "_SchurFactor":
         p = self.params
-        coupling = p.chi_E * np.cos(theta[1:])  # d kappa_t / d theta = -chi_E cos theta
+        # kappa rows of sigma M - J: (sigma + r) x_kappa + chi_E cos(theta) x_theta
+        r, cE = (0.0, 0.0) if self.kappa_frozen else (1.0, p.chi_E)
+        coupling = cE * np.cos(theta[1:])
         Br = self._B[1:, :]
-        A = sigma * D + self._K[1:, 1:] + Br[:, 1:] * (coupling / (sigma + 1.0))[None, :]
-        return _SchurFactor(sla.lu_factor(A, check_finite=False), Br, coupling, sigma, self.n)
+        A = sigma * D + self._K[1:, 1:] + Br[:, 1:] * (coupling / (sigma + r))[None, :]
+        return _SchurFactor(sla.lu_factor(A, check_finite=False), Br, coupling, sigma + r, self.n)
 
     def velocity(self, y: np.ndarray) -> np.ndarray:
         """``y' = M(y)^{-1} f(y)`` (Cholesky solve with the SPD drag matrix). Shape (2n-1,)."""
@@ -234,15 +243,15 @@ class Filament:
 class _SchurFactor:
     """Solves ``(sigma M - J) x = b`` given the LU factors of the theta Schur complement."""
 
-    __slots__ = ("lu", "Br", "coupling", "sigma", "n")
+    __slots__ = ("lu", "Br", "coupling", "denom", "n")
 
-    def __init__(self, lu, Br, coupling, sigma, n):
-        self.lu, self.Br, self.coupling, self.sigma, self.n = lu, Br, coupling, sigma, n
+    def __init__(self, lu, Br, coupling, denom, n):
+        self.lu, self.Br, self.coupling, self.denom, self.n = lu, Br, coupling, denom, n
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         n = self.n
         bt, bk = b[: n - 1], b[n - 1:]
-        denom = self.sigma + 1.0
+        denom = self.denom
         xt = sla.lu_solve(self.lu, bt + self.Br @ bk / denom, check_finite=False)
         xk = bk / denom
         xk[1:] -= self.coupling * xt / denom

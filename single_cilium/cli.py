@@ -1,0 +1,159 @@
+"""Command line: ``single-cilium <command> ...`` (``single-cilium --help`` lists the commands).
+
+Exit status: 0 on success, 2 for bad input (the message names it), 3 when a solver did not
+converge (the message says the time reached and what to change).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+
+import numpy as np
+
+from . import __version__
+from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
+from .dynamics import simulate
+from .mesh import Mesh
+from .params import CiliumParams
+from .progress import TqdmProgress
+from .radau import ConvergenceError
+
+logger = logging.getLogger(__name__)
+
+
+def _grid(text: str) -> np.ndarray:
+    """``a,b,c`` (a list) or ``start:stop:num`` (inclusive, like numpy.linspace)."""
+    try:
+        if ":" in text:
+            a, b, n = text.split(":")
+            return np.linspace(float(a), float(b), int(n))
+        return np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected 'a,b,c' or 'start:stop:num', got {text!r}") from None
+
+
+def _params(args) -> CiliumParams:
+    return CiliumParams(chi_E=args.chi_E, eta=args.eta, chi_N=args.chi_N)
+
+
+def _add_params(p: argparse.ArgumentParser, eta_default: float | None = None) -> None:
+    p.add_argument("--chi-E", dest="chi_E", type=float, required=True, help="stimulus L kappa_E")
+    if eta_default is None:
+        p.add_argument("--eta", type=float, required=True, help="drag/bending mu_par L^4/(tau B) > 0")
+    else:
+        p.add_argument("--eta", type=float, default=eta_default,
+                       help=f"drag/bending (does not change the equilibrium; default {eta_default})")
+    p.add_argument("--chi-N", dest="chi_N", type=float, default=0.0, help="natural curvature L kappa_N")
+
+
+def cmd_equilibrium(args) -> dict:
+    p = _params(args)
+    s = args.s
+    theta = equilibrium(p, s, phi=args.phi)
+    x, y = equilibrium_shape(p, s, phi=args.phi)
+    out = {"chi_E": p.chi_E, "chi_N": p.chi_N, "phi": args.phi, "s": s.tolist(),
+           "theta": theta.tolist(), "x": x.tolist(), "y": y.tolist()}
+    try:
+        out["theta_lim"] = limit_angle(p)
+    except NoLimitAngleError as exc:
+        out["theta_lim"] = None
+        out["theta_lim_note"] = str(exc)
+    return out
+
+
+def cmd_simulate(args) -> dict:
+    p = _params(args)
+    mesh = Mesh.for_params(p, degree=args.degree)
+    progress = None if args.quiet else TqdmProgress()
+    sim = simulate(p, args.t_end, mesh=mesh, rtol=args.rtol, n_out=args.n_out,
+                   amplitude=args.amplitude, seed=args.seed,
+                   error_estimate=not args.no_error_estimate, progress=progress)
+    if args.output:
+        sim.save(args.output)
+    F = sim.force
+    return {"chi_E": p.chi_E, "eta": p.eta, "chi_N": p.chi_N, "t_end": args.t_end,
+            "output": args.output, "mesh": sim.mesh.describe(), "rtol": args.rtol,
+            "F_end": F[-1].tolist(), "F_max": float(np.max(np.hypot(F[:, 0], F[:, 1]))),
+            "error_time": sim.error_time, "error_space": sim.error_space,
+            "wall_time": sim.wall_time, "stats": sim.stats.as_dict()}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0])
+    ap.add_argument("--version", action="version", version=__version__)
+    ap.add_argument("-v", "--verbose", action="store_true", help="log progress information")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    pe = sub.add_parser("equilibrium", help="closed-form equilibrium theta(s), shape and theta_lim")
+    _add_params(pe, eta_default=1.0)
+    pe.add_argument("--s", type=_grid, default=np.linspace(0, 1, 11),
+                    help="arc-length points: 'a,b,c' or 'start:stop:num' (default 0:1:11)")
+    pe.add_argument("--phi", type=float, default=0.0, help="clamp angle (default 0)")
+    pe.add_argument("--json", action="store_true", help="print JSON (default: a table)")
+    pe.set_defaults(func=cmd_equilibrium)
+
+    ps = sub.add_parser("simulate", help="nonlinear dynamics from a perturbed equilibrium")
+    _add_params(ps)
+    ps.add_argument("--t-end", dest="t_end", type=float, required=True, help="final time (units of tau)")
+    ps.add_argument("-o", "--output", help="NetCDF file for the time series")
+    ps.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance (default 1e-8)")
+    ps.add_argument("--degree", type=int, default=12, help="polynomial degree per element (default 12)")
+    ps.add_argument("--n-out", dest="n_out", type=int, default=1001, help="output times (default 1001)")
+    ps.add_argument("--amplitude", type=float, default=1e-3, help="initial perturbation of theta")
+    ps.add_argument("--seed", type=int, default=0, help="seed of the perturbation shape")
+    ps.add_argument("--no-error-estimate", action="store_true", help="skip the two companion runs")
+    ps.add_argument("--quiet", action="store_true", help="no progress bar")
+    ps.add_argument("--json", action="store_true", help="print a JSON summary")
+    ps.set_defaults(func=cmd_simulate)
+    return ap
+
+
+def _print_table(out: dict) -> None:
+    if "theta" in out:
+        print(f"{'s':>10} {'theta':>14} {'x':>14} {'y':>14}")
+        for row in zip(out["s"], out["theta"], out["x"], out["y"]):
+            print("".join(f"{v:>14.8g}" if i else f"{v:>10.4g}" for i, v in enumerate(row)))
+        lim = out["theta_lim"]
+        print(f"theta_lim = {lim:.12g}" if lim is not None else out["theta_lim_note"])
+    else:
+        for k, v in out.items():
+            if k != "stats":
+                print(f"{k:>12}: {v}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        out = args.func(args)
+    except ConvergenceError as exc:
+        print(f"single-cilium {args.command}: did not converge: {exc}", file=sys.stderr)
+        return 3
+    except (ValueError, TypeError) as exc:
+        print(f"single-cilium {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    if getattr(args, "json", False):
+        print(json.dumps(out, indent=1, default=_json_default, allow_nan=True))
+    else:
+        _print_table(out)
+    return 0
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, float) and math.isnan(o):
+        return None
+    raise TypeError(type(o).__name__)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
