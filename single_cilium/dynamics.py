@@ -63,32 +63,52 @@ def initial_state(filament: Filament, amplitude: float = 1e-3, seed: int | None 
     return filament.join(theta, kappa)
 
 
-def check_resolution(params: CiliumParams, mesh: Mesh, limit: float = 1e-3) -> float:
-    """Interpolation error of the closed-form equilibrium on ``mesh`` (max over points between
-    the nodes); raises ValueError, with the resolution needed, when it exceeds ``limit`` (the
-    clamp boundary layer, of width about ``1/(|chi_E| cos theta_lim)``, is not resolved)."""
+def check_resolution(params: CiliumParams, mesh: Mesh, state: np.ndarray | None = None,
+                     limit: float = 1e-2) -> float:
+    """Refuse a mesh that cannot represent the problem; return the resolution indicator.
+
+    The indicator (:meth:`Mesh.tail`, about the relative interpolation error) is taken of the
+    closed-form equilibrium ``theta`` (the clamp boundary layer, of width about
+    ``1/(|chi_E| cos theta_lim)``) and, when given, of the initial state (``cos theta``,
+    ``sin theta`` and ``kappa``: an initial coil must be resolved too). Above ``limit`` a
+    ValueError says which mesh would do.
+    """
     from .equilibrium import equilibrium
 
-    def err(m: Mesh) -> float:
-        mid = 0.5 * (m.nodes[1:] + m.nodes[:-1])
-        q = np.concatenate([mid, 0.5 * (mid[1:] + m.nodes[1:-1])])
-        return float(np.max(np.abs(m.interpolate(equilibrium(params, m.nodes), q) - equilibrium(params, q))))
+    def worst(m: Mesh, th0: np.ndarray | None, ka0: np.ndarray | None) -> float:
+        fields = [equilibrium(params, m.nodes)]
+        if th0 is not None:
+            fields += [np.cos(th0), np.sin(th0), ka0]
+        return max(m.tail(f) for f in fields)
 
-    e = err(mesh)
-    if e > limit:
-        need = None
-        for deg in range(8, 41, 2):
-            cand = Mesh.for_params(params, degree=deg)
-            if err(cand) <= 0.1 * limit:
-                need = cand
-                break
-        width = 1.0 / math.sqrt(max(abs(params.chi_E) ** 2 - params.chi_N**2, 1.0))
-        hint = (f"Mesh.for_params(params, degree={need.degree}) ({need.describe()}) resolves it"
-                if need is not None else "refine the mesh towards the clamp")
-        raise ValueError(
-            f"mesh ({mesh.describe()}) does not resolve the clamp boundary layer of width ~{width:.2g}: "
-            f"the equilibrium interpolates with error {e:.2g} > {limit:g}; {hint}")
-    return e
+    th0 = ka0 = None
+    if state is not None:
+        th0, ka0 = Filament(params, mesh).split(state)
+    e = worst(mesh, th0, ka0)
+    if e <= limit:
+        return e
+    turns = 0.0 if th0 is None else float(np.ptp(th0)) / (2 * math.pi)
+    hint = "refine the mesh"
+    for deg in range(6, 41, 2):
+        cand = Mesh.for_params(params, degree=deg, turns=turns)
+        if th0 is None:
+            ok = worst(cand, None, None) <= 0.1 * limit
+        else:
+            th_c, ka_c = mesh.interpolate(th0, cand.nodes), mesh.interpolate(ka0, cand.nodes)
+            ok = worst(cand, th_c, ka_c) <= 0.1 * limit
+        if ok:
+            arg = f", turns={turns:.3g}" if turns > 1 else ""
+            hint = f"Mesh.for_params(params, degree={deg}{arg}) ({cand.describe()}) resolves it"
+            break
+    raise ValueError(
+        f"mesh ({mesh.describe()}) is too coarse: resolution indicator {e:.2g} > {limit:g} "
+        f"(the clamp boundary layer, width ~{_layer_width(params):.2g}, or the initial state is not "
+        f"resolved); {hint}")
+
+
+def _layer_width(p: CiliumParams) -> float:
+    d = (abs(p.chi_E) - abs(p.chi_N)) * (abs(p.chi_E) + abs(p.chi_N))
+    return 1.0 / math.sqrt(d) if d > 1.0 else 1.0
 
 
 @dataclass(frozen=True)
@@ -171,7 +191,8 @@ def simulate(
         ``amplitude`` times a seeded smooth shape that keeps the tip conditions
         (:func:`initial_state`).
     mesh : Mesh, optional
-        Default :meth:`Mesh.for_params` (degree 12); checked by :func:`check_resolution`.
+        Default :meth:`Mesh.for_params` (degree 12); checked, with the initial state, by
+        :func:`check_resolution`.
     rtol : float
         Relative tolerance of the local error (absolute: ``rtol`` for theta and
         ``rtol * max(1, |chi_E|, |chi_N|)`` for kappa).
@@ -207,12 +228,13 @@ def simulate(
     if int(n_out) != n_out or n_out < 2:
         raise ValueError(f"n_out must be an integer >= 2, got {n_out}")
     mesh = mesh if mesh is not None else Mesh.for_params(params)
-    check_resolution(params, mesh)
     fil = Filament(params, mesh)
     if state is None:
+        check_resolution(params, mesh)
         y0 = initial_state(fil, amplitude, seed)
     else:
         y0 = _state_vector(fil, state)
+        check_resolution(params, mesh, y0)
     t_out = np.linspace(0.0, t_end, int(n_out))
     progress = progress if progress is not None else Progress()
 
@@ -264,7 +286,6 @@ def _run(fil, y0, t_out, rtol, max_steps, progress, desc):
     try:
         with threadpool_limits(limits=1, user_api="blas"):
             Y, Yd, stats = solver.integrate(y0, t_out, callback=lambda t, y: progress.update(t))
-            Yd[0] = fil.velocity(y0)
     finally:
         progress.close()
     return Y, Yd, stats

@@ -20,7 +20,8 @@ With ``u = tan(theta/2) = p/q`` the equation is the Riccati equation
 ``exp(sH) = C(s) I + S(s) H`` where ``C = cosh(lambda s)``, ``S = sinh(lambda s)/lambda``
 (``cos``/``sin`` when ``lambda^2 < 0``). In the orthonormal frame ``(v0, v0_perp)``,
 
-* ``v = (C + S a/2, S f/2)`` with ``a = chi_E cos(phi)``, ``f = chi_N - chi_E sin(phi) = theta'(0)``;
+* ``v = (C + S a/2, S f/2)`` with ``a = chi_E cos(phi)``,
+  ``f = chi_N - chi_E sin(phi) = theta'(0)``;
   ``theta = phi + 2 * (angle of v)``: the half-angle increment is an ``atan2``;
 * ``(|v|^2)' = chi_E cos(theta) |v|^2``, hence ``y(s) = ln|v(s)|^2 / chi_E``, and
   ``|v|^2 - 1 = chi_E G`` with ``G = S^2 (chi_E - chi_N sin(phi))/2 + C S cos(phi)``, hence
@@ -32,8 +33,8 @@ itself does not have: the hyperbolic case is scaled by ``exp(-lambda s)`` (``E =
 ``T = (1 - E)/(2 lambda)``), ``b + a`` is computed as ``-f g/(b - a)`` (``b = 2 lambda``,
 ``g = chi_N + chi_E sin(phi)``) when ``a < 0``, and in the coiled case (``|chi_E| < |chi_N|``)
 the phase is reduced modulo the period and ``x`` is computed from the angle of ``v`` relative to
-the ``chi_E = 0`` rotation, with ``chi_E`` factored out analytically. Negative ``chi_N`` is mapped to
-positive ``chi_N`` by the mirror symmetry ``theta -> -theta``, which therefore holds exactly.
+the ``chi_E = 0`` rotation, with ``chi_E`` factored out analytically. Negative ``chi_N`` is mapped
+to positive ``chi_N`` by the mirror symmetry ``theta -> -theta``, which therefore holds exactly.
 """
 from __future__ import annotations
 
@@ -137,20 +138,21 @@ def _canonical(
         return theta, (-sp * s if shape else None), (cp * s if shape else None)
 
     a = chi_E * cp
-    disc = (chi_E - chi_N) * (chi_E + chi_N)  # 4 lambda^2, factored: exact sign near |chi_E| = chi_N
+    disc = (chi_E - chi_N) * (chi_E + chi_N)  # 4 lambda^2, factored: no cancellation
     x = y = None
     if disc >= 0.0:
-        # a fixed point exists: |theta - phi| < 2 pi, one atan2 suffices. (chi_E != 0 here: chi_E = 0
-        # would force chi_N = 0 and f = 0.)
+        # a fixed point exists: |theta - phi| < 2 pi, one atan2 suffices. (chi_E != 0 here:
+        # chi_E = 0 would force chi_N = 0 and f = 0.)
         b = math.sqrt(disc)  # 2 lambda >= 0
         g = chi_N + chi_E * sp
-        bpa = b + a if a >= 0.0 else -(f * g) / (b - a)  # b + a without cancellation (b^2-a^2 = -fg)
+        # b + a without cancellation (b^2 - a^2 = -f g)
+        bpa = b + a if a >= 0.0 else -(f * g) / (b - a)
         bs = b * s
         with np.errstate(under="ignore"):
             E = np.exp(-bs)
         T = -np.expm1(-bs) / b if b > 0.0 else s.copy()  # (1 - E)/b, -> s as b -> 0
         cross = T * f
-        dot = 2.0 * E + T * bpa  # = 1 + E + T a, non-negative terms unless the angle passes pi/2
+        dot = 2.0 * E + T * bpa  # = 1 + E + T a; < 0 only once |theta - phi| has passed pi
         h = np.arctan2(cross, dot)  # half of theta - phi, in (-pi, pi)
         theta = phi + 2.0 * h
         if shape:
@@ -181,7 +183,7 @@ def _canonical(
             q = sr / w
             N = q * (cr * (c - sp) - sr * cp)
             M = q * (sr * (c - sp) + cr * cp)
-            x = 2.0 * _atan2_over(chi_E, N, 1.0 + chi_E * M) - (chi_E / (chi_N + w)) * s
+            x = 2.0 * _atan2_over(chi_E, N, 1.0 + chi_E * M) - c * s
             S = 2.0 * q
             G = S * S * (chi_E - chi_N * sp) / 2.0 + cr * S * cp
             y = _log1p_over(chi_E, G)
@@ -262,8 +264,10 @@ def equilibrium_shape(
     ``t = (-sin theta, cos theta)`` with ``theta = equilibrium(params, s, phi)``; ``e2`` (the
     ``y`` axis) is the field direction, ``x`` is along ``e1``. Closed forms (see the module
     docstring): ``x = (theta - phi - chi_N s)/chi_E`` and ``y = ln|v(s)|^2/chi_E``, each evaluated
-    in a form without cancellation (absolute accuracy about ``1e-15 (1 + s)``; measured
-    <= 1e-13 against adaptive quadrature of the tangent over a battery of regimes, see the tests).
+    in a form without cancellation, so that no quadrature is needed. Measured absolute error:
+    <= 1e-14 against subdivided adaptive quadrature of the tangent for 532 parameter sets
+    (``|chi_E|`` from 0 to 1e4, ``chi_E = +-chi_N (1 +- 1e-12)``, coiled and folded, ``s <= 2.5``),
+    <= 4e-16 against 40-digit arithmetic on the hardest of them.
 
     Parameters
     ----------

@@ -130,18 +130,23 @@ class Mesh:
         return cls(tuple(b), degree)
 
     @classmethod
-    def for_params(cls, params: CiliumParams, degree: int = 12) -> "Mesh":
-        """A graded mesh suited to ``params``: the layer width is ``1 / (|chi_E| cos theta_lim)``
-        when ``|chi_E| > |chi_N|`` (``1`` otherwise), and the coiled regime gets more elements.
+    def for_params(cls, params: CiliumParams, degree: int = 12, turns: float | None = None) -> "Mesh":
+        """A graded mesh suited to ``params``.
+
+        The clamp layer width is ``1 / (|chi_E| cos theta_lim)`` when ``|chi_E| > |chi_N|``
+        (no layer otherwise); ``theta`` may wind ``turns`` times along the filament (default:
+        ``|chi_N| / (2 pi)`` in the coiled regime ``|chi_E| <= |chi_N|``, 0 otherwise; pass
+        ``turns = |chi_N| / (2 pi)`` to start an unrolling filament from its stress-free arc),
+        and each half turn gets an element.
         """
         cE, cN = abs(params.chi_E), abs(params.chi_N)
         if cE > cN:
             width = 1.0 / math.sqrt((cE - cN) * (cE + cN))  # = 1/(|chi_E| cos theta_lim)
-            n_outer = 2
         else:
-            # coiled: theta winds about |chi_N| / (2 pi) times; one element per half turn
             width = 1.0
-            n_outer = max(2, int(math.ceil(cN / math.pi)))
+        if turns is None:
+            turns = 0.0 if cE > cN else cN / (2 * math.pi)
+        n_outer = max(2, int(math.ceil(2 * turns)))
         return cls.graded(width, degree=degree, n_outer=n_outer)
 
     # ------------------------------------------------------------------ reference element
@@ -242,6 +247,19 @@ class Mesh:
         rows, cols = np.nonzero(exact)
         out[rows] = local[rows, cols]
         return out.reshape(s.shape + values.shape[1:])
+
+    def tail(self, values: np.ndarray) -> float:
+        """Resolution indicator of nodal ``values`` (shape ``(n,)``): the largest, over elements,
+        of the sum of the moduli of the two highest Legendre coefficients on the element, relative
+        to ``max |values|`` (0 for a zero function). For a resolved smooth function it is about
+        the interpolation error and falls exponentially with the degree."""
+        values = np.asarray(values, dtype=float)
+        scale = np.max(np.abs(values))
+        if scale == 0:
+            return 0.0
+        x = self._reference[0]
+        coef = np.linalg.solve(npleg.legvander(x, self.degree), values[self.element_nodes].T)
+        return float(np.max(np.abs(coef[-1]) + np.abs(coef[-2])) / scale)
 
     def derivative_at_nodes(self, values: np.ndarray) -> np.ndarray:
         """Per-element derivative of nodal ``values``, shape ``(E, p+1)``."""

@@ -140,8 +140,8 @@ class Radau:
 
         Returns the states at ``t_out`` (shape ``(len(t_out), size)``), their time derivatives
         (same shape; the derivative of the collocation polynomial at the end of the step that
-        lands on each output time; the first row, at the initial time, is NaN: the caller
-        decides how to obtain it) and the work counters.
+        lands on each output time, and at the initial time that of the first step's polynomial
+        at its start) and the work counters.
         ``callback(t, y)`` is called after each accepted step.
         """
         prob = self.problem
@@ -225,6 +225,10 @@ class Radau:
                 continue
 
             # accepted
+            if stats.n_accepted == 0:
+                # derivative at the initial time: of the first step's collocation polynomial,
+                # u(t0 + x h) = y0 + (Z^T P) (x, x^2, x^3); well conditioned, unlike M^-1 f(y0)
+                out_dot[0] = (Z.T @ P[:, 0]) / h_take
             stats.n_accepted += 1
             stats.h_min = min(stats.h_min, h_take)
             stats.h_max = max(stats.h_max, h_take)
