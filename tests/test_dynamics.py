@@ -76,7 +76,7 @@ def test_mirror_symmetry_of_the_motion(published):
 
 def test_early_growth_is_an_oscillation_converging_under_refinement(published):
     rates = []
-    for deg, rtol in ((5, 1e-6), (8, 1e-8), (10, 1e-9), (12, 1e-10)):
+    for deg, rtol in ((6, 1e-6), (8, 1e-8), (10, 1e-9), (12, 1e-10)):
         sim = simulate(published, 2.0, mesh=Mesh.for_params(published, deg), rtol=rtol, n_out=401,
                        amplitude=1e-4, error_estimate=False)
         tip = sim.data.theta.values[:, -1] - sim.data.theta.values[0, -1]
@@ -93,14 +93,15 @@ def test_early_growth_is_an_oscillation_converging_under_refinement(published):
 
 
 def test_space_convergence_is_exponential(published):
-    ref = simulate(published, 0.3, mesh=Mesh.for_params(published, 16), rtol=1e-11, n_out=31, error_estimate=False)
-    errs = []
-    for deg in (6, 8, 10):
-        sim = simulate(published, 0.3, mesh=Mesh.for_params(published, deg), rtol=1e-11, n_out=31,
-                       error_estimate=False)
-        errs.append(rel_diff(sim.force, ref.force, skip=5))
-    assert errs[0] > 10 * errs[1] > 100 * errs[2], errs
-    assert errs[2] < 1e-6
+    """F(t) of a large-amplitude motion: from degree 6 to 8 the error falls by orders of magnitude
+    to the round-off floor of the time integration (spectral convergence; the benchmark shows the
+    whole table)."""
+    kw = dict(rtol=1e-11, n_out=31, error_estimate=False, amplitude=0.1)
+    ref = simulate(published, 0.3, mesh=Mesh.for_params(published, 16), **kw)
+    errs = [rel_diff(simulate(published, 0.3, mesh=Mesh.for_params(published, deg), **kw).force, ref.force, skip=5)
+            for deg in (6, 8)]
+    assert errs[0] > 50 * errs[1], errs
+    assert errs[1] < 1e-9
 
 
 def test_time_tolerance_proportionality(published):
