@@ -167,25 +167,27 @@ class Filament:
         theta_t = np.concatenate([np.zeros(v.shape[:-1] + (1,)), v[..., : n - 1]], axis=-1)
         return np.concatenate([self.resistance(theta, theta_t), v[..., n - 1:]], axis=-1)
 
-    def factor(self, y: np.ndarray, sigma: complex) -> "_SchurFactor":
-        """Factorisation of ``sigma M(y) - J(y)`` (``J = df/dy``; the derivative of ``D(theta)``
-        with respect to theta is left out, as in a simplified Newton method).
+    def factor(self, y: np.ndarray, sigmas) -> list["_SchurFactor"]:
+        """Factorisations of ``sigma M(y) - J(y)`` for each ``sigma`` in ``sigmas`` (``J = df/dy``;
+        the derivative of ``D(theta)`` with respect to theta is left out, as in a simplified
+        Newton method). ``D(theta)`` is formed once for all of them.
 
         The kappa block is diagonal, so it is eliminated (Schur complement) and only an
-        ``(n-1) x (n-1)`` matrix is LU-factorised.
+        ``(n-1) x (n-1)`` matrix is LU-factorised per ``sigma``.
         """
         theta, _ = self.split(y)
         D = self.resistance_matrix(theta)
-        return self._factor_with(D, theta, sigma)
-
-    def _factor_with(self, D: np.ndarray, theta: np.ndarray, sigma: complex) -> "_SchurFactor":
         p = self.params
         # kappa rows of sigma M - J: (sigma + r) x_kappa + chi_E cos(theta) x_theta
         r, cE = (0.0, 0.0) if self.kappa_frozen else (1.0, p.chi_E)
         coupling = cE * np.cos(theta[1:])
         Br = self._B[1:, :]
-        A = sigma * D + self._K[1:, 1:] + Br[:, 1:] * (coupling / (sigma + r))[None, :]
-        return _SchurFactor(sla.lu_factor(A, check_finite=False), Br, coupling, sigma + r, self.n)
+        Kr = self._K[1:, 1:]
+        out = []
+        for sigma in sigmas:
+            A = sigma * D + Kr + Br[:, 1:] * (coupling / (sigma + r))[None, :]
+            out.append(_SchurFactor(A, Br, coupling, sigma + r, self.n))
+        return out
 
     def velocity(self, y: np.ndarray) -> np.ndarray:
         """``y' = M(y)^{-1} f(y)`` (Cholesky solve with the SPD drag matrix). Shape (2n-1,)."""
@@ -241,18 +243,25 @@ class Filament:
 
 
 class _SchurFactor:
-    """Solves ``(sigma M - J) x = b`` given the LU factors of the theta Schur complement."""
+    """Solves ``(sigma M - J) x = b`` with the LU factors of the theta Schur complement ``A``
+    (LAPACK getrf/getrs called directly: these matrices are small and the solves many)."""
 
-    __slots__ = ("lu", "Br", "coupling", "denom", "n")
+    __slots__ = ("lu", "piv", "getrs", "Br", "coupling", "denom", "n")
 
-    def __init__(self, lu, Br, coupling, denom, n):
-        self.lu, self.Br, self.coupling, self.denom, self.n = lu, Br, coupling, denom, n
+    def __init__(self, A, Br, coupling, denom, n):
+        getrf, getrs = sla.lapack.get_lapack_funcs(("getrf", "getrs"), (A,))
+        lu, piv, info = getrf(A, overwrite_a=True)
+        if info > 0:
+            raise np.linalg.LinAlgError(f"singular Newton matrix (pivot {info})")
+        self.lu, self.piv, self.getrs = lu, piv, getrs
+        self.Br, self.coupling, self.denom, self.n = Br, coupling, denom, n
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         n = self.n
         bt, bk = b[: n - 1], b[n - 1:]
         denom = self.denom
-        xt = sla.lu_solve(self.lu, bt + self.Br @ bk / denom, check_finite=False)
+        rhs = (bt + self.Br @ bk / denom).astype(self.lu.dtype, copy=False)
+        xt, info = self.getrs(self.lu, self.piv, rhs)
         xk = bk / denom
         xk[1:] -= self.coupling * xt / denom
         return np.concatenate([xt, xk])

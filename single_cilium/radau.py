@@ -25,9 +25,9 @@ A problem passed to :class:`Radau` must provide
     ``f`` evaluated row-wise on stacked states ``Y`` of shape ``(k, size)``.
 ``mass_apply(Y, V) -> MV``
     ``M(Y_i) V_i`` row-wise, shapes ``(k, size)``.
-``factor(y, sigma) -> obj``
-    an object whose ``solve(b)`` solves ``(sigma M(y) - J(y)) x = b`` (``sigma`` real or
-    complex, ``J`` an approximation of ``df/dy``).
+``factor(y, sigmas) -> list``
+    for each ``sigma`` (one real, one complex), an object whose ``solve(b)`` solves
+    ``(sigma M(y) - J(y)) x = b`` (``J`` an approximation of ``df/dy``).
 """
 from __future__ import annotations
 
@@ -82,7 +82,7 @@ class StepProblem(Protocol):
 
     def rhs(self, Y: np.ndarray) -> np.ndarray: ...
     def mass_apply(self, Y: np.ndarray, V: np.ndarray) -> np.ndarray: ...
-    def factor(self, y: np.ndarray, sigma: complex): ...
+    def factor(self, y: np.ndarray, sigmas) -> list: ...
 
 
 @dataclass
@@ -182,8 +182,7 @@ class Radau:
             h_take = min(h, t_out[k_out] - t)
             landing = h_take == t_out[k_out] - t
             if lu_real is None or h_fact != h_take:
-                lu_real = prob.factor(y, MU_REAL / h_take)
-                lu_complex = prob.factor(y, MU_COMPLEX / h_take)
+                lu_real, lu_complex = prob.factor(y, (MU_REAL / h_take, MU_COMPLEX / h_take))
                 stats.n_factorizations += 2
                 h_fact, fact_current = h_take, True
 

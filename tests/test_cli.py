@@ -1,0 +1,51 @@
+import json
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from single_cilium import CiliumParams, equilibrium, limit_angle
+from single_cilium.cli import main
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_equilibrium_json(capsys):
+    code, out, _ = run(capsys, "equilibrium", "--chi-E", "200", "--chi-N", "100.53", "--s", "0,0.5,1", "--json")
+    assert code == 0
+    d = json.loads(out)
+    p = CiliumParams(200, 1, 100.53)
+    assert d["theta"] == pytest.approx(equilibrium(p, [0, 0.5, 1]).tolist(), abs=1e-15)
+    assert d["theta_lim"] == pytest.approx(limit_angle(p))
+    assert d["y"][-1] > 0.8  # the unrolled filament reaches up along the field
+
+
+def test_equilibrium_coiled_has_no_limit_angle(capsys):
+    code, out, _ = run(capsys, "equilibrium", "--chi-E", "50", "--chi-N", "100.53", "--json")
+    d = json.loads(out)
+    assert code == 0 and d["theta_lim"] is None and "coil" in d["theta_lim_note"]
+
+
+def test_simulate_writes_netcdf(tmp_path, capsys):
+    path = tmp_path / "run.nc"
+    code, out, err = run(capsys, "simulate", "--chi-E", "200", "--eta", "1", "--chi-N", "100.53",
+                         "--t-end", "0.05", "--n-out", "6", "--degree", "8", "-o", str(path), "--json", "--quiet")
+    assert code == 0, err
+    d = json.loads(out)
+    ds = xr.open_dataset(path, engine="h5netcdf")
+    assert ds.sizes["time"] == 6 and ds.attrs["chi_E"] == 200.0
+    assert np.isfinite(d["error_time"]) and d["error_time"] < 1e-3
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["simulate", "--chi-E", "200", "--eta", "-1", "--t-end", "1"], "eta"),
+    (["simulate", "--chi-E", "200", "--eta", "1", "--t-end", "0"], "t_end"),
+    (["equilibrium", "--chi-E", "nan"], "chi_E"),
+])
+def test_bad_input_exit_code_2(capsys, argv, needle):
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and needle in err
