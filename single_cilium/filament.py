@@ -230,15 +230,22 @@ class Filament:
         theta = equilibrium(p, self.mesh.nodes)
         theta[0] = 0.0
         Kr, Br = self._K[1:, 1:], self._B[1:, :]
+        last = np.inf
         for _ in range(max_iter):
             g = Kr @ theta[1:] + Br @ (p.chi_E * np.sin(theta) - p.chi_N)
             J = Kr + Br[:, 1:] * (p.chi_E * np.cos(theta[1:]))[None, :]
             step = np.linalg.solve(J, g)
             theta[1:] -= step
-            if np.max(np.abs(step)) <= tol * max(1.0, np.max(np.abs(theta))):
+            size = np.max(np.abs(step)) / max(1.0, np.max(np.abs(theta)))
+            # converged, or stagnating at round-off (the Newton matrix has condition ~1e5-1e6)
+            if size <= tol or (size <= 1e-9 and size >= 0.5 * last):
                 break
+            last = size
         else:
-            raise RuntimeError("Newton's method for the discrete equilibrium did not converge")
+            raise RuntimeError(
+                f"Newton's method for the discrete equilibrium did not converge (last step {size:.2g}); "
+                f"the mesh ({self.mesh.describe()}) probably does not resolve the equilibrium: use "
+                "Mesh.for_params or a higher degree")
         return self.join(theta, -p.chi_E * np.sin(theta))
 
 

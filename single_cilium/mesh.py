@@ -137,17 +137,24 @@ class Mesh:
         (no layer otherwise); ``theta`` may wind ``turns`` times along the filament (default:
         ``|chi_N| / (2 pi)`` in the coiled regime ``|chi_E| <= |chi_N|``, 0 otherwise; pass
         ``turns = |chi_N| / (2 pi)`` to start an unrolling filament from its stress-free arc),
-        and each half turn gets an element.
+        and each half turn gets an element. Elements where the closed-form equilibrium is
+        not resolved to about ``10^-(degree/2 - 1)`` are then bisected (e.g. the interior fold
+        of a filament with ``chi_E < 0`` and a small ``chi_N``).
         """
         cE, cN = abs(params.chi_E), abs(params.chi_N)
-        if cE > cN:
-            width = 1.0 / math.sqrt((cE - cN) * (cE + cN))  # = 1/(|chi_E| cos theta_lim)
+        if cE >= cN:
+            # exponential approach at rate sqrt(chi_E^2 - chi_N^2) = |chi_E| cos theta_lim, or, at
+            # chi_E = chi_N, algebraic on the scale 1/chi_N
+            width = 1.0 / max(math.sqrt((cE - cN) * (cE + cN)), 0.5 * cN, 1.0)
         else:
             width = 1.0
         if turns is None:
-            turns = 0.0 if cE > cN else cN / (2 * math.pi)
+            turns = 0.0 if cE >= cN else cN / (2 * math.pi)
         n_outer = max(2, int(math.ceil(2 * turns)))
-        return cls.graded(width, degree=degree, n_outer=n_outer)
+        mesh = cls.graded(width, degree=degree, n_outer=n_outer)
+        from .equilibrium import equilibrium
+
+        return mesh.refined(lambda s: equilibrium(params, s), 10.0 ** (1.0 - degree / 2.0))
 
     # ------------------------------------------------------------------ reference element
     @cached_property
@@ -248,18 +255,35 @@ class Mesh:
         out[rows] = local[rows, cols]
         return out.reshape(s.shape + values.shape[1:])
 
-    def tail(self, values: np.ndarray) -> float:
-        """Resolution indicator of nodal ``values`` (shape ``(n,)``): the largest, over elements,
-        of the sum of the moduli of the two highest Legendre coefficients on the element, relative
-        to ``max |values|`` (0 for a zero function). For a resolved smooth function it is about
-        the interpolation error and falls exponentially with the degree."""
+    def element_tails(self, values: np.ndarray) -> np.ndarray:
+        """Per element, the sum of the moduli of the two highest Legendre coefficients of nodal
+        ``values`` (shape ``(n,)``), relative to ``max |values|``; shape ``(E,)``."""
         values = np.asarray(values, dtype=float)
         scale = np.max(np.abs(values))
         if scale == 0:
-            return 0.0
+            return np.zeros(self.n_elements)
         x = self._reference[0]
         coef = np.linalg.solve(npleg.legvander(x, self.degree), values[self.element_nodes].T)
-        return float(np.max(np.abs(coef[-1]) + np.abs(coef[-2])) / scale)
+        return (np.abs(coef[-1]) + np.abs(coef[-2])) / scale
+
+    def tail(self, values: np.ndarray) -> float:
+        """Resolution indicator of nodal ``values``: the largest of :meth:`element_tails`. For a
+        resolved smooth function it is about the relative interpolation error and falls
+        exponentially with the degree."""
+        return float(np.max(self.element_tails(values)))
+
+    def refined(self, values_at, target: float, max_elements: int = 256) -> "Mesh":
+        """Bisect the elements where the function ``values_at(s)`` (evaluated at the nodes) has
+        an element tail above ``target``, until none has or ``max_elements`` is reached."""
+        mesh = self
+        while mesh.n_elements < max_elements:
+            bad = mesh.element_tails(values_at(mesh.nodes)) > target
+            if not np.any(bad):
+                break
+            b = np.asarray(mesh.breaks)
+            mids = 0.5 * (b[:-1] + b[1:])[bad][: max_elements - mesh.n_elements]
+            mesh = Mesh(tuple(np.sort(np.concatenate([b, mids]))), mesh.degree)
+        return mesh
 
     def derivative_at_nodes(self, values: np.ndarray) -> np.ndarray:
         """Per-element derivative of nodal ``values``, shape ``(E, p+1)``."""

@@ -128,6 +128,9 @@ HARD = {
     "small eta=0.05": (CiliumParams(200, 0.05, 16 * TWO_PI), None),
     "large eta=20": (CiliumParams(200, 20, 16 * TWO_PI), None),
     "far from equilibrium: stress-free arc": (CiliumParams(200, 1, 16 * TWO_PI), "arc"),
+    "folded: chi_E=-50, chi_N=0.01*2pi": (CiliumParams(-50, 1, 0.01 * TWO_PI), None),
+    "unstable straight: chi_E=-50, chi_N=0": (CiliumParams(-50, 1, 0.0), None),
+    "degenerate chi_E = chi_N": (CiliumParams(16 * TWO_PI, 1, 16 * TWO_PI), None),
 }
 
 

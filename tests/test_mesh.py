@@ -48,3 +48,14 @@ def test_for_params_grading_follows_the_layer():
 def test_bad_meshes(breaks, degree):
     with pytest.raises(ValueError):
         Mesh(breaks, degree)
+
+
+def test_for_params_refines_an_interior_fold():
+    """chi_E < 0 with a small chi_N: theta climbs from 0 to about pi in a front near
+    s = ln(|chi_E| / chi_N) / |chi_E|; the mesh is bisected there until it is resolved."""
+    from single_cilium import equilibrium
+    p = CiliumParams(-50, 1, 0.01 * 2 * np.pi)
+    m = Mesh.for_params(p, degree=12)
+    assert m.tail(equilibrium(p, m.nodes)) < 1e-5
+    plain = Mesh.graded(1 / 50, degree=12)
+    assert plain.tail(equilibrium(p, plain.nodes)) > 1e-3  # the plain graded mesh is not enough
