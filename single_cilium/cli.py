@@ -79,7 +79,8 @@ def cmd_simulate(args) -> dict:
             "output": args.output, "mesh": sim.mesh.describe(), "rtol": args.rtol,
             "F_end": F[-1].tolist(), "F_max": float(np.max(np.hypot(F[:, 0], F[:, 1]))),
             "error_time": sim.error_time, "error_space": sim.error_space,
-            "wall_time": sim.wall_time, "stats": sim.stats.as_dict()}
+            "wall_time": sim.wall_time, "status": sim.status, "message": sim.message,
+            "stats": sim.stats.as_dict()}
 
 
 def build_parser() -> argparse.ArgumentParser:

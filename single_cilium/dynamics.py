@@ -135,6 +135,9 @@ class Simulation:
         ``error_estimate=False``.
     wall_time : float
         Seconds spent in the main run.
+    status, message : str
+        ``"success"``; ``"inaccurate"`` when the estimated error exceeds ``1e-3`` (the message
+        says which resolution to raise); ``"unchecked"`` without error estimate.
     """
 
     params: CiliumParams
@@ -259,7 +262,15 @@ def simulate(
         err_s = float(np.max(np.abs(F_c[1:] - F[1:])) / scale)
         data.attrs.update(error_time=err_t, error_space=err_s)
         logger.info("simulate %s: F(t) error estimates time %.2e, space %.2e", params, err_t, err_s)
-    return Simulation(params, mesh, data, stats, err_t, err_s, wall)
+        message = f"estimated relative error of F(t): time {err_t:.1e}, space {err_s:.1e}"
+        status = "success"
+        if err_t + err_s > 1e-3:
+            status = "inaccurate"
+            fix = "lower rtol" if err_t >= err_s else "raise the mesh degree"
+            message += f"; above 1e-3: {fix}"
+    else:
+        status, message = "unchecked", "no error estimate (error_estimate=False)"
+    return Simulation(params, mesh, data, stats, err_t, err_s, wall, status, message)
 
 
 def _state_vector(fil: Filament, state) -> np.ndarray:

@@ -12,10 +12,6 @@ from single_cilium.radau import Radau
 TWO_PI = 2 * np.pi
 
 
-def force(sim):
-    return sim.force
-
-
 def rel_diff(Fa, Fb, skip=1):
     """max_t |Fa - Fb| / max_t |Fb| over the outputs after the first ``skip`` ones."""
     return np.max(np.abs(Fa[skip:] - Fb[skip:])) / np.max(np.abs(Fb[skip:]))
@@ -120,6 +116,7 @@ def test_error_estimate_is_an_upper_estimate(published):
     true = rel_diff(sim.force, ref.force)
     assert 0 < true <= sim.error_time + sim.error_space
     assert sim.error < 100 * max(true, 1e-9)  # and not wildly pessimistic
+    assert sim.status == "success" and "error" in sim.message
 
 
 HARD = {
@@ -201,7 +198,6 @@ def test_unresolved_initial_coil_is_refused(published):
 
 
 def test_failure_raises_with_time_reached(published):
-    from single_cilium import dynamics
     with pytest.raises(ConvergenceError, match="max_steps=5 reached at t=") as info:
         simulate(published, 1.0, max_steps=5, error_estimate=False)
     assert 0 < info.value.t < 1.0
