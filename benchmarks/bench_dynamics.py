@@ -242,12 +242,25 @@ def main(argv=None) -> int:
 
     # ------------------------------------------------------------ reference
     t0 = time.perf_counter()
+    ref = None
+    ref_notes = []
     with threadpool_limits(limits=1, user_api="blas"):
-        ref = ours(*ref_spec, t_end, n_out)
+        # fall back to a neighbouring rtol if the solver fails at the requested one
+        for r in (ref_spec[1], 0.8 * ref_spec[1], 1.25 * ref_spec[1]):
+            try:
+                ref = ours(ref_spec[0], r, t_end, n_out)
+                ref_spec = (ref_spec[0], r)
+                break
+            except Exception as exc:  # noqa: BLE001 -- reported, then the next rtol
+                ref_notes.append(f"degree {ref_spec[0]}, rtol {r:.3g} failed: {type(exc).__name__}: {exc}")
+        if ref is None:
+            raise RuntimeError("no reference run succeeded: " + "; ".join(ref_notes))
         chk = ours(*check_spec, t_end, n_out)
+    for note in ref_notes:
+        say("NOTE: reference " + note, "- NOTE: reference " + note)
     F_ref = ref.force
     ref_err, ref_err0 = force_error(chk.force, F_ref)
-    s = (f"reference: degree {ref_spec[0]} ({ref.mesh.n_nodes} nodes), rtol {ref_spec[1]:g}: "
+    s = (f"reference: degree {ref_spec[0]} ({ref.mesh.n_nodes} nodes), rtol {ref_spec[1]:.3g}: "
          f"{ref.stats.n_steps} steps, {ref.wall_time:.1f} s. Its uncertainty (difference from degree "
          f"{check_spec[0]}, rtol {check_spec[1]:g}): {ref_err:.1e} for t > 0 ({ref_err0:.1e} at t = 0); "
          f"max_t>0 |F_ref| = {np.max(np.linalg.norm(F_ref[1:], axis=-1)):.6g}. "
@@ -260,11 +273,17 @@ def main(argv=None) -> int:
     results = {}
     order = [g for g in grid if g in required] + [g for g in grid if g not in required]
     skipped = []
+    failed = {}
     for d, r in order:
         if (d, r) not in required and time.perf_counter() - t1 > args.budget:
             skipped.append((d, r))
             continue
-        wall, sim = timed(lambda: ours(d, r, t_end, n_out), args.repeat)
+        try:
+            wall, sim = timed(lambda: ours(d, r, t_end, n_out), args.repeat)
+        except Exception as exc:  # noqa: BLE001 -- a failed row is reported, not fatal
+            failed[(d, r)] = f"failed: {type(exc).__name__}: {exc}"
+            print(f"  ours degree {d:2d} rtol {r:.0e}: {failed[(d, r)]}", file=sys.stderr, flush=True)
+            continue
         err, err0 = force_error(sim.force, F_ref)
         results[(d, r)] = (wall, sim, err, err0)
         print(f"  ours degree {d:2d} rtol {r:.0e}: {wall:6.2f} s, error {err:.1e}", file=sys.stderr,
@@ -273,6 +292,9 @@ def main(argv=None) -> int:
     best = min(ok)[1] if ok else None
     rows = []
     for d, r in grid:
+        if (d, r) in failed:
+            n_nodes = Mesh.for_params(PARAMS, degree=d).n_nodes
+            rows.append([str(d), str(n_nodes), f"{r:.0e}", "-", "-", "-", "-", "-", "-", failed[(d, r)]])
         if (d, r) not in results:
             continue
         wall, sim, err, err0 = results[(d, r)]
@@ -318,6 +340,11 @@ def main(argv=None) -> int:
         except _Timeout:
             rows.append([method, str(d), f"{r:.0e}", f"timeout (> {c:.0f} s)", "-", "-", "-", "-", "-", "-"])
             print(f"  scipy {method} degree {d} rtol {r:.0e}: timeout", file=sys.stderr, flush=True)
+            continue
+        except Exception as exc:  # noqa: BLE001 -- a failed row is reported, not fatal
+            msg = f"failed: {type(exc).__name__}: {exc}"
+            rows.append([method, str(d), f"{r:.0e}", msg, "-", "-", "-", "-", "-", "-"])
+            print(f"  scipy {method} degree {d} rtol {r:.0e}: {msg}", file=sys.stderr, flush=True)
             continue
         err, err0 = force_error(F, F_ref)
         cmp = ours_cheapest_at(err)

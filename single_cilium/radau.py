@@ -179,8 +179,10 @@ class Radau:
                     f"step size fell to {h:.3g} at t={t:.6g}: the state has left the range the "
                     "discretisation can represent (refine the mesh, loosen the tolerance, or check the "
                     "initial state)", t, stats)
-            h_take = min(h, t_out[k_out] - t)
-            landing = h_take == t_out[k_out] - t
+            remaining = t_out[k_out] - t
+            # land on the output time when the step reaches it, to round-off
+            landing = h >= remaining - 16 * EPS * max(abs(t_out[k_out]), 1.0)
+            h_take = remaining if landing else h
             if lu_real is None or h_fact != h_take:
                 lu_real, lu_complex = prob.factor(y, (MU_REAL / h_take, MU_COMPLEX / h_take))
                 stats.n_factorizations += 2

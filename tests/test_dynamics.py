@@ -201,3 +201,31 @@ def test_failure_raises_with_time_reached(published):
     with pytest.raises(ConvergenceError, match="max_steps=5 reached at t=") as info:
         simulate(published, 1.0, max_steps=5, error_estimate=False)
     assert 0 < info.value.t < 1.0
+
+
+def test_steps_that_reach_an_output_time_by_round_off_land_on_it():
+    """A step ending on an output time to within round-off must land there, not leave a zero step."""
+    from single_cilium.radau import Radau
+
+    class Decay:  # y' = -y, M = 1
+        size = 1
+
+        def rhs(self, Y):
+            return -Y
+
+        def mass_apply(self, Y, V):
+            return V
+
+        def factor(self, y, sigmas):
+            class F:
+                def __init__(self, s):
+                    self.s = s
+
+                def solve(self, b):
+                    return b / (self.s + 1.0)
+            return [F(s) for s in sigmas]
+
+    t_out = np.array([0.0, 0.1 + 1e-17, 0.3, 0.30000000000000004, 1.0])
+    Y, Yd, stats = Radau(Decay(), 1e-10, 1e-12, h0=0.1).integrate(np.array([1.0]), t_out)
+    assert np.allclose(Y[:, 0], np.exp(-t_out), rtol=1e-8)
+    assert np.allclose(Yd[:, 0], -np.exp(-t_out), rtol=1e-6)
