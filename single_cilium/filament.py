@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
+from ._kernels import stage_residual
 from .equilibrium import equilibrium
 from .mesh import Mesh
 from .params import CiliumParams
@@ -166,6 +167,15 @@ class Filament:
         n = self.n
         theta_t = np.concatenate([np.zeros(v.shape[:-1] + (1,)), v[..., : n - 1]], axis=-1)
         return np.concatenate([self.resistance(theta, theta_t), v[..., n - 1:]], axis=-1)
+
+    def residual(self, Y: np.ndarray, Kd: np.ndarray) -> np.ndarray:
+        """Stage residuals ``f(Y_j) - M(Y_j) K_j`` row-wise, shapes ``(k, 2n-1)`` (one compiled
+        kernel; equal to ``rhs(Y) - mass_apply(Y, Kd)``)."""
+        p = self.params
+        relax, cE = (0.0, 0.0) if self.kappa_frozen else (1.0, p.chi_E)
+        m = self.mesh
+        return stage_residual(np.ascontiguousarray(Y, dtype=float), np.ascontiguousarray(Kd, dtype=float),
+                              m.cumulative, m.weights, self._K, self._B, p.eta, cE, p.chi_N, relax)
 
     def factor(self, y: np.ndarray, sigmas) -> list["_SchurFactor"]:
         """Factorisations of ``sigma M(y) - J(y)`` for each ``sigma`` in ``sigmas`` (``J = df/dy``;

@@ -216,6 +216,9 @@ def test_steps_that_reach_an_output_time_by_round_off_land_on_it():
         def mass_apply(self, Y, V):
             return V
 
+        def residual(self, Y, K):
+            return self.rhs(Y) - self.mass_apply(Y, K)
+
         def factor(self, y, sigmas):
             class F:
                 def __init__(self, s):

@@ -78,6 +78,7 @@ def test_mirror_symmetry_is_exact(published):
     y = _state(fil)
     v = np.random.default_rng(4).standard_normal(fil.size)
     assert np.array_equal(mir.rhs(-y), -fil.rhs(y))
+    assert np.array_equal(mir.residual(-y[None], -v[None]), -fil.residual(y[None], v[None]))
     assert np.array_equal(mir.mass_apply(-y, -v), -fil.mass_apply(y, v))
 
 
@@ -103,3 +104,13 @@ def test_initial_perturbation_keeps_the_tip_conditions(published):
     ds = fil.mesh.derivative_at_nodes(d)
     assert abs(ds[-1, -1]) < 1e-12 and abs(d[0]) == 0  # zero slope at the tip, clamp fixed
     assert not np.array_equal(initial_state(fil, 1e-3, seed=8), y)  # the seed matters
+
+
+@pytest.mark.parametrize("frozen", [False, True])
+def test_compiled_residual_matches_numpy(published, frozen):
+    fil = Filament(published, Mesh.for_params(published, degree=8), kappa_frozen=frozen)
+    rng = np.random.default_rng(5)
+    Y = np.stack([_state(fil, seed=k) for k in range(3)])
+    K = rng.standard_normal(Y.shape)
+    ref = fil.rhs(Y) - fil.mass_apply(Y, K)
+    assert np.max(np.abs(fil.residual(Y, K) - ref)) < 1e-12 * np.abs(ref).max()
