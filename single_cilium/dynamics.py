@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import xarray as xr
-from threadpoolctl import threadpool_limits
 
 from . import __version__
+from ._blas import single_threaded_blas
 from .filament import Filament
 from .mesh import Mesh
 from .params import CiliumParams
@@ -295,7 +295,7 @@ def _run(fil, y0, t_out, rtol, max_steps, progress, desc):
     solver = Radau(fil, rtol=rtol, atol=rtol * fil.scale, max_steps=max_steps)
     progress.start(float(t_out[-1]), desc)
     try:
-        with threadpool_limits(limits=1, user_api="blas"):
+        with single_threaded_blas():
             Y, Yd, stats = solver.integrate(y0, t_out, callback=lambda t, y: progress.update(t))
     finally:
         progress.close()

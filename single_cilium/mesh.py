@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 from numpy.polynomial import legendre as npleg
@@ -44,6 +44,16 @@ def gll(degree: int) -> tuple[np.ndarray, np.ndarray]:
         x[1:-1] = xi - npleg.legval(xi, d1) / npleg.legval(xi, d2)
     w = 2.0 / (p * (p + 1) * npleg.legval(x, cp) ** 2)
     return x, w
+
+
+@lru_cache(maxsize=64)
+def _reference_element(degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """GLL nodes, weights, differentiation and cumulative integration matrices (read-only)."""
+    x, w = gll(degree)
+    Dx, Ix = _lagrange_tools(x)
+    for a in (x, w, Dx, Ix):
+        a.setflags(write=False)
+    return x, w, Dx, Ix
 
 
 def _lagrange_tools(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -157,11 +167,9 @@ class Mesh:
         return mesh.refined(lambda s: equilibrium(params, s), 10.0 ** (1.0 - degree / 2.0))
 
     # ------------------------------------------------------------------ reference element
-    @cached_property
+    @property
     def _reference(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        x, w = gll(self.degree)
-        Dx, Ix = _lagrange_tools(x)
-        return x, w, Dx, Ix
+        return _reference_element(self.degree)
 
     @property
     def n_elements(self) -> int:
