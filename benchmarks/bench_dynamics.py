@@ -197,8 +197,8 @@ def main(argv=None) -> int:
     else:
         t_end, n_out = 10.0, 1001
         ref_spec, check_spec = (20, 1e-12), (16, 1e-11)
-        rtols = [1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10]
-        grid = [(d, r) for d in (6, 8, 10, 12, 16) for r in rtols]
+        rtols = [1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 5e-10, 3e-10, 1e-10]
+        grid = [(d, r) for d in (6, 8, 12, 16) for r in rtols]
         required = {(d, r) for d in (8, 12) for r in rtols}
         scipy_grid = [(m, d, r) for m in ("Radau", "BDF") for d in (12, 8) for r in (1e-6, 1e-8, 1e-10)]
         cap, cap_long = 60.0, 60.0

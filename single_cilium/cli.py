@@ -20,6 +20,7 @@ from .mesh import Mesh
 from .params import CiliumParams
 from .progress import TqdmProgress
 from .radau import ConvergenceError
+from .stability import flutter_boundary, flutter_cutoff, stability, stability_map
 
 logger = logging.getLogger(__name__)
 
@@ -83,6 +84,49 @@ def cmd_simulate(args) -> dict:
             "stats": sim.stats.as_dict()}
 
 
+def cmd_stability(args) -> dict:
+    res = stability(_params(args), degree=args.degree, n_modes=args.n_modes)
+    return res.as_dict()
+
+
+def cmd_cutoff(args) -> dict:
+    return flutter_cutoff(args.chi_E, args.eta, degree=args.degree).as_dict()
+
+
+def cmd_map(args) -> dict:
+    from ._io import write_netcdf
+
+    ds = stability_map(args.chi_N, chi_E=args.chi_E, eta=args.eta, degree=args.degree,
+                       progress=None if args.quiet else TqdmProgress(delay=0.5))
+    if args.output:
+        write_netcdf(ds, args.output)
+    out = {"chi_N": args.chi_N, "output": args.output, "png": args.png,
+           "points": int(ds.regime.size), "flutter_points": int((ds.regime == 1).sum())}
+    if args.png:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        from .figures import plot_stability_map
+
+        boundary = None
+        if args.boundary:
+            boundary = flutter_boundary(args.chi_N, chi_E=(ds.chi_E.values[0], ds.chi_E.values[-1]),
+                                        eta=(ds.eta.values[0], ds.eta.values[-1]), degree=args.degree)
+            out["boundary_branches"] = len(boundary.branches)
+        fig, ax = plt.subplots(figsize=(5, 4))
+        m = plot_stability_map(ds, ax, boundary)
+        fig.colorbar(m, ax=ax, label=r"flutter frequency $\beta / 2\pi$")
+        fig.tight_layout()
+        from pathlib import Path
+
+        Path(args.png).parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(args.png, dpi=120)
+        plt.close(fig)
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0])
     ap.add_argument("--version", action="version", version=__version__)
@@ -110,6 +154,32 @@ def build_parser() -> argparse.ArgumentParser:
     ps.add_argument("--quiet", action="store_true", help="no progress bar")
     ps.add_argument("--json", action="store_true", help="print a JSON summary")
     ps.set_defaults(func=cmd_simulate)
+    pst = sub.add_parser("stability", help="leading eigenvalues of the linearisation (regime, period)")
+    _add_params(pst)
+    pst.add_argument("--degree", type=int, default=10, help="polynomial degree per element (default 10)")
+    pst.add_argument("--n-modes", dest="n_modes", type=int, default=6, help="eigenvalues to report")
+    pst.add_argument("--json", action="store_true", help="print JSON")
+    pst.set_defaults(func=cmd_stability)
+
+    pc = sub.add_parser("cutoff", help="natural curvature above which flutter stops, at fixed (chi_E, eta)")
+    pc.add_argument("--chi-E", dest="chi_E", type=float, required=True)
+    pc.add_argument("--eta", type=float, required=True)
+    pc.add_argument("--degree", type=int, default=10)
+    pc.add_argument("--json", action="store_true")
+    pc.set_defaults(func=cmd_cutoff)
+
+    pm = sub.add_parser("map", help="stability map over a (chi_E, eta) grid at fixed chi_N")
+    pm.add_argument("--chi-N", dest="chi_N", type=float, required=True)
+    pm.add_argument("--chi-E", dest="chi_E", type=_grid, required=True, help="'start:stop:num' or a list")
+    pm.add_argument("--eta", type=_grid, required=True, help="'start:stop:num' or a list")
+    pm.add_argument("--degree", type=int, default=8)
+    pm.add_argument("-o", "--output", help="NetCDF file")
+    pm.add_argument("--png", help="PNG figure (flutter coloured by frequency)")
+    pm.add_argument("--no-boundary", dest="boundary", action="store_false",
+                    help="do not trace the Hopf boundary over the PNG")
+    pm.add_argument("--quiet", action="store_true")
+    pm.add_argument("--json", action="store_true")
+    pm.set_defaults(func=cmd_map)
     return ap
 
 

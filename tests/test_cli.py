@@ -49,3 +49,33 @@ def test_simulate_writes_netcdf(tmp_path, capsys):
 def test_bad_input_exit_code_2(capsys, argv, needle):
     code, _, err = run(capsys, *argv)
     assert code == 2 and needle in err
+
+
+def test_stability_json(capsys):
+    code, out, _ = run(capsys, "stability", "--chi-E", "200", "--eta", "1", "--chi-N", "100.53", "--json")
+    d = json.loads(out)
+    assert code == 0 and d["regime"] == "flutter"
+    assert {"alpha", "beta", "regime", "period_estimate"} <= set(d)
+    assert d["period_estimate"] == pytest.approx(2 * np.pi / d["beta"])
+
+
+def test_cutoff_json(capsys):
+    code, out, _ = run(capsys, "cutoff", "--chi-E", "200", "--eta", "1", "--json")
+    d = json.loads(out)
+    assert code == 0 and 150 < d["chi_N_cutoff"] < 180 and d["beta"] > 0
+
+
+def test_map_writes_netcdf_and_png(tmp_path, capsys):
+    nc, png = tmp_path / "map.nc", tmp_path / "map.png"
+    code, out, err = run(capsys, "map", "--chi-N", "50.27", "--chi-E", "150:250:3", "--eta", "0.5:1.5:3",
+                         "-o", str(nc), "--png", str(png), "--quiet", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    ds = xr.open_dataset(nc, engine="h5netcdf")
+    assert ds.alpha.shape == (3, 3) and d["flutter_points"] == int((ds.regime == 1).sum())
+    assert png.stat().st_size > 1000
+
+
+def test_map_rejects_unsorted_grid(capsys):
+    code, _, err = run(capsys, "map", "--chi-N", "0", "--chi-E", "200,100", "--eta", "1", "--quiet")
+    assert code == 2 and "increasing" in err
