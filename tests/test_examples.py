@@ -20,3 +20,16 @@ def test_flutter_onset():
     assert ex.period == pytest.approx(2 * 3.141592653589793 / 22.81, rel=5e-3)
     assert 0.2 < ex.growth_rate < 0.8
     assert ex.sim.error < 3e-4
+
+
+def test_stability_maps(monkeypatch):
+    monkeypatch.setenv("CILIA_EXAMPLE_QUICK", "1")
+    ex = load("stability_maps")
+    tiny = 0.01 * 2 * 3.141592653589793
+    # chi_N = 0 flutters somewhere for chi_E < 0; the tiny curvature removes that part
+    neg0 = ex.study_a[0.0][0].sel(chi_E=slice(-50, -20)).regime
+    negt = ex.study_a[tiny][0].sel(chi_E=slice(-50, -20)).regime
+    assert (neg0 == 1).any() and not (negt == 1).any()
+    assert len(ex.study_a[0.0][1].branches) == 2 and len(ex.study_a[tiny][1].branches) == 1
+    crit = [ex.lowest_critical_chi_E_b[k] for k in (0, 8, 16, 24)]
+    assert all(a < b for a, b in zip(crit, crit[1:]))  # raising chi_N raises the critical chi_E
