@@ -11,6 +11,8 @@ CiliumParams      the three groups (and SI conversion)
 equilibrium       closed-form equilibrium theta(s); limit_angle, equilibrium_shape
 Mesh              graded spectral-element mesh of the arc length
 simulate          nonlinear dynamics (Galerkin in space, Radau IIA(5) in time) with error estimates
+stability         leading eigenvalues, modes and regime of the linearisation; flutter_cutoff,
+                  flutter_boundary (continuation), stability_map
 """
 __version__ = "0.1.0"
 
@@ -21,9 +23,12 @@ from .filament import Filament
 from .radau import ConvergenceError
 from .progress import Progress, TqdmProgress
 from .dynamics import Simulation, simulate
+from .stability import (Cutoff, FlutterBoundary, ResolutionWarning, Stability, flutter_boundary,
+                        flutter_cutoff, stability, stability_map)
 
 __all__ = [
     "CiliumParams", "PhysicalCilium", "equilibrium", "equilibrium_shape", "limit_angle",
     "NoLimitAngleError", "Mesh", "Filament", "simulate", "Simulation", "ConvergenceError",
-    "Progress", "TqdmProgress", "__version__",
+    "Progress", "TqdmProgress", "stability", "Stability", "ResolutionWarning", "flutter_cutoff",
+    "Cutoff", "flutter_boundary", "FlutterBoundary", "stability_map", "__version__",
 ]

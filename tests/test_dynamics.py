@@ -232,3 +232,12 @@ def test_steps_that_reach_an_output_time_by_round_off_land_on_it():
     Y, Yd, stats = Radau(Decay(), 1e-10, 1e-12, h0=0.1).integrate(np.array([1.0]), t_out)
     assert np.allclose(Y[:, 0], np.exp(-t_out), rtol=1e-8)
     assert np.allclose(Yd[:, 0], -np.exp(-t_out), rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_published_run_reaches_1e6_over_ten_time_units(published):
+    """The benchmark's headline, as a check: F(t) over t in (0, 10] to 1e-6 relative at degree 8,
+    rtol 5e-10, against degree 16, rtol 1e-11 (about 30 s)."""
+    ref = simulate(published, 10.0, mesh=Mesh.for_params(published, 16), rtol=1e-11, error_estimate=False)
+    sim = simulate(published, 10.0, mesh=Mesh.for_params(published, 8), rtol=5e-10, error_estimate=False)
+    assert rel_diff(sim.force, ref.force) < 1e-6
