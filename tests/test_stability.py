@@ -151,3 +151,19 @@ def test_bad_windows():
         flutter_boundary(0.0, chi_E=(10, 20), eta=(-1, 1))
     with pytest.raises(ValueError, match="chi_E window"):
         flutter_boundary(0.0, chi_E=(20, 10), eta=(0.1, 1))
+
+
+@pytest.mark.parametrize("p", [
+    CiliumParams(100.53 * 1.001, 1, 100.53),   # chi_E close to chi_N: slow equilibrium transition
+    CiliumParams(-50, 1, 0.01 * TWO_PI),       # chi_E < 0, small chi_N: the equilibrium folds over
+    CiliumParams(1000, 1, 16 * TWO_PI),        # thin clamp layer (QZ meets infinite eigenvalues)
+    CiliumParams(200, 0.05, 16 * TWO_PI),
+    CiliumParams(200, 20, 16 * TWO_PI),
+], ids=["chiE~chiN", "folded", "chiE=1000", "eta=0.05", "eta=20"])
+def test_hard_cases_converge(p, recwarn):
+    r = stability(p)
+    assert r.converged and r.error < 1e-6, r.message
+    assert np.all(np.isfinite(r.eigenvalues)) and np.isfinite(r.alpha)
+    assert not [w for w in recwarn if issubclass(w.category, ResolutionWarning)]
+    ref = stability(p, degree=16, check=False)
+    assert abs(r.omega - ref.omega) <= 1e-6 * abs(ref.omega)  # and the estimate was honest
