@@ -270,15 +270,64 @@ class Radau:
         return out, out_dot, stats
 
     # ------------------------------------------------------------------
-    def _newton(self, y, h, Z0, scale, lu_real, lu_complex, stats):
+    def fixed(self, y0: np.ndarray, h: float, n_steps: int) -> tuple[np.ndarray, np.ndarray, RadauStats]:
+        """``n_steps`` steps of constant size ``h`` from ``y0``, without error control.
+
+        The result is a smooth function of ``y0`` and ``h`` (the same arithmetic for nearby
+        inputs, Newton converged to round-off), as finite-difference derivatives of a period map
+        need. Returns the states and their derivatives (collocation polynomial) at the
+        ``n_steps + 1`` step ends, shape ``(n_steps + 1, size)``, and the work counters.
+        Raises :class:`ConvergenceError` when Newton fails (the step is too large).
+        """
         prob = self.problem
+        y = np.array(y0, dtype=float)
+        stats = RadauStats()
+        out = np.empty((n_steps + 1, y.size))
+        out_dot = np.empty_like(out)
+        out[0] = y
+        out_dot[0] = np.nan
+        scale = self.atol + np.abs(y) * self.rtol
+        Z_prev = None
+        for k in range(n_steps):
+            lu_real, lu_complex = prob.factor(y, (MU_REAL / h, MU_COMPLEX / h))
+            stats.n_factorizations += 2
+            if Z_prev is None:
+                Z0 = np.zeros((3, y.size))
+            else:
+                Q = Z_prev.T @ P
+                xp = (1.0 + C)[:, None] ** np.arange(1, 4)[None, :]
+                Z0 = xp @ Q.T - Q.sum(axis=1)[None, :]
+            converged, n_iter, Z, rate, yp = self._newton(y, h, Z0, scale, lu_real, lu_complex, stats,
+                                                          maxiter=3 * NEWTON_MAXITER, floor=1.0)
+            if not converged:
+                raise ConvergenceError(
+                    f"fixed step h={h:.3g} too large at step {k} (Newton did not converge): use more steps",
+                    k * h, stats)
+            if k == 0:
+                out_dot[0] = (Z.T @ P[:, 0]) / h
+            y = y + Z[-1]
+            Z_prev = Z
+            out[k + 1] = y
+            out_dot[k + 1] = yp
+            stats.n_steps += 1
+            stats.n_accepted += 1
+        stats.h_min = stats.h_max = h
+        return out, out_dot, stats
+
+    # ------------------------------------------------------------------
+    def _newton(self, y, h, Z0, scale, lu_real, lu_complex, stats, maxiter=NEWTON_MAXITER, floor=0.0):
+        """Simplified Newton for the stages. Converged when the predicted remaining increment is
+        below ``newton_tol``, or when an increment is below ``floor`` (scaled) and the iteration
+        has stalled at round-off."""
+        prob = self.problem
+        tol = self.newton_tol
         W = TI @ Z0
         Z = Z0
         dW_norm_old = None
         rate = None
         converged = False
         k = 0
-        for k in range(NEWTON_MAXITER):
+        for k in range(maxiter):
             Y = y[None, :] + Z
             LW = np.empty_like(W)
             LW[0] = MU_REAL * W[0]
@@ -298,11 +347,13 @@ class Radau:
                 break
             if dW_norm_old is not None:
                 rate = dW_norm / dW_norm_old
-            if rate is not None and (rate >= 1 or rate ** (NEWTON_MAXITER - k) / (1 - rate) * dW_norm > self.newton_tol):
+            if rate is not None and (rate >= 1 or rate ** (maxiter - k) / (1 - rate) * dW_norm > tol):
+                if dW_norm <= floor:
+                    converged = True
                 break
             W = W + dW
             Z = T @ W
-            if dW_norm == 0 or (rate is not None and rate / (1 - rate) * dW_norm < self.newton_tol):
+            if dW_norm == 0 or (rate is not None and rate / (1 - rate) * dW_norm < tol):
                 converged = True
                 break
             dW_norm_old = dW_norm
