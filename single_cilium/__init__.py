@@ -13,6 +13,7 @@ Mesh              graded spectral-element mesh of the arc length
 simulate          nonlinear dynamics (Galerkin in space, Radau IIA(5) in time) with error estimates
 stability         leading eigenvalues, modes and regime of the linearisation; flutter_cutoff,
                   flutter_boundary (continuation), stability_map
+limit_cycle       periodic orbit by Newton-Krylov shooting: period, mean thrust, Floquet multipliers
 """
 __version__ = "0.1.0"
 
@@ -23,6 +24,7 @@ from .filament import Filament
 from .radau import ConvergenceError
 from .progress import Progress, TqdmProgress
 from .dynamics import Simulation, simulate
+from .cycle import CycleError, LimitCycle, limit_cycle
 from .stability import (Cutoff, FlutterBoundary, ResolutionWarning, Stability, flutter_boundary,
                         flutter_cutoff, stability, stability_map)
 
@@ -30,5 +32,6 @@ __all__ = [
     "CiliumParams", "PhysicalCilium", "equilibrium", "equilibrium_shape", "limit_angle",
     "NoLimitAngleError", "Mesh", "Filament", "simulate", "Simulation", "ConvergenceError",
     "Progress", "TqdmProgress", "stability", "Stability", "ResolutionWarning", "flutter_cutoff",
-    "Cutoff", "flutter_boundary", "FlutterBoundary", "stability_map", "__version__",
+    "Cutoff", "flutter_boundary", "FlutterBoundary", "stability_map", "limit_cycle", "LimitCycle",
+    "CycleError", "__version__",
 ]

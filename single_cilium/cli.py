@@ -21,6 +21,7 @@ from .params import CiliumParams
 from .progress import TqdmProgress
 from .radau import ConvergenceError
 from .stability import flutter_boundary, flutter_cutoff, stability, stability_map
+from .cycle import limit_cycle
 
 logger = logging.getLogger(__name__)
 
@@ -127,6 +128,18 @@ def cmd_map(args) -> dict:
     return out
 
 
+def cmd_cycle(args) -> dict:
+    c = limit_cycle(_params(args), degree=args.degree, n_phase=args.n_phase,
+                    error_estimate=not args.no_error_estimate)
+    if args.output and c.data is not None:
+        from ._io import write_netcdf
+
+        write_netcdf(c.data, args.output)
+    out = c.as_dict()
+    out["floquet_multipliers"] = [[float(z.real), float(z.imag)] for z in c.floquet_multipliers]
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0])
     ap.add_argument("--version", action="version", version=__version__)
@@ -167,6 +180,15 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--degree", type=int, default=10)
     pc.add_argument("--json", action="store_true")
     pc.set_defaults(func=cmd_cutoff)
+
+    py = sub.add_parser("cycle", help="limit cycle: period, averaged thrust, Floquet multipliers")
+    _add_params(py)
+    py.add_argument("--degree", type=int, default=8, help="polynomial degree per element (default 8)")
+    py.add_argument("--n-phase", dest="n_phase", type=int, default=64, help="steps per period (default 64)")
+    py.add_argument("--no-error-estimate", action="store_true")
+    py.add_argument("-o", "--output", help="NetCDF file with the cycle over one period")
+    py.add_argument("--json", action="store_true")
+    py.set_defaults(func=cmd_cycle)
 
     pm = sub.add_parser("map", help="stability map over a (chi_E, eta) grid at fixed chi_N")
     pm.add_argument("--chi-N", dest="chi_N", type=float, required=True)

@@ -79,3 +79,14 @@ def test_map_writes_netcdf_and_png(tmp_path, capsys):
 def test_map_rejects_unsorted_grid(capsys):
     code, _, err = run(capsys, "map", "--chi-N", "0", "--chi-E", "200,100", "--eta", "1", "--quiet")
     assert code == 2 and "increasing" in err
+
+
+def test_cycle_json(capsys):
+    code, out, err = run(capsys, "cycle", "--chi-E", "200", "--eta", "1", "--chi-N", "150.8", "--degree", "6",
+                         "--no-error-estimate", "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    keys = {"period", "thrust_norm", "thrust_angle", "thrust_x", "thrust_y", "theta_lim", "floquet", "flutter",
+            "period_error", "thrust_norm_error", "thrust_angle_error"}
+    assert keys <= set(d) and d["flutter"] is True
+    assert d["thrust_angle"] > d["theta_lim"] > 0
