@@ -343,20 +343,23 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         sh = _Shooter(params, mesh, n_phase)
         fil = sh.fil
         y_eq = fil.equilibrium_state()
+        def converge(y0, T):
+            # section through the seed's orbit, away from the equilibrium's tip angle
+            Y, _ = sh.pmap(y0, T)
+            tip = Y[:, sh.i_tip]
+            k = int(np.argmin(np.abs(tip - 0.5 * (tip.max() + tip.min()))))
+            return sh.shoot(Y[k], T, float(Y[k][sh.i_tip]), tol)
+
+        y0 = None
         if seed is not None and seed.flutter and seed.state0 is not None:
-            y0 = _transfer(seed, fil)
-            T = seed.period
-        else:
+            try:
+                y0, T, res = converge(_transfer(seed, fil), seed.period)
+            except ConvergenceError as exc:
+                logger.info("limit_cycle %s: seed did not converge (%s); starting from the Hopf mode", params, exc)
+                y0 = None
+        if y0 is None:
             T = 2 * math.pi / st.beta
-            y0 = _seed_from_eigenvector(params, mesh, st, y_eq, fil, T, sh.work)
-        # section through the seed's orbit, away from the equilibrium's tip angle
-        Y, _ = sh.pmap(y0, T)
-        tip = Y[:, sh.i_tip]
-        c = 0.5 * (tip.max() + tip.min())
-        k = int(np.argmin(np.abs(tip - c)))
-        y0 = Y[k]
-        c = float(y0[sh.i_tip])
-        y0, T, res = sh.shoot(y0, T, c, tol)
+            y0, T, res = converge(_seed_from_eigenvector(params, mesh, st, y_eq, fil, T, sh.work), T)
         y0 = sh.rephase(y0, T)
         y0, T, res = sh.shoot(y0, T, float(y0[sh.i_tip]), tol)
         result = _assemble(params, mesh, sh, y0, T, theta_lim)
@@ -374,10 +377,15 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
 
 
 def _transfer(seed: LimitCycle, fil: Filament) -> np.ndarray:
-    th, ka = Filament(seed.params, seed.mesh).split(seed.state0)
+    """The seed's orbit point carried over as a deviation from its own equilibrium, added to
+    this problem's equilibrium (a raw copy would violate the new clamp/tip compatibility and
+    start a stiff initial layer)."""
+    sfil = Filament(seed.params, seed.mesh)
+    dth, dka = sfil.split(seed.state0 - sfil.equilibrium_state())
+    th, ka = fil.split(fil.equilibrium_state())
     if seed.mesh != fil.mesh:
-        th, ka = seed.mesh.interpolate(th, fil.mesh.nodes), seed.mesh.interpolate(ka, fil.mesh.nodes)
-    return fil.join(th, ka)
+        dth, dka = seed.mesh.interpolate(dth, fil.mesh.nodes), seed.mesh.interpolate(dka, fil.mesh.nodes)
+    return fil.join(th + dth, ka + dka)
 
 
 def _assemble(params, mesh, sh: _Shooter, y0, T, theta_lim) -> dict:
