@@ -109,7 +109,8 @@ def _chunk(args):
         st = stability(p, degree=degree, check=False, n_modes=1)
         cyc = None
         if st.regime == "flutter":
-            cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seed)
+            cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seed,
+                              error_estimate=settings.get("error_estimate", True))
             seed = cyc
         row = _row(p, cyc, s_grid, n_phase, st.alpha, st.beta)
         if parts is not None:
@@ -120,7 +121,7 @@ def _chunk(args):
 
 def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64, n_s: int = 65,
                 executor: Executor | None = None, scheduler: str | None = None,
-                progress: Progress | None = None, path=None) -> "ThrustTable":
+                progress: Progress | None = None, path=None, error_estimate: bool = True) -> "ThrustTable":
     """Compute the thrust table of DESIGN.md over ``chi_N`` (>= 0, strictly increasing).
 
     Parameters
@@ -139,6 +140,8 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
     path : path-like, optional
         Where the table is written; finished rows are kept in ``<path>.parts/`` while building,
         so a rerun after an interruption computes only the missing rows.
+    error_estimate : bool
+        Refinement error estimates per row (about doubles the cost); NaN without.
     """
     base = CiliumParams(chi_E, eta, 0.0)
     grid = np.atleast_1d(np.asarray(chi_N, dtype=float))
@@ -155,7 +158,8 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
     if np.isfinite(chi_c) and grid[0] < chi_c < grid[-1]:
         grid = np.unique(np.concatenate([grid[np.abs(grid - chi_c) > 1e-9 * chi_c], [chi_c]]))
     s_grid = np.linspace(0.0, 1.0, int(n_s))
-    settings = {"degree": int(degree), "n_phase": int(n_phase), "s": s_grid.tolist()}
+    settings = {"degree": int(degree), "n_phase": int(n_phase), "s": s_grid.tolist(),
+                "error_estimate": bool(error_estimate)}
     parts = None
     done: dict[float, xr.Dataset] = {}
     if path is not None:

@@ -1,0 +1,124 @@
+import math
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from single_cilium import CiliumParams
+from single_cilium.cycle import limit_cycle
+from single_cilium.table import SCHEMA_VERSION, TableError, ThrustTable, build_table
+
+FAST = dict(degree=6, n_phase=32, n_s=17, error_estimate=False)
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    path = tmp_path_factory.mktemp("t") / "table.nc"
+    with ThreadPoolExecutor(2) as ex:
+        t = build_table(200, 1, [130.0, 145.0, 170.0], executor=ex, path=path, **FAST)
+    return t, path
+
+
+def test_rows_and_cutoff(small):
+    t, path = small
+    ds = t.ds
+    c = ds.chi_N.values
+    assert c.size == 4 and 160 < c[2] < 165  # the cutoff row, exactly at the Hopf point
+    assert ds.attrs["chi_N_cutoff"] == c[2]
+    assert ds.flutter.values.tolist() == [1, 1, 1, 0]
+    assert float(ds.thrust_norm[2]) == 0 and math.isnan(float(ds.period[3]))
+    assert float(ds.thrust_norm[3]) == 0 and np.all(np.isnan(ds.x.values[3]))
+    assert np.all(np.diff(ds.thrust_norm.values[:3]) < 0)  # thrust falls towards the cutoff
+    assert np.all(ds.thrust_angle.values[:2] > ds.theta_lim.values[:2])
+    assert ds.thrust_norm.attrs["units"] == "1"
+    assert path.exists() and not path.with_name("table.nc.parts").exists()
+
+
+def test_save_load_round_trip(small):
+    t, path = small
+    back = ThrustTable.load(path)
+    assert np.array_equal(back.ds.thrust_x.values, t.ds.thrust_x.values)
+
+
+def test_row_matches_a_fresh_cycle(small):
+    t, _ = small
+    c = limit_cycle(CiliumParams(200, 1, 145.0), degree=6, n_phase=32, error_estimate=False, floquet=False)
+    r = t.at(145.0)
+    assert float(r.period) == pytest.approx(c.period, rel=1e-9)
+    assert float(r.thrust_norm) == pytest.approx(c.thrust_norm, rel=1e-7)
+
+
+def test_mirror_and_range(small):
+    t, _ = small
+    a, b = t.at(140.0), t.at(-140.0)
+    assert float(b.thrust_angle) == -float(a.thrust_angle) and float(b.thrust_x) == -float(a.thrust_x)
+    assert np.array_equal(b.x.values, -a.x.values) and np.array_equal(b.y.values, a.y.values)
+    with pytest.raises(TableError, match="outside the table's range"):
+        t.at(100.0)
+    with pytest.raises(TableError, match="finite"):
+        t.at(float("nan"))
+
+
+def test_angle_inversion(small):
+    t, _ = small
+    lo, hi = t.thrust_angle_range()
+    target = 0.5 * (lo + hi)
+    c = t.chi_N_for_angle(target)
+    assert float(t.at(c).thrust_angle) == pytest.approx(target, abs=1e-10)
+    assert t.chi_N_for_angle(-target) == pytest.approx(-c)
+    with pytest.raises(TableError, match=r"not achievable.*must lie in \["):
+        t.chi_N_for_angle(hi + 0.1)
+
+
+def test_bad_files(tmp_path, small):
+    t, _ = small
+    junk = tmp_path / "junk.nc"
+    junk.write_bytes(b"this is not HDF5" * 10)
+    with pytest.raises(TableError, match="not a readable"):
+        ThrustTable.load(junk)
+    foreign = tmp_path / "foreign.nc"
+    xr.Dataset({"a": ("x", [1.0])}).to_netcdf(foreign, engine="h5netcdf")
+    with pytest.raises(TableError, match="not a thrust table"):
+        ThrustTable.load(foreign)
+    old = tmp_path / "old.nc"
+    ds = t.ds.copy()
+    ds.attrs["schema_version"] = SCHEMA_VERSION + 1
+    ds.to_netcdf(old, engine="h5netcdf")
+    with pytest.raises(TableError, match="schema version"):
+        ThrustTable.load(old)
+    with pytest.raises(TableError, match="no such"):
+        ThrustTable.load(tmp_path / "missing.nc")
+
+
+@pytest.mark.parametrize("grid,match", [([1.0, np.nan], "NaN"), ([2.0, 1.0], "increasing"), ([], "non-empty"),
+                                        ([-1.0, 1.0], ">= 0")])
+def test_bad_grids(grid, match):
+    with pytest.raises(ValueError, match=match):
+        build_table(200, 1, grid)
+
+
+def test_interrupted_build_resumes(tmp_path):
+    path = tmp_path / "t.nc"
+    parts = tmp_path / "t.nc.parts"
+    with ThreadPoolExecutor(1) as ex:
+        first = build_table(200, 1, [150.0], executor=ex, **FAST)
+    parts.mkdir()
+    row = first.ds.isel(chi_N=[0]).drop_vars(["phase", "s"]).copy(deep=True)
+    row["tip_area"][:] = 12345.0  # a marker: a recomputed row would not carry it
+    row.to_netcdf(parts / "row_150.nc", engine="h5netcdf")
+    (parts / "row_155.nc").write_bytes(b"cut short")  # a row file the interruption left broken
+    with ThreadPoolExecutor(1) as ex:
+        t = build_table(200, 1, [150.0, 155.0], executor=ex, path=path, **FAST)
+    assert float(t.ds.tip_area.sel(chi_N=150.0)) == 12345.0
+    assert np.isfinite(float(t.ds.period.sel(chi_N=155.0)))
+    assert not parts.exists()
+
+
+def test_dask_local_cluster(tmp_path):
+    import dask.distributed as distributed
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+                                  host="127.0.0.1", dashboard_address=None) as cluster:
+        t = build_table(200, 1, [150.0], scheduler=cluster.scheduler_address, **FAST)
+    local = build_table(200, 1, [150.0], executor=ThreadPoolExecutor(1), **FAST)
+    assert float(t.ds.thrust_norm[0]) == float(local.ds.thrust_norm[0])
