@@ -140,6 +140,18 @@ def cmd_cycle(args) -> dict:
     return out
 
 
+def cmd_table(args) -> dict:
+    from .table import build_table
+
+    t = build_table(args.chi_E, args.eta, args.chi_N, degree=args.degree, n_phase=args.n_phase,
+                    scheduler=args.scheduler, path=args.output,
+                    progress=None if args.quiet else TqdmProgress(delay=0.5),
+                    error_estimate=not args.no_error_estimate)
+    ds = t.ds
+    return {"chi_E": t.chi_E, "eta": t.eta, "output": args.output, "rows": int(ds.sizes["chi_N"]),
+            "flutter_rows": int(ds.flutter.sum()), "chi_N_cutoff": ds.attrs["chi_N_cutoff"]}
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0])
     ap.add_argument("--version", action="version", version=__version__)
@@ -190,6 +202,19 @@ def build_parser() -> argparse.ArgumentParser:
     py.add_argument("--json", action="store_true")
     py.set_defaults(func=cmd_cycle)
 
+    pt = sub.add_parser("table", help="thrust lookup table over chi_N (resumable; local pool or Dask)")
+    pt.add_argument("--chi-E", dest="chi_E", type=float, required=True)
+    pt.add_argument("--eta", type=float, required=True)
+    pt.add_argument("--chi-N", dest="chi_N", type=_grid, required=True, help="'start:stop:num' or a list")
+    pt.add_argument("-o", "--output", required=True, help="NetCDF file (rows kept in OUTPUT.parts/ until done)")
+    pt.add_argument("--scheduler", help="Dask distributed scheduler address (default: local process pool)")
+    pt.add_argument("--degree", type=int, default=8)
+    pt.add_argument("--n-phase", dest="n_phase", type=int, default=64)
+    pt.add_argument("--no-error-estimate", action="store_true")
+    pt.add_argument("--quiet", action="store_true")
+    pt.add_argument("--json", action="store_true")
+    pt.set_defaults(func=cmd_table)
+
     pm = sub.add_parser("map", help="stability map over a (chi_E, eta) grid at fixed chi_N")
     pm.add_argument("--chi-N", dest="chi_N", type=float, required=True)
     pm.add_argument("--chi-E", dest="chi_E", type=_grid, required=True, help="'start:stop:num' or a list")
@@ -228,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConvergenceError as exc:
         print(f"single-cilium {args.command}: did not converge: {exc}", file=sys.stderr)
         return 3
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, OSError) as exc:
         print(f"single-cilium {args.command}: error: {exc}", file=sys.stderr)
         return 2
     if getattr(args, "json", False):

@@ -90,3 +90,18 @@ def test_cycle_json(capsys):
             "period_error", "thrust_norm_error", "thrust_angle_error"}
     assert keys <= set(d) and d["flutter"] is True
     assert d["thrust_angle"] > d["theta_lim"] > 0
+
+
+def test_table_command(tmp_path, capsys):
+    out = tmp_path / "t.nc"
+    code, o, err = run(capsys, "table", "--chi-E", "200", "--eta", "1", "--chi-N", "150,170", "-o", str(out),
+                       "--degree", "6", "--n-phase", "32", "--no-error-estimate", "--quiet", "--json")
+    assert code == 0, err
+    d = json.loads(o)
+    assert d["rows"] == 3 and d["flutter_rows"] == 2 and out.exists()
+
+
+def test_table_command_rejects_nan_grid(tmp_path, capsys):
+    code, _, err = run(capsys, "table", "--chi-E", "200", "--eta", "1", "--chi-N", "1,nan", "-o",
+                       str(tmp_path / "t.nc"), "--quiet")
+    assert code == 2 and "NaN" in err

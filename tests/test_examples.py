@@ -2,6 +2,7 @@
 import importlib.util
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
@@ -33,3 +34,20 @@ def test_stability_maps(monkeypatch):
     assert len(ex.study_a[0.0][1].branches) == 2 and len(ex.study_a[tiny][1].branches) == 1
     crit = [ex.lowest_critical_chi_E_b[k] for k in (0, 8, 16, 24)]
     assert all(a < b for a, b in zip(crit, crit[1:]))  # raising chi_N raises the critical chi_E
+
+
+def test_cilium_cycles(monkeypatch):
+    monkeypatch.setenv("CILIA_EXAMPLE_QUICK", "1")
+    ex = load("cilium_cycles")
+    T, norm, angle, lim, area = zip(*[ex.summary[k] for k in (8, 16, 24)])
+    assert all(a > b for a, b in zip(norm, norm[1:]))  # thrust falls as chi_N grows
+    assert all(0 < a - l < 0.1 for a, l in zip(angle, lim))  # a little above theta_lim
+    assert all(a < b for a, b in zip(T, T[1:]))  # the beat slows down
+
+
+def test_thrust_curve():
+    ex = load("thrust_curve")
+    assert ex.thrust_norm[0] > 5 * ex.thrust_norm[-20]  # falls towards the cutoff
+    assert ex.thrust_norm[-1] == 0
+    ok = np.isfinite(ex.thrust_angle)
+    assert np.all(ex.thrust_angle[ok] >= ex.theta_lim[ok] - 1e-6)

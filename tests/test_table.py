@@ -122,3 +122,24 @@ def test_dask_local_cluster(tmp_path):
         t = build_table(200, 1, [150.0], scheduler=cluster.scheduler_address, **FAST)
     local = build_table(200, 1, [150.0], executor=ThreadPoolExecutor(1), **FAST)
     assert float(t.ds.thrust_norm[0]) == float(local.ds.thrust_norm[0])
+
+
+def test_default_table_recomputes_and_interpolates():
+    """The shipped table: rows recompute to their stored values, and the interpolant matches a
+    freshly computed cycle between rows to 1e-3 relative."""
+    t = ThrustTable.default()
+    assert t.chi_E == 200 and t.eta == 1
+    deg = 8
+    c = t.ds.chi_N.values
+    k = int(np.argmin(np.abs(c - 100)))
+    row = limit_cycle(CiliumParams(200, 1, c[k]), degree=deg, n_phase=64, floquet=False, error_estimate=False)
+    assert float(t.ds.thrust_norm[k]) == pytest.approx(row.thrust_norm, rel=1e-6)
+    assert float(t.ds.period[k]) == pytest.approx(row.period, rel=1e-8)
+    mid = 0.5 * (c[k] + c[k + 1])
+    fresh = limit_cycle(CiliumParams(200, 1, mid), degree=deg, n_phase=64, floquet=False, error_estimate=False)
+    r = t.at(mid)
+    assert float(r.thrust_norm) == pytest.approx(fresh.thrust_norm, rel=1e-3)
+    assert float(r.thrust_angle) == pytest.approx(fresh.thrust_angle, rel=1e-3)
+    assert float(r.period) == pytest.approx(fresh.period, rel=1e-3)
+    shape_err = np.max(np.abs(r.x.values - fresh.mesh.interpolate(fresh.data.x.values.T, t.ds.s.values).T))
+    assert shape_err < 1e-3
