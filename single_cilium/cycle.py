@@ -165,7 +165,11 @@ class _Shooter:
 
     def pmap(self, y0, T):
         self.work.period_maps += 1
-        Y, Yd, _ = self.solver.fixed(y0, T / self.n_phase, self.n_phase)
+        try:
+            Y, Yd, _ = self.solver.fixed(y0, T / self.n_phase, self.n_phase)
+        except ConvergenceError as exc:
+            raise CycleError(f"{exc}; the period is split into n_phase={self.n_phase} steps: "
+                             f"raise n_phase (e.g. to {2 * self.n_phase})", exc.t) from None
         return Y, Yd
 
     def shoot(self, y0, T, c, tol, max_newton=20):

@@ -70,3 +70,34 @@ def test_thrust_angle_convention():
 def test_bad_settings(kw):
     with pytest.raises(ValueError):
         limit_cycle(CiliumParams(200, 1, 0.0), **kw)
+
+
+CUTOFF_200_1 = 162.77486240834992  # flutter_cutoff(200, 1) at degree 8
+
+
+def test_half_percent_below_the_cutoff():
+    """Small amplitude, growth rate ~0.005: the normal-form seed gets there (a transient would
+    need hundreds of periods)."""
+    c = limit_cycle(CiliumParams(200, 1, 0.995 * CUTOFF_200_1), degree=8, floquet=False, error_estimate=False)
+    assert c.flutter and 0 < c.thrust_norm < 0.03
+    assert c.work["period_maps"] < 400
+
+
+def test_straight_filament_pushes_along_the_field():
+    c = limit_cycle(CiliumParams(200, 1, 0.0), degree=6, n_phase=32, floquet=False, error_estimate=False)
+    assert abs(c.thrust_angle) < 1e-10 and abs(c.thrust_x) < 1e-10 * c.thrust_norm
+    assert abs(c.tip_area) < 1e-10  # symmetric figure-of-eight: no net area
+
+
+@pytest.mark.parametrize("p", [CiliumParams(200, 0.2, 16 * TWO_PI), CiliumParams(200, 5, 16 * TWO_PI)])
+def test_stable_fields_give_no_oscillation(p):
+    c = limit_cycle(p, degree=6)
+    assert not c.flutter and c.status == "no oscillation" and c.thrust_norm == 0
+
+
+def test_strong_field():
+    p = CiliumParams(500, 0.5, 16 * TWO_PI)
+    with pytest.raises(CycleError, match="raise n_phase"):  # too few steps: a clear error
+        limit_cycle(p, degree=6, n_phase=16, floquet=False, error_estimate=False)
+    c = limit_cycle(p, degree=6, n_phase=64, floquet=False, error_estimate=False)
+    assert c.flutter and 0 < c.thrust_angle - c.theta_lim < 0.1
