@@ -314,7 +314,7 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         A converged cycle (e.g. at a neighbouring chi_N) to start from, instead of the Hopf
         eigenvector and a transient.
     floquet, error_estimate : bool
-        Compute the Floquet multipliers (about 30 period maps) / the refinement error
+        Compute the Floquet multipliers (17 period maps) / the refinement error
         estimates (two more shooting solves from the converged cycle).
 
     Returns
