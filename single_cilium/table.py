@@ -9,7 +9,8 @@ exactly there. With ``path`` every finished row is kept on disk at once, so an i
 build resumes where it stopped.
 
 :class:`ThrustTable` wraps the Dataset of DESIGN.md (schema below), validates it on load,
-interpolates it smoothly in chi_N (cubic splines on the flutter branch), inverts the thrust
+interpolates it smoothly in chi_N (cubic splines on the flutter branch; for the shapes and
+forces in ``sqrt(chi_c - chi_N)``, in which their Hopf onset is smooth), inverts the thrust
 angle, and mirrors negative chi_N.
 
 Schema (version 1): dims ``chi_N``, ``phase`` (uniform in [0, 1)), ``s`` (uniform in [0, 1]);
@@ -258,14 +259,25 @@ class ThrustTable:
         c = self.ds.chi_N.values
         self._branch = c[fl]
         self._splines = {}
+        # near the Hopf cutoff the amplitude grows like sqrt(chi_c - chi_N): in the variable
+        # u = sqrt(chi_c - chi_N) shapes and forces are smooth, so their splines use it when the
+        # branch ends at the cutoff row; the scalars (thrust ~ amplitude^2) are smooth in chi_N
+        chi_c = float(self.ds.attrs.get("chi_N_cutoff", np.nan))
+        self._cut = chi_c if self._branch.size and np.isfinite(chi_c) and self._branch[-1] == chi_c else None
         if self._branch.size >= 2:
             for k in SCALARS:
                 v = self.ds[k].values[fl]
                 ok = np.isfinite(v)
                 if ok.sum() >= 2:
                     self._splines[k] = CubicSpline(self._branch[ok], v[ok])
+            u = self._u(self._branch)
+            order = np.argsort(u)
             for k in FIELDS:
-                self._splines[k] = CubicSpline(self._branch, self.ds[k].values[fl], axis=0)
+                self._splines[k] = CubicSpline(u[order], self.ds[k].values[fl][order], axis=0)
+
+    def _u(self, chi_N):
+        chi_N = np.asarray(chi_N, dtype=float)
+        return np.sqrt(np.maximum(self._cut - chi_N, 0.0)) if self._cut is not None else chi_N
 
     @staticmethod
     def _validate(ds: xr.Dataset, source: str) -> xr.Dataset:
@@ -334,8 +346,9 @@ class ThrustTable:
         on_branch = self._branch.size >= 2 and self._branch[0] <= a <= self._branch[-1]
         template = self.ds.isel(chi_N=0).drop_vars("chi_N")
         if on_branch:
-            row = template.copy(data={k: (self._splines[k](a) if k in self._splines else template[k].values)
-                                      for k in template.data_vars})
+            ua = float(self._u(a))
+            row = template.copy(data={k: (self._splines[k](ua if k in FIELDS else a) if k in self._splines
+                                          else template[k].values) for k in template.data_vars})
             row["flutter"] = template.flutter.copy(data=np.int8(1))
         else:
             nearest = self.ds.sel(chi_N=a, method="nearest")
@@ -353,15 +366,19 @@ class ThrustTable:
         return row.assign_coords(chi_N=c)
 
     def _angle_branch(self) -> tuple[float, float]:
+        """chi_N range of the rows that define the thrust angle."""
         if "thrust_angle" not in self._splines:
             raise TableError("the table has no flutter branch")
         x = self._splines["thrust_angle"].x
         return float(x[0]), float(x[-1])
 
+    def _angle(self, chi_N):
+        return self._splines["thrust_angle"](chi_N)
+
     def thrust_angle_range(self) -> tuple[float, float]:
         """The thrust angles the computed flutter rows reach (chi_N >= 0)."""
         a, b = self._angle_branch()
-        vals = self._splines["thrust_angle"](np.linspace(a, b, 2001))
+        vals = self._angle(np.linspace(a, b, 2001))
         return float(vals.min()), float(vals.max())
 
     def chi_N_for_angle(self, angle: float) -> float:
@@ -377,13 +394,13 @@ class ThrustTable:
                              f"[{lo:.6g}, {hi:.6g}] rad (chi_N in [{b0:g}, {b1:g}])")
         b0, b1 = self._angle_branch()
         xs = np.linspace(b0, b1, 2001)
-        vals = self._splines["thrust_angle"](xs) - a
+        vals = self._angle(xs) - a
         change = np.nonzero(np.sign(vals[:-1]) != np.sign(vals[1:]))[0]
         if change.size == 0:
             c = float(xs[int(np.argmin(np.abs(vals)))])
         else:
             k = int(change[0])
-            c = brentq(lambda x: float(self._splines["thrust_angle"](x)) - a, xs[k], xs[k + 1], xtol=1e-13)
+            c = brentq(lambda x: float(self._angle(x)) - a, xs[k], xs[k + 1], xtol=1e-13)
         return math.copysign(c, angle) if angle != 0 else c
 
 

@@ -143,3 +143,9 @@ def test_default_table_recomputes_and_interpolates():
     assert float(r.period) == pytest.approx(fresh.period, rel=1e-3)
     shape_err = np.max(np.abs(r.x.values - fresh.mesh.interpolate(fresh.data.x.values.T, t.ds.s.values).T))
     assert shape_err < 1e-3
+    # the last interval before the cutoff, where the amplitude grows like sqrt(chi_c - chi_N)
+    mid = 0.5 * (c[-3] + c[-2])
+    fresh = limit_cycle(CiliumParams(200, 1, mid), degree=deg, n_phase=64, floquet=False, error_estimate=False)
+    r = t.at(mid)
+    assert float(r.thrust_norm) == pytest.approx(fresh.thrust_norm, rel=1e-3)
+    assert np.max(np.abs(r.y.values - fresh.mesh.interpolate(fresh.data.y.values.T, t.ds.s.values).T)) < 1e-3
