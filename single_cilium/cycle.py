@@ -162,14 +162,19 @@ class _Shooter:
         self.scale = self.fil.scale
         self.i_tip = self.fil.n - 2  # theta at the tip, in the state vector
         self.work = _Work()
+        self._last = None  # the last period map: converged orbits are mapped by several steps
 
     def pmap(self, y0, T):
+        key = (y0.tobytes(), float(T))
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
         self.work.period_maps += 1
         try:
             Y, Yd, _ = self.solver.fixed(y0, T / self.n_phase, self.n_phase)
         except ConvergenceError as exc:
             raise CycleError(f"{exc}; the period is split into n_phase={self.n_phase} steps: "
                              f"raise n_phase (e.g. to {2 * self.n_phase})", exc.t) from None
+        self._last = (key, (Y, Yd))
         return Y, Yd
 
     def shoot(self, y0, T, c, tol, max_newton=20):
@@ -265,7 +270,7 @@ class _Shooter:
         return theta, kappa, fil.shape(theta), d, fil.clamp_force(d)
 
 
-def _seed_from_eigenvector(params, mesh, st, y_eq, fil, T0, work):
+def _seed_from_eigenvector(st, y_eq, fil, T0, work):
     """Grow the Hopf mode by a transient; extrapolate by the normal form while near-linear."""
     v = fil.join(st.theta_modes[0], st.kappa_modes[0])
     alpha = st.alpha
@@ -363,10 +368,10 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
                 y0 = None
         if y0 is None:
             T = 2 * math.pi / st.beta
-            y0, T, res = converge(_seed_from_eigenvector(params, mesh, st, y_eq, fil, T, sh.work), T)
+            y0, T, res = converge(_seed_from_eigenvector(st, y_eq, fil, T, sh.work), T)
         y0 = sh.rephase(y0, T)
         y0, T, res = sh.shoot(y0, T, float(y0[sh.i_tip]), tol)
-        result = _assemble(params, mesh, sh, y0, T, theta_lim)
+        result = _assemble(params, mesh, sh, y0, T)
         mults = np.zeros(0, complex)
         fl = triv = math.nan
         if floquet:
@@ -392,7 +397,7 @@ def _transfer(seed: LimitCycle, fil: Filament) -> np.ndarray:
     return fil.join(th + dth, ka + dka)
 
 
-def _assemble(params, mesh, sh: _Shooter, y0, T, theta_lim) -> dict:
+def _assemble(params, mesh, sh: _Shooter, y0, T) -> dict:
     theta, kappa, r, d, F = sh.observables(y0, T)
     Fbar = F.mean(axis=0)
     xt, yt = r[:, -1, 0], r[:, -1, 1]
@@ -494,7 +499,7 @@ def _error_estimates(params, mesh, n_phase, result, y0, T, tol) -> dict:
         th, ka = fil0.split(y0)
         yv = sh.fil.join(mesh.interpolate(th, m.nodes), mesh.interpolate(ka, m.nodes)) if m != mesh else y0
         yv, Tv, _ = sh.shoot(yv, T, float(yv[sh.i_tip]), tol)
-        other = quantities(Tv, _assemble(params, m, sh, yv, Tv, math.nan)["thrust"])
+        other = quantities(Tv, _assemble(params, m, sh, yv, Tv)["thrust"])
         diffs["period"] += abs(other[0] - base[0]) / base[0]
         diffs["thrust_norm"] += abs(other[1] - base[1]) / base[1]
         diffs["thrust_angle"] += abs(_wrap(other[2] - base[2]))

@@ -221,7 +221,7 @@ class Mesh:
     def cumulative(self) -> np.ndarray:
         """Cumulative integration matrix, shape ``(n, n)``: ``(I @ f)[q] = int_0^{s_q} f_h ds`` for
         the piecewise polynomial ``f_h`` interpolating nodal values ``f``."""
-        n, p = self.n_nodes, self.degree
+        n = self.n_nodes
         Ix = self._reference[3]
         wr = self._reference[1]
         I = np.zeros((n, n))

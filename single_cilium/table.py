@@ -39,7 +39,6 @@ from . import __version__
 from ._io import write_netcdf
 from .cycle import LimitCycle, limit_cycle
 from .equilibrium import NoLimitAngleError, limit_angle
-from .mesh import Mesh
 from .params import CiliumParams
 from .progress import Progress
 from .stability import flutter_cutoff, stability

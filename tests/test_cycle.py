@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from single_cilium import CiliumParams, Mesh, limit_angle, simulate
+from single_cilium import CiliumParams, limit_angle, simulate
 from single_cilium.cycle import CycleError, limit_cycle, thrust_angle
 
 TWO_PI = 2 * np.pi

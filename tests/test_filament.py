@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from single_cilium import CiliumParams, Filament, Mesh, equilibrium
+from single_cilium import Filament, Mesh, equilibrium
 from single_cilium.dynamics import initial_state
 
 TWO_PI = 2 * np.pi
