@@ -53,6 +53,7 @@ SCALARS = ("period", "thrust_norm", "thrust_angle", "thrust_x", "thrust_y", "the
            "floquet_trivial_error")
 FIELDS = ("x", "y", "fx", "fy")
 DEFAULT_FILE = "table_chiE200_eta1.nc"
+_ODD = ("thrust_x", "thrust_angle", "theta_lim", "tip_area")
 
 
 class TableError(ValueError):
@@ -363,6 +364,72 @@ class ThrustTable:
             for k in ("x", "fx", "thrust_x", "thrust_angle", "theta_lim", "tip_area"):
                 row[k] = -row[k]
         return row.assign_coords(chi_N=c)
+
+    @property
+    def flutter_range(self) -> tuple[float, float]:
+        """The |chi_N| interval of the flutter branch (where the table has cycles)."""
+        if self._branch.size < 2:
+            raise TableError("the table has no flutter branch")
+        return float(self._branch[0]), float(self._branch[-1])
+
+    def _check(self, chi_N) -> np.ndarray:
+        c = np.asarray(chi_N, dtype=float)
+        if not np.all(np.isfinite(c)):
+            raise TableError("chi_N must be finite")
+        lo, hi = self.chi_N_range
+        a = np.abs(c)
+        bad = (a < lo) | (a > hi)
+        if np.any(bad):
+            raise TableError(f"|chi_N| = {float(a[bad].flat[0]):g} is outside the table's range [{lo:g}, {hi:g}]")
+        return c
+
+    def scalar(self, name: str, chi_N, nu: int = 0) -> np.ndarray:
+        """A scalar column (e.g. ``"thrust_x"``, ``"period"``) or its ``nu``-th derivative in
+        chi_N, vectorised over ``chi_N`` (any shape) and mirrored for negative chi_N
+        (thrust_x, thrust_angle, theta_lim and tip_area are odd in chi_N, the rest even).
+        Off the flutter branch the thrust columns are 0 and the others NaN."""
+        if name not in SCALARS:
+            raise KeyError(f"{name!r} is not a scalar column of the table ({', '.join(SCALARS)})")
+        if name not in self._splines:
+            raise TableError(f"the table has no flutter branch to interpolate {name!r}")
+        c = self._check(chi_N)
+        a = np.abs(c)
+        b0, b1 = self.flutter_range
+        on = (a >= b0) & (a <= b1)
+        sp = self._splines[name] if nu == 0 else self._splines[name].derivative(nu)
+        v = np.where(on, sp(np.clip(a, b0, b1)), 0.0 if name.startswith("thrust") else np.nan)
+        odd = name in _ODD
+        # f(c) = sgn(c)^odd g(|c|)  =>  f^(nu)(c) = sgn(c)^(odd + nu) g^(nu)(|c|)
+        if (odd + nu) % 2:
+            v = np.where(c < 0, -v, v)
+        return v
+
+    def cycles(self, chi_N) -> dict[str, np.ndarray]:
+        """The cycle data of many cilia at once: ``x, y, fx, fy`` of shape (n, phase, s) for the
+        1-d array ``chi_N`` (n,), with ``flutter`` (n,) bool; non-fluttering rows are zero
+        (a still filament exerts no force) with their equilibrium shape left NaN.
+        Negative chi_N by mirror symmetry (x and fx change sign)."""
+        c = np.atleast_1d(self._check(chi_N)).astype(float)
+        if c.ndim != 1:
+            raise ValueError(f"chi_N must be 1-d, got shape {c.shape}")
+        a = np.abs(c)
+        n_p, n_s = self.ds.sizes["phase"], self.ds.sizes["s"]
+        out = {k: np.zeros((c.size, n_p, n_s)) for k in FIELDS}
+        flutter = np.zeros(c.size, bool)
+        if self._branch.size >= 2:
+            b0, b1 = self.flutter_range
+            flutter = (a >= b0) & (a <= b1)
+            if np.any(flutter):
+                u = self._u(a[flutter])
+                for k in FIELDS:
+                    out[k][flutter] = self._splines[k](u)
+        for k in ("x", "y"):
+            out[k][~flutter] = np.nan
+        neg = c < 0
+        for k in ("x", "fx"):
+            out[k][neg] = -out[k][neg]
+        out["flutter"] = flutter
+        return out
 
     def _angle_branch(self) -> tuple[float, float]:
         """chi_N range of the rows that define the thrust angle."""

@@ -149,3 +149,30 @@ def test_default_table_recomputes_and_interpolates():
     r = t.at(mid)
     assert float(r.thrust_norm) == pytest.approx(fresh.thrust_norm, rel=1e-3)
     assert np.max(np.abs(r.y.values - fresh.mesh.interpolate(fresh.data.y.values.T, t.ds.s.values).T)) < 1e-3
+
+
+def test_vectorised_cycles_and_scalars_match_at():
+    t = ThrustTable.default()
+    c = np.array([-60.0, 0.0, 33.3, 120.0, 165.0])
+    cyc = t.cycles(c)
+    assert cyc["flutter"].tolist() == [True, True, True, True, False]
+    for i, ch in enumerate(c[:4]):
+        row = t.at(ch)
+        for k in ("x", "y", "fx", "fy"):
+            assert np.array_equal(cyc[k][i], row[k].values)
+        assert t.scalar("thrust_x", ch) == pytest.approx(float(row.thrust_x), abs=1e-15)
+        assert t.scalar("period", ch) == pytest.approx(float(row.period), abs=1e-15)
+    assert np.all(cyc["fx"][4] == 0) and np.all(np.isnan(cyc["x"][4]))
+    assert t.scalar("thrust_x", 165.0) == 0.0 and np.isnan(t.scalar("period", 165.0))
+    # derivatives: odd/even mirror rules against central differences
+    h = 1e-4
+    for name in ("thrust_x", "thrust_y", "period"):
+        d = t.scalar(name, c[:4], nu=1)
+        fd = (t.scalar(name, c[:4] + h) - t.scalar(name, c[:4] - h)) / (2 * h)
+        np.testing.assert_allclose(d, fd, rtol=1e-5, atol=1e-9)
+    with pytest.raises(TableError, match="outside"):
+        t.cycles([500.0])
+    with pytest.raises(TableError, match="finite"):
+        t.scalar("thrust_x", np.nan)
+    with pytest.raises(KeyError, match="scalar column"):
+        t.scalar("x", 1.0)
