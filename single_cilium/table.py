@@ -400,8 +400,8 @@ class ThrustTable:
         v = np.where(on, sp(np.clip(a, b0, b1)), 0.0 if name.startswith("thrust") else np.nan)
         odd = name in _ODD
         # f(c) = sgn(c)^odd g(|c|)  =>  f^(nu)(c) = sgn(c)^(odd + nu) g^(nu)(|c|)
-        if (odd + nu) % 2:
-            v = np.where(c < 0, -v, v)
+        if (odd + nu) % 2:  # an odd function of chi_N: vanishes at 0 (the mirror image meets itself)
+            v = np.where(c < 0, -v, np.where(c == 0, 0.0, v))
         return v
 
     def cycles(self, chi_N) -> dict[str, np.ndarray]:
