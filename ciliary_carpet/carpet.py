@@ -1,0 +1,526 @@
+"""A carpet of cilia under one uniform field, and the Stokes flow it drives.
+
+Model (MODEL.md section 6)
+--------------------------
+Every cilium j is clamped at its base point b_j in the plane z = 0 and beats on the limit cycle
+of its natural curvature chi_N_j, read from the :class:`~single_cilium.table.ThrustTable` of the
+field (chi_E, eta). The field points along ``direction`` (radians, anticlockwise from +y); the
+whole single-filament picture (field along e2) is rotated by it. Cilium j is at phase
+``phi_j(t) = phases[j] + t / T(chi_N_j)`` (mod 1): each beats at its own period, so the carpet's
+flow is in general quasi-periodic, and nothing here assumes a common period. The fluid velocity
+is the superposition of the filaments' line distributions of Stokeslets,
+
+    u(x, t) = 1/(8 pi mu) sum_j int_0^1 G(x - r_j(s, t)) f_j(s, t) ds,   G(R) = I/|R| + R R^T/|R|^3,
+
+with f = -d the force per length on the fluid (the table's fx, fy). The arc length integral is
+the composite Simpson rule on the table's uniform s grid; the phase dependence is the
+trigonometric interpolant of the table's uniform phase samples (spectral: the cycle is smooth).
+With ``wall=h`` a no-slip plane lies at z = -h (Blake's image system). The model ignores
+contact and hydrodynamic interaction between filaments (each beats as if alone); a base point
+inside another cilium's swept region is warned about.
+
+Levels of detail (DESIGN.md "flow fidelity")
+--------------------------------------------
+Per (cilium, evaluation point) pair the cheapest representation whose error bound is under the
+tolerance is used. Around the force centre c_j (the centroid of the cilium's swept samples;
+every filament point lies within the radius a_j of it), with F = int f ds, D = int (r-c) f^T ds,
+Q = int |r - c|^2 |f| ds:
+
+* ``point``: the total force F(t) and its first moment D(t) at the current phase, carried by three
+  point forces at c + delta u_k (u_k at 0, 120, 240 degrees, delta = a/2) with
+  f_k = F/3 + 2/(3 delta) D^T u_k, which reproduce F and D exactly;
+* ``mean``: the same with the cycle means Fbar, Dbar (the steady, time-averaged flow only);
+* ``resolved``: the full line distribution (for the mean flow: averaged over the phase samples).
+
+Both cheap levels share the monopole and dipole with the resolved sum, so by Taylor's theorem
+with remainder their error for a target at distance R > a from c is at most
+
+    |u_level - u_resolved| <= C2 (Q + Q_rep) / (2 * 8 pi mu (R - a)^3),
+
+with Q_rep = sum_k delta^2 |f_k| the second moment of the three-point carrier and C2 = 4 the
+maximum of |(h.grad)^2 G f| over unit vectors at unit distance (computed in the tests; with
+a wall, C2 = :data:`C2_WALL`, measured over wall heights and directions in the tests). A pair is
+summed cheaply when this bound is at most ``tol * S_j / (8 pi mu R)``, where S_j is the cilium's
+force scale (|Fbar_j| for the mean flow, the r.m.s. of |F_j(t)| over the cycle for the
+instantaneous flow), so that at every point
+
+    |u - u_resolved| <= tol * sum_j S_j / (8 pi mu |x - c_j|),
+
+i.e. ``tol`` relative to the sum of the cilia's far-field magnitudes (for a carpet whose cilia
+push roughly the same way, relative to |u| itself). Measured on a 10 x 10 carpet: see the tests
+and benchmarks/bench_flow.py.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import ConvexHull, cKDTree
+
+from single_cilium.equilibrium import equilibrium_shape
+from single_cilium.params import CiliumParams
+from single_cilium.table import ThrustTable
+
+from .stokeslet import Backend, Wall, stokeslet_velocity, stokeslet_velocity_ranges
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "LEVELS"]
+
+C2_FREE = 4.0
+"""sup |(h . grad)^2 G(e) f| over unit h, f, e: the Taylor constant of the free-space Stokeslet."""
+C2_WALL = 16.0
+"""The same constant for Blake's tensor, second derivatives in the in-plane source position,
+relative to the source distance (a safe upper bound of the measured supremum, see the tests)."""
+LEVELS = ("mean", "point", "resolved")
+
+
+@dataclass(frozen=True)
+class Scales:
+    """Physical scales for output in SI units: the filament length L [m], the relaxation time
+    tau [s] and the fluid viscosity [Pa s]. Positions scale by L, times by tau, velocities by
+    L/tau; a force per length f (model units B/L^3) by ``viscosity * L / (tau * mu)`` where
+    ``mu`` is the carpet's dimensionless viscosity."""
+
+    length_m: float
+    time_s: float
+    viscosity_Pa_s: float
+
+    def __post_init__(self) -> None:
+        for k in ("length_m", "time_s", "viscosity_Pa_s"):
+            v = getattr(self, k)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"Scales.{k} must be a positive finite number, got {v!r}")
+
+    @property
+    def velocity(self) -> float:
+        return self.length_m / self.time_s
+
+
+@dataclass(frozen=True)
+class FlowSample:
+    """Velocities at points with their error bound and the fidelity used.
+
+    velocity (M, 3); error_bound (M,): the bound of the levels of detail against the resolved
+    sum (zero where every pair was resolved); pairs: number of (cilium, point) pairs evaluated
+    at each level; tol: the tolerance asked for."""
+
+    velocity: np.ndarray
+    error_bound: np.ndarray
+    pairs: dict
+    tol: float
+
+    @property
+    def fidelity(self) -> dict:
+        """Fraction of the pairs evaluated at each level."""
+        n = sum(self.pairs.values())
+        return {k: (v / n if n else 0.0) for k, v in self.pairs.items()}
+
+
+def _modes(table: ThrustTable, floor: float = 1e-7) -> int:
+    """Number of phase harmonics (k = 0..K-1) above ``floor`` times the largest, over every row of
+    the table (the table stores float32: its harmonics level off near 1e-8)."""
+    fl = table.ds.flutter.values.astype(bool)
+    if not np.any(fl):
+        return 1
+    amp = np.zeros(table.ds.sizes["phase"] // 2 + 1)
+    for k in ("x", "y", "fx", "fy"):
+        a = np.abs(np.fft.rfft(table.ds[k].values[fl].astype(float), axis=1)).max(axis=(0, 2))
+        amp = np.maximum(amp, a / a.max())
+    return int(np.nonzero(amp > floor)[0].max()) + 1
+
+
+def _pad(a: np.ndarray) -> np.ndarray:
+    """(..., 2) -> (..., 3) with z = 0."""
+    return np.concatenate([a, np.zeros(a.shape[:-1] + (1,))], axis=-1)
+
+
+def _simpson(n: int) -> np.ndarray:
+    if n < 3 or n % 2 == 0:
+        raise ValueError(f"the table's s grid must have an odd number (>= 3) of points, got {n}")
+    w = np.ones(n)
+    w[1:-1:2] = 4.0
+    w[2:-1:2] = 2.0
+    return w / (3.0 * (n - 1))
+
+
+@dataclass(frozen=True, eq=False)
+class Carpet:
+    """Cilia clamped at ``bases`` under one uniform field, with the flow they make.
+
+    Parameters
+    ----------
+    bases : (N, 2) base points in the plane z = 0 (units of L); see :mod:`ciliary_carpet.layout`.
+    chi_N : (N,) signed natural curvatures, each within the table's range.
+    table : the ThrustTable of the field (chi_E, eta).
+    phases : (N,) phases at t = 0 in [0, 1) (default all 0); see :mod:`ciliary_carpet.layout`.
+    direction : field direction, radians anticlockwise from +y (the scene rotates with it).
+    mu : fluid viscosity in model units (B tau / L^4); 1 by default.
+    wall : distance h > 0 of a no-slip wall z = -h below the plane, or None (free space).
+    scales : optional :class:`Scales` for output in SI units.
+    backend : kernel strategy for the dense sums (:mod:`ciliary_carpet.stokeslet`); default Auto.
+
+    Cilia whose chi_N does not flutter stand still in their equilibrium shape and make no flow.
+    """
+
+    bases: np.ndarray
+    chi_N: np.ndarray
+    table: ThrustTable
+    phases: np.ndarray | None = None
+    direction: float = 0.0
+    mu: float = 1.0
+    wall: float | None = None
+    scales: Scales | None = None
+    backend: Backend | None = None
+    _c: dict = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        b = np.asarray(self.bases, dtype=float)
+        if b.ndim != 2 or b.shape[1] != 2 or b.shape[0] < 1:
+            raise ValueError(f"bases must have shape (N, 2) with N >= 1, got {b.shape}")
+        if not np.all(np.isfinite(b)):
+            raise ValueError("bases contain NaN or inf")
+        n = b.shape[0]
+        c = np.broadcast_to(np.asarray(self.chi_N, dtype=float), (n,)).copy() if np.ndim(self.chi_N) == 0 \
+            else np.asarray(self.chi_N, dtype=float)
+        if c.shape != (n,):
+            raise ValueError(f"chi_N must have shape ({n},) to match bases, got {c.shape}")
+        if not np.all(np.isfinite(c)):
+            raise ValueError("chi_N contains NaN or inf")
+        p = np.zeros(n) if self.phases is None else np.asarray(self.phases, dtype=float)
+        if p.shape != (n,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"phases must be {n} finite numbers, got shape {p.shape}")
+        for k in ("direction", "mu"):
+            v = getattr(self, k)
+            if not isinstance(v, (int, float, np.floating)) or not math.isfinite(v):
+                raise ValueError(f"{k} must be a finite number, got {v!r}")
+        if self.mu <= 0:
+            raise ValueError(f"mu must be positive, got {self.mu}")
+        if self.wall is not None and not (math.isfinite(self.wall) and self.wall > 0):
+            raise ValueError(f"wall must be a positive distance below the plane (or None), got {self.wall!r}")
+        if not isinstance(self.table, ThrustTable):
+            raise TypeError(f"table must be a ThrustTable, got {type(self.table).__name__}")
+        object.__setattr__(self, "bases", b)
+        object.__setattr__(self, "chi_N", c)
+        object.__setattr__(self, "phases", np.mod(p, 1.0))
+        object.__setattr__(self, "direction", float(self.direction))
+        object.__setattr__(self, "mu", float(self.mu))
+        object.__setattr__(self, "_c", self._prepare())
+        self._warn_overlaps()
+
+    # ------------------------------------------------------------------ precomputation
+    def _prepare(self) -> dict:
+        t = self.table
+        n = self.n
+        n_p, n_s = t.ds.sizes["phase"], t.ds.sizes["s"]
+        s = t.ds.s.values
+        w = _simpson(n_s)
+        rot = self.rotation
+        K = _modes(t)
+        fl = np.zeros(n, bool)
+        coef = np.empty((n, 2 * K - 1, n_s, 4))
+        centre, radius = np.empty((n, 2)), np.empty(n)
+        F, D, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p))
+        hulls = []
+        m = np.full(K, 2.0)
+        m[0] = 1.0
+        if n_p % 2 == 0 and K - 1 == n_p // 2:
+            m[-1] = 1.0
+        for lo in range(0, n, 256):  # in chunks: the full cycle data of a large carpet would not fit
+            sl = slice(lo, min(n, lo + 256))
+            cyc = t.cycles(self.chi_N[sl])  # raises TableError for chi_N outside the table
+            fl[sl] = cyc["flutter"]
+            xy = np.stack([cyc["x"], cyc["y"]], axis=-1)
+            f = np.stack([cyc["fx"], cyc["fy"]], axis=-1)
+            for i in np.nonzero(~cyc["flutter"])[0]:  # still filaments: equilibrium shape, no force
+                x, y = equilibrium_shape(CiliumParams(t.chi_E, t.eta, float(self.chi_N[lo + i])), s)
+                xy[i] = np.stack([x, y], axis=-1)[None]
+            xy = xy @ rot.T
+            f = f @ rot.T
+            # trigonometric interpolation in phase: cos terms k = 0..K-1, then sin terms k = 1..K-1
+            spec = np.fft.rfft(np.concatenate([xy, f], axis=-1), axis=1)[:, :K] / n_p * m[None, :, None, None]
+            coef[sl] = np.concatenate([spec.real, -spec.imag[:, 1:]], axis=1)
+            cen = xy.reshape(xy.shape[0], -1, 2).mean(axis=1)
+            rel = xy - cen[:, None, None, :]
+            dist = np.sqrt((rel ** 2).sum(-1))
+            centre[sl] = cen + self.bases[sl]
+            radius[sl] = dist.reshape(xy.shape[0], -1).max(axis=1)
+            fw = f * w[None, None, :, None]
+            F[sl] = fw.sum(axis=2)
+            D[sl] = np.einsum("jpsa,jpsb->jpab", rel, fw)
+            Q[sl] = (dist ** 2 * np.sqrt((f ** 2).sum(-1)) * w).sum(axis=2)
+            for i in range(xy.shape[0]):
+                try:
+                    hulls.append(ConvexHull(xy[i].reshape(-1, 2) + self.bases[lo + i]).equations)
+                except Exception:  # degenerate (a straight still filament): its bounding disc is used
+                    hulls.append(None)
+        period = np.full(n, np.nan)
+        if np.any(fl):
+            period[fl] = t.scalar("period", self.chi_N[fl])
+        return dict(flutter=fl, n_s=n_s, n_phase=n_p, s=s, w=w, coef=coef, k=np.arange(K),
+                    period=period, rate=np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0),
+                    centre=centre, radius=radius, F=F, D=D, Q=Q, F_rms=np.sqrt((F ** 2).sum(-1).mean(axis=1)),
+                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls)
+
+    def _warn_overlaps(self) -> None:
+        c = self._c
+        tree = cKDTree(self.bases)
+        bad = []
+        for j in range(self.n):
+            for i in tree.query_ball_point(c["centre"][j], c["radius"][j]):
+                if i != j and self.in_swept_region(self.bases[i][None], j)[0]:
+                    bad.append((i, j))
+        if bad:
+            warnings.warn(f"{len(bad)} cilium base(s) lie inside another cilium's swept region, e.g. base "
+                          f"{bad[0][0]} in cilium {bad[0][1]}'s: the model ignores contact and hydrodynamic "
+                          "interaction between filaments, so such a layout is not physical; space the cilia "
+                          "further apart", UserWarning, stacklevel=3)
+
+    # ------------------------------------------------------------------ geometry and state
+    @property
+    def n(self) -> int:
+        """Number of cilia."""
+        return self.bases.shape[0]
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """2x2 rotation from the field frame (field along e2) to the lab frame."""
+        a = self.direction
+        return np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+
+    @property
+    def periods(self) -> np.ndarray:
+        """(N,) beat period of each cilium (NaN for still ones)."""
+        return self._c["period"].copy()
+
+    @property
+    def flutter(self) -> np.ndarray:
+        return self._c["flutter"].copy()
+
+    @property
+    def centres(self) -> np.ndarray:
+        """(N, 2) force centres c_j (centroid of the swept samples)."""
+        return self._c["centre"].copy()
+
+    @property
+    def radii(self) -> np.ndarray:
+        """(N,) radius a_j of the swept region about c_j."""
+        return self._c["radius"].copy()
+
+    @property
+    def mean_thrust(self) -> np.ndarray:
+        """(N, 2) cycle-mean force on the fluid, lab frame (the table's thrust, rotated)."""
+        return self._c["F_mean"].copy()
+
+    @property
+    def s(self) -> np.ndarray:
+        return self._c["s"].copy()
+
+    @property
+    def _wall(self) -> Wall | None:
+        return None if self.wall is None else Wall(z=-float(self.wall))
+
+    def phase_at(self, t: float) -> np.ndarray:
+        """(N,) phase of every cilium at time t, in [0, 1)."""
+        return np.mod(self.phases + float(t) * self._c["rate"], 1.0)
+
+    def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Shapes and forces of all cilia at time t.
+
+        Returns positions (N, n_s, 2) (lab frame), force per length on the fluid (N, n_s, 2),
+        and the phases (N,)."""
+        c = self._c
+        ph = self.phase_at(t)
+        arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
+        basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)  # (N, 2K-1)
+        vals = np.einsum("jk,jksq->jsq", basis, c["coef"], optimize=True)
+        return vals[..., :2] + self.bases[:, None, :], vals[..., 2:], ph
+
+    def cycle_samples(self, js) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and forces per length of cilia ``js`` at the table's phase samples:
+        (len(js), n_phase, n_s, 2) each, lab frame."""
+        c = self._c
+        js = np.asarray(js, dtype=np.int64)
+        ph = np.arange(c["n_phase"]) / c["n_phase"]
+        arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
+        basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)  # (phase, 2K-1)
+        vals = np.einsum("pk,jksq->jpsq", basis, c["coef"][js], optimize=True)
+        return vals[..., :2] + self.bases[js][:, None, None, :], vals[..., 2:]
+
+    def in_swept_region(self, points, j: int, margin: float = 0.0) -> np.ndarray:
+        """Whether points (M, 2) lie in the convex hull of cilium j's swept region grown by
+        ``margin`` (conservative: the hull covers the region)."""
+        p = np.asarray(points, dtype=float)[:, :2]
+        eq = self._c["hulls"][j]
+        if eq is None:
+            d = np.linalg.norm(p - self._c["centre"][j], axis=1)
+            return d <= self._c["radius"][j] + margin
+        return np.all(p @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
+
+    # ------------------------------------------------------------------ flow
+    def _carriers(self, F: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Three point forces per cilium reproducing F (N, 2) and D (N, 2, 2) about c_j."""
+        c = self._c
+        u = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
+        delta = 0.5 * np.maximum(c["radius"], 1e-12)
+        pos = c["centre"][:, None, :] + delta[:, None, None] * u[None]
+        fk = F[:, None, :] / 3.0 + (2.0 / (3.0 * delta))[:, None, None] * np.einsum("jab,ka->jkb", D, u)
+        q_rep = (delta ** 2) * np.sqrt((fk ** 2).sum(-1)).sum(axis=1)
+        return pos, fk, q_rep
+
+    def _near_radius(self, Q: np.ndarray, S: np.ndarray, tol: float) -> np.ndarray:
+        """Per cilium the distance R* beyond which the cheap level's bound
+        C2 Q R / (2 (R - a)^3) <= tol S holds (inf when S = 0 but Q > 0)."""
+        a = self._c["radius"]
+        C2 = C2_WALL if self.wall is not None else C2_FREE
+        k = 0.5 * C2 * Q
+        with np.errstate(divide="ignore", invalid="ignore"):
+            g = lambda R: k * R - tol * S * (R - a) ** 3  # noqa: E731 -- decreasing past its root
+            lo = a.copy()
+            hi = a + 1.0
+            for _ in range(200):
+                grow = g(hi) > 0
+                if not np.any(grow & (S > 0)):
+                    break
+                hi = np.where(grow & (S > 0), 2 * hi, hi)
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                pos = g(mid) > 0
+                lo = np.where(pos, mid, lo)
+                hi = np.where(pos, hi, mid)
+        R = hi * (1 + 1e-12) + 1e-12
+        R = np.where(S > 0, R, np.where(Q > 0, np.inf, a))
+        return R
+
+    def _sum(self, targets: np.ndarray, resolved, F: np.ndarray, D: np.ndarray, Q: np.ndarray, S: np.ndarray,
+             tol: float, error: bool, cheap_level: str) -> FlowSample:
+        """Cheap carriers everywhere (one dense sum), plus resolved-minus-cheap corrections on the
+        near pairs (one sparse sum). ``resolved(js)`` gives the resolved sources of cilia ``js``:
+        positions and weighted forces, (len(js), n_src, 2) each."""
+        c = self._c
+        n = self.n
+        active = S > 0
+        cpos, cf, q_rep = self._carriers(F, D)
+        m = targets.shape[0]
+        wall = self._wall
+        rstar = self._near_radius(Q + q_rep, S, tol) if tol > 0 else np.full(n, np.inf)
+        rstar = np.where(active | (Q > 0), rstar, -1.0)
+        u = np.zeros((m, 3))
+        if np.any(active):
+            u += stokeslet_velocity(targets, _pad(cpos[active].reshape(-1, 2)), _pad(cf[active].reshape(-1, 2)),
+                                    self.mu, wall=wall, backend=self.backend)
+        # near pairs, from a tree over the targets
+        cand = np.nonzero(rstar > 0)[0]
+        pi, pj = [], []
+        if cand.size:
+            lists = cKDTree(targets).query_ball_point(_pad(c["centre"][cand]), np.minimum(rstar[cand], 1e300))
+            for j, lst in zip(cand, lists):
+                if lst:
+                    pi.append(np.asarray(lst, dtype=np.int64))
+                    pj.append(np.full(len(lst), j, dtype=np.int64))
+        n_near = 0
+        if pi:
+            pi = np.concatenate(pi)
+            pj = np.concatenate(pj)
+            n_near = pi.size
+            order = np.lexsort((pj, pi))
+            pi, pj = pi[order], pj[order]
+            js, local = np.unique(pj, return_inverse=True)
+            rpos, rf = resolved(js)
+            n_src = rpos.shape[1]
+            # sources: resolved of the near cilia, then their negated cheap carriers
+            src = np.concatenate([_pad(rpos.reshape(-1, 2)), _pad(cpos[js].reshape(-1, 2))])
+            frc = np.concatenate([_pad(rf.reshape(-1, 2)), _pad(-cf[js].reshape(-1, 2))])
+            ranges = np.empty((2 * n_near, 2), dtype=np.int64)
+            ranges[0::2, 0] = local * n_src
+            ranges[0::2, 1] = (local + 1) * n_src
+            ranges[1::2, 0] = js.size * n_src + 3 * local
+            ranges[1::2, 1] = js.size * n_src + 3 * local + 3
+            ptr = np.zeros(m + 1, dtype=np.int64)
+            np.add.at(ptr, pi + 1, 2)
+            ptr = np.cumsum(ptr)
+            u += stokeslet_velocity_ranges(targets, src, frc, ptr, ranges, self.mu, wall=wall)
+        bound = np.zeros(m)
+        if error and np.any(active):
+            C2 = C2_WALL if self.wall is not None else C2_FREE
+            cen = _pad(c["centre"])
+            near = np.zeros((m, n), bool)
+            if n_near:
+                near[pi, pj] = True
+            step = max(1, int(2e6 // n))
+            for lo in range(0, m, step):
+                hi = min(m, lo + step)
+                R = np.linalg.norm(targets[lo:hi, None, :] - cen[None], axis=-1)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    b = 0.5 * C2 * (Q + q_rep)[None] / (R - c["radius"][None]) ** 3
+                bound[lo:hi] = np.where(near[lo:hi] | ~active[None], 0.0, b).sum(axis=1) / (8 * math.pi * self.mu)
+        n_pairs = m * int(active.sum())
+        n_res = int(np.sum(active[pj])) if n_near else 0
+        pairs = {cheap_level: n_pairs - n_res, "resolved": n_res}
+        return FlowSample(velocity=u, error_bound=bound, pairs=pairs, tol=tol)
+
+    def _targets(self, points) -> np.ndarray:
+        p = np.asarray(points, dtype=float)
+        if p.ndim != 2 or p.shape[1] not in (2, 3):
+            raise ValueError(f"points must have shape (M, 2) or (M, 3), got {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise ValueError("points contain NaN or inf")
+        if p.shape[1] == 2:
+            p = np.concatenate([p, np.zeros((p.shape[0], 1))], axis=1)
+        if self.wall is not None and np.any(p[:, 2] < -self.wall):
+            raise ValueError(f"points lie below the wall at z = {-self.wall:g}")
+        return np.ascontiguousarray(p)
+
+    def _tol(self, tol) -> float:
+        t = float(tol)
+        if not 0 <= t < 1:
+            raise ValueError(f"tol must be in [0, 1), got {tol!r}")
+        return t
+
+    def evaluate(self, points, t: float, tol: float = 1e-3, error: bool = True) -> FlowSample:
+        """Fluid velocity at ``points`` (M, 2) or (M, 3) at time ``t``, levels ``point`` and
+        ``resolved`` chosen per pair for tolerance ``tol`` (0 = everything resolved); see the
+        module docstring for the bound. ``error`` also computes the per-point bound (O(M N))."""
+        x = self._targets(points)
+        tol = self._tol(tol)
+        c = self._c
+        pos, f, ph = self.state(t)
+        fw = f * c["w"][None, :, None]
+        rel = pos - c["centre"][:, None, :]
+        F = fw.sum(axis=1)
+        D = np.einsum("jsa,jsb->jab", rel, fw)
+        Q = ((rel ** 2).sum(-1) * np.sqrt((f ** 2).sum(-1)) * c["w"]).sum(axis=1)
+        return self._sum(x, lambda js: (pos[js], fw[js]), F, D, Q, c["F_rms"] * c["flutter"], tol, error, "point")
+
+    def velocity(self, points, t: float, tol: float = 1e-3) -> np.ndarray:
+        """(M, 3) fluid velocity at ``points`` at time ``t`` (see :meth:`evaluate`)."""
+        return self.evaluate(points, t, tol, error=False).velocity
+
+    def evaluate_mean(self, points, tol: float = 1e-3, error: bool = True) -> FlowSample:
+        """The time-averaged (steady) velocity: each cilium's flow averaged over its own cycle,
+        levels ``mean`` and ``resolved`` (the phase samples' average) chosen per pair."""
+        x = self._targets(points)
+        tol = self._tol(tol)
+        c = self._c
+
+        def resolved(js):
+            pos, f = self.cycle_samples(js)
+            fw = f * (c["w"] / c["n_phase"])[None, None, :, None]
+            return pos.reshape(len(js), -1, 2), fw.reshape(len(js), -1, 2)
+
+        S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
+        return self._sum(x, resolved, c["F_mean"], c["D_mean"], c["Q_mean"], S, tol, error, "mean")
+
+    def mean_velocity(self, points, tol: float = 1e-3) -> np.ndarray:
+        """(M, 3) time-averaged fluid velocity (see :meth:`evaluate_mean`)."""
+        return self.evaluate_mean(points, tol, error=False).velocity
+
+    def pathlines(self, seeds, t_span, **kwargs):
+        """Path lines of tracers from ``seeds`` over ``t_span``: see
+        :func:`ciliary_carpet.pathlines.pathlines` for the keywords and the result."""
+        from .pathlines import pathlines
+
+        return pathlines(self, seeds, t_span, **kwargs)

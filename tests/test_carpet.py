@@ -1,0 +1,189 @@
+import math
+
+import numpy as np
+import pytest
+
+from ciliary_carpet import layout
+from ciliary_carpet.carpet import C2_FREE, C2_WALL, Carpet
+from ciliary_carpet.stokeslet import Wall, stokeslet_velocity
+from single_cilium.table import TableError, ThrustTable
+
+
+@pytest.fixture(scope="module")
+def table():
+    return ThrustTable.default()
+
+
+@pytest.fixture(scope="module")
+def carpet(table):
+    rng = np.random.default_rng(1)
+    return Carpet(layout.square(10, 10, 2.0), rng.uniform(-100, 100, 100), table, layout.random_phases(100, 0))
+
+
+def _grid(carpet, distances=(0.0, 5.0, 20.0, 60.0), n=9):
+    """Points on square rings around the 10 x 10 carpet (18 x 18 L), outside every swept region."""
+    lo, hi = carpet.bases.min(0) - 1, carpet.bases.max(0) + 1
+    pts = []
+    for d in distances:
+        xs = np.linspace(lo[0] - d, hi[0] + d, n)
+        ys = np.linspace(lo[1] - d, hi[1] + d, n)
+        pts += [np.column_stack([X.ravel(), Y.ravel()]) for X, Y in [np.meshgrid(xs, ys)]]
+    pts = np.unique(np.concatenate(pts), axis=0)
+    keep = ~np.any([carpet.in_swept_region(pts, j, 0.05) for j in range(carpet.n)], axis=0)
+    return pts[keep]
+
+
+def _scale(carpet, pts, S):
+    R = np.linalg.norm(pts[:, None, :2] - carpet.centres[None], axis=-1)
+    return (S[None] / (8 * math.pi * carpet.mu * R)).sum(axis=1)
+
+
+@pytest.mark.parametrize("tol", [1e-2, 1e-3, 1e-4])
+def test_point_level_meets_tolerance(carpet, tol):
+    pts = _grid(carpet)
+    ref = carpet.evaluate(pts, 0.37, tol=0)
+    assert ref.pairs["point"] == 0 and np.all(ref.error_bound == 0)
+    s = carpet.evaluate(pts, 0.37, tol=tol)
+    err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
+    assert np.all(err <= s.error_bound * (1 + 1e-9) + 1e-15)
+    F = carpet._c["F_rms"]
+    assert np.all(err <= tol * _scale(carpet, pts, F))
+    assert s.pairs["point"] > 0.15 * sum(s.pairs.values())  # the cheap level is actually used
+
+
+@pytest.mark.parametrize("tol", [1e-2, 1e-3])
+def test_mean_level_meets_tolerance(carpet, tol):
+    pts = _grid(carpet)
+    ref = carpet.evaluate_mean(pts, tol=0)
+    s = carpet.evaluate_mean(pts, tol=tol)
+    err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
+    assert np.all(err <= s.error_bound * (1 + 1e-9) + 1e-15)
+    S = np.linalg.norm(carpet.mean_thrust, axis=1)
+    assert np.all(err <= tol * _scale(carpet, pts, S))
+    # far field (>= 20 L beyond the carpet): relative to |u| itself
+    far = np.min(np.linalg.norm(pts[:, None] - carpet.centres[None], axis=-1), axis=1) > 20
+    rel = err[far] / np.linalg.norm(ref.velocity[far], axis=1)
+    assert rel.max() < tol
+    assert s.pairs["mean"] > 0.3 * sum(s.pairs.values())
+
+
+def test_taylor_constant_free_space():
+    """C2 bounds |(h.grad)^2 G(e) f| over unit vectors (sampled; the maximum is 4)."""
+    rng = np.random.default_rng(0)
+    e = np.array([[0.0, 0.0, 1.0]])
+    best = 0.0
+    for _ in range(3000):
+        h, f = rng.normal(size=3), rng.normal(size=3)
+        h, f = h / np.linalg.norm(h), f / np.linalg.norm(f)
+        eps = 1e-3
+        src = np.array([eps * h, 0 * h, -eps * h])
+        u = [stokeslet_velocity(e, s[None], f[None], mu=1 / (8 * math.pi))[0] for s in src]
+        best = max(best, np.linalg.norm(u[0] - 2 * u[1] + u[2]) / eps ** 2)
+    assert 3.5 < best <= C2_FREE * (1 + 1e-4)
+
+
+def test_taylor_constant_wall():
+    """C2_WALL bounds the in-plane second source derivatives of Blake's tensor times R^3."""
+    rng = np.random.default_rng(1)
+    best = 0.0
+    for _ in range(1500):
+        hgt = 10 ** rng.uniform(-2, 1)  # wall distance below the source plane
+        x = rng.normal(size=3)
+        x[2] = rng.uniform(-hgt, 3)  # targets anywhere above the wall
+        R = np.linalg.norm(x)
+        h = np.array([*rng.normal(size=2), 0.0])
+        h /= np.linalg.norm(h)
+        f = np.array([*rng.normal(size=2), 0.0])
+        f /= np.linalg.norm(f)
+        eps = 1e-3 * R
+        src = np.array([eps * h, 0 * h, -eps * h])
+        u = [stokeslet_velocity(x[None], s[None], f[None], mu=1 / (8 * math.pi), wall=Wall(-hgt))[0] for s in src]
+        best = max(best, np.linalg.norm(u[0] - 2 * u[1] + u[2]) / eps ** 2 * R ** 3)
+    assert best <= C2_WALL
+
+
+def test_mean_is_time_average_and_state_interpolates(table):
+    c = Carpet(np.array([[0.0, 0.0]]), [40.0], table)
+    T = c.periods[0]
+    pts = np.array([[1.5, 0.3], [-2.0, 4.0], [0.5, -3.0]])
+    n = 64
+    avg = np.mean([c.evaluate(pts, k * T / n, tol=0).velocity for k in range(n)], axis=0)
+    np.testing.assert_allclose(avg, c.evaluate_mean(pts, tol=0).velocity, rtol=0, atol=1e-9)
+    # at the table's phase samples the trigonometric interpolant returns the samples
+    row = table.at(40.0)
+    pos, f, ph = c.state(5 * T / 64)
+    assert ph[0] == pytest.approx(5 / 64)
+    np.testing.assert_allclose(pos[0, :, 0], row.x.values[5], atol=2e-6)
+    np.testing.assert_allclose(f[0, :, 1], row.fy.values[5], atol=2e-5 * np.abs(row.fy.values).max())
+
+
+def test_mirror_and_rotation(table):
+    pts = np.array([[1.2, 0.4], [-0.7, 2.5], [3.0, -1.0]])
+    a = Carpet(np.zeros((1, 2)), [60.0], table)
+    b = Carpet(np.zeros((1, 2)), [-60.0], table)
+    ua = a.mean_velocity(pts, tol=0)
+    ub = b.mean_velocity(pts * [-1, 1], tol=0)
+    np.testing.assert_allclose(ub[:, 0], -ua[:, 0], atol=1e-12)
+    np.testing.assert_allclose(ub[:, 1], ua[:, 1], atol=1e-12)
+    th = 0.7
+    r = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    c = Carpet(np.zeros((1, 2)), [60.0], table, direction=th)
+    uc = c.mean_velocity(pts @ r.T, tol=0)
+    np.testing.assert_allclose(uc[:, :2], ua[:, :2] @ r.T, atol=1e-12)
+
+
+def test_far_field_is_the_mean_thrust_stokeslet(table):
+    c = Carpet(np.zeros((1, 2)), [60.0], table)
+    F = c.mean_thrust[0]
+    errs = []
+    for R in (20.0, 40.0, 80.0):
+        x = c.centres[0] + R * np.array([[0.6, 0.8]])
+        u = c.mean_velocity(x, tol=0)[0, :2]
+        g = stokeslet_velocity(x, c.centres, F[None], c.mu)[0, :2]
+        errs.append(np.linalg.norm(u - g) / np.linalg.norm(g))
+    assert errs[0] < 0.05 and errs[2] < errs[1] < errs[0]
+    assert errs[1] / errs[2] > 1.7  # the dipole correction decays one order faster
+
+
+def test_quasi_periodic_phases(table):
+    c = Carpet(np.array([[0.0, 0.0], [3.0, 0.0]]), [0.0, 120.0], table, phases=[0.1, 0.2])
+    T = c.periods
+    assert abs(T[0] - T[1]) > 0.01
+    np.testing.assert_allclose(c.phase_at(T[0]), [0.1, (0.2 + T[0] / T[1]) % 1.0])
+
+
+def test_still_cilia_make_no_flow(table):
+    c = Carpet(np.array([[0.0, 0.0]]), [165.0], table)
+    assert not c.flutter[0] and np.isnan(c.periods[0])
+    assert np.all(c.velocity(np.array([[1.0, 1.0]]), 0.3) == 0)
+    pos, f, _ = c.state(0.0)
+    assert np.all(np.isfinite(pos)) and np.all(f == 0)
+
+
+def test_bad_input(table):
+    b = layout.square(2, 2)
+    with pytest.raises(ValueError, match="chi_N must have shape"):
+        Carpet(b, [0.0, 1.0], table)
+    with pytest.raises(ValueError, match="bases contain NaN"):
+        Carpet(np.array([[0.0, np.nan]]), [0.0], table)
+    with pytest.raises(TableError, match="outside the table"):
+        Carpet(b, [0, 0, 0, 500.0], table)
+    with pytest.raises(ValueError, match="wall"):
+        Carpet(b, 0.0, table, wall=-1.0)
+    with pytest.warns(UserWarning, match="swept region"):
+        Carpet(np.array([[0.0, 0.0], [0.0, 0.3]]), [0.0, 0.0], table)
+    c = Carpet(b, 0.0, table)
+    with pytest.raises(ValueError, match="points contain NaN"):
+        c.velocity(np.array([[np.nan, 0.0]]), 0.0)
+    with pytest.raises(ValueError, match="points must have shape"):
+        c.velocity(np.zeros((3, 4)), 0.0)
+    with pytest.raises(ValueError, match="tol"):
+        c.mean_velocity(np.zeros((1, 2)) + 5, tol=2.0)
+
+
+def test_wall_flow_vanishes_on_the_wall(table):
+    c = Carpet(layout.row(3), [30.0, 0.0, -30.0], table, wall=0.5)
+    on_wall = np.column_stack([np.linspace(-3, 7, 11), np.full(11, 1.0), np.full(11, -0.5)])
+    u = c.velocity(on_wall, 0.2, tol=1e-3)
+    free = Carpet(layout.row(3), [30.0, 0.0, -30.0], table).velocity(on_wall, 0.2, tol=1e-3)
+    assert np.abs(u).max() < 1e-10 * np.abs(free).max()
