@@ -1,0 +1,634 @@
+"""Velocity of point forces in Stokes flow: free space, or above a no-slip plane wall.
+
+The velocity at ``x`` of point forces ``f_j`` at ``xi_j`` in a fluid of viscosity ``mu`` is
+
+.. math::
+
+    u(x) = \\frac{1}{8 \\pi \\mu} \\sum_j G(x, \\xi_j) f_j,
+
+with, in free space, the Stokeslet (Oseen tensor) of ``R = x - xi``
+
+.. math::
+
+    G^S(R) = \\frac{I}{|R|} + \\frac{R R^T}{|R|^3}.
+
+Above a no-slip wall, the plane ``z = z_w`` (:class:`Wall`), ``G`` is the Blake (1971) tensor:
+the Stokeslet, an image Stokeslet, a Stokes doublet and a source doublet, all at the image point
+``xi* = (xi_x, xi_y, 2 z_w - xi_z)``. With the wall shifted to ``z = 0``, ``h = xi_z`` the height
+of the source, ``R* = x - xi*`` and ``M = diag(1, 1, -1)`` (Blake 1971; Ainley et al. 2008,
+J. Comput. Phys. 227, eq. 8 in the singular limit),
+
+.. math::
+
+    G^B_{ij} = G^S_{ij}(R) - G^S_{ij}(R^*)
+        + 2 h M_{jk} \\frac{\\partial}{\\partial R^*_k}
+          \\left[ \\frac{h R^*_i}{|R^*|^3} - G^S_{i3}(R^*) \\right].
+
+It vanishes for targets on the wall and satisfies the reciprocity ``G_ij(x, y) = G_ji(y, x)``.
+Sources must lie strictly above the wall, targets above or on it.
+
+Conventions shared by every function here:
+
+* points and forces are ``(M, 3)`` / ``(N, 3)`` float arrays; ``(M, 2)`` / ``(N, 2)`` arrays are
+  accepted and padded with ``z = 0`` (forces too: a planar force has no z component); the result
+  is always ``(M, 3)`` float64;
+* a target that coincides with a source (``R = 0``) gets no contribution from that source's
+  singular Stokeslet (the term is skipped, i.e. counts as zero); with a wall, the image terms of
+  that source are regular and are kept;
+* ``M = 0`` or ``N = 0`` give zeros of shape ``(M, 3)``.
+
+Evaluation strategies (:class:`Backend`): :class:`Direct`, the O(MN) sum compiled with numba
+(parallel over targets, vectorised over sources; free space and wall); :class:`FMM`, the Stokes
+fast multipole method of ``fmm3dpy`` (free space only; optional dependency
+``pip install cilia-flow[fmm]``); :class:`Auto` (the default), which picks one of the two.
+:func:`stokeslet_velocity_ranges` sums, per target, over a sparse list of source index ranges
+(near-field corrections); :func:`stokeslet_velocity_numpy` is the slow plain-numpy reference.
+
+Accuracy: the numba kernels use ``fastmath={'reassoc', 'contract', 'nsz', 'arcp'}`` only
+(reordered sums and fused multiply-adds, so that the reduction over sources vectorises; no
+approximate ``1/sqrt``, no assumption of finite values): they agree with the numpy reference to
+about 1e-15 relative to ``max |u|`` (tested to 1e-12). Throughput and the FMM crossover are
+measured by ``benchmarks/bench_flow.py`` (``benchmarks/results/bench_kernel.md``).
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+__all__ = [
+    "Wall",
+    "Backend",
+    "Direct",
+    "FMM",
+    "Auto",
+    "stokeslet_velocity",
+    "stokeslet_velocity_numpy",
+    "stokeslet_velocity_ranges",
+    "FMM_CROSSOVER_PAIRS",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Default :class:`Auto` threshold on ``M * N``: below it the direct sum is used. The measured
+#: crossover (benchmarks/results/bench_kernel.md, 2 cores, AMD EPYC Zen 3) of the numba direct sum
+#: and the serial fmm3dpy 2.1.0 wheel at eps = 1e-12 on random points in the unit cube, M = N.
+FMM_CROSSOVER_PAIRS: float = 4.0e9
+
+#: Value-safe fast-math flags: reassociation (vectorised reductions), FMA contraction, no signed
+#: zeros, reciprocal allowed. Not ``afn`` (approximate ``1/sqrt``) nor ``nnan``/``ninf``.
+_FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
+
+_INV_8PI = 1.0 / (8.0 * math.pi)
+
+
+# --------------------------------------------------------------------------- validation
+def _finite_positive(name: str, value: Any) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real number, got {value!r}") from None
+    if not math.isfinite(x):
+        raise ValueError(f"{name} must be finite, got {x}")
+    if x <= 0.0:
+        raise ValueError(f"{name} must be > 0, got {x}")
+    return x
+
+
+def _points(name: str, a: Any) -> np.ndarray:
+    """``a`` as a C-contiguous (K, 3) float64 array (z = 0 padded from (K, 2)), validated."""
+    try:
+        arr = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real (K, 3) or (K, 2) array") from None
+    if arr.ndim != 2 or arr.shape[1] not in (2, 3):
+        raise ValueError(f"{name} must have shape (K, 3) or (K, 2), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf")
+    if arr.shape[1] == 2:
+        out = np.zeros((arr.shape[0], 3))
+        out[:, :2] = arr
+        return out
+    return np.ascontiguousarray(arr)
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A no-slip plane wall ``z = z`` (fluid above it, ``z > z_wall``).
+
+    Parameters
+    ----------
+    z : float, default 0
+        Height of the wall; must be finite.
+
+    Raises
+    ------
+    ValueError
+        If ``z`` is not a finite real number.
+    """
+
+    z: float = 0.0
+
+    def __post_init__(self) -> None:
+        try:
+            z = float(self.z)
+        except (TypeError, ValueError):
+            raise ValueError(f"Wall.z must be a real number, got {self.z!r}") from None
+        if not math.isfinite(z):
+            raise ValueError(f"Wall.z must be finite, got {z}")
+        object.__setattr__(self, "z", z)
+
+
+def _check_wall(wall: Any, targets: np.ndarray, sources: np.ndarray) -> Wall | None:
+    if wall is None:
+        return None
+    if not isinstance(wall, Wall):
+        raise TypeError(f"wall must be a Wall or None, got {type(wall).__name__}")
+    if sources.shape[0] and not np.all(sources[:, 2] > wall.z):
+        k = int(np.argmin(sources[:, 2]))
+        raise ValueError(f"sources must lie strictly above the wall z = {wall.z}: "
+                         f"sources[{k}] has z = {sources[k, 2]}")
+    if targets.shape[0] and not np.all(targets[:, 2] >= wall.z):
+        k = int(np.argmin(targets[:, 2]))
+        raise ValueError(f"targets must lie on or above the wall z = {wall.z}: "
+                         f"targets[{k}] has z = {targets[k, 2]}")
+    return wall
+
+
+def _validate(targets: Any, sources: Any, forces: Any, mu: Any, wall: Any
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, Wall | None]:
+    t = _points("targets", targets)
+    s = _points("sources", sources)
+    f = _points("forces", forces)
+    if f.shape[0] != s.shape[0]:
+        raise ValueError(f"forces must have one row per source: sources has {s.shape[0]} rows, "
+                         f"forces has {f.shape[0]}")
+    m = _finite_positive("mu", mu)
+    w = _check_wall(wall, t, s)
+    return t, s, f, m, w
+
+
+# --------------------------------------------------------------------------- numba kernels
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, lo, hi):  # pragma: no cover - compiled
+    """Sum of ``G^S(x - xi_j) f_j`` for ``j`` in ``[lo, hi)`` (no 1/(8 pi mu))."""
+    ux = 0.0
+    uy = 0.0
+    uz = 0.0
+    for j in range(lo, hi):
+        dx = xi - sx[j]
+        dy = yi - sy[j]
+        dz = zi - sz[j]
+        r2 = dx * dx + dy * dy + dz * dz
+        ir = 1.0 / np.sqrt(r2) if r2 > 0.0 else 0.0
+        ir3 = ir * ir * ir
+        a = fx[j]
+        b = fy[j]
+        c = fz[j]
+        rf = (dx * a + dy * b + dz * c) * ir3
+        ux += a * ir + dx * rf
+        uy += b * ir + dy * rf
+        uz += c * ir + dz * rf
+    return ux, uy, uz
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _acc_wall(xi, yi, zt, sx, sy, sh, fx, fy, fz, lo, hi):  # pragma: no cover - compiled
+    """Sum of ``G^B(x, xi_j) f_j`` for ``j`` in ``[lo, hi)``, wall at z = 0 (heights ``zt`` of
+    the target, ``sh`` of the sources; no 1/(8 pi mu)).
+
+    With ``R = x - xi``, ``R* = x - xi*``, ``g = M f = (f_x, f_y, -f_z)`` the Blake doublet
+    terms reduce (``R*_z - h = zt``) to
+    ``2 h [-zt g / r*^3 + R* (3 zt (R*.g) / r*^5 - g_z / r*^3) + e_z (R*.g) / r*^3]``.
+    """
+    ux = 0.0
+    uy = 0.0
+    uz = 0.0
+    for j in range(lo, hi):
+        h = sh[j]
+        dx = xi - sx[j]
+        dy = yi - sy[j]
+        dz = zt - h
+        ez = zt + h
+        p2 = dx * dx + dy * dy
+        r2 = p2 + dz * dz
+        ir = 1.0 / np.sqrt(r2) if r2 > 0.0 else 0.0
+        ir3 = ir * ir * ir
+        iq = 1.0 / np.sqrt(p2 + ez * ez)
+        iq2 = iq * iq
+        iq3 = iq * iq2
+        a = fx[j]
+        b = fy[j]
+        c = fz[j]
+        pf = dx * a + dy * b
+        rf = (pf + dz * c) * ir3          # (R . f) / r^3
+        qf = pf + ez * c                  # R* . f
+        qg = pf - ez * c                  # R* . g
+        h2 = 2.0 * h * iq3
+        d = h2 * zt
+        cf = ir - iq
+        cq = h2 * (c + 3.0 * zt * qg * iq2) - qf * iq3
+        cxy = rf + cq
+        ux += (cf - d) * a + cxy * dx
+        uy += (cf - d) * b + cxy * dy
+        uz += (cf + d) * c + rf * dz + cq * ez + h2 * qg
+    return ux, uy, uz
+
+
+@njit(cache=True, fastmath=_FASTMATH, parallel=True)
+def _direct_free(T, S, F, scale, out):  # pragma: no cover - compiled
+    """out[i] = scale * sum_j G^S(T[:, i] - S[:, j]) F[:, j]; T (3, M), S, F (3, N) C-order."""
+    sx = S[0]
+    sy = S[1]
+    sz = S[2]
+    fx = F[0]
+    fy = F[1]
+    fz = F[2]
+    n = sx.shape[0]
+    for i in prange(T.shape[1]):
+        ux, uy, uz = _acc_free(T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz, 0, n)
+        out[i, 0] = scale * ux
+        out[i, 1] = scale * uy
+        out[i, 2] = scale * uz
+
+
+@njit(cache=True, fastmath=_FASTMATH, parallel=True)
+def _direct_wall(T, S, F, scale, out):  # pragma: no cover - compiled
+    """As :func:`_direct_free` with the Blake tensor of the wall z = 0 (T[2], S[2] heights)."""
+    sx = S[0]
+    sy = S[1]
+    sh = S[2]
+    fx = F[0]
+    fy = F[1]
+    fz = F[2]
+    n = sx.shape[0]
+    for i in prange(T.shape[1]):
+        ux, uy, uz = _acc_wall(T[0, i], T[1, i], T[2, i], sx, sy, sh, fx, fy, fz, 0, n)
+        out[i, 0] = scale * ux
+        out[i, 1] = scale * uy
+        out[i, 2] = scale * uz
+
+
+@njit(cache=True, fastmath=_FASTMATH, parallel=True)
+def _ranges_kernel(T, S, F, ptr, ranges, scale, wall, out):  # pragma: no cover - compiled
+    """out[i] = scale * sum over k in ptr[i]:ptr[i+1], j in ranges[k, 0]:ranges[k, 1] of
+    G(T[:, i], S[:, j]) F[:, j]; Blake tensor of the wall z = 0 if ``wall``."""
+    sx = S[0]
+    sy = S[1]
+    sz = S[2]
+    fx = F[0]
+    fy = F[1]
+    fz = F[2]
+    for i in prange(T.shape[1]):
+        ux = 0.0
+        uy = 0.0
+        uz = 0.0
+        for k in range(ptr[i], ptr[i + 1]):
+            if wall:
+                a, b, c = _acc_wall(T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz,
+                                    ranges[k, 0], ranges[k, 1])
+            else:
+                a, b, c = _acc_free(T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz,
+                                    ranges[k, 0], ranges[k, 1])
+            ux += a
+            uy += b
+            uz += c
+        out[i, 0] = scale * ux
+        out[i, 1] = scale * uy
+        out[i, 2] = scale * uz
+
+
+def _soa(a: np.ndarray, z_shift: float = 0.0) -> np.ndarray:
+    """(K, 3) -> a new C-contiguous (3, K) array (structure of arrays), z shifted by
+    ``-z_shift`` (always a copy: the caller's array is never modified)."""
+    out = np.array(a.T, order="C", copy=True)
+    if z_shift != 0.0:
+        out[2] -= z_shift
+    return out
+
+
+# --------------------------------------------------------------------------- backends
+class Backend:
+    """Strategy that evaluates the Stokeslet sum (base class).
+
+    A subclass implements :meth:`velocity`. :func:`stokeslet_velocity` validates and normalises
+    the inputs before calling it, so an implementation may assume: ``targets`` (M, 3),
+    ``sources`` (N, 3) and ``forces`` (N, 3) C-contiguous finite float64 arrays with
+    ``M, N >= 1``; ``mu`` a finite float > 0; ``wall`` a :class:`Wall` (sources strictly above
+    it, targets on or above it) or None. It must return the (M, 3) float64 velocity
+    ``u(x) = 1/(8 pi mu) sum_j G(x, xi_j) f_j`` (module docstring), skip the singular term of a
+    coincident target-source pair, and raise ValueError for a configuration it cannot handle.
+    """
+
+    def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
+                 wall: Wall | None) -> np.ndarray:
+        """Velocity (M, 3) at ``targets`` of ``forces`` at ``sources``; see the class docstring."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Direct(Backend):
+    """Direct O(M N) sum, compiled with numba.
+
+    Parallel over targets (``prange``, numba's default thread count), the reduction over sources
+    vectorised (structure-of-arrays copies of sources and forces are made once per call).
+    Exact up to rounding (about 1e-15 relative); free space and wall. About 1.5e9 pair
+    interactions per second in free space on 2 Zen 3 cores (see the module docstring).
+    """
+
+    def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
+                 wall: Wall | None) -> np.ndarray:
+        out = np.zeros((targets.shape[0], 3))
+        if targets.shape[0] == 0 or sources.shape[0] == 0:
+            return out
+        scale = _INV_8PI / mu
+        if wall is None:
+            _direct_free(_soa(targets), _soa(sources), _soa(forces), scale, out)
+        else:
+            _direct_wall(_soa(targets, wall.z), _soa(sources, wall.z), _soa(forces), scale, out)
+        return out
+
+
+@functools.cache
+def _import_fmm3dpy():
+    try:
+        import fmm3dpy
+    except ImportError:
+        return None
+    return fmm3dpy
+
+
+def _fmm_available() -> bool:
+    return _import_fmm3dpy() is not None
+
+
+@dataclass(frozen=True)
+class FMM(Backend):
+    """Stokes fast multipole method, ``fmm3dpy.stfmm3d`` (free space only).
+
+    ``stfmm3d`` computes ``sum_j (1/(8 pi)) G^S(x - xi_j) f_j`` (its Stokeslet carries the
+    ``1/(8 pi)``; checked numerically), and omits coincident pairs; the result is divided by
+    ``mu``. The pip wheel of fmm3dpy 2.1.0 runs on one thread.
+
+    Parameters
+    ----------
+    eps : float, default 1e-12
+        Requested relative precision, in (0, 1).
+
+    Raises
+    ------
+    ImportError
+        From :meth:`velocity`, if fmm3dpy is not installed (``pip install cilia-flow[fmm]``).
+    ValueError
+        From :meth:`velocity`, with a wall (the FMM has no image system: use :class:`Direct`).
+    """
+
+    eps: float = 1e-12
+
+    def __post_init__(self) -> None:
+        eps = _finite_positive("eps", self.eps)
+        if eps >= 1.0:
+            raise ValueError(f"eps must be < 1, got {eps}")
+        object.__setattr__(self, "eps", eps)
+
+    def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
+                 wall: Wall | None) -> np.ndarray:
+        if wall is not None:
+            raise ValueError("the FMM backend supports free space only; with a wall use "
+                             "backend=Direct() (or Auto())")
+        m = targets.shape[0]
+        if m == 0 or sources.shape[0] == 0:
+            return np.zeros((m, 3))
+        fmm3dpy = _import_fmm3dpy()
+        if fmm3dpy is None:
+            raise ImportError("the FMM backend needs fmm3dpy: pip install cilia-flow[fmm]")
+        res = fmm3dpy.stfmm3d(eps=self.eps, sources=np.asfortranarray(sources.T),
+                              stoklet=np.asfortranarray(forces.T),
+                              targets=np.asfortranarray(targets.T), ifppregtarg=1)
+        ier = int(np.asarray(getattr(res, "ier", 0)))
+        if ier != 0:
+            raise RuntimeError(f"fmm3dpy.stfmm3d failed with ier = {ier}")
+        u = np.asarray(res.pottarg, dtype=np.float64).reshape(3, m).T
+        return np.ascontiguousarray(u) / mu
+
+
+@dataclass(frozen=True)
+class Auto(Backend):
+    """:class:`Direct` or :class:`FMM`, whichever is expected to be faster.
+
+    :class:`Direct` when ``M * N < threshold``, or a wall is given, or fmm3dpy is not
+    installed; :class:`FMM` (precision ``eps``) otherwise.
+
+    Parameters
+    ----------
+    threshold : float, default :data:`FMM_CROSSOVER_PAIRS`
+        Pair count ``M * N`` from which the FMM is used (the measured crossover); > 0.
+    eps : float, default 1e-12
+        Precision of the FMM when it is used.
+    """
+
+    threshold: float = FMM_CROSSOVER_PAIRS
+    eps: float = 1e-12
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "threshold", _finite_positive("threshold", self.threshold))
+        FMM(self.eps)  # validates eps
+        object.__setattr__(self, "eps", float(self.eps))
+
+    def choose(self, m: int, n: int, wall: Wall | None) -> Backend:
+        """The backend used for ``m`` targets, ``n`` sources and ``wall``."""
+        if wall is not None or float(m) * float(n) < self.threshold or not _fmm_available():
+            return Direct()
+        return FMM(self.eps)
+
+    def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
+                 wall: Wall | None) -> np.ndarray:
+        b = self.choose(targets.shape[0], sources.shape[0], wall)
+        logger.debug("Auto: %s for M=%d, N=%d, wall=%s", type(b).__name__, targets.shape[0],
+                     sources.shape[0], wall)
+        return b.velocity(targets, sources, forces, mu, wall)
+
+
+# --------------------------------------------------------------------------- public functions
+def stokeslet_velocity(targets: Any, sources: Any, forces: Any, mu: float = 1.0, *,
+                       wall: Wall | None = None, backend: Backend | None = None) -> np.ndarray:
+    """Velocity of point forces in Stokes flow, ``u(x_i) = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j``.
+
+    ``G`` is the Stokeslet ``I/|R| + R R^T/|R|^3`` (``R = x - xi``) in free space, the Blake
+    tensor with a no-slip ``wall`` (module docstring). The singular term of a target that
+    coincides with a source is skipped (contributes zero).
+
+    Parameters
+    ----------
+    targets : (M, 3) or (M, 2) array_like
+        Evaluation points ``x_i`` ((M, 2) is padded with z = 0).
+    sources : (N, 3) or (N, 2) array_like
+        Force positions ``xi_j``.
+    forces : (N, 3) or (N, 2) array_like
+        Point forces ``f_j`` exerted on the fluid ((N, 2): f_z = 0).
+    mu : float, default 1
+        Dynamic viscosity, finite and > 0.
+    wall : Wall, optional
+        No-slip plane ``z = wall.z``: sources strictly above it, targets on or above it.
+    backend : Backend, optional
+        Evaluation strategy; default :class:`Auto` ().
+
+    Returns
+    -------
+    (M, 3) float64 ndarray
+        The velocities (zeros if M = 0 or N = 0).
+
+    Raises
+    ------
+    ValueError
+        Naming the argument: wrong ndim or width, sources and forces with different row counts,
+        NaN or inf, ``mu`` not finite and > 0, a source not above / a target below the wall; or
+        from the backend (the FMM with a wall).
+    """
+    t, s, f, m, w = _validate(targets, sources, forces, mu, wall)
+    if backend is None:
+        backend = Auto()
+    elif not isinstance(backend, Backend):
+        raise TypeError(f"backend must be a Backend, got {type(backend).__name__}")
+    if t.shape[0] == 0 or s.shape[0] == 0:
+        return np.zeros((t.shape[0], 3))
+    return backend.velocity(t, s, f, m, w)
+
+
+def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any, ranges: Any,
+                              mu: float = 1.0, *, wall: Wall | None = None) -> np.ndarray:
+    """Stokeslet velocities with a sparse, per-target list of source blocks (numba).
+
+    For target ``i`` the sum runs over sources ``j`` in ``ranges[k, 0] : ranges[k, 1]`` for every
+    ``k`` in ``ptr[i] : ptr[i + 1]`` (a CSR list of source blocks per target)::
+
+        u_i = 1/(8 pi mu) sum_{k = ptr[i]}^{ptr[i+1]-1} sum_{j = ranges[k,0]}^{ranges[k,1]-1}
+              G(x_i, xi_j) f_j
+
+    A block listed twice for one target is summed twice (nothing is deduplicated). Parallel over
+    targets (each writes only its own row). Same ``G``, conventions and validation as
+    :func:`stokeslet_velocity`.
+
+    Parameters
+    ----------
+    targets : (M, 3) or (M, 2) array_like
+    sources, forces : (N, 3) or (N, 2) array_like
+    ptr : (M + 1,) integer array_like
+        Non-decreasing, ``0 <= ptr[0]``, ``ptr[M] <= K``.
+    ranges : (K, 2) integer array_like
+        ``0 <= ranges[k, 0] <= ranges[k, 1] <= N``.
+    mu : float, default 1
+    wall : Wall, optional
+
+    Returns
+    -------
+    (M, 3) float64 ndarray
+
+    Raises
+    ------
+    ValueError
+        As :func:`stokeslet_velocity`, and naming ``ptr`` or ``ranges`` if they are not integer
+        arrays of the right shape, ``ptr`` is not monotone or out of ``[0, K]``, or a range is
+        reversed or outside ``[0, N]``.
+    """
+    t, s, f, m, w = _validate(targets, sources, forces, mu, wall)
+    M, N = t.shape[0], s.shape[0]
+    p = np.asarray(ptr)
+    r = np.asarray(ranges)
+    if p.dtype.kind not in "iu":
+        raise ValueError(f"ptr must be an integer array, got dtype {p.dtype}")
+    if r.dtype.kind not in "iu":
+        raise ValueError(f"ranges must be an integer array, got dtype {r.dtype}")
+    if p.shape != (M + 1,):
+        raise ValueError(f"ptr must have shape (M + 1,) = ({M + 1},), got {p.shape}")
+    if r.ndim != 2 or r.shape[1] != 2:
+        raise ValueError(f"ranges must have shape (K, 2), got {r.shape}")
+    p = np.ascontiguousarray(p, dtype=np.int64)
+    r = np.ascontiguousarray(r, dtype=np.int64)
+    K = r.shape[0]
+    if p[0] < 0 or p[-1] > K or np.any(np.diff(p) < 0):
+        raise ValueError(f"ptr must be non-decreasing within [0, K = {K}]")
+    if K and (np.any(r[:, 0] < 0) or np.any(r[:, 1] > N) or np.any(r[:, 0] > r[:, 1])):
+        raise ValueError(f"ranges must satisfy 0 <= ranges[k, 0] <= ranges[k, 1] <= N = {N}")
+    out = np.zeros((M, 3))
+    if M == 0 or N == 0 or K == 0:
+        return out
+    zs = 0.0 if w is None else w.z
+    old = numba.get_parallel_chunksize()
+    numba.set_parallel_chunksize(16)  # the work per target is uneven (near-field lists)
+    try:
+        _ranges_kernel(_soa(t, zs), _soa(s, zs), _soa(f), p, r, _INV_8PI / m, w is not None, out)
+    finally:
+        numba.set_parallel_chunksize(old)
+    return out
+
+
+def _blake_numpy(R: np.ndarray, Rs: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Blake tensors (..., 3, 3) from R = x - xi, R* = x - xi*, h the source heights (...),
+    written term by term as in the module docstring (independent of the numba algebra)."""
+    eye = np.eye(3)
+    e3 = eye[2]
+
+    def stokeslet(X, skip_zero):
+        r = np.sqrt(np.sum(X * X, axis=-1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ir = np.where(r > 0, 1.0 / r, 0.0) if skip_zero else 1.0 / r
+        return eye * ir[..., None, None] + X[..., :, None] * X[..., None, :] * (ir ** 3)[..., None, None]
+
+    r = np.sqrt(np.sum(Rs * Rs, axis=-1))[..., None, None]
+    Ri = Rs[..., :, None]
+    Rk = Rs[..., None, :]
+    R3 = Rs[..., 2][..., None, None]
+    hh = h[..., None, None]
+    # dPhi_i / dR*_k of Phi_i = h R*_i / r^3 - G^S_i3(R*)
+    dPhi = (hh * (eye / r ** 3 - 3.0 * Ri * Rk / r ** 5)
+            + e3[:, None] * Rk / r ** 3
+            - (eye * R3 + Ri * e3[None, :]) / r ** 3
+            + 3.0 * Ri * R3 * Rk / r ** 5)
+    Mdiag = np.array([1.0, 1.0, -1.0])
+    return stokeslet(R, True) - stokeslet(Rs, False) + 2.0 * hh * dPhi * Mdiag  # (.., i, j=k)
+
+
+def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float = 1.0,
+                             wall: Wall | None = None, *, chunk_pairs: int = 2_000_000) -> np.ndarray:
+    """Plain-numpy reference of :func:`stokeslet_velocity` (slow; for tests and benchmarks).
+
+    Vectorised over all pairs of a chunk of targets (``chunk_pairs`` pairs at a time, which bounds
+    the memory to a few hundred bytes per pair); free space in the vector form
+    ``f/|R| + R (R.f)/|R|^3``, the wall as the full 3x3 Blake tensors term by term. Same
+    arguments, conventions and validation as :func:`stokeslet_velocity`.
+    """
+    t, s, f, m, w = _validate(targets, sources, forces, mu, wall)
+    M, N = t.shape[0], s.shape[0]
+    out = np.zeros((M, 3))
+    if M == 0 or N == 0:
+        return out
+    step = max(1, int(chunk_pairs) // (N if w is None else 4 * N))
+    if w is not None:
+        sh = s.copy()
+        sh[:, 2] -= w.z
+        simg = sh * np.array([1.0, 1.0, -1.0])
+    for lo in range(0, M, step):
+        x = t[lo:lo + step]
+        if w is None:
+            R = x[:, None, :] - s[None, :, :]
+            r = np.sqrt(np.sum(R * R, axis=-1))
+            with np.errstate(divide="ignore"):
+                ir = np.where(r > 0, 1.0 / r, 0.0)
+            rf = np.sum(R * f[None], axis=-1) * ir ** 3
+            u = np.sum(f[None] * ir[..., None] + R * rf[..., None], axis=1)
+        else:
+            xs = x.copy()
+            xs[:, 2] -= w.z
+            R = xs[:, None, :] - sh[None]
+            Rs = xs[:, None, :] - simg[None]
+            G = _blake_numpy(R, Rs, np.broadcast_to(sh[:, 2], R.shape[:2]))
+            u = np.einsum("mnij,nj->mi", G, f)
+        out[lo:lo + step] = u / (8.0 * math.pi * m)
+    return out

@@ -1,0 +1,302 @@
+"""Scene files: parsing, defaults, validation messages, the table spec, reduced scenes."""
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ciliary_carpet import scene as scene_mod
+from ciliary_carpet.scene import (CarpetSpec, OutputSpec, Scene, SceneError, TableBuild, TargetSpec, load_scene,
+                                  scene_from_dict)
+
+DESIGNS = Path(__file__).resolve().parents[1] / "designs"
+DESIGN_FILES = sorted(DESIGNS.glob("*.toml"))
+
+
+def write(tmp_path, text, name="x.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_designs_folder_has_the_five_scenes():
+    names = {p.stem for p in DESIGN_FILES}
+    assert {"uniform_deflection", "focusing", "spreading", "shear_layer", "vortex_turn"} <= names
+
+
+@pytest.mark.parametrize("path", DESIGN_FILES, ids=lambda p: p.stem)
+def test_every_design_loads(path):
+    s = load_scene(path)
+    assert s.name == path.stem
+    assert s.source == path
+    assert path.read_text().lstrip().startswith("#"), "a design starts with a comment block"
+    assert "ParaView" in path.read_text()
+    assert s.table.file == "default" and s.tolerance == 1e-3
+    assert s.carpet.n_cilia == s.carpet.bases().shape[0] <= 200
+    assert s.target.kind != "none"
+    # the round trip through to_dict
+    assert scene_from_dict(s.to_dict(), source=path) == s
+    r = s.reduced()
+    assert r.carpet.n_cilia <= 16 and r.carpet.lattice == s.carpet.lattice
+
+
+def test_defaults_filled(tmp_path):
+    s = load_scene(write(tmp_path, "", "empty_scene.toml"))
+    assert s.name == "empty_scene" and s.description == ""
+    assert (s.field.chi_E, s.field.eta, s.field.direction) == (200.0, 1.0, 0.0)
+    assert s.table.file == "default" and s.table.build is None
+    assert s.carpet == CarpetSpec()
+    assert (s.carpet.lattice, s.carpet.shape, s.carpet.spacing, s.carpet.origin) == ("square", (10, 10), 2.0, (0, 0))
+    assert (s.carpet.chi_N, s.carpet.phases, s.carpet.seed, s.carpet.wall) == (0.0, "random", 0, None)
+    assert s.target == TargetSpec() and s.target.kind == "none" and s.target.angle is None
+    assert s.target.control == "cells" and s.target.clip is False and s.target.residual == 0.05
+    assert s.output == OutputSpec()
+    assert (s.output.seeds, s.output.n_seeds, s.output.periods, s.output.field_shape) == ("line", 100, 20.0, (80, 80))
+    assert (s.output.field_margin, s.output.snapshots, s.output.frames) == (5.0, 4, 40)
+    assert s.tolerance == 1e-3 and s.units is None
+    d = s.to_dict()
+    assert d["carpet"]["shape"] == [10, 10] and d["target"] == {"kind": "none"} and "units" not in d
+    assert s.carpet.bases().shape == (100, 2)
+    ph = s.carpet.initial_phases()
+    assert ph.shape == (100,) and np.all((ph >= 0) & (ph < 1))
+
+
+def test_full_scene_values(tmp_path):
+    s = load_scene(write(tmp_path, """
+name = "mine"
+tolerance = 1e-4
+[field]
+chi_E = 150
+direction = 90
+[carpet]
+lattice = "row"
+shape = 7
+spacing = 3
+origin = [1, 2]
+phases = "wave"
+wave_vector = [0.5, 0]
+wall = 1.5
+[target]
+kind = "uniform"
+angle = -20
+control = [[1, 2], [3, 4]]
+clip = true
+[output]
+seeds = [[0, 0], [1, 1], [2, 2]]
+field_shape = [10, 12]
+[units]
+length_m = 1e-4
+time_s = 2
+viscosity_Pa_s = 1e-3
+"""))
+    assert s.name == "mine" and s.tolerance == 1e-4
+    assert s.field.chi_E == 150.0 and isinstance(s.field.chi_E, float)
+    assert np.allclose(s.field.flow_direction, [1, 0])  # field along -x (90 deg from +y), flow along +x
+    assert math.isclose(s.field.direction_rad, math.pi / 2)
+    assert s.carpet.shape == (7,) and s.carpet.wall == 1.5 and s.carpet.wave_vector == (0.5, 0.0)
+    assert np.allclose(s.carpet.bases()[:, 1], 2) and np.allclose(s.carpet.bases()[-1], [19, 2])
+    assert s.target.angle == -20 and s.target.control == ((1.0, 2.0), (3.0, 4.0)) and s.target.clip
+    assert s.output.seeds == ((0.0, 0.0), (1.0, 1.0), (2.0, 2.0)) and s.output.field_shape == (10, 12)
+    assert s.units.length_m == 1e-4
+    assert scene_from_dict(s.to_dict(), s.source) == s
+
+
+def test_unknown_key_top_level_and_in_section(tmp_path):
+    p = write(tmp_path, 'nmae = "a"\n')
+    with pytest.raises(SceneError) as e:
+        load_scene(p)
+    assert str(p) in str(e.value) and "'nmae'" in str(e.value) and "did you mean 'name'" in str(e.value)
+    p = write(tmp_path, "[carpet]\nspacng = 2\n")
+    with pytest.raises(SceneError) as e:
+        load_scene(p)
+    msg = str(e.value)
+    assert msg.startswith(f"{p}: [carpet] unknown key 'spacng' (known: ") and "spacing" in msg
+    p = write(tmp_path, '[table]\nfile = "t.nc"\n[table.build]\nm = 3\n')
+    with pytest.raises(SceneError, match=r"\[table.build\] unknown key 'm'"):
+        load_scene(p)
+    p = write(tmp_path, "[colour]\nx = 1\n")
+    with pytest.raises(SceneError, match="unknown top-level key 'colour'"):
+        load_scene(p)
+
+
+@pytest.mark.parametrize("text, key", [
+    ('[carpet]\nspacing = "a"\n', "carpet.spacing must be a positive number, got 'a'"),
+    ("[carpet]\nspacing = -1\n", "carpet.spacing must be a positive number"),
+    ("[carpet]\nshape = [10, 2.5]\n", "carpet.shape"),
+    ('[carpet]\nlattice = "triangle"\n', "carpet.lattice must be one of"),
+    ("[carpet]\nseed = true\n", "carpet.seed must be an integer"),
+    ("[field]\neta = 0\n", "field.eta"),
+    ("[field]\nchi_E = true\n", "field.chi_E"),
+    ("tolerance = 1.0\n", "tolerance must be a number in (0, 1)"),
+    ("name = 3\n", "name must be a string"),
+    ("[output]\npreview = 1\n", "output.preview must be true or false"),
+    ("[output]\nfield_shape = [80]\n", "output.field_shape"),
+    ("[output]\nsnapshots = -1\n", "output.snapshots must be an integer >= 0"),
+    ('[output]\nseeds = "circle"\n', "output.seeds"),
+    ('[target]\nkind = "focus"\nwidth = 0\n', "target.width must be a positive number"),
+    ('[target]\nkind = "focus"\ncentre = [1, 2]\n', 'target.centre does not apply to kind = "focus"'),
+    ('[target]\nkind = "turn"\nangle = -10\n', "target.angle must be an amplitude"),
+    ('[target]\nkind = "uniform"\ncontrol = [[1, 2, 3]]\n', "target.control[0] must be two numbers"),
+    ('[target]\nkind = "points"\n', "target.file is required"),
+    ('[target]\nkind = "points"\nfile = "nope.csv"\n', "target.file 'nope.csv' not found"),
+    ('[carpet]\nlattice = "points"\n', "carpet.points is required"),
+    ('[carpet]\nlattice = "points"\npoints = [[0, 0]]\nshape = [2, 2]\n', "carpet.shape does not apply"),
+    ("[carpet]\npoints = [[0, 0]]\n", "carpet.points applies only to lattice"),
+    ("[carpet]\nwave_vector = [1, 0]\n", "carpet.wave_vector applies only to phases"),
+    ("[units]\nlength_m = 1e-4\n", "[units] needs all of"),
+    ("carpet = 3\n", "carpet must be a table"),
+])
+def test_wrong_types_and_values_name_the_key(tmp_path, text, key):
+    p = write(tmp_path, text)
+    with pytest.raises(SceneError) as e:
+        load_scene(p)
+    assert str(e.value).startswith(f"{p}: ")
+    assert key in str(e.value)
+
+
+@pytest.mark.parametrize("text, key", [
+    ("[carpet]\nspacing = nan\n", "carpet.spacing"),
+    ("[field]\nchi_E = inf\n", "field.chi_E"),
+    ("[carpet]\norigin = [0, nan]\n", "carpet.origin"),
+    ('[target]\nkind = "uniform"\nangle = -inf\n', "target.angle"),
+])
+def test_nan_and_inf_rejected(tmp_path, text, key):
+    with pytest.raises(SceneError, match=key):
+        load_scene(write(tmp_path, text))
+
+
+def test_malformed_toml_names_file_and_position(tmp_path):
+    p = write(tmp_path, '[carpet]\nspacing = 2\nlattice = "square\n')
+    with pytest.raises(SceneError) as e:
+        load_scene(p)
+    assert str(p) in str(e.value) and "malformed TOML" in str(e.value) and "line 3" in str(e.value)
+    with pytest.raises(SceneError, match="cannot read"):
+        load_scene(tmp_path / "missing.toml")
+
+
+def test_table_default_is_the_shipped_table(tmp_path):
+    s = load_scene(write(tmp_path, '[table]\nfile = "default"\n'))
+    t = s.table.load(s)
+    assert (t.chi_E, t.eta) == (200.0, 1.0)
+    assert s.load_table() is t  # cached
+    lo, hi = t.thrust_angle_range()
+    assert abs(lo) < 1e-9 and 0.9 < hi < 0.95
+
+
+def test_table_mismatched_field(tmp_path):
+    s = load_scene(write(tmp_path, "[field]\nchi_E = 150\n"))
+    with pytest.raises(SceneError) as e:
+        s.table.load(s)
+    msg = str(e.value)
+    assert str(s.source) in msg and "chi_E = 200" in msg and "chi_E = 150" in msg
+    s = load_scene(write(tmp_path, "[field]\neta = 1.000001\n"))
+    with pytest.raises(SceneError, match="eta"):
+        s.load_table()
+    s = load_scene(write(tmp_path, "[field]\neta = 1.0000000000001\n"))  # within 1e-9 relative
+    assert s.load_table().eta == 1.0
+
+
+def test_table_file_relative_to_scene(tmp_path):
+    from single_cilium.table import ThrustTable
+
+    sub = tmp_path / "tables"
+    sub.mkdir()
+    ThrustTable.default().save(sub / "mine.nc")
+    s = load_scene(write(tmp_path, '[table]\nfile = "tables/mine.nc"\n'))
+    assert s.table.path(s) == sub / "mine.nc"
+    assert s.load_table().chi_E == 200.0
+    (sub / "bad.nc").write_text("not a table")
+    s = load_scene(write(tmp_path, '[table]\nfile = "tables/bad.nc"\n'))
+    with pytest.raises(SceneError, match="table.file"):
+        s.load_table()
+
+
+def test_missing_table_without_build_says_add_table_build(tmp_path):
+    s = load_scene(write(tmp_path, '[table]\nfile = "nothere.nc"\n'))
+    with pytest.raises(SceneError) as e:
+        s.table.load(s)
+    assert "[table.build]" in str(e.value) and "nothere.nc" in str(e.value) and str(s.source) in str(e.value)
+    with pytest.raises(SceneError, match="needs table.file"):
+        load_scene(write(tmp_path, "[table.build]\nn = 5\n"))
+
+
+def test_missing_table_with_build_builds_it(tmp_path, monkeypatch):
+    """The build path (without the minutes of computation): build_table is called with the
+    field, a grid over [0, cutoff) plus 1.05 cutoff, the degree and the resolved path."""
+    import single_cilium
+    import single_cilium.table as table_mod
+    from single_cilium.stability import Cutoff
+
+    calls = []
+    monkeypatch.setattr(single_cilium, "flutter_cutoff",
+                        lambda chi_E, eta, degree: Cutoff(chi_E, eta, 100.0, 1.0, 0.0, "", 0))
+
+    def fake_build(chi_E, eta, grid, degree, path):
+        calls.append((chi_E, eta, np.asarray(grid), degree, Path(path)))
+        table_mod.ThrustTable.default().save(path)
+
+    monkeypatch.setattr(table_mod, "build_table", fake_build)
+    s = load_scene(write(tmp_path, '[table]\nfile = "built.nc"\n[table.build]\nn = 5\ndegree = 6\n'))
+    assert s.table.build == TableBuild(n=5, degree=6)
+    t = s.load_table()
+    assert t.chi_E == 200.0 and (tmp_path / "built.nc").exists()
+    (chi_E, eta, grid, degree, path), = calls
+    assert (chi_E, eta, degree, path) == (200.0, 1.0, 6, tmp_path / "built.nc")
+    assert np.allclose(grid, [0, 25, 50, 75, 105])
+    s.load_table()  # exists now: not built again
+    assert len(calls) == 1
+
+
+def test_reduced_shrinks(tmp_path):
+    s = load_scene(DESIGNS / "vortex_turn.toml")
+    r = s.reduced()
+    assert r.carpet.lattice == "hexagonal" and r.carpet.spacing == s.carpet.spacing
+    assert r.carpet.n_cilia <= 16 and r.carpet.shape == (4, 4)
+    assert np.allclose(r.carpet.centre, s.carpet.centre)  # same centre: absolute coordinates still fit
+    o = r.output
+    assert (o.n_seeds, o.field_shape, o.periods, o.snapshots, o.frames) == (10, (16, 16), 2.0, 1, 4)
+    assert r.target == s.target and r.field == s.field and r.name == s.name
+    # never enlarges; other shapes and lattices
+    tiny = s.reduced(max_cilia=1000, n_seeds=1000, field_shape=(500, 500), periods=100, snapshots=9, frames=99)
+    assert tiny == s
+    wide = dataclasses.replace(s, carpet=dataclasses.replace(s.carpet, lattice="square", shape=(20, 5)))
+    assert wide.reduced().carpet.shape == (8, 2)
+    row = load_scene(write(tmp_path, '[carpet]\nlattice = "row"\nshape = [40]\n')).reduced(max_cilia=5)
+    assert row.carpet.shape == (5,) and np.allclose(row.carpet.centre, [39, 0])
+    pts = [[float(i), 0.0] for i in range(30)]
+    ps = scene_from_dict({"carpet": {"lattice": "points", "points": pts},
+                          "output": {"seeds": [[0, float(i)] for i in range(50)]}}).reduced()
+    assert ps.carpet.n_cilia == 16 and len(ps.output.seeds) == 10
+    assert np.all(np.abs(np.asarray(ps.carpet.points)[:, 0] - 14.5) <= 8)
+
+
+def test_scene_from_dict_without_file():
+    s = scene_from_dict({"carpet": {"shape": [3, 2]}})
+    assert s.source is None and s.name == "scene" and s.carpet.n_cilia == 6
+    with pytest.raises(SceneError, match="^<scene>: carpet.shape"):
+        scene_from_dict({"carpet": {"shape": [0, 2]}})
+
+
+def test_sections_made_in_code_are_validated():
+    c = CarpetSpec(shape=[3, 4], spacing=3, origin=[1, 1])
+    assert c.shape == (3, 4) and c.spacing == 3.0 and isinstance(c.spacing, float) and c.origin == (1.0, 1.0)
+    with pytest.raises(SceneError, match="^<CarpetSpec>: carpet.spacing must be a positive number"):
+        dataclasses.replace(c, spacing=-2.0)
+    with pytest.raises(SceneError, match="target.angle"):
+        TargetSpec(kind="focus", angle=float("nan"))
+    with pytest.raises(SceneError, match="output.field_shape"):
+        OutputSpec(field_shape=(1, 5))
+    with pytest.raises(SceneError, match="tolerance"):
+        Scene(name="a", tolerance=2.0)
+    with pytest.raises(SceneError, match="carpet must be a CarpetSpec"):
+        Scene(name="a", carpet={"shape": [2, 2]})
+    s = Scene(name="a", source="designs/x.toml")
+    assert s.source == Path("designs/x.toml") and s.carpet == CarpetSpec()
+
+
+def test_scene_is_frozen():
+    s = scene_from_dict({})
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        s.name = "other"
+    assert isinstance(s, Scene) and scene_mod.LATTICES == ("row", "square", "hexagonal", "points")
