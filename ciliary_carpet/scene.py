@@ -33,7 +33,8 @@ import difflib
 import logging
 import math
 import tomllib
-from dataclasses import dataclass, field as _field, fields, replace
+from dataclasses import dataclass, fields, replace
+from dataclasses import field as _field
 from pathlib import Path
 
 import numpy as np

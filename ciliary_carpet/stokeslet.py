@@ -596,33 +596,42 @@ def _blake_numpy(R: np.ndarray, Rs: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 
 def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float = 1.0,
-                             wall: Wall | None = None, *, chunk_pairs: int = 2_000_000) -> np.ndarray:
+                             wall: Wall | None = None, *, chunk_pairs: int = 65536) -> np.ndarray:
     """Plain-numpy reference of :func:`stokeslet_velocity` (slow; for tests and benchmarks).
 
-    Vectorised over all pairs of a chunk of targets (``chunk_pairs`` pairs at a time, which bounds
-    the memory to a few hundred bytes per pair); free space in the vector form
-    ``f/|R| + R (R.f)/|R|^3``, the wall as the full 3x3 Blake tensors term by term. Same
-    arguments, conventions and validation as :func:`stokeslet_velocity`.
+    Vectorised over all pairs of a chunk of targets (about ``chunk_pairs`` pairs at a time, which
+    bounds the memory: a few hundred bytes per pair of the chunk); free space in the vector form
+    ``f/|R| + R (R.f)/|R|^3``, the wall as the full 3x3 Blake tensors written term by term
+    (independent of the algebra of the numba kernel). Same arguments, conventions and validation
+    as :func:`stokeslet_velocity`; always exact (no FMM).
     """
     t, s, f, m, w = _validate(targets, sources, forces, mu, wall)
     M, N = t.shape[0], s.shape[0]
     out = np.zeros((M, 3))
     if M == 0 or N == 0:
         return out
-    step = max(1, int(chunk_pairs) // (N if w is None else 4 * N))
-    if w is not None:
+    step = max(1, int(chunk_pairs) // N)
+    if w is None:
+        sx, sy, sz = (np.ascontiguousarray(c) for c in s.T)
+        fx, fy, fz = (np.ascontiguousarray(c) for c in f.T)
+    else:
         sh = s.copy()
         sh[:, 2] -= w.z
         simg = sh * np.array([1.0, 1.0, -1.0])
     for lo in range(0, M, step):
         x = t[lo:lo + step]
         if w is None:
-            R = x[:, None, :] - s[None, :, :]
-            r = np.sqrt(np.sum(R * R, axis=-1))
+            dx = x[:, 0:1] - sx
+            dy = x[:, 1:2] - sy
+            dz = x[:, 2:3] - sz
+            r2 = dx * dx + dy * dy + dz * dz
             with np.errstate(divide="ignore"):
-                ir = np.where(r > 0, 1.0 / r, 0.0)
-            rf = np.sum(R * f[None], axis=-1) * ir ** 3
-            u = np.sum(f[None] * ir[..., None] + R * rf[..., None], axis=1)
+                ir = 1.0 / np.sqrt(r2)
+            ir[r2 == 0.0] = 0.0  # coincident points: skipped
+            rf = (dx * fx + dy * fy + dz * fz) * (ir * ir * ir)
+            u = np.column_stack([ir @ fx + np.einsum("ij,ij->i", dx, rf),
+                                 ir @ fy + np.einsum("ij,ij->i", dy, rf),
+                                 ir @ fz + np.einsum("ij,ij->i", dz, rf)])
         else:
             xs = x.copy()
             xs[:, 2] -= w.z

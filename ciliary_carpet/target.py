@@ -23,11 +23,13 @@ cross-stream coordinate measured from the line)
   straight along d0, with the change over the width w. Two streams side by side whose
   directions differ by A: a layer of shear in the direction of the flow. (Unlike focus and
   spread it is not antisymmetric about the line, so the three are distinct.)
-* ``turn``: the flow turns anticlockwise around ``centre``: the wanted direction at x is the
-  anticlockwise tangent ``rot90(x - centre)``; delta = the signed angle from d0 to it, clipped to
-  [-A, A] -- within what the cilia can do. The tangent is along d0 on the -cross side of the
-  centre (delta = 0 there) and against it on the +cross side, where delta jumps from +A to -A
-  (the cilia cannot push upstream). delta = 0 at the centre itself.
+* ``turn``: the flow turns anticlockwise around ``centre``, within what the cilia can do:
+  delta = A (t . cross), t the unit anticlockwise tangent ``rot90(x - centre)/|x - centre|``,
+  i.e. A times the sine of the angle from d0 to the tangent. The cilia cannot push upstream, so
+  the flow is turned fully (+-A) where the tangent is across the stream (upstream and downstream
+  of the centre), not at all where it runs with or against it, and smoothly in between (a
+  clipped tangent would jump from +A to -A behind the centre, which no superposition of
+  Stokeslets can follow). delta = 0 at the centre itself.
 * ``points``: target velocities (lab frame, model units L / tau) at given control points, read
   from a file (:func:`read_target_points`).
 
@@ -266,10 +268,8 @@ class Target:
             c = frame.centre if self.centre is None else np.asarray(self.centre)
             r = x - c
             t = np.column_stack([-r[:, 1], r[:, 0]])  # anticlockwise tangent (unnormalised)
-            d0 = frame.flow_direction
-            ang = np.arctan2(d0[0] * t[:, 1] - d0[1] * t[:, 0], t @ d0)
-            ang = np.where(np.hypot(r[:, 0], r[:, 1]) > 0, ang, 0.0)
-            return np.clip(ang, -A, A)
+            n = np.hypot(t[:, 0], t[:, 1])
+            return A * np.where(n > 0, (t @ frame.cross) / np.where(n > 0, n, 1.0), 0.0)
         w = self.width if self.width is not None else frame.spacing
         xi = frame.cross_coordinate(x) - self.line
         th = np.tanh(xi / w)

@@ -7,8 +7,16 @@ import numpy as np
 import pytest
 
 from ciliary_carpet import scene as scene_mod
-from ciliary_carpet.scene import (CarpetSpec, OutputSpec, Scene, SceneError, TableBuild, TargetSpec, load_scene,
-                                  scene_from_dict)
+from ciliary_carpet.scene import (
+    CarpetSpec,
+    OutputSpec,
+    Scene,
+    SceneError,
+    TableBuild,
+    TargetSpec,
+    load_scene,
+    scene_from_dict,
+)
 
 DESIGNS = Path(__file__).resolve().parents[1] / "designs"
 DESIGN_FILES = sorted(DESIGNS.glob("*.toml"))

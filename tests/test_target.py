@@ -8,8 +8,15 @@ import pytest
 import xarray as xr
 
 from ciliary_carpet.scene import load_scene, scene_from_dict
-from ciliary_carpet.target import (DEFAULT_ANGLE_FRACTION, Frame, Target, TargetError, control_points,
-                                   reachable_check, read_target_points)
+from ciliary_carpet.target import (
+    DEFAULT_ANGLE_FRACTION,
+    Frame,
+    Target,
+    TargetError,
+    control_points,
+    reachable_check,
+    read_target_points,
+)
 
 DESIGNS = Path(__file__).resolve().parents[1] / "designs"
 A = math.radians(40)
@@ -73,30 +80,26 @@ def test_uniform_and_shear():
     assert np.isclose(Target("focus", A).deflection(line_points(fr, [2.0]), fr)[0], -A * np.tanh(1.0))
 
 
-def test_turn_is_tangential_and_clipped():
+def test_turn_is_smooth_and_tangential_across_the_stream():
     fr = frame(0.0, centre=(5.0, 5.0))
     tgt = Target("turn", math.radians(50))
     c = np.array([5.0, 5.0])
-    # unit offsets from the centre around the circle
     phis = np.radians(np.arange(0, 360, 15))
     pts = c + 2.0 * np.column_stack([np.cos(phis), np.sin(phis)])
     delta = tgt.deflection(pts, fr)
     tangent = np.column_stack([-np.sin(phis), np.cos(phis)])  # anticlockwise
-    d0 = fr.flow_direction
-    want = np.arctan2(d0[0] * tangent[:, 1] - d0[1] * tangent[:, 0], tangent @ d0)
-    free = np.abs(want) <= tgt.amplitude
-    assert free.sum() >= 5 and (~free).sum() >= 5
-    # where reachable the flow is exactly tangential ...
-    assert np.allclose(tgt.directions(pts[free], fr), tangent[free])
-    # ... elsewhere clipped to the amplitude, on the side of the tangent
-    assert np.allclose(delta[~free], np.sign(want[~free]) * tgt.amplitude)
+    np.testing.assert_allclose(delta, tgt.amplitude * (tangent @ fr.cross), atol=1e-15)
     assert np.all(np.abs(delta) <= tgt.amplitude + 1e-15)
+    assert np.all(np.abs(np.diff(delta)) < 0.3 * tgt.amplitude)  # no jump anywhere on the circle
+    # the flow's cross-stream component follows the anticlockwise tangent's
+    tc_ = tangent @ fr.cross
+    dc_ = tgt.directions(pts, fr) @ fr.cross
+    assert np.all(np.sign(dc_[np.abs(tc_) > 1e-9]) == np.sign(tc_[np.abs(tc_) > 1e-9]))
     # left of the centre (x < 5) the circle runs down: straight flow
     assert abs(tgt.deflection([[3.0, 5.0]], fr)[0]) < 1e-12
-    # below the centre the anticlockwise flow runs toward +x: positive deflection
-    assert tgt.deflection([[5.0, 4.0]], fr)[0] > 0
+    # below the centre the anticlockwise flow runs toward +x: full positive deflection
+    assert tgt.deflection([[5.0, 4.0]], fr)[0] == pytest.approx(tgt.amplitude)
     assert tgt.deflection([[5.0, 5.0]], fr)[0] == 0.0  # the centre itself
-    # an explicit centre
     tc = Target("turn", math.radians(50), centre=(0.0, 0.0))
     assert abs(tc.deflection([[-2.0, 0.0]], fr)[0]) < 1e-12
 
