@@ -454,6 +454,8 @@ class ThrustTable:
             raise TableError(f"angle must be finite, got {angle}")
         lo, hi = self.thrust_angle_range()
         a = abs(angle)
+        if lo - 1e-12 <= a < lo:  # the straight filament's angle is 0 up to round-off
+            a = lo
         if not lo <= a <= hi:
             b0, b1 = self._angle_branch()
             raise TableError(f"thrust angle {angle:.6g} is not achievable with this field: |angle| must lie in "
