@@ -47,8 +47,12 @@ fast multipole method of ``fmm3dpy`` (free space only; optional dependency
 Accuracy: the numba kernels use ``fastmath={'reassoc', 'contract', 'nsz', 'arcp'}`` only
 (reordered sums and fused multiply-adds, so that the reduction over sources vectorises; no
 approximate ``1/sqrt``, no assumption of finite values): they agree with the numpy reference to
-about 1e-15 relative to ``max |u|`` (tested to 1e-12). Throughput and the FMM crossover are
-measured by ``benchmarks/bench_flow.py`` (``benchmarks/results/bench_kernel.md``).
+about 1e-15 relative to ``max |u|`` (tested to 1e-12), and in free space each velocity to a few
+ulps. With a wall, the velocity close to the wall (target height ``<< h``) or far from the
+source (``|R| >> h``) is a small difference of ``O(|f| / |R|)`` image terms, in this and in any
+implementation of the image system: there the absolute error is ~1e-16 of the free-space scale
+``|f| / (8 pi mu |R|)``, the relative error of ``u`` correspondingly larger. Throughput and the
+FMM crossover are measured by ``benchmarks/bench_flow.py`` (``benchmarks/results/bench_kernel.md``).
 """
 from __future__ import annotations
 
@@ -77,9 +81,11 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 #: Default :class:`Auto` threshold on ``M * N``: below it the direct sum is used. The measured
-#: crossover (benchmarks/results/bench_kernel.md, 2 cores, AMD EPYC Zen 3) of the numba direct sum
-#: and the serial fmm3dpy 2.1.0 wheel at eps = 1e-12 on random points in the unit cube, M = N.
-FMM_CROSSOVER_PAIRS: float = 4.0e9
+#: crossover (benchmarks/results/bench_kernel.md; 2 cores, AMD EPYC Zen 3) of the numba direct sum
+#: (1.5e9 pairs/s) and the serial fmm3dpy 2.1.0 wheel at eps = 1e-12 (64 s for M = N = 1e5) on
+#: random points in the unit cube: M = N ~ 1e6, extrapolated from M = N = 1e5 (at eps = 1e-6 it
+#: would be M = N ~ 5e5). In practice Auto therefore means Direct unless a scene is huge.
+FMM_CROSSOVER_PAIRS: float = 1.0e12
 
 #: Value-safe fast-math flags: reassociation (vectorised reductions), FMA contraction, no signed
 #: zeros, reciprocal allowed. Not ``afn`` (approximate ``1/sqrt``) nor ``nnan``/``ninf``.
@@ -338,8 +344,9 @@ class Direct(Backend):
 
     Parallel over targets (``prange``, numba's default thread count), the reduction over sources
     vectorised (structure-of-arrays copies of sources and forces are made once per call).
-    Exact up to rounding (about 1e-15 relative); free space and wall. About 1.5e9 pair
-    interactions per second in free space on 2 Zen 3 cores (see the module docstring).
+    Exact up to rounding (about 1e-15 relative); free space and wall. Measured on 2 Zen 3 cores:
+    1.5e9 pair interactions per second in free space, 7e8 with the wall, for M = N = 3e4..1e5
+    (benchmarks/results/bench_kernel.md).
     """
 
     def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
