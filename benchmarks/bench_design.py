@@ -56,6 +56,9 @@ from pathlib import Path
 import numpy as np
 import scipy
 
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_flow import cpu_model  # noqa: E402 -- one CPU probe for every benchmark
+
 from ciliary_carpet import layout
 from ciliary_carpet.carpet import Carpet
 from ciliary_carpet.design import design_layout
@@ -93,16 +96,6 @@ def timed(fn, cap):
         signal.setitimer(signal.ITIMER_REAL, 0.0)
         signal.signal(signal.SIGALRM, old)
     return out, time.perf_counter() - t0
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def loadavg() -> str:
