@@ -57,7 +57,7 @@ import numpy as np
 import scipy
 
 sys.path.insert(0, str(Path(__file__).parent))
-from bench_flow import cpu_model  # noqa: E402 -- one CPU probe for every benchmark
+from bench_flow import cpu_model  # one CPU probe for every benchmark
 
 from ciliary_carpet import layout
 from ciliary_carpet.carpet import Carpet
