@@ -12,11 +12,21 @@ scene's tolerance and writes, into ``out_dir``:
 ``pathlines.vtp``           tracer path lines (time, velocity, speed; SeedIds, ReasonForTermination)
 ``preview.png``             the mean flow (streamlines) with the layout and path lines
 ``summary.json``, ``.md``   residuals, timings, fidelity used, error bounds, path-line outcome
+``ciliary-carpet.manifest``  the names of the files above: what the toolkit wrote (JSON)
 ==========================  ==================================================================
 
-The whole folder is written atomically: everything goes into a hidden staging folder next to
-``out_dir``, which is renamed onto ``out_dir`` only when complete (``summary.json`` last). An
-existing ``out_dir`` is kept unless ``overwrite=True``. Times are in units of tau, lengths in L
+Output-folder safety. Everything is first written into a hidden staging folder
+``.NAME.HOST-PID.*.partial`` beside ``out_dir`` (the only thing ever created outside it), which is
+renamed onto ``out_dir`` when complete, or removed on failure; one left by a killed render (its
+process gone) is removed by the next render of the same folder. A non-empty ``out_dir`` is kept
+unless ``overwrite=True``, and even then only the files listed in its manifest (what a render
+wrote) are replaced or removed: files someone else put there are never touched, and a render
+whose output would replace one of them is refused before any work. ``summary.json`` arrives last:
+a folder is complete (:func:`is_complete`) when it has the manifest and ``summary.json``.
+``summary.json`` is strict JSON, and a render whose summary would hold a NaN or an infinity is
+a :class:`RenderError` (nothing is written). Before any work, :func:`check_resources` compares a
+lower bound of the memory and time the scene needs with what the machine has. Times are in units
+of tau, lengths in L
 (SI when the scene has ``[units]``). The periods of the outputs (snapshots, frames, path-line
 duration) are counted in periods of the straight filament, T0 = T(chi_N = 0).
 """
@@ -26,7 +36,9 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
+import socket
 import tempfile
 import time as _time
 from dataclasses import dataclass
@@ -34,23 +46,32 @@ from pathlib import Path
 
 import numpy as np
 
-from single_cilium._io import write_netcdf
+from single_cilium._io import non_finite, strict_json, write_netcdf
 from single_cilium.progress import Progress
 
 from .carpet import Carpet
 from .design import design
-from .scene import Scene
+from .scene import Scene, SceneError
 from .vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["render", "RenderResult", "RenderError", "is_complete"]
+__all__ = ["render", "RenderResult", "RenderError", "ResourceError", "is_complete", "check_resources", "Estimate",
+           "MANIFEST"]
 
 SUMMARY = "summary.json"
+MANIFEST = "ciliary-carpet.manifest"
+# the names a render writes (used to recognise renders made before the manifest existed)
+_OUTPUT_NAME = re.compile(r"(layout\.(nc|vtp)|mean_field\.vti|snapshot_\d+\.vti|snapshots\.pvd|cilia_\d+\.vtp|"
+                          r"cilia\.pvd|pathlines\.vtp|preview\.png|summary\.(json|md))\Z")
 
 
 class RenderError(RuntimeError):
-    """The output folder cannot be (re)written as asked."""
+    """The output folder cannot be (re)written as asked, or the result is not finite."""
+
+
+class ResourceError(RenderError):
+    """The scene needs more memory or time than the machine has (raised before any work)."""
 
 
 @dataclass(frozen=True)
@@ -62,10 +83,38 @@ class RenderResult:
     summary: dict
 
 
+def _usual_mode(executable: bool = False) -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return (0o777 if executable else 0o666) & ~umask
+
+
+def owned_files(out_dir) -> set[str] | None:
+    """The names in ``out_dir`` that a render wrote (its manifest), or None when ``out_dir`` is
+    not a render's folder. A folder from before the manifest (a ``summary.json`` with the
+    resolved scene) owns the entries with the names a render writes."""
+    out_dir = Path(out_dir)
+    m = out_dir / MANIFEST
+    if m.is_file():
+        try:
+            names = json.loads(m.read_text())["files"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise RenderError(f"{m}: unreadable manifest ({exc}); the folder is kept: remove it yourself") from None
+        return {n for n in names if isinstance(n, str) and n and "/" not in n and n not in (".", "..")} | {MANIFEST}
+    summ = out_dir / SUMMARY
+    try:
+        legacy = summ.is_file() and "scene_resolved" in json.loads(summ.read_text())
+    except (OSError, ValueError, TypeError):
+        legacy = False
+    if not legacy:
+        return None
+    return {p.name for p in out_dir.iterdir() if p.is_file() and _OUTPUT_NAME.match(p.name)}
+
+
 def is_complete(out_dir, sources=()) -> bool:
     """Whether ``out_dir`` holds a complete render newer than every file in ``sources``."""
     s = Path(out_dir) / SUMMARY
-    if not s.is_file():
+    if not s.is_file() or owned_files(out_dir) is None:
         return False
     t = s.stat().st_mtime
     return all(Path(p).stat().st_mtime < t for p in sources if p is not None and Path(p).exists())
@@ -109,16 +158,255 @@ def _blank_inside(carpet: Carpet, pts: np.ndarray) -> np.ndarray:
     return inside
 
 
-def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress | None = None) -> RenderResult:
-    """Render ``scene`` into ``out_dir`` (see the module docstring). Raises SceneError,
-    TargetError, TableError or DesignError for a scene that cannot be rendered, and RenderError
-    when ``out_dir`` holds results and ``overwrite`` is False; nothing is written then."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
+# ------------------------------------------------------------------------------ resources
+_BYTES_PER_CILIUM = 2048   # lower bound: measured 0.57 MB per cilium (2026-11, 2 cores), cycle tables
+_BYTES_PER_POINT = 64      # lower bound: position, velocity, error bound and speed of a field point
+_BYTES_PER_TRACER_STEP = 56  # position, velocity, time of a path-line point
+_PAIRS_PER_SECOND = 3e9    # above the measured Stokeslet kernel rate (1.5e9 pairs/s, 2 cores)
+_SECONDS_PER_STEP = 1e-4   # below the measured overhead of one path-line step
+MAX_PATHLINE_STEPS = 100_000  # the integrator's default max_steps
+MAX_COORDINATE = 1e9       # |coordinates| in L beyond which a scene is taken for a typo
+SCALE_RANGE = (1e-100, 1e100)  # SI scales of [units] that keep every output finite
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Lower bounds of what a render needs: ``memory_bytes``, Stokeslet ``pairs``, path-line
+    ``steps`` (one per period of the flow at least) and ``seconds``; ``parts`` is the memory by
+    scene key, ``available_bytes`` what the machine has, ``limit_seconds`` the time allowed."""
+
+    memory_bytes: float
+    pairs: float
+    steps: float
+    seconds: float
+    parts: dict
+    available_bytes: float
+    limit_seconds: float
+
+
+def _available_memory() -> float:
+    """MemAvailable (Linux), or the physical memory, capped by RLIMIT_AS minus what this process
+    already maps."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    avail = float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    if avail is None:
+        try:
+            avail = float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            avail = math.inf
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            with open("/proc/self/statm") as fh:
+                mapped = float(fh.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+            avail = min(avail, max(float(soft) - mapped, 0.0))
+    except (ImportError, OSError, ValueError):
+        pass
+    return avail
+
+
+def _gb(x: float) -> str:
+    return f"{x / 1e9:.3g} GB"
+
+
+def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
+    """Check, before any work, that ``scene`` can be rendered: its coordinates and ``[units]``
+    scales are sane and lower bounds of the memory and time it needs fit the machine.
+
+    The bounds count only what a render certainly needs (``_BYTES_PER_CILIUM`` etc. are far
+    below the measured costs), so a scene is refused only when it certainly cannot finish:
+    memory above what is available (MemAvailable, or RLIMIT_AS when set), time above
+    ``max_seconds``, or more path-line steps (one per period at least) than the integrator
+    allows. Raises :class:`ResourceError` (or :class:`~ciliary_carpet.scene.SceneError` for a
+    coordinate or unit out of range) naming the scene file, the key and the estimate."""
+    src = scene.source_name
+    c, o = scene.carpet, scene.output
+    # coordinates: typos such as 1e300 give NaN deep inside the design; refuse them by key
+    coords = {"carpet.origin": [c.origin], "carpet.points": c.points or (), "target.centre":
+              [scene.target.centre] if scene.target.centre is not None else (),
+              "target.control": c_ if not isinstance((c_ := scene.target.control), str) else (),
+              "output.seeds": o.seeds if not isinstance(o.seeds, str) else ()}
+    scalars = {"carpet.spacing": c.spacing, "target.line": scene.target.line,
+               "output.field_margin": o.field_margin}
+    for key, pts in coords.items():
+        for i, pt in enumerate(pts):
+            if max(abs(pt[0]), abs(pt[1])) > MAX_COORDINATE:
+                raise SceneError(f"{src}: {key}{'[%d]' % i if key != 'carpet.origin' else ''} = "
+                                 f"[{pt[0]:g}, {pt[1]:g}] is farther than {MAX_COORDINATE:g} L from the origin")
+    for key, v in scalars.items():
+        if abs(v) > MAX_COORDINATE:
+            raise SceneError(f"{src}: {key} = {v:g} is larger than {MAX_COORDINATE:g} L")
+    if scene.units is not None:
+        u = scene.units
+        lo, hi = SCALE_RANGE
+        derived = {"units.length_m": u.length_m, "units.time_s": u.time_s, "units.viscosity_Pa_s": u.viscosity_Pa_s,
+                   "units.length_m / units.time_s (velocity)": u.length_m / u.time_s,
+                   "units.viscosity_Pa_s * length_m / time_s (force per length)": u.viscosity_Pa_s * u.length_m / u.time_s}
+        for key, v in derived.items():
+            if not (math.isfinite(v) and lo <= v <= hi):
+                raise SceneError(f"{src}: {key} = {v:g} is outside [{lo:g}, {hi:g}]: the outputs in SI units would "
+                                 f"overflow or vanish; check the [units] section")
+    n = float(c.n_cilia)
+    p = float(o.field_shape[0]) * float(o.field_shape[1]) if (o.field or o.snapshots > 0) else 0.0
+    evals = p * (int(o.field) + o.snapshots)
+    k = float(len(o.seeds) if not isinstance(o.seeds, str) else o.n_seeds) if o.pathlines else 0.0
+    steps = float(max(1.0, math.ceil(o.periods))) if o.pathlines else 0.0
+    parts = {"carpet (shape / points)": n * _BYTES_PER_CILIUM, "output.field_shape": p * _BYTES_PER_POINT,
+             "output.n_seeds x output.periods": k * (steps + 1.0) * _BYTES_PER_TRACER_STEP}
+    mem = sum(parts.values())
+    pairs = 3.0 * n * (evals + 7.0 * k * steps)
+    seconds = pairs / _PAIRS_PER_SECOND + steps * _SECONDS_PER_STEP
+    avail = _available_memory()
+    est = Estimate(mem, pairs, steps, seconds, parts, avail, float(max_seconds))
+    what = (f"{c.n_cilia:g} cilia, {p:g} field points x {int(o.field) + o.snapshots} fields, "
+            f"{k:g} tracers x {steps:g} steps")
+    if steps > MAX_PATHLINE_STEPS:
+        raise ResourceError(f"{src}: output.periods = {o.periods:g} needs at least {steps:g} path-line steps (one "
+                            f"per period of the flow), more than the integrator's {MAX_PATHLINE_STEPS}; lower "
+                            f"output.periods")
+    if mem > avail:
+        key = max(parts, key=parts.get)
+        raise ResourceError(f"{src}: the scene needs at least {_gb(mem)} of memory ({what}; most of it for {key}), "
+                            f"more than the {_gb(avail)} available; make {key} smaller")
+    if seconds > max_seconds:
+        raise ResourceError(f"{src}: the scene needs at least {seconds / 3600:.3g} hours ({pairs:.3g} Stokeslet "
+                            f"pairs at {_PAIRS_PER_SECOND:.2g}/s; {what}), more than the {max_seconds / 3600:.3g} "
+                            f"hours allowed; make the carpet, the field or the path lines smaller (or raise "
+                            f"--max-hours)")
+    logger.debug("resource estimate for %s: %s", src, est)
+    return est
+
+
+# ------------------------------------------------------------------------------ output folder
+_STAGE_TAIL = re.compile(r"(\d+)\.[A-Za-z0-9_]+\.partial\Z")
+
+
+def _stage_prefix(out_dir: Path) -> str:
+    return f".{out_dir.name}.{socket.gethostname()}-"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _clean_stale_stages(out_dir: Path) -> None:
+    """Remove the staging folders of ``out_dir`` left by killed renders on this host."""
+    prefix = _stage_prefix(out_dir)
+    try:
+        entries = list(out_dir.parent.iterdir()) if out_dir.parent.is_dir() else []
+    except OSError:
+        return
+    for e in entries:
+        m = _STAGE_TAIL.match(e.name[len(prefix):]) if e.name.startswith(prefix) else None
+        if m is None or int(m.group(1)) == os.getpid() or _alive(int(m.group(1))):
+            continue
+        if e.is_dir() and not e.is_symlink():
+            shutil.rmtree(e, ignore_errors=True)
+            logger.info("removed %s, the staging folder of a killed render", e)
+
+
+def _check_out_dir(out_dir: Path, overwrite: bool) -> set:
+    """The names in ``out_dir`` a render may replace (empty for a new or empty folder); raises
+    RenderError when ``out_dir`` must be kept as it is."""
+    if out_dir.is_symlink() and not out_dir.exists():
+        raise RenderError(f"{out_dir} is a broken symbolic link")
+    if not out_dir.exists():
+        return set()
+    if not out_dir.is_dir():
         raise RenderError(f"{out_dir} exists and is not a folder")
-    if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
-        raise RenderError(f"{out_dir} already holds results ({'complete' if is_complete(out_dir) else 'partial'}); "
-                          "they are kept: pass overwrite=True (--overwrite) to replace them")
+    try:
+        names = {e.name for e in out_dir.iterdir()}
+    except OSError as exc:
+        raise RenderError(f"{out_dir}: cannot read the output folder ({exc.strerror or exc})") from None
+    if not names:
+        return set()
+    owned = owned_files(out_dir)
+    if not overwrite:
+        if owned is not None:
+            what = "results (" + ("complete" if (out_dir / SUMMARY).is_file() else "partial") + ")"
+            raise RenderError(f"{out_dir} already holds {what}; they are kept: pass overwrite=True (--overwrite) to "
+                              f"replace them (only the files ciliary-carpet wrote)")
+        raise RenderError(f"{out_dir} holds files ciliary-carpet did not write ({', '.join(sorted(names)[:3])}"
+                          f"{', ...' if len(names) > 3 else ''}); they are kept: choose a new or empty folder, or pass "
+                          f"--overwrite to write the render beside them")
+    owned = owned or set()
+    clash = sorted(nm for nm in names - owned if _OUTPUT_NAME.match(nm) or nm == MANIFEST)
+    if clash:
+        raise RenderError(f"{out_dir / clash[0]} was not written by ciliary-carpet (it is not in the folder's "
+                          f"manifest) and the render would replace it; it is kept: move it away or choose another "
+                          f"folder")
+    return owned
+
+
+def _write_manifest(folder: Path, names) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{MANIFEST}.", suffix=".part", dir=folder)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(json.dumps({"written_by": "ciliary-carpet", "files": sorted(set(names) | {MANIFEST})}, indent=1))
+        os.chmod(tmp, _usual_mode())
+        os.replace(tmp, folder / MANIFEST)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _place(stage: Path, out_dir: Path, owned: set) -> None:
+    """Move the complete ``stage`` onto ``out_dir``: one rename for a new or empty folder;
+    otherwise file by file, replacing only ``owned`` names, ``summary.json`` last."""
+    if not out_dir.is_symlink():
+        try:
+            os.replace(stage, out_dir)
+            return
+        except OSError as exc:
+            if not out_dir.is_dir():
+                raise RenderError(f"cannot write '{out_dir}': {exc.strerror or exc}") from None
+    new = {e.name for e in stage.iterdir()}
+    existing = {e.name for e in out_dir.iterdir()}
+    clash = sorted((new & existing) - owned)
+    if clash:
+        raise RenderError(f"{out_dir / clash[0]} appeared during the render and was not written by ciliary-carpet; "
+                          f"it is kept, and the render was not placed")
+    try:
+        _write_manifest(out_dir, owned | new)  # first: a folder being replaced is marked as the toolkit's
+        if SUMMARY in owned:
+            (out_dir / SUMMARY).unlink(missing_ok=True)  # incomplete from here on
+        for nm in sorted(owned - new - {MANIFEST}):
+            q = out_dir / nm
+            if q.is_symlink() or q.is_file():
+                q.unlink(missing_ok=True)
+        for nm in sorted(new - {SUMMARY, MANIFEST}) + [SUMMARY, MANIFEST]:
+            os.replace(stage / nm, out_dir / nm)
+        stage.rmdir()
+    except OSError as exc:
+        raise RenderError(f"cannot write '{exc.filename or out_dir}': {exc.strerror or exc}") from None
+
+
+def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress | None = None,
+           max_seconds: float = 86400.0) -> RenderResult:
+    """Render ``scene`` into ``out_dir`` (see the module docstring for what is written and the
+    output-folder rules). Raises SceneError, TargetError, TableError or DesignError for a scene
+    that cannot be rendered, ResourceError when it certainly needs more memory than available or
+    more than ``max_seconds`` (:func:`check_resources`), and RenderError when ``out_dir`` holds
+    files and ``overwrite`` is False, when a file it would replace was not written by a render,
+    or when the result is not finite; nothing in ``out_dir`` is changed then."""
+    out_dir = Path(out_dir)
+    _clean_stale_stages(out_dir)
+    owned = _check_out_dir(out_dir, overwrite)
+    check_resources(scene, max_seconds=max_seconds)
     progress = progress if progress is not None else Progress()
     clock = {}
     t0 = _time.perf_counter()
@@ -129,8 +417,12 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     sc = carpet.scales
     L, T, V = (sc.length_m, sc.time_s, sc.velocity) if sc is not None else (1.0, 1.0, 1.0)
     T0 = float(table.scalar("period", 0.0))
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=f"{_stage_prefix(out_dir)}{os.getpid()}.", suffix=".partial",
+                                      dir=out_dir.parent))
+    except OSError as exc:
+        raise RenderError(f"cannot write '{out_dir}': {exc.strerror or exc}") from None
     summary = {"scene": scene.name, "source": scene.source_name, "n_cilia": carpet.n, "tolerance": tol,
                "units": "SI" if sc is not None else "L, tau", "T0": T0 * T}
     steps = 1 + bool(o.field) + (o.snapshots > 0) + (o.frames > 0) + bool(o.pathlines) + bool(o.preview)
@@ -222,16 +514,16 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         clock["total"] = _time.perf_counter() - t0
         summary["seconds"] = clock
         summary["scene_resolved"] = scene.to_dict()
+        bad = non_finite(summary)
+        if bad:
+            listed = "; ".join(f"{k} = {v}" for k, v in list(bad.items())[:3])
+            raise RenderError(f"{scene.source_name}: the render gave non-finite numbers ({listed}); nothing was "
+                              f"written to {out_dir}")
         (stage / "summary.md").write_text(_markdown(summary))
-        (stage / SUMMARY).write_text(json.dumps(summary, indent=2, default=_json_default))
-        os.chmod(stage, 0o755)
-        if out_dir.exists():
-            old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
-            os.replace(out_dir, old)
-            os.replace(stage, out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(stage, out_dir)
+        (stage / SUMMARY).write_text(strict_json(summary, indent=2))
+        _write_manifest(stage, [e.name for e in stage.iterdir()])
+        os.chmod(stage, _usual_mode(executable=True))
+        _place(stage, out_dir, owned)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
@@ -240,18 +532,6 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     files = tuple(sorted(p.name for p in out_dir.iterdir()))
     logger.info("rendered %s into %s in %.1f s", scene.name, out_dir, clock["total"])
     return RenderResult(out_dir=out_dir, files=files, summary=summary)
-
-
-def _json_default(v):
-    if isinstance(v, (np.integer,)):
-        return int(v)
-    if isinstance(v, (np.floating,)):
-        return float(v)
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, Path):
-        return str(v)
-    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
 
 
 def _markdown(s: dict) -> str:
@@ -311,6 +591,7 @@ def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> Non
     os.close(fd)
     try:
         fig.savefig(tmp, dpi=110)
+        os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; the usual permissions, like the other files
         os.replace(tmp, path)
     finally:
         plt.close(fig)

@@ -42,6 +42,7 @@ import numpy as np
 from single_cilium.table import TableError, ThrustTable
 
 from . import layout
+from .paths import check_name, check_scene_paths
 
 logger = logging.getLogger(__name__)
 
@@ -691,9 +692,10 @@ _TARGET_ONLY = {
 
 
 # ------------------------------------------------------------------------------ parsing
-def load_scene(path) -> Scene:
+def load_scene(path, *, allow_outside: bool = False) -> Scene:
     """Read and validate the scene file ``path`` (TOML). Raises :class:`SceneError` naming the
-    file (and the dotted key, or tomllib's line and column)."""
+    file (and the dotted key, or tomllib's line and column). ``table.file`` and ``target.file``
+    must lie below the scene's folder unless ``allow_outside`` (:mod:`ciliary_carpet.paths`)."""
     path = Path(path)
     try:
         text = path.read_bytes()
@@ -705,10 +707,10 @@ def load_scene(path) -> Scene:
         raise SceneError(f"{path}: not UTF-8 text ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: malformed TOML: {exc}") from None
-    return scene_from_dict(data, source=path)
+    return scene_from_dict(data, source=path, allow_outside=allow_outside)
 
 
-def scene_from_dict(data: dict, source=None) -> Scene:
+def scene_from_dict(data: dict, source=None, *, allow_outside: bool = False) -> Scene:
     """A :class:`Scene` from the parsed TOML ``data`` (the same checks as :func:`load_scene`);
     ``source`` is the file it came from (for relative paths and messages), or None."""
     source = None if source is None else Path(source)
@@ -720,6 +722,7 @@ def scene_from_dict(data: dict, source=None) -> Scene:
     top = _top_kw(src, {k: v for k, v in data.items() if k not in sections},
                   source.stem if source is not None else "scene")
     base = source.parent if source is not None else Path.cwd()
+    check_scene_paths(src, data, base, allow_outside=allow_outside)
     sec = {k: data.get(k, {}) for k in sections}
     return Scene(
         **top,
@@ -738,6 +741,7 @@ def _top_kw(src, data, default_name="scene") -> dict:
     name = r.string("name", default_name)
     if not name.strip():
         raise r.fail("name", "a non-empty string", name)
+    check_name(src, "name", name)
     return dict(name=name, description=r.string("description", ""),
                 tolerance=r.number("tolerance", 1e-3, lo=0, hi=1, lo_open=True, hi_open=True))
 

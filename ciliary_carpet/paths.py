@@ -1,0 +1,84 @@
+"""Path rules of scene files: what a scene may name, read and write.
+
+A scene file is input that may come from someone else, so the paths in it are confined:
+
+* ``name`` (the output folder of the scene in a batch, ``OUTPUT/NAME``) is a file name, not a
+  path: no ``/`` or ``\\``, not ``.`` or ``..``, no leading ``.`` (hidden names are the toolkit's
+  staging folders), no control characters, at most 255 bytes (:func:`check_name`).
+* ``table.file`` and ``target.file`` resolve (symbolic links followed) to a path below the scene
+  file's own folder (:func:`check_input`). ``table.file`` with ``[table.build]`` is where the
+  table is *written*, so the same rule keeps that write below the scene's folder. A user who
+  trusts the scene file can lift the rule: ``allow_outside=True`` in
+  :func:`~ciliary_carpet.scene.load_scene`, or ``--allow-outside-paths`` on the command line, or
+  the environment variable ``CILIARY_CARPET_ALLOW_OUTSIDE_PATHS=1`` (read by the command line, so
+  that batch workers inherit it).
+
+Every violation is a :class:`~ciliary_carpet.scene.SceneError` (exit status 2) naming the scene
+file, the key and the value; nothing is read or written before the check.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["check_name", "check_input", "check_scene_paths", "ALLOW_ENV"]
+
+ALLOW_ENV = "CILIARY_CARPET_ALLOW_OUTSIDE_PATHS"
+
+
+def _error(msg: str):
+    from .scene import SceneError  # scene imports this module
+
+    return SceneError(msg)
+
+
+def check_name(src: str, key: str, name: str) -> str:
+    """Return ``name`` if it is a plain file name (see the module docstring), else raise
+    SceneError naming ``src`` and ``key``."""
+    why = None
+    if "/" in name or "\\" in name:
+        why = "contains a path separator"
+    elif name in (".", ".."):
+        why = "is a relative folder"
+    elif name.startswith("."):
+        why = "starts with '.' (hidden names are reserved for staging folders)"
+    elif any(ord(c) < 32 or ord(c) == 127 for c in name):
+        why = "contains a control character"
+    elif len(name.encode("utf-8", "surrogateescape")) > 255:
+        why = "is longer than 255 bytes"
+    if why is not None:
+        raise _error(f"{src}: {key} must be a file name (the scene's output folder), not a path: {name!r} {why}")
+    return name
+
+
+def check_input(src: str, key: str, value: str, base_dir: Path, *, allow_outside: bool = False) -> Path:
+    """The path ``value`` (relative to ``base_dir``, ``~`` expanded) as it will be opened.
+
+    Raises SceneError naming ``src``, ``key`` and ``value`` when it resolves (symbolic links
+    followed, also for a file that does not exist yet) outside ``base_dir``, unless
+    ``allow_outside``.
+    """
+    p = Path(value).expanduser()
+    full = p if p.is_absolute() else base_dir / p
+    if allow_outside or os.environ.get(ALLOW_ENV, "") == "1":
+        return full
+    root = Path(os.path.realpath(base_dir))
+    real = Path(os.path.realpath(full))
+    if real != root and root not in real.parents:
+        raise _error(f"{src}: {key} = {value!r} is outside the scene's folder {root} (it resolves to {real}); "
+                     f"scene files may only name files below their own folder: move the file there, or pass "
+                     f"--allow-outside-paths (load_scene(..., allow_outside=True)) if you trust this scene")
+    return full
+
+
+def check_scene_paths(src: str, data, base_dir: Path, *, allow_outside: bool = False) -> None:
+    """Apply :func:`check_input` to ``table.file`` (unless "default") and ``target.file`` of the
+    parsed TOML ``data``, before anything is opened. Values of the wrong type are left to the
+    scene's own checks."""
+    if not isinstance(data, dict):
+        return
+    for section, skip in (("table", "default"), ("target", None)):
+        sec = data.get(section)
+        v = sec.get("file") if isinstance(sec, dict) else None
+        if isinstance(v, str) and v.strip() and v != skip:
+            check_input(src, f"{section}.file", v, base_dir, allow_outside=allow_outside)
