@@ -1,48 +1,58 @@
 """``ciliary-carpet``: render scenes, design layouts, batch many scenes.
 
-    ciliary-carpet render designs/NAME.toml -o out/NAME [--overwrite] [--reduced]
+    ciliary-carpet render designs/NAME.toml -o out/NAME [--overwrite] [--reduced] [--json]
     ciliary-carpet design designs/NAME.toml -o layout.nc [--overwrite]
-    ciliary-carpet batch designs/*.toml -o out/ [-j N] [--scheduler ADDRESS] [--overwrite] [--reduced]
+    ciliary-carpet batch designs/*.toml -o out/ [-j N] [--scheduler ADDRESS] [--overwrite] [--reduced] [--json]
 
-Exit status: 0 success; 1 some scenes of a batch failed; 2 bad input (scene, table, target,
-output folder); 3 a target the cilia cannot make.
+Options before the command: ``--debug`` (show the traceback of a failure), ``--allow-outside-paths``
+(let scene files name table and target files outside their own folder), ``--max-hours H`` (the time
+a scene may need, default 24), ``-v`` (log progress).
+
+Exit status: 0 success; 1 some scenes of a batch failed (each with its reason), or an internal
+error; 2 bad input (scene, table, target file, output folder, resources: the message names the file,
+key or value); 3 a target the cilia cannot make; 130 interrupted (Ctrl-C).
 """
 from __future__ import annotations
 
 import argparse
-import json
 import logging
+import os
 import sys
 import time as _time
-from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, Executor, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
-from single_cilium._io import write_netcdf
+from single_cilium._io import strict_json, write_netcdf
 from single_cilium.progress import TqdmProgress
 from single_cilium.table import TableError
 
 from .design import DesignError, design
-from .render import RenderError, is_complete, render
-from .scene import SceneError, load_scene
-from .target import TargetError
+from .paths import ALLOW_ENV
+from .render import SUMMARY, RenderError, check_resources, check_table_range, is_complete, owned_files, render
+from .scene import Scene, SceneError, load_scene
+from .target import TargetError, UnreachableTargetError
 from .vtkfiles import OutputError
 
 logger = logging.getLogger(__name__)
 
-BAD_INPUT = (SceneError, TargetError, TableError, RenderError, OutputError, FileNotFoundError, ValueError)
+BAD_INPUT = (SceneError, TargetError, TableError, RenderError, OutputError, OSError, MemoryError, ValueError)
+CANNOT_MAKE = (DesignError, UnreachableTargetError)
 
 
-def _scene(path: str, reduced: bool):
-    s = load_scene(path)
+def _scene(path: str, reduced: bool) -> Scene:
+    s = load_scene(path, allow_outside=os.environ.get(ALLOW_ENV, "") == "1")
     return s.reduced() if reduced else s
 
 
 def _cmd_render(a) -> int:
-    res = render(_scene(a.scene, a.reduced), a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5))
+    scene = _scene(a.scene, a.reduced)
+    res = render(scene, a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5),
+                 max_seconds=a.max_hours * 3600)
     s = res.summary
     if a.json:
-        print(json.dumps({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
-                          "seconds": s["seconds"]}, default=str))
+        print(strict_json({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
+                           "seconds": s["seconds"]}))
     else:
         print((res.out_dir / "summary.md").read_text(), end="")
         print(f"wrote {len(res.files)} files to {res.out_dir}")
@@ -53,8 +63,13 @@ def _cmd_design(a) -> int:
     out = Path(a.output)
     if out.exists() and not a.overwrite:
         raise RenderError(f"{out} exists; it is kept: pass --overwrite to replace it")
+    if out.is_dir():
+        raise RenderError(f"{out} is a folder; the layout is a file (.nc)")
     scene = _scene(a.scene, a.reduced)
-    d, carpet = design(scene)
+    check_resources(scene, max_seconds=a.max_hours * 3600)
+    table = scene.load_table()
+    check_table_range(scene, table)
+    d, carpet = design(scene, table)
     if d is None:
         raise SceneError(f"{scene.source_name}: the scene has no [target] to design for")
     write_netcdf(d.to_dataset(carpet), out)
@@ -63,8 +78,8 @@ def _cmd_design(a) -> int:
     return 0
 
 
-def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool) -> dict:
-    """One batch task (runs in a worker): never raises, returns a record."""
+def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool, max_seconds: float = 86400.0) -> dict:
+    """One batch task (runs in a worker): never raises (but Ctrl-C), returns a record."""
     clock = _time.perf_counter()
     rec = {"scene": scene_path}
     try:
@@ -75,89 +90,197 @@ def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool) 
         if is_complete(out, [scene_path, table]) and not overwrite:
             rec.update(status="skipped", message="complete and up to date")
         else:
-            render(scene, out, overwrite=overwrite or (out.exists() and not is_complete(out)))
+            # a render interrupted while replacing a folder leaves its manifest without summary.json:
+            # finish it (only the files it wrote are replaced)
+            resume = out.is_dir() and owned_files(out) is not None and not (out / SUMMARY).is_file()
+            render(scene, out, overwrite=overwrite or resume, max_seconds=max_seconds)
             rec.update(status="done", message="rendered")
     except Exception as exc:  # noqa: BLE001 -- one failing scene must not stop the others
-        rec.update(status="failed", message=f"{type(exc).__name__}: {exc}")
+        rec.update(status="failed", message=_one_line(exc, scene_path))
     rec["seconds"] = _time.perf_counter() - clock
     return rec
 
 
+def _one_line(exc: BaseException, src: str | None = None) -> str:
+    """The message of ``exc`` on one line, naming ``src`` if it does not already."""
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, MemoryError):
+        msg = f"out of memory ({msg}): make the scene smaller"
+    elif isinstance(exc, OSError) and exc.filename is not None and str(exc.filename) not in msg:
+        msg = f"{exc.filename}: {exc.strerror or msg}"
+    elif not isinstance(exc, BAD_INPUT + CANNOT_MAKE):
+        msg = f"{type(exc).__name__}: {msg}"
+    if src is not None and str(src) not in msg:
+        msg = f"{src}: {msg}"
+    return msg
+
+
+def _check_names(scenes, reduced: bool) -> None:
+    """Refuse, before any work, a batch in which two scenes have the same output folder."""
+    seen: dict = {}
+    for p in scenes:
+        try:
+            name = _scene(str(p), reduced).name
+        except SceneError:
+            continue  # reported by its own task
+        if name in seen:
+            raise SceneError(f"{seen[name]} and {p} both render into the folder '{name}' (scene name); "
+                             f"give one of them another name = \"...\" (nothing was rendered)")
+        seen[name] = p
+
+
+def _died(scene_path: str, exc: BaseException) -> dict:
+    return {"scene": scene_path, "status": "failed", "seconds": 0.0,
+            "message": f"{scene_path}: the worker process rendering it died ({type(exc).__name__}: killed, or out "
+                       f"of memory); its output folder was left unchanged"}
+
+
+def _run_local(tasks, jobs: int, on_done) -> None:
+    """Each task in a fresh one-worker process pool, ``jobs`` at a time: a worker that dies
+    (killed, out of memory) fails only its own scene."""
+    pending = list(tasks)
+    running: dict = {}
+    try:
+        while pending or running:
+            while pending and len(running) < jobs:
+                t = pending.pop(0)
+                pool = ProcessPoolExecutor(max_workers=1)
+                running[pool.submit(_render_one, *t)] = (pool, t)
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for f in done:
+                pool, t = running.pop(f)
+                try:
+                    rec = f.result()
+                except BrokenProcessPool as exc:
+                    rec = _died(t[0], exc)
+                pool.shutdown(wait=True)
+                on_done(rec)
+    finally:
+        for pool, _ in running.values():
+            pool.shutdown(wait=False, cancel_futures=True)
+
+
 def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None, jobs: int = 2,
-          overwrite: bool = False, reduced: bool = False, progress: bool = True) -> list[dict]:
-    """Render many scene files into ``out_root/NAME`` on ``executor`` (default: a local process
-    pool of ``jobs`` workers; with ``scheduler``: a Dask distributed cluster, through
-    ``Client(scheduler).get_executor()``, the same code path). Resumable: a scene whose folder
-    holds a complete render newer than the scene and its table is skipped; an incomplete one
-    (an interrupted render leaves only a hidden staging folder) is rendered again; one with
-    older results is kept unless ``overwrite``, and reported as failed. Returns one record per
-    scene (status done / skipped / failed, message, seconds)."""
+          overwrite: bool = False, reduced: bool = False, progress: bool = True,
+          max_seconds: float = 86400.0) -> list[dict]:
+    """Render many scene files into ``out_root/NAME``.
+
+    Default: each scene in a fresh worker process, ``jobs`` at a time, so that a worker that
+    dies (killed, out of memory) fails only its own scene; with ``scheduler``: a Dask
+    distributed cluster, through ``Client(scheduler).get_executor()``; or any ``executor``.
+    Two scenes with the same name (output folder) are a SceneError before anything runs.
+    Resumable: a scene whose folder holds a complete render newer than the scene and its table
+    is skipped; one interrupted while replacing an older render is rendered again; one with
+    older results is kept unless ``overwrite``, and reported as failed; a folder holding files
+    ciliary-carpet did not write is never changed (:func:`~ciliary_carpet.render.render`).
+    Returns one record per scene (status done / skipped / failed, message with the reason,
+    seconds)."""
     from tqdm.auto import tqdm
 
-    own = client = None
-    if executor is None:
-        if scheduler is not None:
-            from distributed import Client
+    scenes = [str(s) for s in scenes]
+    _check_names(scenes, reduced)
+    tasks = [(s, str(out_root), overwrite, reduced, max_seconds) for s in scenes]
+    recs: list = []
+    bar = tqdm(total=len(tasks), desc="scenes", disable=not progress)
 
-            client = Client(scheduler)
-            executor = client.get_executor()
-        else:
-            executor = own = ProcessPoolExecutor(max_workers=max(1, int(jobs)))
-    recs = []
+    def on_done(rec):
+        recs.append(rec)
+        bar.update(1)
+
+    client = None
     try:
-        futs = [executor.submit(_render_one, str(s), str(out_root), overwrite, reduced) for s in scenes]
-        for f in tqdm(as_completed(futs), total=len(futs), desc="scenes", disable=not progress):
-            recs.append(f.result())
+        if executor is None and scheduler is None:
+            _run_local(tasks, max(1, int(jobs)), on_done)
+        else:
+            if executor is None:
+                from distributed import Client
+
+                client = Client(scheduler)
+                executor = client.get_executor()
+            futs = {executor.submit(_render_one, *t): t for t in tasks}
+            for f in futs:
+                try:
+                    on_done(f.result())
+                except Exception as exc:  # noqa: BLE001 -- a dead worker (BrokenProcessPool, KilledWorker)
+                    on_done(_died(futs[f][0], exc))
     finally:
-        if own is not None:
-            own.shutdown()
+        bar.close()
         if client is not None:
             client.close()
-    order = {str(s): k for k, s in enumerate(scenes)}
+    order = {s: k for k, s in enumerate(scenes)}
     return sorted(recs, key=lambda r: order[r["scene"]])
 
 
 def _cmd_batch(a) -> int:
-    recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, overwrite=a.overwrite, reduced=a.reduced)
-    for r in recs:
-        print(f"{r['status']:8s} {r['scene']}  ({r['seconds']:.1f} s)  {r['message']}")
+    recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, overwrite=a.overwrite, reduced=a.reduced,
+                 max_seconds=a.max_hours * 3600)
     n = {k: sum(r["status"] == k for r in recs) for k in ("done", "skipped", "failed")}
-    print(f"{n['done']} rendered, {n['skipped']} up to date, {n['failed']} failed")
+    if a.json:
+        print(strict_json({"scenes": recs, "done": n["done"], "skipped": n["skipped"], "failed": n["failed"]}))
+    else:
+        for r in recs:
+            print(f"{r['status']:8s} {r['scene']}  ({r['seconds']:.1f} s)  {r['message']}")
+        print(f"{n['done']} rendered, {n['skipped']} up to date, {n['failed']} failed")
     return 1 if n["failed"] else 0
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="ciliary-carpet", description=__doc__.split("\n\n")[0])
     ap.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
+    ap.add_argument("--debug", action="store_true", help="show the traceback of a failure")
+    ap.add_argument("--allow-outside-paths", action="store_true",
+                    help="let scene files name table/target files outside their own folder (trusted scenes only)")
+    ap.add_argument("--max-hours", type=float, default=24.0,
+                    help="refuse scenes estimated to need longer than this (default 24)")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("render", help="design (if the scene has a target), run the flow, write VTK/PNG/summary")
     r.add_argument("scene")
     r.add_argument("-o", "--output", required=True, help="output folder")
-    r.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    r.add_argument("--overwrite", action="store_true",
+                   help="replace the files an earlier render wrote there (never other files)")
     r.add_argument("--reduced", action="store_true", help="a small version of the scene (quick look)")
-    r.add_argument("--json", action="store_true", help="print a JSON summary")
+    r.add_argument("--json", action="store_true", help="print a JSON summary (strict JSON)")
     d = sub.add_parser("design", help="write only the designed layout (NetCDF)")
     d.add_argument("scene")
     d.add_argument("-o", "--output", required=True, help="layout file (.nc)")
     d.add_argument("--overwrite", action="store_true")
     d.add_argument("--reduced", action="store_true")
-    b = sub.add_parser("batch", help="render many scenes (process pool or Dask cluster), resumable")
+    b = sub.add_parser("batch", help="render many scenes (a process per scene, or a Dask cluster), resumable")
     b.add_argument("scenes", nargs="+")
     b.add_argument("-o", "--output", required=True, help="output root; each scene goes to OUTPUT/NAME")
     b.add_argument("-j", "--jobs", type=int, default=2, help="local worker processes (default 2)")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:port)")
     b.add_argument("--overwrite", action="store_true")
     b.add_argument("--reduced", action="store_true")
+    b.add_argument("--json", action="store_true", help="print the records as strict JSON")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if a.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if not (a.max_hours > 0):
+        ap.error(f"--max-hours must be > 0, got {a.max_hours}")
+    if a.allow_outside_paths:
+        os.environ[ALLOW_ENV] = "1"  # inherited by batch workers
+    src = getattr(a, "scene", None)
     try:
         return {"render": _cmd_render, "design": _cmd_design, "batch": _cmd_batch}[a.cmd](a)
-    except DesignError as exc:
-        print(f"ciliary-carpet: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print("ciliary-carpet: interrupted; nothing half-written was left in the output folder", file=sys.stderr)
+        return 130
+    except CANNOT_MAKE as exc:
+        if a.debug:
+            raise
+        print(f"ciliary-carpet: {_one_line(exc, src)}", file=sys.stderr)
         return 3
     except BAD_INPUT as exc:
-        print(f"ciliary-carpet: {exc}", file=sys.stderr)
+        if a.debug:
+            raise
+        print(f"ciliary-carpet: {_one_line(exc, src)}", file=sys.stderr)
         return 2
+    except Exception as exc:  # noqa: BLE001 -- a bug: one line, the traceback with --debug
+        if a.debug:
+            raise
+        print(f"ciliary-carpet: internal error: {_one_line(exc, src)} (rerun with --debug for the traceback)",
+              file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -56,8 +56,8 @@ from .vtkfiles import grid_points, write_cilia, write_field, write_points, write
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["render", "RenderResult", "RenderError", "ResourceError", "is_complete", "check_resources", "Estimate",
-           "MANIFEST"]
+__all__ = ["render", "RenderResult", "RenderError", "ResourceError", "is_complete", "owned_files", "check_resources",
+           "check_table_range", "Estimate", "MANIFEST"]
 
 SUMMARY = "summary.json"
 MANIFEST = "ciliary-carpet.manifest"
@@ -259,14 +259,16 @@ def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
     evals = p * (int(o.field) + o.snapshots)
     k = float(len(o.seeds) if not isinstance(o.seeds, str) else o.n_seeds) if o.pathlines else 0.0
     steps = float(max(1.0, math.ceil(o.periods))) if o.pathlines else 0.0
-    parts = {"carpet (shape / points)": n * _BYTES_PER_CILIUM, "output.field_shape": p * _BYTES_PER_POINT,
-             "output.n_seeds x output.periods": k * (steps + 1.0) * _BYTES_PER_TRACER_STEP}
+    parts = {"carpet.points" if c.lattice == "points" else "carpet.shape": n * _BYTES_PER_CILIUM,
+             "output.field_shape": p * _BYTES_PER_POINT,
+             "output.seeds" if not isinstance(o.seeds, str) else "output.n_seeds":
+                 k * (steps + 1.0) * _BYTES_PER_TRACER_STEP}
     mem = sum(parts.values())
     pairs = 3.0 * n * (evals + 7.0 * k * steps)
     seconds = pairs / _PAIRS_PER_SECOND + steps * _SECONDS_PER_STEP
     avail = _available_memory()
     est = Estimate(mem, pairs, steps, seconds, parts, avail, float(max_seconds))
-    what = (f"{c.n_cilia:g} cilia, {p:g} field points x {int(o.field) + o.snapshots} fields, "
+    what = (f"{c.n_cilia:g} cilia, {p:g} field points x {int(o.field) + o.snapshots} field(s), "
             f"{k:g} tracers x {steps:g} steps")
     if steps > MAX_PATHLINE_STEPS:
         raise ResourceError(f"{src}: output.periods = {o.periods:g} needs at least {steps:g} path-line steps (one "
@@ -283,6 +285,15 @@ def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
                             f"--max-hours)")
     logger.debug("resource estimate for %s: %s", src, est)
     return est
+
+
+def check_table_range(scene: Scene, table) -> None:
+    """SceneError naming ``carpet.chi_N`` when it lies outside ``table``'s range."""
+    lo, hi = table.chi_N_range
+    c = scene.carpet.chi_N
+    if not lo <= abs(c) <= hi:
+        raise SceneError(f"{scene.source_name}: carpet.chi_N = {c:g} is outside the thrust table's range "
+                         f"[{lo:g}, {hi:g}] (by mirror symmetry also negative; the top is the flutter cutoff)")
 
 
 # ------------------------------------------------------------------------------ output folder
@@ -411,6 +422,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     clock = {}
     t0 = _time.perf_counter()
     table = scene.load_table()
+    check_table_range(scene, table)
     d, carpet = design(scene, table)
     clock["design"] = _time.perf_counter() - t0
     o, tol = scene.output, scene.tolerance

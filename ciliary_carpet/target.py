@@ -57,8 +57,8 @@ if TYPE_CHECKING:
 
     from .scene import Scene, TargetSpec
 
-__all__ = ["TargetError", "Target", "Frame", "control_points", "reachable_check", "read_target_points",
-           "DEFAULT_ANGLE_FRACTION", "KINDS"]
+__all__ = ["TargetError", "UnreachableTargetError", "Target", "Frame", "control_points", "reachable_check",
+           "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS"]
 
 KINDS = ("none", "uniform", "focus", "spread", "shear", "turn", "points")
 ANGLE_KINDS = ("uniform", "focus", "spread", "shear", "turn")
@@ -70,6 +70,10 @@ NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".netcdf", ".h5", ".hdf5")
 
 class TargetError(ValueError):
     """A target that cannot be used: unreadable control file, unreachable angles, bad input."""
+
+
+class UnreachableTargetError(TargetError):
+    """Deflections outside the table's reachable range: a target the cilia cannot make."""
 
 
 def _xy(name: str, v, shape=None) -> np.ndarray:
@@ -355,7 +359,7 @@ def reachable_check(angles, angle_range, clip: bool = False, *, what: str = "con
         msg = (f"{idx.size} of {a.size} {what}s ask for a deflection outside the reachable range "
                f"|angle| <= {math.degrees(hi):.2f} deg ({hi:.4f} rad) of this field: {'; '.join(items)}{more}")
         if not clip:
-            raise TargetError(msg + "; lower target.angle or set target.clip = true")
+            raise UnreachableTargetError(msg + "; lower target.angle or set target.clip = true")
         warnings.warn(msg + "; clipped to the reachable range", UserWarning, stacklevel=2)
         a = np.clip(a, -hi, hi)
     return a, bad
