@@ -1,19 +1,21 @@
 """Command line: ``single-cilium <command> ...`` (``single-cilium --help`` lists the commands).
 
-Exit status: 0 on success, 2 for bad input (the message names it), 3 when a solver did not
-converge (the message says the time reached and what to change).
+Exit status: 0 on success; 2 bad input (the message names the option and value; also an output
+file that cannot be written, or not enough memory); 3 a solver that could not continue (the message
+says where and what to change); 1 an internal error (a one-line message; ``--debug`` shows the
+traceback); 130 interrupted (Ctrl-C). ``--json`` output is strict JSON: NaN and infinities are
+written as null and listed, with the reason, under ``"non_finite"``.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import math
 import sys
 
 import numpy as np
 
 from . import __version__
+from ._io import strict_json
 from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
 from .dynamics import simulate
 from .mesh import Mesh
@@ -156,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0])
     ap.add_argument("--version", action="version", version=__version__)
     ap.add_argument("-v", "--verbose", action="store_true", help="log progress information")
+    ap.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     sub = ap.add_subparsers(dest="command", required=True)
 
     pe = sub.add_parser("equilibrium", help="closed-form equilibrium theta(s), shape and theta_lim")
@@ -243,34 +246,66 @@ def _print_table(out: dict) -> None:
                 print(f"{k:>12}: {v}")
 
 
+def _one_line(exc: BaseException) -> str:
+    msg = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, OSError) and exc.filename is not None and str(exc.filename) not in msg:
+        msg = f"{exc.filename}: {exc.strerror or msg}"
+    return msg
+
+
+def _hint(args) -> str:
+    """What to change when the discrete equilibrium (the start of stability, cycle, table,
+    simulate) cannot be computed."""
+    if getattr(args, "chi_E", 1.0) is not None and not isinstance(args.chi_E, np.ndarray) and args.chi_E < 0:
+        return ("; here chi_E < 0: the filament folds over where theta leaves 0, away from the clamp, and the "
+                "clamp-graded mesh does not resolve that fold at any degree; a larger |chi_N| moves the fold "
+                "to the clamp")
+    return "; try a higher --degree" if hasattr(args, "degree") else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    name = f"single-cilium {args.command}"
     try:
         out = args.func(args)
+        text = strict_json(out, indent=1) if getattr(args, "json", False) else None
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted", file=sys.stderr)
+        return 130
     except ConvergenceError as exc:
-        print(f"single-cilium {args.command}: did not converge: {exc}", file=sys.stderr)
+        if args.debug:
+            raise
+        print(f"{name}: did not converge: {_one_line(exc)}", file=sys.stderr)
         return 3
-    except (ValueError, TypeError, OSError) as exc:
-        print(f"single-cilium {args.command}: error: {exc}", file=sys.stderr)
+    except RuntimeError as exc:  # a solver that could not continue (e.g. the discrete equilibrium)
+        if args.debug:
+            raise
+        print(f"{name}: could not compute: {_one_line(exc)}{_hint(args)}", file=sys.stderr)
+        return 3
+    except MemoryError as exc:
+        if args.debug:
+            raise
+        print(f"{name}: error: out of memory ({_one_line(exc)}): ask for a smaller grid or degree", file=sys.stderr)
         return 2
-    if getattr(args, "json", False):
-        print(json.dumps(out, indent=1, default=_json_default, allow_nan=True))
+    except (ValueError, TypeError, OSError) as exc:
+        if args.debug:
+            raise
+        print(f"{name}: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 -- a bug: one line, the traceback with --debug
+        if args.debug:
+            raise
+        print(f"{name}: internal error: {type(exc).__name__}: {_one_line(exc)} (rerun with --debug for the "
+              f"traceback)", file=sys.stderr)
+        return 1
+    if text is not None:
+        print(text)
     else:
         _print_table(out)
     return 0
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, float) and math.isnan(o):
-        return None
-    raise TypeError(type(o).__name__)
 
 
 if __name__ == "__main__":  # pragma: no cover

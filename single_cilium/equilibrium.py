@@ -48,6 +48,7 @@ from single_cilium.params import CiliumParams
 __all__ = ["NoLimitAngleError", "equilibrium", "equilibrium_shape", "limit_angle"]
 
 _SMALL_Z = 1e-8  # below this |z|, log1p(z)/z and atan(z)/z use two-term series
+CHI_MAX = 1e300  # |chi_E|, |chi_N| and s max(|chi_E|, |chi_N|) above this are refused (overflow)
 
 
 class NoLimitAngleError(ValueError):
@@ -88,6 +89,9 @@ def _groups(params: CiliumParams) -> tuple[float, float]:
     chi_E, chi_N = float(params.chi_E), float(params.chi_N)
     if not (math.isfinite(chi_E) and math.isfinite(chi_N)):
         raise ValueError(f"params.chi_E and params.chi_N must be finite, got {chi_E}, {chi_N}")
+    for k, v in (("chi_E", chi_E), ("chi_N", chi_N)):
+        if abs(v) > CHI_MAX:
+            raise ValueError(f"params.{k} = {v:g} is beyond the range of the closed form (|{k}| <= {CHI_MAX:g})")
     return chi_E, chi_N
 
 
@@ -138,15 +142,19 @@ def _canonical(
         return theta, (-sp * s if shape else None), (cp * s if shape else None)
 
     a = chi_E * cp
-    disc = (chi_E - chi_N) * (chi_E + chi_N)  # 4 lambda^2, factored: no cancellation
+    # 4 lambda^2 = (chi_E - chi_N)(chi_E + chi_N), factored (no cancellation); its sign is that of
+    # |chi_E| - |chi_N| exactly, and its square root is taken factor by factor (halved), so that
+    # nothing overflows for |chi| up to the largest double
+    dm, dp = 0.5 * chi_E - 0.5 * chi_N, 0.5 * chi_E + 0.5 * chi_N
+    root = 2.0 * math.sqrt(abs(dm)) * math.sqrt(abs(dp))  # sqrt(|4 lambda^2|)
     x = y = None
-    if disc >= 0.0:
+    if abs(chi_E) >= chi_N:
         # a fixed point exists: |theta - phi| < 2 pi, one atan2 suffices. (chi_E != 0 here:
         # chi_E = 0 would force chi_N = 0 and f = 0.)
-        b = math.sqrt(disc)  # 2 lambda >= 0
+        b = root  # 2 lambda >= 0
         g = chi_N + chi_E * sp
-        # b + a without cancellation (b^2 - a^2 = -f g)
-        bpa = b + a if a >= 0.0 else -(f * g) / (b - a)
+        # b + a without cancellation (b^2 - a^2 = -f g), as -(f / (b - a)) g: no overflow
+        bpa = b + a if a >= 0.0 else -(f / (b - a)) * g
         bs = b * s
         with np.errstate(under="ignore"):
             E = np.exp(-bs)
@@ -162,13 +170,13 @@ def _canonical(
             sn = s[near]
             lam_s = 0.5 * b * sn
             S = sn * _sinhc(lam_s)
-            G = S * S * (chi_E - chi_N * sp) / 2.0 + np.cosh(lam_s) * S * cp
+            G = S * (S * (chi_E - chi_N * sp) / 2.0 + np.cosh(lam_s) * cp)  # S^2 alone may underflow
             y[near] = _log1p_over(chi_E, G)
             far = ~near  # |chi_E| s > 1: ln|v|^2 = b s + 2 ln(|scaled v|), error ~ eps s
             y[far] = (bs[far] + 2.0 * np.log(0.5 * np.hypot(cross[far], dot[far]))) / chi_E
     else:
         # coiled: |chi_E| < chi_N, f > 0, theta increases by 2 pi per period 2 pi / w
-        w = math.sqrt((chi_N - chi_E) * (chi_N + chi_E))
+        w = root
         psi = 0.5 * w * s  # rotation phase of v; theta - phi advances by 2 pi per pi of psi
         k, r = np.divmod(psi, math.pi)
         sr, cr = np.sin(r), np.cos(r)  # sr >= 0 on [0, pi]
@@ -185,7 +193,7 @@ def _canonical(
             M = q * (sr * (c - sp) + cr * cp)
             x = 2.0 * _atan2_over(chi_E, N, 1.0 + chi_E * M) - c * s
             S = 2.0 * q
-            G = S * S * (chi_E - chi_N * sp) / 2.0 + cr * S * cp
+            G = S * (S * (chi_E - chi_N * sp) / 2.0 + cr * cp)  # S^2 alone may underflow
             y = _log1p_over(chi_E, G)
     return theta, x, y
 
@@ -197,6 +205,10 @@ def _solve(
     s_arr = _check_s(s)
     phi = _check_phi(phi)
     flat = s_arr.reshape(-1)
+    top = float(flat.max()) * max(abs(chi_E), abs(chi_N)) if flat.size else 0.0
+    if top > CHI_MAX:
+        raise ValueError(f"s up to {float(flat.max()):g} with max(|chi_E|, |chi_N|) = {max(abs(chi_E), abs(chi_N)):g}: "
+                         f"s |chi| = {top:g} is beyond the range of the closed form (<= {CHI_MAX:g})")
     # mirror to chi_N >= 0 (and phi >= 0 when chi_N = 0): theta -> -theta, x -> -x, y -> y
     sign = -1.0 if (chi_N < 0.0 or (chi_N == 0.0 and phi < 0.0)) else 1.0
     theta, x, y = _canonical(chi_E, abs(chi_N), sign * phi, flat, shape)
