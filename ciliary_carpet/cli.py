@@ -135,16 +135,29 @@ def _died(scene_path: str, exc: BaseException) -> dict:
                        f"of memory); its output folder was left unchanged"}
 
 
+def _worker_context():
+    """Workers start from a fork server (spawn where there is none), never by forking this
+    process: a process that has run the OpenMP-parallel kernels cannot fork safely."""
+    import multiprocessing as mp
+
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(["ciliary_carpet.cli"])  # imported once, in the server
+        return ctx
+    return mp.get_context("spawn")
+
+
 def _run_local(tasks, jobs: int, on_done) -> None:
     """Each task in a fresh one-worker process pool, ``jobs`` at a time: a worker that dies
     (killed, out of memory) fails only its own scene."""
+    ctx = _worker_context()
     pending = list(tasks)
     running: dict = {}
     try:
         while pending or running:
             while pending and len(running) < jobs:
                 t = pending.pop(0)
-                pool = ProcessPoolExecutor(max_workers=1)
+                pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
                 running[pool.submit(_render_one, *t)] = (pool, t)
             done, _ = wait(running, return_when=FIRST_COMPLETED)
             for f in done:

@@ -48,6 +48,7 @@ from single_cilium.params import CiliumParams
 __all__ = ["NoLimitAngleError", "equilibrium", "equilibrium_shape", "limit_angle"]
 
 _SMALL_Z = 1e-8  # below this |z|, log1p(z)/z and atan(z)/z use two-term series
+_TINY = 1e-280  # |v| components below this are rescaled before atan2 / log (underflow)
 CHI_MAX = 1e300  # |chi_E|, |chi_N| and s max(|chi_E|, |chi_N|) above this are refused (overflow)
 
 
@@ -153,8 +154,9 @@ def _canonical(
         # chi_E = 0 would force chi_N = 0 and f = 0.)
         b = root  # 2 lambda >= 0
         g = chi_N + chi_E * sp
-        # b + a without cancellation (b^2 - a^2 = -f g), as -(f / (b - a)) g: no overflow
-        bpa = b + a if a >= 0.0 else -(f / (b - a)) * g
+        # b + a without cancellation (b^2 - a^2 = -f g); f g may overflow for |chi| > 1e154
+        fg = f * g
+        bpa = b + a if a >= 0.0 else (-fg / (b - a) if math.isfinite(fg) else -(f / (b - a)) * g)
         bs = b * s
         with np.errstate(under="ignore"):
             E = np.exp(-bs)
@@ -162,6 +164,10 @@ def _canonical(
         cross = T * f
         dot = 2.0 * E + T * bpa  # = 1 + E + T a; < 0 only once |theta - phi| has passed pi
         h = np.arctan2(cross, dot)  # half of theta - phi, in (-pi, pi)
+        # both underflow (|f| and b + a near the smallest doubles): the same in units of T > 0
+        lo = (np.abs(cross) < _TINY) & (np.abs(dot) < _TINY) & (T > 0.0)
+        q = 2.0 * E[lo] / T[lo] + bpa
+        h[lo] = np.arctan2(f, q)
         theta = phi + 2.0 * h
         if shape:
             x = (2.0 * h - chi_N * s) / chi_E
@@ -173,7 +179,10 @@ def _canonical(
             G = S * (S * (chi_E - chi_N * sp) / 2.0 + np.cosh(lam_s) * cp)  # S^2 alone may underflow
             y[near] = _log1p_over(chi_E, G)
             far = ~near  # |chi_E| s > 1: ln|v|^2 = b s + 2 ln(|scaled v|), error ~ eps s
-            y[far] = (bs[far] + 2.0 * np.log(0.5 * np.hypot(cross[far], dot[far]))) / chi_E
+            with np.errstate(divide="ignore"):  # log(0) where lo: replaced on the next line
+                lv = np.log(0.5 * np.hypot(cross, dot), where=far, out=np.zeros_like(s))
+            lv[lo] = np.log(T[lo]) + np.log(0.5 * np.hypot(f, q))
+            y[far] = (bs[far] + 2.0 * lv[far]) / chi_E
     else:
         # coiled: |chi_E| < chi_N, f > 0, theta increases by 2 pi per period 2 pi / w
         w = root
