@@ -17,10 +17,10 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 import time as _time
-from concurrent.futures import FIRST_COMPLETED, Executor, ProcessPoolExecutor, wait
-from concurrent.futures.process import BrokenProcessPool
+from concurrent.futures import Executor
 from pathlib import Path
 
 from single_cilium._io import strict_json, write_netcdf
@@ -129,10 +129,20 @@ def _check_names(scenes, reduced: bool) -> None:
         seen[name] = p
 
 
-def _died(scene_path: str, exc: BaseException) -> dict:
+def _died(scene_path: str, why: str) -> dict:
     return {"scene": scene_path, "status": "failed", "seconds": 0.0,
-            "message": f"{scene_path}: the worker process rendering it died ({type(exc).__name__}: killed, or out "
-                       f"of memory); its output folder was left unchanged"}
+            "message": f"{scene_path}: the worker process rendering it died ({why}); its output folder was left "
+                       f"unchanged"}
+
+
+def _exit_reason(code: int | None) -> str:
+    if code is not None and code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        return f"killed by {name}" + (", e.g. out of memory" if -code == signal.SIGKILL else "")
+    return f"exit status {code}"
 
 
 def _worker_context():
@@ -142,35 +152,60 @@ def _worker_context():
 
     if "forkserver" in mp.get_all_start_methods():
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(["ciliary_carpet.cli"])  # imported once, in the server
+        ctx.set_forkserver_preload(["ciliary_carpet.render"])  # imported once, in the server
         return ctx
     return mp.get_context("spawn")
 
 
-def _run_local(tasks, jobs: int, on_done) -> None:
-    """Each task in a fresh one-worker process pool, ``jobs`` at a time: a worker that dies
-    (killed, out of memory) fails only its own scene."""
+def _worker(func, task, conn) -> None:
+    """A batch worker process: one task, its record sent back on ``conn``."""
+    try:
+        conn.send(func(*task))
+    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the parent reports it
+        pass
+    finally:
+        conn.close()
+
+
+def _run_local(tasks, jobs: int, on_done, grace: float = 2.0) -> None:
+    """Each task in a fresh worker process, ``jobs`` at a time: a worker that dies (killed, out
+    of memory) fails only its own scene, with its exit signal in the record. On Ctrl-C the
+    running workers are interrupted (SIGINT, so that each removes its staging folder), then
+    killed after a grace period."""
+    from multiprocessing.connection import wait as wait_any
+
     ctx = _worker_context()
     pending = list(tasks)
-    running: dict = {}
+    running: dict = {}  # process -> (task, receiving end)
     try:
         while pending or running:
             while pending and len(running) < jobs:
                 t = pending.pop(0)
-                pool = ProcessPoolExecutor(max_workers=1, mp_context=ctx)
-                running[pool.submit(_render_one, *t)] = (pool, t)
-            done, _ = wait(running, return_when=FIRST_COMPLETED)
-            for f in done:
-                pool, t = running.pop(f)
+                recv, send = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_worker, args=(_render_one, t, send))
+                proc.start()
+                send.close()
+                running[proc] = (t, recv)
+            by_sentinel = {p.sentinel: p for p in running}
+            for sentinel in wait_any(list(by_sentinel)):
+                proc = by_sentinel[sentinel]
+                t, recv = running.pop(proc)
                 try:
-                    rec = f.result()
-                except BrokenProcessPool as exc:
-                    rec = _died(t[0], exc)
-                pool.shutdown(wait=True)
-                on_done(rec)
+                    rec = recv.recv() if recv.poll() else None
+                except EOFError:  # died before sending
+                    rec = None
+                proc.join()
+                recv.close()
+                on_done(rec if rec is not None else _died(t[0], _exit_reason(proc.exitcode)))
     finally:
-        for pool, _ in running.values():
-            pool.shutdown(wait=False, cancel_futures=True)
+        for proc in running:
+            proc.join(grace)  # Ctrl-C in a terminal has reached them too
+            if proc.is_alive():
+                os.kill(proc.pid, signal.SIGINT)
+                proc.join(10 * grace)
+            if proc.is_alive():
+                proc.kill()
+                proc.join()
 
 
 def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None, jobs: int = 2,
@@ -215,7 +250,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
                 try:
                     on_done(f.result())
                 except Exception as exc:  # noqa: BLE001 -- a dead worker (BrokenProcessPool, KilledWorker)
-                    on_done(_died(futs[f][0], exc))
+                    on_done(_died(futs[f][0], type(exc).__name__))
     finally:
         bar.close()
         if client is not None:

@@ -103,7 +103,7 @@ def test_3_batch_survives_a_killed_worker(tmp_path, monkeypatch):
     monkeypatch.setattr(carpet_cli, "_render_one", _kill_victim)
     recs = batch([a, victim, c], tmp_path / "out", jobs=2, progress=False)
     assert [r["status"] for r in recs] == ["done", "failed", "done"]
-    assert "died" in recs[1]["message"] and "victim.toml" in recs[1]["message"]
+    assert "died (killed by SIGKILL" in recs[1]["message"] and "victim.toml" in recs[1]["message"]
     assert (tmp_path / "out" / "a" / "summary.json").is_file() and (tmp_path / "out" / "c" / "summary.json").is_file()
     assert not (tmp_path / "out" / "victim").exists()
 
@@ -245,6 +245,27 @@ def test_7_real_sigint_during_render(tmp_path):
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "interrupted" in err
     assert not (tmp_path / "o").exists() and not [x for x in tmp_path.iterdir() if x.name.startswith(".")]
+
+
+def test_7_sigint_to_a_batch_stops_its_workers_cleanly(tmp_path):
+    """SIGINT to the batch process alone (not its group): the workers are interrupted too, their
+    staging folders removed, exit 130 within seconds."""
+    slow = TINY.replace("periods = 0.5", "periods = 300")
+    scenes = [_scene(tmp_path, slow, f"{n}.toml") for n in "ab"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "ciliary_carpet.cli", "batch", *map(str, scenes), "-o",
+                             str(tmp_path / "out"), "-j", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            env=env, text=True)
+    t = time.time()
+    while time.time() - t < 60 and not (tmp_path / "out").is_dir():
+        time.sleep(0.05)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    t = time.time()
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and time.time() - t < 30, err
+    assert "Traceback" not in err and "interrupted" in err
+    assert not any((tmp_path / "out").iterdir())
 
 
 # ------------------------------------------------------------------------------ 8: strict JSON
