@@ -198,14 +198,22 @@ def _run_local(tasks, jobs: int, on_done, grace: float = 2.0) -> None:
                 recv.close()
                 on_done(rec if rec is not None else _died(t[0], _exit_reason(proc.exitcode)))
     finally:
-        for proc in running:
-            proc.join(grace)  # Ctrl-C in a terminal has reached them too
-            if proc.is_alive():
-                os.kill(proc.pid, signal.SIGINT)
-                proc.join(10 * grace)
-            if proc.is_alive():
-                proc.kill()
-                proc.join()
+        _stop(list(running), grace)
+
+
+def _stop(procs, grace: float) -> None:
+    """Let interrupted workers finish (Ctrl-C in a terminal reaches them too), then SIGINT the
+    rest (a render removes its staging folder on KeyboardInterrupt), then SIGKILL."""
+    for sig, wait_s in ((None, grace), (signal.SIGINT, 10 * grace), (signal.SIGKILL, None)):
+        alive = [p for p in procs if p.is_alive()]
+        if not alive:
+            return
+        if sig is not None:
+            for p in alive:
+                os.kill(p.pid, sig)
+        end = _time.monotonic() + (wait_s if wait_s is not None else 1e9)
+        for p in alive:
+            p.join(max(0.0, end - _time.monotonic()) if wait_s is not None else None)
 
 
 def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None, jobs: int = 2,
