@@ -215,6 +215,16 @@ def test_7_folding_equilibrium_is_a_clear_exit_3(capsys, cmd):
     assert "equilibrium" in err and "chi_E < 0" in err and len(err.strip().splitlines()) == 1
 
 
+def test_7_debug_flag_shows_the_traceback(tmp_path, capsys):
+    p = _scene(tmp_path, TINY + "bogus = 1\n")
+    code, _, err = _carpet(capsys, "render", p, "-o", tmp_path / "o")
+    assert code == 2 and "bogus" in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(SceneError, match="bogus"):
+        carpet_main(["--debug", "render", str(p), "-o", str(tmp_path / "o")])
+    with pytest.raises(ValueError, match="eta"):
+        cilium_main(["--debug", "simulate", "--chi-E", "200", "--eta", "-1", "--t-end", "1"])
+
+
 def test_7_ctrl_c_exits_130_in_both_clis(tmp_path, capsys, monkeypatch):
     import single_cilium.cli as cil
 
