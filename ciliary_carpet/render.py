@@ -32,6 +32,7 @@ duration) are counted in periods of the straight filament, T0 = T(chi_N = 0).
 """
 from __future__ import annotations
 
+import inspect
 import json
 import logging
 import math
@@ -51,6 +52,7 @@ from single_cilium.progress import Progress
 
 from .carpet import Carpet
 from .design import design
+from .pathlines import pathlines
 from .scene import Scene, SceneError
 from .vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
 
@@ -159,12 +161,15 @@ def _blank_inside(carpet: Carpet, pts: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ resources
-_BYTES_PER_CILIUM = 2048   # lower bound: measured 0.57 MB per cilium (2026-11, 2 cores), cycle tables
-_BYTES_PER_POINT = 64      # lower bound: position, velocity, error bound and speed of a field point
+# Lower bounds, far below what was measured (tracemalloc peak of a render: 0.57 MB per cilium;
+# path lines: 6 ms per step for 3 tracers over 4 cilia; Stokeslet kernel: 1.5e9 pairs/s on 2
+# cores), so that a scene is refused only when it certainly cannot run.
+_BYTES_PER_CILIUM = 2048
+_BYTES_PER_POINT = 64      # position, velocity, error bound and speed of a field point
 _BYTES_PER_TRACER_STEP = 56  # position, velocity, time of a path-line point
-_PAIRS_PER_SECOND = 3e9    # above the measured Stokeslet kernel rate (1.5e9 pairs/s, 2 cores)
-_SECONDS_PER_STEP = 1e-4   # below the measured overhead of one path-line step
-MAX_PATHLINE_STEPS = 100_000  # the integrator's default max_steps
+_PAIRS_PER_SECOND = 3e9
+_SECONDS_PER_STEP = 1e-4
+MAX_PATHLINE_STEPS = inspect.signature(pathlines).parameters["max_steps"].default  # what render uses
 MAX_COORDINATE = 1e9       # |coordinates| in L beyond which a scene is taken for a typo
 SCALE_RANGE = (1e-100, 1e100)  # SI scales of [units] that keep every output finite
 
