@@ -115,12 +115,12 @@ def _one_line(exc: BaseException, src: str | None = None) -> str:
     return msg
 
 
-def _check_names(scenes, reduced: bool) -> None:
+def _check_names(scenes) -> None:
     """Refuse, before any work, a batch in which two scenes have the same output folder."""
     seen: dict = {}
     for p in scenes:
         try:
-            name = _scene(str(p), reduced).name
+            name = _scene(str(p), reduced=False).name  # the name does not depend on --reduced
         except SceneError:
             continue  # reported by its own task
         if name in seen:
@@ -234,7 +234,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     from tqdm.auto import tqdm
 
     scenes = [str(s) for s in scenes]
-    _check_names(scenes, reduced)
+    _check_names(scenes)
     tasks = [(s, str(out_root), overwrite, reduced, max_seconds) for s in scenes]
     recs: list = []
     bar = tqdm(total=len(tasks), desc="scenes", disable=not progress)
