@@ -17,6 +17,19 @@ __all__ = ["stage_residual", "radau_steps"]
 
 _S6 = math.sqrt(6.0)
 C_NODES = np.array([(4 - _S6) / 10, (4 + _S6) / 10, 1.0])
+# eigen-decomposition of the Radau IIA(5) A^-1 (as in scipy's Radau / RADAU5)
+MU_REAL = 3 + 3 ** (2 / 3) - 3 ** (1 / 3)
+MU_COMPLEX = 3 + 0.5 * (3 ** (1 / 3) - 3 ** (2 / 3)) - 0.5j * (3 ** (5 / 6) + 3 ** (7 / 6))
+T_MAT = np.array([
+    [0.09443876248897524, -0.14125529502095421, 0.03002919410514742],
+    [0.25021312296533332, 0.20412935229379994, -0.38294211275726192],
+    [1.0, 1.0, 0.0]])
+_TI = np.array([
+    [4.17871859155190428, 0.32768282076106237, 0.52337644549944951],
+    [-4.17871859155190428, -0.32768282076106237, 0.47662355450055044],
+    [0.50287263494578682, -2.57192694985560522, 0.59603920482822492]])
+TI_REAL = _TI[0].copy()
+TI_COMPLEX = _TI[1] + 1j * _TI[2]
 
 
 @njit(cache=True)
@@ -250,29 +263,80 @@ def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi
                     for a_ in range(m):
                         Zt[i, a_] += coef * (Zprev[0, a_] * P[0, r] + Zprev[1, a_] * P[1, r]
                                              + Zprev[2, a_] * P[2, r])
+        Z_pred = Zt.copy()
         ok = False
+        # simplified Newton: the stage Jacobian frozen at the step start (theta0, with the rate
+        # of the previous step end), block-diagonalised by the eigenvectors of A^-1 (one real and
+        # one complex (n-1)-square system, as in RADAU5)
+        D0 = np.empty((m, m))
+        v0 = np.zeros(n)
+        if k > 0:
+            v0[1:] = Yd[k, :m]
+        _, D0, Jd0 = _stage_terms(th0, v0, I, w, eta)
+        c0 = np.cos(th0[1:])
+        sr = MU_REAL / h
+        sc = MU_COMPLEX / h
+        Ar = np.empty((m, m))
+        Ac = np.empty((m, m), dtype=np.complex128)
+        for a_ in range(m):
+            for b_ in range(m):
+                base = Kr[a_, b_] + Jd0[a_, b_]
+                bc = chi_E * Bf[a_, b_] * c0[b_]
+                Ar[a_, b_] = bc / (1.0 + sr) + base + sr * D0[a_, b_]
+                Ac[a_, b_] = bc / (1.0 + sc) + base + sc * D0[a_, b_]
+        counts[1] += 2
         last = 1e300
         for it in range(max_newton):
-            R, J, Ds, Jds, Vs, Th, sinT, cosT = _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat,
-                                                                 eta, chi_E, chi_N, True)
+            R = _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N, False)[0]
             counts[0] += 1
-            counts[1] += 1
             if not np.all(np.isfinite(R)):
                 break
-            dz = np.linalg.solve(J, -R)
-            size = np.max(np.abs(dz))
+            Gr = np.zeros(m)
+            Gc = np.zeros(m, dtype=np.complex128)
+            for i in range(3):
+                Gr += TI_REAL[i] * R[i * m:(i + 1) * m]
+                Gc += TI_COMPLEX[i] * R[i * m:(i + 1) * m]
+            wr = np.linalg.solve(Ar, Gr)
+            wc = np.linalg.solve(Ac, Gc)
+            size = 0.0
             for i in range(3):
                 for a_ in range(m):
-                    Zt[i, a_] += dz[i * m + a_]
-            # converged: below tol, stalled at round-off, or the quadratic rate predicts the
-            # next increment (size^3 / last^2) below tol
-            if size <= tol or (size < 1e3 * tol and size > 0.5 * last) or (
-                    it >= 1 and size < 0.1 * last and size * size * size < tol * last * last):
+                    dz = T_MAT[i, 0] * wr[a_] + T_MAT[i, 1] * wc[a_].real + T_MAT[i, 2] * wc[a_].imag
+                    Zt[i, a_] += dz
+                    size = max(size, abs(dz))
+            if not np.isfinite(size):
+                break
+            rate = size / last
+            if size <= tol or (it >= 1 and rate < 1.0 and rate / (1.0 - rate) * size < tol) or (
+                    size < 1e3 * tol and rate > 0.5):
                 ok = True
                 break
-            if not np.isfinite(size) or (it >= 2 and size > last):
+            if it >= 1 and rate >= 0.9:
                 break
             last = size
+        if not ok:
+            # full Newton (the exact stage Jacobian at every iterate), from the predictor
+            Zt[:] = Z_pred
+            last = 1e300
+            for it in range(max_newton):
+                R, J, Ds, Jds, Vs, Th, sinT, cosT = _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat,
+                                                                     eta, chi_E, chi_N, True)
+                counts[0] += 1
+                counts[1] += 1
+                if not np.all(np.isfinite(R)):
+                    break
+                dz = np.linalg.solve(J, -R)
+                size = np.max(np.abs(dz))
+                for i in range(3):
+                    for a_ in range(m):
+                        Zt[i, a_] += dz[i * m + a_]
+                if size <= tol or (size < 1e3 * tol and size > 0.5 * last) or (
+                        it >= 1 and size < 0.1 * last and size * size * size < tol * last * last):
+                    ok = True
+                    break
+                if not np.isfinite(size) or (it >= 2 and size > last):
+                    break
+                last = size
         if not ok:
             counts[2] = k
             return Y, Yd, S, Sh, counts

@@ -56,6 +56,9 @@ __all__ = ["limit_cycle", "LimitCycle", "CycleError", "METHODS"]
 
 N_PHASE_START = 32
 N_PHASE_MAX = 1024
+#: the change under halving the steps, divided by this, estimates the time error: Radau IIA is of
+#: order 5 at the step ends; 2^4 - 1 assumes order 4 at least (the refinement test checks it)
+_RICHARDSON = 15.0
 
 
 class CycleError(ConvergenceError):
@@ -300,9 +303,12 @@ def _transfer(seed: "LimitCycle", fil: Filament) -> np.ndarray:
     return fil.join(th + dth, ka + dka)
 
 
-def _add_work(total: dict, solver: OrbitSolver) -> None:
-    for k, v in solver.work.items():
-        total[k] = total.get(k, 0) + v
+def _total_work(solvers: list[OrbitSolver]) -> dict:
+    total: dict = {}
+    for solver in solvers:
+        for k, v in solver.work.items():
+            total[k] = total.get(k, 0) + v
+    return total
 
 
 # ------------------------------------------------------------------------------ front door
@@ -362,8 +368,13 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         theta_lim = limit_angle(params)
     except NoLimitAngleError:
         theta_lim = math.nan
-    Method = METHODS[method]
-    work: dict = {}
+    used: list[OrbitSolver] = []
+
+    def Method(f: Filament, n_steps: int) -> OrbitSolver:
+        solver = METHODS[method](f, n_steps)
+        used.append(solver)
+        return solver
+
     with single_threaded_blas():
         st = stability(params, mesh=mesh, n_modes=2, check=False)
         if st.regime != "flutter":
@@ -380,43 +391,48 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
                 orbit = _first_orbit(solver, fil, st, seed, tol, params)
                 break
             except OrbitError as exc:
-                _add_work(work, solver)
                 if not (adaptive and exc.step_failed and 2 * n <= N_PHASE_MAX):
                     hint = (f"raise n_phase (e.g. to {2 * n})" if exc.step_failed and not adaptive
                             else "give a seed from a neighbouring chi_N or raise the degree")
                     raise CycleError(f"{params}: {exc} (n_phase={n}); {hint}", exc.t) from None
                 logger.info("limit_cycle %s: %s at n_phase=%d; doubling", params, exc, n)
                 n *= 2
-        _add_work(work, solver)
         errors: dict = {}
-        # the phase resolution: re-converge at 2n from (y0, T) until the change is below rtol
-        coarse = None
-        if adaptive:
-            q = _quantities(orbit.period, _thrust(fil, orbit))
-            while True:
-                if 2 * n > N_PHASE_MAX:
-                    break
-                finer = Method(fil, 2 * n)
-                try:
-                    orb2 = finer.converge(orbit.state0, orbit.period, float(orbit.state0[fil.n - 2]), tol)
-                except OrbitError as exc:
-                    _add_work(work, finer)
-                    logger.info("limit_cycle %s: refinement to n_phase=%d failed (%s)", params, 2 * n, exc)
-                    n, solver, orbit, coarse = 2 * n, finer, None, None
-                    orbit = _first_orbit(solver, fil, st, seed, tol, params)
-                    _add_work(work, solver)
-                    q = _quantities(orbit.period, _thrust(fil, orbit))
-                    continue
-                _add_work(work, finer)
-                q2 = _quantities(orb2.period, _thrust(fil, orb2))
-                coarse, q = _differences(q2, q), q2
-                n, solver, orbit = 2 * n, finer, orb2
-                if max(coarse.values()) <= rtol:
-                    break
-            # the finer orbit's start is on the coarse one's phase-0 section: move it to its own
-            y0 = _rephase(solver, orbit)
-            orbit = solver.converge(y0, orbit.period, float(y0[fil.n - 2]), tol)
-            work["period_maps"] += 1
+        c = float(orbit.state0[fil.n - 2])
+        q = _quantities(orbit.period, _thrust(fil, orbit))
+        time_err = None
+        # the phase resolution: re-converge at 2n from (y0, T) until the time estimate is below rtol / 2
+        while adaptive and 2 * n <= N_PHASE_MAX:
+            finer = Method(fil, 2 * n)
+            try:
+                orb2 = finer.converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
+            except OrbitError as exc:
+                if not exc.step_failed:
+                    raise CycleError(f"{params}: {exc} (refining to n_phase={2 * n})", exc.t) from None
+                logger.info("limit_cycle %s: refinement to n_phase=%d failed (%s)", params, 2 * n, exc)
+                n, solver, time_err = 2 * n, finer, None
+                orbit = _first_orbit(solver, fil, st, seed, tol, params)
+                c = float(orbit.state0[fil.n - 2])
+                q = _quantities(orbit.period, _thrust(fil, orbit))
+                continue
+            q2 = _quantities(orb2.period, _thrust(fil, orb2))
+            time_err = {k: v / _RICHARDSON for k, v in _differences(q2, q).items()}
+            n, solver, orbit, q = 2 * n, finer, orb2, q2
+            if max(time_err.values()) <= 0.5 * rtol:
+                break
+        if time_err is None and error_estimate:
+            half = Method(fil, n // 2)
+            o = half.converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
+            time_err = {k: v / _RICHARDSON for k, v in
+                        _differences(q, _quantities(o.period, _thrust(fil, o))).items()}
+        # start at phase 0 (the same discrete orbit, sampled from there; re-converged only if
+        # the shifted start does not close to the Newton tolerance)
+        y0 = _rephase(solver, orbit)
+        shifted = solver.at_phase(y0, orbit.period)
+        if shifted.residual <= 10 * tol:
+            orbit = shifted
+        else:
+            orbit = solver.converge(y0, orbit.period, float(y0[fil.n - 2]), tol, jacobian=shifted)
         T = orbit.period
         result = _assemble(params, mesh, fil, orbit)
         base = _quantities(T, result["thrust"])
@@ -424,17 +440,10 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         fl = triv = math.nan
         if floquet:
             mults = solver.multipliers(orbit)
-            _add_work(work, solver) if method == "newton-krylov" else None
             triv = abs(mults[0] - 1.0)
             fl = max(float(np.abs(mults[1])) if mults.size > 1 else 0.0, math.exp(-T))
             mults = mults[:6]
         if error_estimate or adaptive:
-            time_err = coarse
-            if time_err is None and error_estimate:
-                half = Method(fil, n // 2)
-                o = half.converge(orbit.state0, T, float(orbit.state0[fil.n - 2]), tol)
-                _add_work(work, half)
-                time_err = _differences(base, _quantities(o.period, _thrust(fil, o)))
             space_err = None
             if error_estimate:
                 m2 = Mesh(mesh.breaks, mesh.degree - 2)
@@ -443,12 +452,12 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
                 y2 = fil2.join(mesh.interpolate(th, m2.nodes), mesh.interpolate(ka, m2.nodes))
                 coarse_s = Method(fil2, n)
                 o = coarse_s.converge(y2, T, float(y2[fil2.n - 2]), tol)
-                _add_work(work, coarse_s)
                 space_err = _differences(base, _quantities(o.period, _thrust(fil2, o)))
             for k in ("period", "thrust_norm", "thrust_angle"):
                 errors[k] = (time_err[k] if time_err else 0.0) + (space_err[k] if space_err else 0.0)
             errors["time"] = max(time_err.values()) if time_err else math.nan
             errors["space"] = max(space_err.values()) if space_err else math.nan
+    work = _total_work(used)
     chose = f"n_phase={n} (chosen)" if adaptive else f"n_phase={n}"
     msg = f"converged ({method}, {chose}, degree {mesh.degree}): shooting residual {orbit.residual:.1e}"
     status = "success"
@@ -469,17 +478,47 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
 
 
 def _first_orbit(solver: OrbitSolver, fil: Filament, st, seed, tol, params) -> Orbit:
-    """Converge from the seed (or the Hopf mode), then move the start to phase 0 and re-converge."""
+    """Converge from the seed (or the Hopf mode), then move the start to phase 0 and re-converge.
+
+    Without a seed, the Hopf mode is first scaled to the amplitude guess ``0.85 sqrt(alpha)``
+    (max |theta| of the mode; the normal-form scaling, calibrated at chi_E = 200, eta = 1),
+    relaxed for two periods and handed to Newton; if that does not give a genuine cycle (no
+    convergence, or collapse onto the equilibrium), the mode is grown by a transient
+    (:func:`_seed_from_eigenvector`).
+    """
+    T0 = 2 * math.pi / st.beta
     orbit = None
     if seed is not None and seed.flutter and seed.state0 is not None:
         try:
             y, c = _section_through(solver, _transfer(seed, fil), seed.period)
-            orbit = solver.converge(y, seed.period, c, tol)
+            orbit = _genuine(solver, solver.converge(y, seed.period, c, tol), seed.period)
         except ConvergenceError as exc:
             logger.info("limit_cycle %s: seed did not converge (%s); starting from the Hopf mode", params, exc)
+    y_eq = fil.equilibrium_state()
     if orbit is None:
-        T0 = 2 * math.pi / st.beta
-        y, c = _section_through(solver, _seed_from_eigenvector(st, fil.equilibrium_state(), fil, solver, T0), T0)
-        orbit = solver.converge(y, T0, c, tol)
-    y0 = _rephase(solver, orbit)
-    return solver.converge(y0, orbit.period, float(y0[fil.n - 2]), tol)
+        v = np.real(fil.join(st.theta_modes[0], st.kappa_modes[0]))
+        v = v / np.max(np.abs(v[: fil.n - 1]))
+        a = min(1.2, 0.85 * math.sqrt(max(st.alpha, 0.0)))
+        try:
+            y = y_eq + a * v
+            for _ in range(2):
+                y = solver.orbit_states(y, T0)[0][-1]
+            y, c = _section_through(solver, y, T0)
+            orbit = _genuine(solver, solver.converge(y, T0, c, tol, max_newton=12), T0)
+        except ConvergenceError as exc:
+            if getattr(exc, "step_failed", False):
+                raise
+            logger.info("limit_cycle %s: the scaled Hopf mode did not converge (%s); growing it", params, exc)
+    if orbit is None:
+        y, c = _section_through(solver, _seed_from_eigenvector(st, y_eq, fil, solver, T0), T0)
+        orbit = _genuine(solver, solver.converge(y, T0, c, tol), T0)
+    return orbit
+
+
+def _genuine(solver: OrbitSolver, orbit: Orbit, T_guess: float) -> Orbit:
+    """Refuse a collapse onto the equilibrium (any period, zero amplitude) or a far-off period."""
+    tip = orbit.states[:, solver.i_tip]
+    if not (0.4 * T_guess < orbit.period < 2.5 * T_guess) or np.ptp(tip) < 1e-7:
+        raise OrbitError(f"Newton converged to a degenerate orbit (period {orbit.period:.3g}, tip amplitude "
+                         f"{np.ptp(tip):.2g}) instead of the cycle")
+    return orbit

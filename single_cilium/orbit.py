@@ -12,13 +12,18 @@ An orbit method is a subclass of :class:`OrbitSolver`, registered in :data:`METH
 name, constructed as ``Method(filament, n_phase)`` (``n_phase`` steps per period: the uniform
 phase grid of the result), and provides
 
-``converge(y0, T, c, tol) -> Orbit``
+``converge(y0, T, c, tol, jacobian=None) -> Orbit``
     Newton's method from the guess ``(y0, T)`` for the orbit through the section
     ``theta_tip = c``, to ``max |scaled residual| <= tol``. Returns the converged
     :class:`Orbit`: its states and rates on the phase grid, the period, and either the
     monodromy matrix (``dPhi/dy0``) or, when the method cannot form it cheaply, ``None``.
     Raises :class:`OrbitError` (message says what to change) when it does not converge or a
-    step fails (``OrbitError.step_failed``: the phase grid is too coarse).
+    step fails (``OrbitError.step_failed``: the phase grid is too coarse). ``jacobian``, an
+    orbit of the same filament nearby (e.g. with fewer steps per period), may be used as the
+    Newton Jacobian instead of a fresh one.
+``at_phase(y0, T) -> Orbit``
+    The (converged) orbit sampled from another start ``y0`` on it, with its monodromy there
+    when the method forms it (used to start the result at phase 0).
 ``advance(y, dt) -> y``
     The state after time ``dt`` (``0 <= dt <= T / n_phase``) on the same discretisation
     (used to move the start onto the phase-0 section).
@@ -104,13 +109,18 @@ class Orbit:
         ``dPhi/dy0`` of the discrete period map, if the method forms it.
     residual : float
         Final ``max |scaled residual|`` of the shooting equations.
+    period_derivative : (N,) or None
+        ``dPhi/dh`` (``h = T / n_steps``), with the monodromy.
+    n_steps : int
+        Steps per period.
     """
 
-    __slots__ = ("state0", "period", "states", "rates", "monodromy", "residual")
+    __slots__ = ("state0", "period", "states", "rates", "monodromy", "residual", "period_derivative", "n_steps")
 
-    def __init__(self, state0, period, states, rates, monodromy, residual):
+    def __init__(self, state0, period, states, rates, monodromy, residual, period_derivative=None, n_steps=0):
         self.state0, self.period, self.states, self.rates = state0, float(period), states, rates
         self.monodromy, self.residual = monodromy, float(residual)
+        self.period_derivative, self.n_steps = period_derivative, int(n_steps or len(states) - 1)
 
 
 class OrbitSolver(ABC):
@@ -126,8 +136,12 @@ class OrbitSolver(ABC):
         self.work = {"period_maps": 0, "newton": 0, "step_newton": 0, "factorizations": 0}
 
     @abstractmethod
-    def converge(self, y0: np.ndarray, T: float, c: float, tol: float) -> Orbit:
+    def converge(self, y0: np.ndarray, T: float, c: float, tol: float, jacobian: Orbit | None = None) -> Orbit:
         """The orbit through the section ``theta_tip = c`` from the guess ``(y0, T)``."""
+
+    @abstractmethod
+    def at_phase(self, y0: np.ndarray, T: float) -> Orbit:
+        """The orbit sampled from ``y0`` (one period map)."""
 
     @abstractmethod
     def advance(self, y: np.ndarray, dt: float) -> np.ndarray:
@@ -190,24 +204,43 @@ class ExactShooting(OrbitSolver):
             return np.array(y, dtype=float)
         return self._steps(y, dt, 1, False)[0][-1]
 
-    def converge(self, y0, T, c, tol, max_newton=25):
+    def converge(self, y0, T, c, tol, max_newton=25, jacobian: Orbit | None = None):
+        """Newton's method on ``Phi(y0, T) = y0``, ``theta_tip(y0) = c``.
+
+        With ``jacobian`` (an orbit of the same filament, e.g. the same cycle with fewer steps
+        per period) its monodromy is used (a chord method: every iteration then costs a period
+        map without sensitivities); the exact monodromy is formed instead as soon as the chord
+        iteration contracts by less than a factor 10 per step. The returned orbit carries the
+        monodromy used last.
+        """
         N = y0.size
         n = self.n_phase
         sc = self.scale
         y0, T = np.array(y0, dtype=float), float(T)
-        res = math.inf
+        res = prev = math.inf
+        chord = jacobian is not None and jacobian.monodromy is not None and jacobian.monodromy.shape == (N, N)
+        S = jacobian.monodromy if chord else None
+        Sh = jacobian.period_derivative * (n / jacobian.n_steps) if chord else None  # dPhi/dT = Sh / n
         for it in range(max_newton + 1):
             self.work["period_maps"] += 1
-            Y, Yd, S, Sh = self._steps(y0, T / n, n, True)
+            sens = not chord
+            Y, Yd, S_new, Sh_new = self._steps(y0, T / n, n, sens)
+            if sens:
+                S, Sh = S_new, Sh_new
             r = np.concatenate([(Y[-1] - y0) / sc, [y0[self.i_tip] - c]])
             res = float(np.max(np.abs(r)))
-            logger.debug("shooting it %d: residual %.3e, T %.12g", it, res, T)
+            logger.debug("shooting it %d (%s): residual %.3e, T %.12g", it, "chord" if chord else "exact", res, T)
             if not np.isfinite(res):
                 raise OrbitError("the period map produced non-finite values")
             if res <= tol:
-                return Orbit(y0, T, Y, Yd, S, res)
+                return Orbit(y0, T, Y, Yd, S, res, Sh, n)
             if it == max_newton:
                 break
+            if chord and res > 0.1 * prev:
+                chord = False  # the borrowed Jacobian is not good enough here: form the exact one
+                self.work["period_maps"] += 1
+                _, _, S, Sh = self._steps(y0, T / n, n, True)
+            prev = res
             self.work["newton"] += 1
             # scaled unknowns (y0 / scale, T): J = [[D^-1 (S - I) D, D^-1 Sh / n], [e_tip, 0]]
             J = np.zeros((N + 1, N + 1))
@@ -222,6 +255,14 @@ class ExactShooting(OrbitSolver):
             y0, T = self._damped(y0, T, dx[:N] * sc, dx[N])
         raise OrbitError(f"shooting did not converge in {max_newton} Newton iterations (residual {res:.2e}); "
                          "the seed may be too far from the cycle: give a seed from a neighbouring chi_N")
+
+    def at_phase(self, y0, T):
+        """The orbit sampled from ``y0`` with its exact monodromy there (one period map)."""
+        self.work["period_maps"] += 1
+        n = self.n_phase
+        Y, Yd, S, Sh = self._steps(y0, T / n, n, True)
+        res = float(np.max(np.abs(Y[-1] - y0) / self.scale))
+        return Orbit(np.array(y0, dtype=float), T, Y, Yd, S, res, Sh, n)
 
 
 class KrylovShooting(OrbitSolver):
@@ -253,12 +294,17 @@ class KrylovShooting(OrbitSolver):
     def orbit_states(self, y0, T):
         return self._pmap(np.asarray(y0, dtype=float), T)
 
+    def at_phase(self, y0, T):
+        y0 = np.array(y0, dtype=float)
+        Y, Yd = self._pmap(y0, T)
+        return Orbit(y0, T, Y, Yd, None, float(np.max(np.abs(Y[-1] - y0) / self.scale)))
+
     def advance(self, y, dt):
         if dt <= 0:
             return np.array(y, dtype=float)
         return self.solver.fixed(y, dt, 1)[0][-1]
 
-    def converge(self, y0, T, c, tol, max_newton=20):
+    def converge(self, y0, T, c, tol, max_newton=20, jacobian=None):
         N = y0.size
         sc = self.scale
         y0, T = np.array(y0, dtype=float), float(T)
