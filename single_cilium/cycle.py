@@ -392,8 +392,12 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
                 break
             except OrbitError as exc:
                 if not (adaptive and exc.step_failed and 2 * n <= N_PHASE_MAX):
-                    hint = (f"raise n_phase (e.g. to {2 * n})" if exc.step_failed and not adaptive
-                            else "give a seed from a neighbouring chi_N or raise the degree")
+                    if exc.step_failed:
+                        hint = (f"raise n_phase (e.g. to {2 * n})" if not adaptive else
+                                f"the implicit steps fail even at {n} steps per period: check the "
+                                "parameters or raise the degree")
+                    else:
+                        hint = "give a seed from a neighbouring chi_N or raise the degree"
                     raise CycleError(f"{params}: {exc} (n_phase={n}); {hint}", exc.t) from None
                 logger.info("limit_cycle %s: %s at n_phase=%d; doubling", params, exc, n)
                 n *= 2
