@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -291,16 +292,32 @@ def _seed_from_eigenvector(st, y_eq, fil, solver: OrbitSolver, T0):
     return y
 
 
-def _transfer(seed: "LimitCycle", fil: Filament) -> np.ndarray:
-    """The seed's orbit point carried over as a deviation from its own equilibrium, added to
-    this problem's equilibrium (a raw copy would violate the new clamp/tip compatibility and
-    start a stiff initial layer)."""
+def _deviation(seed: "LimitCycle", fil: Filament) -> np.ndarray:
+    """The seed's phase-0 state as a deviation from its own equilibrium, on ``fil``'s nodes."""
     sfil = Filament(seed.params, seed.mesh)
     dth, dka = sfil.split(seed.state0 - sfil.equilibrium_state())
-    th, ka = fil.split(fil.equilibrium_state())
     if seed.mesh != fil.mesh:
         dth, dka = seed.mesh.interpolate(dth, fil.mesh.nodes), seed.mesh.interpolate(dka, fil.mesh.nodes)
-    return fil.join(th + dth, ka + dka)
+    return fil.join(dth, dka)
+
+
+def _predict(seeds: list["LimitCycle"], fil: Filament) -> tuple[np.ndarray, float]:
+    """Predictor from cycles at neighbouring chi_N: the nearest one's phase-0 state carried over
+    as a deviation from its equilibrium, added to this problem's equilibrium (a raw copy would
+    violate the new clamp/tip compatibility and start a stiff initial layer); with two, the
+    deviation and the period are extrapolated linearly in chi_N (the secant along the branch)."""
+    c = fil.params.chi_N
+    seeds = sorted(seeds, key=lambda sd: abs(sd.params.chi_N - c))
+    y_eq = fil.equilibrium_state()
+    s1 = seeds[0]
+    d1, T1 = _deviation(s1, fil), s1.period
+    if len(seeds) >= 2 and seeds[1].params.chi_N != s1.params.chi_N:
+        s0 = seeds[1]
+        r = (c - s1.params.chi_N) / (s1.params.chi_N - s0.params.chi_N)
+        if abs(r) <= 2.0:
+            d0 = _deviation(s0, fil)
+            return y_eq + d1 + r * (d1 - d0), T1 + r * (T1 - s0.period)
+    return y_eq + d1, T1
 
 
 def _total_work(solvers: list[OrbitSolver]) -> dict:
@@ -314,7 +331,7 @@ def _total_work(solvers: list[OrbitSolver]) -> dict:
 # ------------------------------------------------------------------------------ front door
 def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int = 10,
                 n_phase: int | None = None, tol: float = 1e-10, rtol: float = 1e-6,
-                method: str = "shooting", seed: "LimitCycle | None" = None,
+                method: str = "shooting", seed: "LimitCycle | Sequence[LimitCycle] | None" = None,
                 floquet: bool = True, error_estimate: bool = True) -> LimitCycle:
     """The limit cycle of a fluttering filament, its period, averaged thrust and stability.
 
@@ -335,9 +352,11 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
     method : str
         Orbit method, a key of :data:`single_cilium.orbit.METHODS`: ``"shooting"`` (exact
         monodromy, default) or ``"newton-krylov"``.
-    seed : LimitCycle, optional
-        A converged cycle (e.g. at a neighbouring chi_N) to start from, instead of the Hopf
-        eigenvector and a transient.
+    seed : LimitCycle or sequence of LimitCycle, optional
+        Converged cycle(s) at neighbouring chi_N (same chi_E, eta) to start from instead of the
+        Hopf eigenvector: the nearest one's phase-0 state, or with two, the secant predictor
+        along the branch (continuation in chi_N). If Newton does not converge from it, the
+        Hopf mode is used.
     floquet, error_estimate : bool
         Compute the Floquet multipliers / the space part of the error estimate (a re-converge
         at degree - 2; with a given ``n_phase`` also the time part, a re-converge at
@@ -405,6 +424,7 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         c = float(orbit.state0[fil.n - 2])
         q = _quantities(orbit.period, _thrust(fil, orbit))
         time_err = None
+        half, q_half = None, None  # the orbit with n / 2 steps, for the error estimates
         # the phase resolution: re-converge at 2n from (y0, T) until the time estimate is below rtol / 2
         while adaptive and 2 * n <= N_PHASE_MAX:
             finer = Method(fil, 2 * n)
@@ -414,26 +434,26 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
                 if not exc.step_failed:
                     raise CycleError(f"{params}: {exc} (refining to n_phase={2 * n})", exc.t) from None
                 logger.info("limit_cycle %s: refinement to n_phase=%d failed (%s)", params, 2 * n, exc)
-                n, solver, time_err = 2 * n, finer, None
+                n, solver, time_err, half = 2 * n, finer, None, None
                 orbit = _first_orbit(solver, fil, st, seed, tol, params)
                 c = float(orbit.state0[fil.n - 2])
                 q = _quantities(orbit.period, _thrust(fil, orbit))
                 continue
             q2 = _quantities(orb2.period, _thrust(fil, orb2))
             time_err = {k: v / _RICHARDSON for k, v in _differences(q2, q).items()}
+            half, q_half = orbit, q
             n, solver, orbit, q = 2 * n, finer, orb2, q2
             if max(time_err.values()) <= 0.5 * rtol:
                 break
         if time_err is None and error_estimate:
-            half = Method(fil, n // 2)
-            o = half.converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
-            time_err = {k: v / _RICHARDSON for k, v in
-                        _differences(q, _quantities(o.period, _thrust(fil, o))).items()}
+            half = Method(fil, n // 2).converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
+            q_half = _quantities(half.period, _thrust(fil, half))
+            time_err = {k: v / _RICHARDSON for k, v in _differences(q, q_half).items()}
         # start at phase 0 (the same discrete orbit, sampled from there; re-converged only if
         # the shifted start does not close to the Newton tolerance)
         y0 = _rephase(solver, orbit)
-        shifted = solver.at_phase(y0, orbit.period)
-        if shifted.residual <= 10 * tol:
+        shifted = solver.at_phase(y0, orbit)
+        if shifted.residual <= 100 * tol:
             orbit = shifted
         else:
             orbit = solver.converge(y0, orbit.period, float(y0[fil.n - 2]), tol, jacobian=shifted)
@@ -450,13 +470,15 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         if error_estimate or adaptive:
             space_err = None
             if error_estimate:
+                # degree - 2 against this degree, both with n / 2 steps when that orbit exists
+                # (time and space errors add to leading order; half the cost)
+                ref, q_ref = (half, q_half) if half is not None else (orbit, base)
                 m2 = Mesh(mesh.breaks, mesh.degree - 2)
                 fil2 = Filament(params, m2)
-                th, ka = fil.split(orbit.state0)
+                th, ka = fil.split(ref.state0)
                 y2 = fil2.join(mesh.interpolate(th, m2.nodes), mesh.interpolate(ka, m2.nodes))
-                coarse_s = Method(fil2, n)
-                o = coarse_s.converge(y2, T, float(y2[fil2.n - 2]), tol)
-                space_err = _differences(base, _quantities(o.period, _thrust(fil2, o)))
+                o = Method(fil2, ref.n_steps).converge(y2, ref.period, float(y2[fil2.n - 2]), tol)
+                space_err = _differences(q_ref, _quantities(o.period, _thrust(fil2, o)))
             for k in ("period", "thrust_norm", "thrust_angle"):
                 errors[k] = (time_err[k] if time_err else 0.0) + (space_err[k] if space_err else 0.0)
             errors["time"] = max(time_err.values()) if time_err else math.nan
@@ -492,10 +514,12 @@ def _first_orbit(solver: OrbitSolver, fil: Filament, st, seed, tol, params) -> O
     """
     T0 = 2 * math.pi / st.beta
     orbit = None
-    if seed is not None and seed.flutter and seed.state0 is not None:
+    seeds = [sd for sd in ([seed] if isinstance(seed, LimitCycle) else list(seed or []))
+             if sd.flutter and sd.state0 is not None]
+    if seeds:
         try:
-            y, c = _section_through(solver, _transfer(seed, fil), seed.period)
-            orbit = _genuine(solver, solver.converge(y, seed.period, c, tol), seed.period)
+            y, T = _predict(seeds, fil)
+            orbit = _genuine(solver, solver.converge(y, T, float(y[solver.i_tip]), tol), T)
         except ConvergenceError as exc:
             logger.info("limit_cycle %s: seed did not converge (%s); starting from the Hopf mode", params, exc)
     y_eq = fil.equilibrium_state()

@@ -21,9 +21,10 @@ phase grid of the result), and provides
     step fails (``OrbitError.step_failed``: the phase grid is too coarse). ``jacobian``, an
     orbit of the same filament nearby (e.g. with fewer steps per period), may be used as the
     Newton Jacobian instead of a fresh one.
-``at_phase(y0, T) -> Orbit``
-    The (converged) orbit sampled from another start ``y0`` on it, with its monodromy there
-    when the method forms it (used to start the result at phase 0).
+``at_phase(y0, orbit) -> Orbit``
+    The converged ``orbit`` sampled from another start ``y0`` on it (one period map; used to
+    start the result at phase 0). Its ``monodromy`` is the orbit's, taken where Newton
+    converged: similar to the one at ``y0`` (the same multipliers).
 ``advance(y, dt) -> y``
     The state after time ``dt`` (``0 <= dt <= T / n_phase``) on the same discretisation
     (used to move the start onto the phase-0 section).
@@ -106,7 +107,8 @@ class Orbit:
         and their time derivatives (of the collocation polynomial at each step end; at phase 0
         of the first step's).
     monodromy : (N, N) or None
-        ``dPhi/dy0`` of the discrete period map, if the method forms it.
+        ``dPhi/dy0`` of the discrete period map, if the method forms it (at ``state0``, or
+        after :meth:`OrbitSolver.at_phase` at another point of the same orbit).
     residual : float
         Final ``max |scaled residual|`` of the shooting equations.
     period_derivative : (N,) or None
@@ -120,7 +122,8 @@ class Orbit:
     def __init__(self, state0, period, states, rates, monodromy, residual, period_derivative=None, n_steps=0):
         self.state0, self.period, self.states, self.rates = state0, float(period), states, rates
         self.monodromy, self.residual = monodromy, float(residual)
-        self.period_derivative, self.n_steps = period_derivative, int(n_steps or len(states) - 1)
+        self.period_derivative = period_derivative
+        self.n_steps = int(n_steps) if n_steps else len(states) - 1
 
 
 class OrbitSolver(ABC):
@@ -140,8 +143,8 @@ class OrbitSolver(ABC):
         """The orbit through the section ``theta_tip = c`` from the guess ``(y0, T)``."""
 
     @abstractmethod
-    def at_phase(self, y0: np.ndarray, T: float) -> Orbit:
-        """The orbit sampled from ``y0`` (one period map)."""
+    def at_phase(self, y0: np.ndarray, orbit: Orbit) -> Orbit:
+        """The converged ``orbit`` sampled from another start ``y0`` on it (one period map)."""
 
     @abstractmethod
     def advance(self, y: np.ndarray, dt: float) -> np.ndarray:
@@ -256,13 +259,12 @@ class ExactShooting(OrbitSolver):
         raise OrbitError(f"shooting did not converge in {max_newton} Newton iterations (residual {res:.2e}); "
                          "the seed may be too far from the cycle: give a seed from a neighbouring chi_N")
 
-    def at_phase(self, y0, T):
-        """The orbit sampled from ``y0`` with its exact monodromy there (one period map)."""
+    def at_phase(self, y0, orbit):
         self.work["period_maps"] += 1
-        n = self.n_phase
-        Y, Yd, S, Sh = self._steps(y0, T / n, n, True)
+        Y, Yd = self._steps(y0, orbit.period / self.n_phase, self.n_phase, False)[:2]
         res = float(np.max(np.abs(Y[-1] - y0) / self.scale))
-        return Orbit(np.array(y0, dtype=float), T, Y, Yd, S, res, Sh, n)
+        return Orbit(np.array(y0, dtype=float), orbit.period, Y, Yd, orbit.monodromy, res,
+                     orbit.period_derivative, self.n_phase)
 
 
 class KrylovShooting(OrbitSolver):
@@ -294,10 +296,10 @@ class KrylovShooting(OrbitSolver):
     def orbit_states(self, y0, T):
         return self._pmap(np.asarray(y0, dtype=float), T)
 
-    def at_phase(self, y0, T):
+    def at_phase(self, y0, orbit):
         y0 = np.array(y0, dtype=float)
-        Y, Yd = self._pmap(y0, T)
-        return Orbit(y0, T, Y, Yd, None, float(np.max(np.abs(Y[-1] - y0) / self.scale)))
+        Y, Yd = self._pmap(y0, orbit.period)
+        return Orbit(y0, orbit.period, Y, Yd, None, float(np.max(np.abs(Y[-1] - y0) / self.scale)))
 
     def advance(self, y, dt):
         if dt <= 0:

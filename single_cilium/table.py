@@ -104,15 +104,18 @@ def _chunk(args):
     """Compute a contiguous run of rows by continuation; write each row to ``parts`` if given."""
     chi_E, eta, chi_Ns, settings, parts = args
     degree, n_phase, s_grid = settings["degree"], settings["n_phase"], np.asarray(settings["s"])
-    rows, seed = [], None
+    rows, seeds = [], []
     for cN in chi_Ns:
         p = CiliumParams(chi_E, eta, cN)
         st = stability(p, degree=degree, check=False, n_modes=1)
         cyc = None
         if st.regime == "flutter":
-            cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seed,
+            # continuation: the secant through the last two cycles predicts this one
+            cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seeds[-2:],
                               error_estimate=settings.get("error_estimate", True))
-            seed = cyc
+            seeds.append(cyc)
+        else:
+            seeds = []
         row = _row(p, cyc, s_grid, n_phase, st.alpha, st.beta)
         if parts is not None:
             write_netcdf(row, Path(parts) / f"row_{cN:.17g}.nc")

@@ -161,8 +161,9 @@ def test_near_the_cutoff():
 
 def test_straight_filament_pushes_along_the_field():
     c = limit_cycle(CiliumParams(200, 1, 0.0), degree=6, n_phase=32, floquet=False, error_estimate=False)
-    assert abs(c.thrust_angle) < 1e-10 and abs(c.thrust_x) < 1e-10 * c.thrust_norm
-    assert abs(c.tip_area) < 1e-10  # symmetric figure-of-eight: no net area
+    # zero to the closure of the orbit sampled from phase 0 (residual <= 100 tol = 1e-8)
+    assert abs(c.thrust_angle) < 1e-9 and abs(c.thrust_x) < 1e-9 * c.thrust_norm
+    assert abs(c.tip_area) < 1e-9  # symmetric figure-of-eight: no net area
 
 
 @pytest.mark.parametrize("p", [CiliumParams(200, 0.2, 16 * TWO_PI), CiliumParams(200, 5, 16 * TWO_PI)])
