@@ -100,6 +100,54 @@ def _row(params: CiliumParams, cyc: LimitCycle | None, s_grid: np.ndarray, n_pha
     return ds.expand_dims(chi_N=[params.chi_N])
 
 
+def _fingerprint(chi_E: float, eta: float, settings: dict) -> dict:
+    """What a stored row was computed for (attrs ``build_*`` of each row file): a resumed build
+    reuses a row only if all of these match."""
+    return {"build_chi_E": float(chi_E), "build_eta": float(eta), "build_degree": int(settings["degree"]),
+            "build_n_phase": int(settings["n_phase"]), "build_n_s": len(settings["s"]),
+            "build_error_estimate": int(bool(settings.get("error_estimate", True))),
+            "build_method": str(settings.get("method", "shooting")), "build_package_version": __version__}
+
+
+def _resume(parts: Path, grid: np.ndarray, want: dict) -> dict[float, xr.Dataset]:
+    """Rows of an interrupted build in ``parts`` that match the request; refuse any other."""
+    done: dict[float, xr.Dataset] = {}
+    wanted = set(grid.tolist())
+    for f in sorted(parts.glob("row_*.nc")):
+        try:
+            with xr.open_dataset(f, engine="h5netcdf") as r:
+                r = r.load()
+        except (OSError, ValueError):
+            f.unlink()  # a row file cut short by the interruption
+            continue
+        got = {k: r.attrs.get(k) for k in want}
+        bad = [k for k in want if not _same(got[k], want[k])]
+        if bad:
+            def show(v):
+                return repr(v.item() if isinstance(v, np.generic) else v)
+
+            diff = ", ".join(f"{k[6:]} = {show(got[k])} (asked {show(want[k])})" for k in bad)
+            raise TableError(f"{f}: a row of an interrupted build with other settings ({diff}); it is not "
+                             f"merged into this table: remove {parts} (or build into another path) to "
+                             "start afresh, or repeat the original request to resume it")
+        c = float(r.chi_N.values[0])
+        if c in wanted:  # rows outside the requested grid are never merged in
+            done[c] = r
+    return done
+
+
+def _same(got, want) -> bool:
+    """A stored attribute equals the requested value (of the same kind)."""
+    if got is None:
+        return False
+    try:
+        if isinstance(want, str):
+            return str(got) == want
+        return type(want)(got) == want
+    except (TypeError, ValueError):
+        return False
+
+
 def _chunk(args):
     """Compute a contiguous run of rows by continuation; write each row to ``parts`` if given."""
     chi_E, eta, chi_Ns, settings, parts = args
@@ -117,6 +165,7 @@ def _chunk(args):
         else:
             seeds = []
         row = _row(p, cyc, s_grid, n_phase, st.alpha, st.beta)
+        row.attrs.update(_fingerprint(chi_E, eta, settings))
         if parts is not None:
             write_netcdf(row, Path(parts) / f"row_{cN:.17g}.nc")
         rows.append(row)
@@ -169,14 +218,9 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
     if path is not None:
         parts = Path(str(path) + ".parts")
         parts.mkdir(parents=True, exist_ok=True)
-        for f in parts.glob("row_*.nc"):
-            try:
-                with xr.open_dataset(f, engine="h5netcdf") as r:
-                    r = r.load()
-                if r.sizes.get("phase") == n_phase and r.sizes.get("s") == n_s:
-                    done[float(r.chi_N.values[0])] = r
-            except (OSError, ValueError):
-                f.unlink()  # a row file cut short by the interruption
+        done = _resume(parts, grid, _fingerprint(base.chi_E, base.eta, settings))
+        if done:
+            logger.info("build_table: resuming %s, %d of %d rows done", parts, len(done), grid.size)
     todo = [c for c in grid if not (np.isfinite(chi_c) and c == chi_c) and c not in done]
     rows = dict(done)
     if np.isfinite(chi_c) and chi_c in grid:
@@ -294,6 +338,14 @@ class ThrustTable:
         for k in ("chi_E", "eta"):
             if k not in ds.attrs:
                 raise TableError(f"{source}: attribute {k!r} missing")
+            v = ds.attrs[k]
+            try:
+                ok = np.ndim(v) == 0 and not isinstance(v, (str, bytes)) and math.isfinite(float(v))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok or (k == "eta" and float(v) <= 0):
+                need = "a finite number > 0" if k == "eta" else "a finite number"
+                raise TableError(f"{source}: attribute {k!r} = {v!r} is not {need}")
         c = ds.chi_N.values
         if c.size == 0 or np.any(~np.isfinite(c)) or np.any(np.diff(c) <= 0):
             raise TableError(f"{source}: chi_N coordinate must be finite and strictly increasing")
