@@ -6,8 +6,8 @@
 Radau IIA(5) period map; ``"newton-krylov"``, the previous Newton-Krylov shooting, kept as a
 cross-check), and does the rest once, against the orbit-solver contract:
 
-* seeding: cycles at neighbouring chi_N (``seed``; with two, the secant predictor of a
-  continuation along the branch); otherwise the leading (Hopf) eigenvector of
+* seeding: cycles at neighbouring chi_N (``seed``; with two or three, the secant or parabola
+  predictor of a continuation along the branch); otherwise the leading (Hopf) eigenvector of
   :func:`single_cilium.stability`, scaled to the normal-form amplitude guess
   ``0.85 sqrt(alpha)`` and relaxed for two periods; if Newton does not reach a genuine cycle
   from there, the mode is grown by a transient, and while that is still near-linear (near the
@@ -309,22 +309,23 @@ def _deviation(seed: "LimitCycle", fil: Filament) -> np.ndarray:
 
 
 def _predict(seeds: list["LimitCycle"], fil: Filament) -> tuple[np.ndarray, float]:
-    """Predictor from cycles at neighbouring chi_N: the nearest one's phase-0 state carried over
-    as a deviation from its equilibrium, added to this problem's equilibrium (a raw copy would
-    violate the new clamp/tip compatibility and start a stiff initial layer); with two, the
-    deviation and the period are extrapolated linearly in chi_N (the secant along the branch)."""
+    """Predictor from cycles at neighbouring chi_N: their phase-0 states carried over as
+    deviations from their own equilibria, added to this problem's equilibrium (a raw copy would
+    violate the new clamp/tip compatibility and start a stiff initial layer). With two or three
+    seeds the deviation and the period are extrapolated along the branch by the Lagrange
+    polynomial through them in chi_N (the secant, or a parabola), as long as the step is at most
+    twice their spacing; otherwise the nearest seed alone."""
     c = fil.params.chi_N
-    seeds = sorted(seeds, key=lambda sd: abs(sd.params.chi_N - c))
+    seeds = sorted(seeds, key=lambda sd: abs(sd.params.chi_N - c))[:3]
+    x = np.array([sd.params.chi_N for sd in seeds])
     y_eq = fil.equilibrium_state()
-    s1 = seeds[0]
-    d1, T1 = _deviation(s1, fil), s1.period
-    if len(seeds) >= 2 and seeds[1].params.chi_N != s1.params.chi_N:
-        s0 = seeds[1]
-        r = (c - s1.params.chi_N) / (s1.params.chi_N - s0.params.chi_N)
-        if abs(r) <= 2.0:
-            d0 = _deviation(s0, fil)
-            return y_eq + d1 + r * (d1 - d0), T1 + r * (T1 - s0.period)
-    return y_eq + d1, T1
+    if len(set(x.tolist())) < len(x) or (len(x) > 1 and abs(c - x[0]) > 2 * np.ptp(x)):
+        seeds, x = seeds[:1], x[:1]
+    # Lagrange weights at c
+    w = np.array([np.prod([(c - x[j]) / (x[i] - x[j]) for j in range(len(x)) if j != i]) for i in range(len(x))])
+    dev = sum(wi * _deviation(sd, fil) for wi, sd in zip(w, seeds))
+    T = float(sum(wi * sd.period for wi, sd in zip(w, seeds)))
+    return y_eq + dev, T
 
 
 def _total_work(solvers: list[OrbitSolver]) -> dict:
@@ -361,8 +362,8 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         monodromy, default) or ``"newton-krylov"``.
     seed : LimitCycle or sequence of LimitCycle, optional
         Converged cycle(s) at neighbouring chi_N (same chi_E, eta) to start from instead of the
-        Hopf eigenvector: the nearest one's phase-0 state, or with two, the secant predictor
-        along the branch (continuation in chi_N). If Newton does not converge from it, the
+        Hopf eigenvector: the nearest one's phase-0 state, or with two or three, their Lagrange
+        extrapolation along the branch (continuation in chi_N). If Newton does not converge from it, the
         Hopf mode is used.
     floquet, error_estimate : bool
         Compute the Floquet multipliers / the space part of the error estimate (a re-converge

@@ -1,12 +1,16 @@
 """The thrust lookup table over the natural curvature chi_N, for one field (chi_E, eta).
 
 :func:`build_table` computes limit cycles (:func:`~single_cilium.cycle.limit_cycle`) on a grid
-of chi_N by continuation (each worker walks a contiguous chunk of the grid, seeding every cycle
-from its neighbour), in parallel on any ``concurrent.futures.Executor`` (default: a local
-process pool; with ``scheduler=ADDRESS``, a Dask distributed cluster through its executor). It
-finds the flutter cutoff (:func:`~single_cilium.stability.flutter_cutoff`) and puts a row
-exactly there. With ``path`` every finished row is kept on disk at once, so an interrupted
-build resumes where it stopped.
+of chi_N by continuation: each worker walks a contiguous chunk of the grid (chunks of equal
+work, one per core), predicting every cycle from the last three by a parabola in chi_N, so that
+a row costs two Newton steps with the exact monodromy plus its error estimates. It runs on any
+``concurrent.futures.Executor`` (default: a local process pool; with ``scheduler=ADDRESS``, a
+Dask distributed cluster through its executor). It finds the flutter cutoff
+(:func:`~single_cilium.stability.flutter_cutoff`) and puts a row exactly there. With ``path``
+every finished row is kept on disk at once (with ``build_*`` attributes recording the field,
+settings and package version it was computed for), so an interrupted build resumes where it
+stopped; rows of a build with any other field or settings are refused, never merged, and rows
+outside the requested grid are ignored.
 
 :class:`ThrustTable` wraps the Dataset of DESIGN.md (schema below), validates it on load,
 interpolates it smoothly in chi_N (cubic splines on the flutter branch; for the shapes and
@@ -106,6 +110,7 @@ def _fingerprint(chi_E: float, eta: float, settings: dict) -> dict:
     return {"build_chi_E": float(chi_E), "build_eta": float(eta), "build_degree": int(settings["degree"]),
             "build_n_phase": int(settings["n_phase"]), "build_n_s": len(settings["s"]),
             "build_error_estimate": int(bool(settings.get("error_estimate", True))),
+            "build_tol": float(settings.get("tol", 1e-8)),
             "build_method": str(settings.get("method", "shooting")), "build_package_version": __version__}
 
 
@@ -158,8 +163,8 @@ def _chunk(args):
         st = stability(p, degree=degree, check=False, n_modes=1)
         cyc = None
         if st.regime == "flutter":
-            # continuation: the secant through the last two cycles predicts this one
-            cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seeds[-2:],
+            # continuation: the parabola through the last three cycles predicts this one
+            cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seeds[-3:], tol=settings.get("tol", 1e-8),
                               error_estimate=settings.get("error_estimate", True))
             seeds.append(cyc)
         else:
@@ -172,9 +177,22 @@ def _chunk(args):
     return rows
 
 
+def _balanced_chunks(todo: np.ndarray, chi_c: float, n_chunks: int) -> list[list[float]]:
+    """Contiguous runs of the grid (each continued from its own start), one per worker, of equal
+    work: a flutter row (below the cutoff) costs a cycle, a stable row about 5 % of one."""
+    if todo.size == 0:
+        return []
+    weight = np.where(todo < chi_c, 1.0, 0.05) if np.isfinite(chi_c) else np.ones(todo.size)
+    n_chunks = max(1, min(todo.size, n_chunks))
+    cum = np.cumsum(weight)
+    edges = np.searchsorted(cum, cum[-1] * np.arange(1, n_chunks) / n_chunks, side="right")
+    return [c.tolist() for c in np.split(todo, edges) if c.size]
+
+
 def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64, n_s: int = 65,
                 executor: Executor | None = None, scheduler: str | None = None,
-                progress: Progress | None = None, path=None, error_estimate: bool = True) -> "ThrustTable":
+                progress: Progress | None = None, path=None, error_estimate: bool = True,
+                tol: float = 1e-8) -> "ThrustTable":
     """Compute the thrust table of DESIGN.md over ``chi_N`` (>= 0, strictly increasing).
 
     Parameters
@@ -195,6 +213,9 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
         so a rerun after an interruption computes only the missing rows.
     error_estimate : bool
         Refinement error estimates per row (about doubles the cost); NaN without.
+    tol : float
+        Newton tolerance of each cycle on the scaled shooting residual (the row's quantities
+        then carry errors of about that size, far below the discretisation error estimates).
     """
     base = CiliumParams(chi_E, eta, 0.0)
     grid = np.atleast_1d(np.asarray(chi_N, dtype=float))
@@ -211,8 +232,10 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
     if np.isfinite(chi_c) and grid[0] < chi_c < grid[-1]:
         grid = np.unique(np.concatenate([grid[np.abs(grid - chi_c) > 1e-9 * chi_c], [chi_c]]))
     s_grid = np.linspace(0.0, 1.0, int(n_s))
+    if not (0 < tol < 1e-3):
+        raise ValueError(f"tol must lie in (0, 1e-3), got {tol}")
     settings = {"degree": int(degree), "n_phase": int(n_phase), "s": s_grid.tolist(),
-                "error_estimate": bool(error_estimate)}
+                "error_estimate": bool(error_estimate), "tol": float(tol)}
     parts = None
     done: dict[float, xr.Dataset] = {}
     if path is not None:
@@ -241,8 +264,7 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
 
             own = executor = ProcessPoolExecutor(max_workers=os.cpu_count() or 1)
     try:
-        n_chunks = max(1, min(len(todo), 2 * (os.cpu_count() or 1)))
-        chunks = [c.tolist() for c in np.array_split(np.array(todo), n_chunks) if c.size]
+        chunks = _balanced_chunks(np.array(todo), chi_c, os.cpu_count() or 1)
         tasks = [(base.chi_E, base.eta, c, settings, str(parts) if parts else None) for c in chunks]
         finished = len(grid) - len(todo)
         for res in executor.map(_chunk, tasks):
@@ -260,7 +282,8 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
         "chi_E": base.chi_E, "eta": base.eta, "chi_N_cutoff": chi_c, "chi_N_cutoff_error": cut.error,
         "schema_version": SCHEMA_VERSION, "package_version": __version__,
         "field_direction": "e2 (angles anticlockwise from e2)",
-        "discretisation": f"Mesh.for_params(params, degree={degree}); {n_phase} Radau IIA(5) steps per period",
+        "discretisation": f"Mesh.for_params(params, degree={degree}); {n_phase} Radau IIA(5) steps per period; "
+                          f"shooting (exact monodromy) to a scaled residual of {tol:g}",
         "thrust_convention": "thrust = mean force on the fluid -<int d ds>; thrust_angle = phi_Fbar - pi",
     })
     table = ThrustTable(_with_attrs(ds))
