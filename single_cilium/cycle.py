@@ -411,13 +411,22 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
                               method=method)
         fil = Filament(params, mesh)
         adaptive = n_phase is None
-        n = N_PHASE_START if adaptive else int(n_phase)
+        seeded = seed is not None and (isinstance(seed, LimitCycle) or len(seed) > 0)
+        if adaptive:
+            n = N_PHASE_START
+        else:
+            # without a seed, the orbit is found with half the steps (cheaper maps) and refined
+            # once, which also gives the time error estimate
+            n = int(n_phase) // 2 if (not seeded and int(n_phase) // 2 >= 16) else int(n_phase)
         while True:
             solver = Method(fil, n)
             try:
                 orbit = _first_orbit(solver, fil, st, seed, tol, params)
                 break
             except OrbitError as exc:
+                if not adaptive and exc.step_failed and n < n_phase:
+                    n = int(n_phase)  # the coarse start failed: straight to the steps asked for
+                    continue
                 if not (adaptive and exc.step_failed and 2 * n <= N_PHASE_MAX):
                     if exc.step_failed:
                         hint = (f"raise n_phase (e.g. to {2 * n})" if not adaptive else
@@ -434,7 +443,7 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         time_err = None
         half, q_half = None, None  # the orbit with n / 2 steps, for the error estimates
         # the phase resolution: re-converge at 2n from (y0, T) until the time estimate is below rtol / 2
-        while adaptive and 2 * n <= N_PHASE_MAX:
+        while (2 * n <= N_PHASE_MAX) if adaptive else (n < n_phase):
             finer = Method(fil, 2 * n)
             try:
                 orb2 = finer.converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
@@ -443,7 +452,10 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
                     raise CycleError(f"{params}: {exc} (refining to n_phase={2 * n})", exc.t) from None
                 logger.info("limit_cycle %s: refinement to n_phase=%d failed (%s)", params, 2 * n, exc)
                 n, solver, time_err, half = 2 * n, finer, None, None
-                orbit = _first_orbit(solver, fil, st, seed, tol, params)
+                try:
+                    orbit = _first_orbit(solver, fil, st, seed, tol, params)
+                except OrbitError as exc2:
+                    raise CycleError(f"{params}: {exc2} (n_phase={n})", exc2.t) from None
                 c = float(orbit.state0[fil.n - 2])
                 q = _quantities(orbit.period, _thrust(fil, orbit))
                 continue
@@ -451,7 +463,7 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
             time_err = {k: v / _RICHARDSON for k, v in _differences(q2, q).items()}
             half, q_half = orbit, q
             n, solver, orbit, q = 2 * n, finer, orb2, q2
-            if max(time_err.values()) <= 0.5 * rtol:
+            if adaptive and max(time_err.values()) <= 0.5 * rtol:
                 break
         if time_err is None and error_estimate:
             half = Method(fil, n // 2).converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)

@@ -38,21 +38,34 @@ phase grid of the result), and provides
 Methods
 -------
 ``"shooting"`` (:class:`ExactShooting`, the default)
-    Single shooting with the exact monodromy. Each Radau IIA(5) step (constant step
-    ``h = T / n_phase``) is solved by full Newton on its stage equations (kappa eliminated
-    exactly, ``3 (n - 1)`` unknowns), compiled with numba (:func:`single_cilium._kernels.radau_steps`);
-    the Jacobian at the converged stages gives the step's derivative with respect to its start
-    and to ``h`` (implicit function theorem), and their product over a period is the exact
-    derivative of the discrete period map. Newton on the ``N + 1`` shooting unknowns
-    (``N = 2n - 1``, about 80) then converges quadratically in 2-4 iterations, and the Floquet
-    multipliers are the eigenvalues of that monodromy, at no extra cost.
-    Why this and not orthogonal collocation (AUTO, MatCont): the state is small, so the dense
-    ``N x N`` monodromy is cheap (a period costs 64 small LU factorisations either way), the
-    stiff steps keep Radau's L-stability and its proven step solver, the unknowns of the
-    orbit Newton stay ``N + 1`` instead of ``3 n_phase N``, and refining ``n_phase`` reuses
-    ``(y0, T)`` unchanged as the predictor. Shooting's classic weakness, an unstable orbit
-    amplifying errors over a period, does not arise: these cycles are stable, and the stiff
-    modes are contracted to ~0 by the L-stable steps.
+    Single shooting with the exact monodromy. A period is ``n_phase`` Radau IIA(5) steps of
+    constant size ``h = T / n_phase``, all in one compiled (numba) call,
+    :func:`single_cilium._kernels.radau_steps`. The kappa stages are eliminated exactly (they
+    are linear in kappa), leaving ``3 (n - 1)`` theta-stage unknowns per step; these are solved
+    by RADAU5's simplified Newton (one real and one complex ``(n - 1)``-square system, with the
+    derivative of the drag matrix included), with full Newton as the fallback. At the converged
+    stages the exact stage Jacobian is factorised once, and the implicit function theorem gives
+    the step's derivative with respect to its start and to ``h``; their product over a period
+    is the exact derivative of the discrete period map. Newton on the ``N + 1`` shooting
+    unknowns (``N = 2n - 1``, about 80) then converges quadratically (2-3 iterations from a
+    continuation predictor, 5-7 from the Hopf mode), and the Floquet multipliers are the
+    eigenvalues of the monodromy at no extra cost. A re-solve with more steps per period (or
+    fewer, for the error estimate) starts from the same ``(y0, T)`` and uses the coarser
+    monodromy as a chord Jacobian: period maps without sensitivities, about 3x cheaper.
+
+    Why (the profile of the previous method at (200, 1, 16*2pi)): 130 period maps per cycle,
+    because GMRES needs 15-30 finite-difference products per Newton step (a cluster of
+    multipliers near ``exp(-T)`` from the kappa relaxation), each map 64 steps of Python-level
+    simplified Newton at about 1.2 ms a step (the time went to the interpreter: LAPACK calls on
+    40 x 40 matrices, small-array numpy overhead). The exact Jacobian removes the GMRES
+    products (a cycle now takes 10-15 maps) and the compiled steps cost 0.2 ms (0.5 ms with
+    sensitivities) at degree 8. Why not orthogonal collocation (AUTO, MatCont): the state is
+    small, so the dense ``N x N`` monodromy is cheap (a period costs 64 small factorisations
+    either way); the stiff steps keep Radau's L-stability and the step solver already tested
+    against the integrator; the orbit Newton has ``N + 1`` unknowns instead of
+    ``3 n_phase N``; and refining ``n_phase`` reuses ``(y0, T)`` unchanged. Shooting's
+    weakness, an unstable orbit amplifying errors over a period, does not arise: these cycles
+    are stable and the stiff modes are contracted to ~0 by the L-stable steps.
 ``"newton-krylov"`` (:class:`KrylovShooting`, the previous method, kept as a cross-check)
     The same period map (:meth:`single_cilium.radau.Radau.fixed`, simplified Newton in Python);
     Newton-Krylov (GMRES on finite-difference monodromy products); Floquet multipliers by
