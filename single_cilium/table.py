@@ -41,7 +41,7 @@ from scipy.optimize import brentq
 
 from . import __version__
 from ._io import write_netcdf
-from .cycle import LimitCycle, limit_cycle
+from .cycle import CycleError, LimitCycle, limit_cycle
 from .equilibrium import NoLimitAngleError, limit_angle
 from .params import CiliumParams
 from .progress import Progress
@@ -164,8 +164,14 @@ def _chunk(args):
         cyc = None
         if st.regime == "flutter":
             # continuation: the parabola through the last three cycles predicts this one
-            cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seeds[-3:], tol=settings.get("tol", 1e-8),
-                              error_estimate=settings.get("error_estimate", True))
+            try:
+                cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seeds[-3:], tol=settings.get("tol", 1e-8),
+                                  error_estimate=settings.get("error_estimate", True))
+            except CycleError as exc:
+                err = CycleError(f"thrust table (chi_E = {chi_E:g}, eta = {eta:g}): the cycle at chi_N = {cN:.10g} "
+                                 f"did not converge ({exc})", exc.t)
+                err.chi_N = float(cN)
+                raise err from None
             seeds.append(cyc)
         else:
             seeds = []
@@ -267,11 +273,20 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
         chunks = _balanced_chunks(np.array(todo), chi_c, os.cpu_count() or 1)
         tasks = [(base.chi_E, base.eta, c, settings, str(parts) if parts else None) for c in chunks]
         finished = len(grid) - len(todo)
-        for res in executor.map(_chunk, tasks):
-            for r in res:
-                rows[float(r.chi_N.values[0])] = r
-            finished += len(res)
-            progress.update(finished)
+        try:
+            for res in executor.map(_chunk, tasks):
+                for r in res:
+                    rows[float(r.chi_N.values[0])] = r
+                finished += len(res)
+                progress.update(finished)
+        except CycleError as exc:
+            failed = getattr(exc, "chi_N", math.inf)
+            good = set(rows) | ({float(f.name[4:-3]) for f in parts.glob("row_*.nc")} if parts else set())
+            before = [c for c in good if c < failed]
+            last = f"chi_N = {max(before):.10g}" if before else "none"
+            kept = (f"; the finished rows are kept in {parts}, and the same request resumes from them"
+                    if parts is not None else "")
+            raise CycleError(f"{exc}; last good row before it: {last}{kept}", exc.t) from None
     finally:
         progress.close()
         if own is not None:

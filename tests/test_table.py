@@ -219,3 +219,26 @@ def test_table_attribute_not_a_number(tmp_path, small, value):
     ds.to_netcdf(bad, engine="h5netcdf")
     with pytest.raises(TableError, match=rf"{bad.name}: attribute 'chi_E' = .* is not a finite number"):
         ThrustTable.load(bad)
+
+
+def test_failed_row_names_the_last_good_row(tmp_path, monkeypatch):
+    """A continuation that fails reports the row and the last good one; the rows before it are
+    kept, and the same request resumes from them."""
+    import single_cilium.table as table_mod
+    from single_cilium.cycle import CycleError
+
+    real = table_mod.limit_cycle
+
+    def failing(p, **kw):
+        if p.chi_N == 155.0:
+            raise CycleError("injected failure", 0.0)
+        return real(p, **kw)
+
+    monkeypatch.setattr(table_mod, "limit_cycle", failing)
+    path = tmp_path / "t.nc"
+    with pytest.raises(CycleError, match=r"chi_N = 155 did not converge .*last good row before it: chi_N = 150.*resumes"):
+        build_table(200, 1, [150.0, 155.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert (tmp_path / "t.nc.parts" / "row_150.nc").exists() and not path.exists()
+    monkeypatch.setattr(table_mod, "limit_cycle", real)
+    t = build_table(200, 1, [150.0, 155.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert t.ds.sizes["chi_N"] == 2 and path.exists()
