@@ -114,9 +114,10 @@ class LimitCycle:
         trivial multiplier from 1 (an accuracy diagnostic).
     errors : dict
         Estimates for ``period``, ``thrust_norm`` (relative) and ``thrust_angle`` (absolute,
-        radians): the change when the steps per period are halved (time) plus the change when
-        the degree is lowered by 2 (space); upper estimates, as each is the error of the
-        cheaper run. The parts are also given (``time``, ``space``: the largest of the three).
+        radians): the time part (the change when the steps per period are halved, divided by
+        15: order 4 at least is assumed, order 5 observed) plus the space part (the change when
+        the degree is lowered by 2, an upper estimate: the error of the cheaper run). The parts
+        are also given (``time``, ``space``: the largest of the three quantities).
     work : dict
         Counters of the orbit method(s): period maps, orbit Newton iterations, Newton
         iterations inside the implicit steps, factorisations (and GMRES iterations for
@@ -366,9 +367,10 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         extrapolation along the branch (continuation in chi_N). If Newton does not converge from it, the
         Hopf mode is used.
     floquet, error_estimate : bool
-        Compute the Floquet multipliers / the space part of the error estimate (a re-converge
-        at degree - 2; with a given ``n_phase`` also the time part, a re-converge at
-        ``n_phase / 2``).
+        Compute the Floquet multipliers (free with the exact monodromy; ``m + 5`` period maps
+        of Arnoldi with Newton-Krylov) / the error estimates (a re-converge at degree - 2 with
+        ``n_phase / 2`` steps; with a given ``n_phase`` also the time part from ``n_phase / 2``
+        steps). With ``n_phase=None`` the time part is always computed (it picks ``n_phase``).
 
     Returns
     -------
