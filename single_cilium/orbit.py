@@ -233,6 +233,7 @@ class ExactShooting(OrbitSolver):
         n = self.n_phase
         sc = self.scale
         y0, T = np.array(y0, dtype=float), float(T)
+        T_start = T
         res = prev = math.inf
         chord = jacobian is not None and jacobian.monodromy is not None and jacobian.monodromy.shape == (N, N)
         S = jacobian.monodromy if chord else None
@@ -269,8 +270,11 @@ class ExactShooting(OrbitSolver):
                 raise OrbitError("singular shooting Jacobian (the guess is at the equilibrium or the "
                                  "section is tangent to the orbit)") from None
             y0, T = self._damped(y0, T, dx[:N] * sc, dx[N])
+            if T < 0.05 * T_start:
+                raise OrbitError(f"the period collapses ({T:.3g} from {T_start:.3g}): Newton is heading for the "
+                                 "equilibrium, not the cycle")
         raise OrbitError(f"shooting did not converge in {max_newton} Newton iterations (residual {res:.2e}); "
-                         "the seed may be too far from the cycle: give a seed from a neighbouring chi_N")
+                         "the guess may be too far from the cycle")
 
     def at_phase(self, y0, orbit):
         self.work["period_maps"] += 1
@@ -359,8 +363,7 @@ class KrylovShooting(OrbitSolver):
             self.work["gmres"] += count[0]
             y0, T = self._damped(y0, T, dx[:N] * sc, dx[N] * T)
         raise OrbitError(f"Newton-Krylov shooting did not converge in {max_newton} iterations "
-                         f"(residual {res:.2e}); the seed may be too far from the cycle: give a seed "
-                         "from a neighbouring chi_N")
+                         f"(residual {res:.2e}); the guess may be too far from the cycle")
 
     def multipliers(self, orbit: Orbit, m: int = 12, n_power: int = 3) -> np.ndarray:
         """Arnoldi on finite-difference monodromy products, deflated by the flow direction.
