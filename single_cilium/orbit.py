@@ -76,6 +76,7 @@ from __future__ import annotations
 import logging
 import math
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse.linalg import LinearOperator, gmres
@@ -107,6 +108,7 @@ class OrbitError(ConvergenceError):
         self.step_failed = step_failed
 
 
+@dataclass(frozen=True, eq=False)
 class Orbit:
     """A converged periodic orbit on the uniform phase grid (what :meth:`OrbitSolver.converge`
     returns).
@@ -127,16 +129,23 @@ class Orbit:
     period_derivative : (N,) or None
         ``dPhi/dh`` (``h = T / n_steps``), with the monodromy.
     n_steps : int
-        Steps per period.
+        Steps per period (default: ``len(states) - 1``).
     """
 
-    __slots__ = ("state0", "period", "states", "rates", "monodromy", "residual", "period_derivative", "n_steps")
+    state0: np.ndarray | None
+    period: float
+    states: np.ndarray | None
+    rates: np.ndarray | None
+    monodromy: np.ndarray | None
+    residual: float
+    period_derivative: np.ndarray | None = None
+    n_steps: int = 0
 
-    def __init__(self, state0, period, states, rates, monodromy, residual, period_derivative=None, n_steps=0):
-        self.state0, self.period, self.states, self.rates = state0, float(period), states, rates
-        self.monodromy, self.residual = monodromy, float(residual)
-        self.period_derivative = period_derivative
-        self.n_steps = int(n_steps) if n_steps else len(states) - 1
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "period", float(self.period))
+        object.__setattr__(self, "residual", float(self.residual))
+        if not self.n_steps:
+            object.__setattr__(self, "n_steps", len(self.states) - 1)
 
 
 class OrbitSolver(ABC):
