@@ -236,7 +236,8 @@ def test_failed_row_names_the_last_good_row(tmp_path, monkeypatch):
 
     monkeypatch.setattr(table_mod, "limit_cycle", failing)
     path = tmp_path / "t.nc"
-    with pytest.raises(CycleError, match=r"chi_N = 155 did not converge .*last good row before it: chi_N = 150.*resumes"):
+    with pytest.raises(CycleError, match=r"chi_N = 155 did not converge .*last good row before it: "
+                                         r"chi_N = 150.*resumes"):
         build_table(200, 1, [150.0, 155.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
     assert (tmp_path / "t.nc.parts" / "row_150.nc").exists() and not path.exists()
     monkeypatch.setattr(table_mod, "limit_cycle", real)
