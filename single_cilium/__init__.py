@@ -13,7 +13,8 @@ Mesh              graded spectral-element mesh of the arc length
 simulate          nonlinear dynamics (Galerkin in space, Radau IIA(5) in time) with error estimates
 stability         leading eigenvalues, modes and regime of the linearisation; flutter_cutoff,
                   flutter_boundary (continuation), stability_map
-limit_cycle       periodic orbit by Newton-Krylov shooting: period, mean thrust, Floquet multipliers
+limit_cycle       periodic orbit by shooting with the exact monodromy (single_cilium.orbit): period,
+                  mean thrust, Floquet multipliers, error estimates
 """
 __version__ = "0.1.0"
 

@@ -1,61 +1,76 @@
 """Limit cycles of a fluttering filament and the thrust they exert (MODEL.md section 5).
 
-Method: shooting on the Galerkin system of :mod:`single_cilium.filament`. The period map
-``Phi(y0, T)`` is ``N`` constant steps ``h = T / N`` of Radau IIA(5) (:meth:`Radau.fixed`), a
-smooth function of ``(y0, T)``; the periodic orbit solves
+:func:`limit_cycle` is the front door. It computes the periodic orbit of the Galerkin system of
+:mod:`single_cilium.filament` with an orbit method of :mod:`single_cilium.orbit` (by name:
+``method="shooting"``, the default, single shooting with the exact monodromy of the compiled
+Radau IIA(5) period map; ``"newton-krylov"``, the previous Newton-Krylov shooting, kept as a
+cross-check), and does the rest once, against the orbit-solver contract:
 
-    Phi(y0, T) - y0 = 0,      theta_tip(y0) = c        (a Poincare section),
+* seeding: cycles at neighbouring chi_N (``seed``; with two or three, the secant or parabola
+  predictor of a continuation along the branch); otherwise the leading (Hopf) eigenvector of
+  :func:`single_cilium.stability`, scaled to the normal-form amplitude guess
+  ``0.85 sqrt(alpha)`` and relaxed for two periods; if Newton does not reach a genuine cycle
+  from there, the mode is grown by a transient, and while that is still near-linear (near the
+  cutoff) its measured growth ``alpha_eff(a) = alpha + l a^2`` gives the Hopf normal-form
+  amplitude ``a* = a sqrt(alpha / (alpha - alpha_eff))``;
+* the phase: phase 0 is the upward crossing of the tip angle ``theta(1)`` through its mean over
+  the cycle (found on the trigonometric interpolant of the tip angle; the orbit is then sampled
+  from there, and re-converged only if it does not close to 100 x the Newton tolerance);
+* averaging: the ``n_phase`` step ends are the uniform phase grid of the result, so cycle
+  averages are trapezoid sums of a periodic function (exponentially accurate in ``n_phase``
+  beyond the integrator's own order-5 error), over exactly one period;
+* the phase resolution: with ``n_phase=None`` (default) the orbit is converged at 32 steps per
+  period and re-converged at twice as many (from the same ``(y0, T)``: 1-2 Newton steps) until
+  the change of period, ``|Fbar|`` (relative) and thrust angle (absolute), divided by 15, is
+  below ``rtol / 2``; an implicit step that fails doubles the steps; the result says which
+  ``n_phase`` it chose. The time part of the error estimate is that change divided by 15
+  (Radau IIA is of order 5 at the step ends; 15 = 2^4 - 1 assumes order 4 at least, which the
+  tests check); the space part is the change when the degree is lowered by 2 (computed with
+  ``n_phase / 2`` steps, the orbit already at hand: time and space errors add to leading
+  order), an upper estimate as it is the error of the cheaper run;
+* Floquet multipliers: the eigenvalues of the monodromy (exact shooting) or Ritz values
+  (Newton-Krylov); ``floquet``, the largest non-trivial modulus, is at least ``exp(-T)``, the
+  kappa relaxation's essential multiplier (exact for kappa at the clamp).
 
-by Newton's method with GMRES on finite-difference products of the monodromy (Newton-Krylov):
-the system is stiff, so all but a handful of Floquet multipliers are ~0 and GMRES converges in
-a few iterations, far cheaper than forming the monodromy matrix or integrating through the
-transient (which near the flutter cutoff lasts hundreds of periods; see the benchmark).
-
-The ``N`` step ends are the uniform phase grid of the result, so cycle averages are trapezoid
-sums of a periodic function: exponentially accurate in ``N`` beyond the integrator's own
-order-5 error, and the averaging window is exactly one period.
-
-Phase 0 is the upward crossing of the tip angle ``theta(1)`` through its mean over the cycle.
-
-Seeds: the leading (Hopf) eigenvector of :func:`single_cilium.stability`, grown by a short
-transient; while the transient is still near-linear (near the cutoff) its measured growth
-``alpha_eff(a) = alpha + l a^2`` gives the Hopf normal-form amplitude ``a* = a sqrt(alpha /
-(alpha - alpha_eff))``; or a cycle of a neighbouring chi_N (:func:`limit_cycle`'s ``seed``).
+Results say how they ended in one way across :mod:`single_cilium`: ``status`` (``"success"``,
+``"inaccurate"`` when an error estimate exceeds what was asked, ``"no oscillation"``,
+``"unchecked"`` without error estimate) and a one-line ``message``; failures raise
+:class:`CycleError` with what to change.
 """
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import xarray as xr
 from scipy.optimize import brentq
-from scipy.sparse.linalg import LinearOperator, gmres
 
 from . import __version__
 from ._blas import single_threaded_blas
 from .equilibrium import NoLimitAngleError, limit_angle
 from .filament import Filament
 from .mesh import Mesh
+from .orbit import METHODS, Orbit, OrbitError, OrbitSolver
 from .params import CiliumParams
-from .radau import ConvergenceError, Radau
+from .radau import ConvergenceError
 from .stability import stability
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["limit_cycle", "LimitCycle", "CycleError"]
+__all__ = ["limit_cycle", "LimitCycle", "CycleError", "METHODS"]
+
+N_PHASE_START = 32
+N_PHASE_MAX = 1024
+#: the change under halving the steps, divided by this, estimates the time error: Radau IIA is of
+#: order 5 at the step ends; 2^4 - 1 assumes order 4 at least (the refinement test checks it)
+_RICHARDSON = 15.0
 
 
 class CycleError(ConvergenceError):
     """The periodic orbit could not be converged; the message says what to change."""
-
-
-@dataclass
-class _Work:
-    period_maps: int = 0
-    newton: int = 0
-    gmres: int = 0
 
 
 def _wrap(angle: float) -> float:
@@ -93,17 +108,29 @@ class LimitCycle:
     tip_area : float
         Signed area enclosed by the tip orbit (anticlockwise positive): the non-reciprocity.
     floquet_multipliers : (k,) complex
-        The trivial multiplier (flow direction) and Ritz estimates of the largest non-trivial
-        ones. ``floquet`` is the largest non-trivial modulus, at least ``exp(-T)`` (the kappa
-        relaxation's essential multiplier, exact for kappa at the clamp); ``floquet < 1``: the
-        cycle is stable. ``floquet_trivial_error`` is the distance of the trivial multiplier
-        from 1 (an accuracy diagnostic).
+        The trivial multiplier (flow direction) first, then the largest non-trivial ones by
+        modulus. ``floquet`` is the largest non-trivial modulus, at least ``exp(-T)``;
+        ``floquet < 1``: the cycle is stable. ``floquet_trivial_error`` is the distance of the
+        trivial multiplier from 1 (an accuracy diagnostic).
     errors : dict
         Estimates for ``period``, ``thrust_norm`` (relative) and ``thrust_angle`` (absolute,
-        radians): the change when the steps per period are halved (time) plus the change when
-        the degree is lowered by 2 (space); upper estimates, as each is the error of the cheaper run.
+        radians): the time part (the change when the steps per period are halved, divided by
+        15: order 4 at least is assumed, order 5 observed) plus the space part (the change when
+        the degree is lowered by 2, an upper estimate: the error of the cheaper run). The parts
+        are also given (``time``, ``space``: the largest of the three quantities).
     work : dict
-        Period maps, Newton and GMRES iterations.
+        Counters of the orbit method(s): period maps, orbit Newton iterations, Newton
+        iterations inside the implicit steps, factorisations (and GMRES iterations for
+        Newton-Krylov), summed over every solve this result needed.
+    status, message : str
+        ``"success"``, ``"inaccurate"`` (an error estimate above ``rtol``; the message says
+        which), ``"unchecked"`` (``error_estimate=False``), or ``"no oscillation"``.
+    state0 : (N,) array or None
+        The state at phase 0 (a seed for a neighbouring cycle).
+    method : str
+        The orbit method used.
+    n_phase : int
+        Steps per period (= phase points) of the result: chosen by the solver when not given.
     """
 
     params: CiliumParams
@@ -122,6 +149,8 @@ class LimitCycle:
     status: str = "success"
     message: str = ""
     state0: np.ndarray | None = None
+    method: str = ""
+    n_phase: int = 0
 
     @property
     def thrust_norm(self) -> float:
@@ -149,260 +178,42 @@ class LimitCycle:
                 "period_error": e.get("period", math.nan), "thrust_norm_error": e.get("thrust_norm", math.nan),
                 "thrust_angle_error": e.get("thrust_angle", math.nan),
                 "status": self.status, "message": self.message, "mesh": self.mesh.describe(),
-                "work": self.work}
+                "method": self.method, "n_phase": self.n_phase, "work": self.work}
 
 
-class _Shooter:
-    """Period map, Newton-Krylov shooting and post-processing on one discretisation."""
-
-    def __init__(self, params: CiliumParams, mesh: Mesh, n_phase: int):
-        self.fil = Filament(params, mesh)
-        self.solver = Radau(self.fil, rtol=1e-12, atol=1e-12 * self.fil.scale)
-        self.n_phase = int(n_phase)
-        self.scale = self.fil.scale
-        self.i_tip = self.fil.n - 2  # theta at the tip, in the state vector
-        self.work = _Work()
-        self._last = None  # the last period map: converged orbits are mapped by several steps
-
-    def pmap(self, y0, T):
-        key = (y0.tobytes(), float(T))
-        if self._last is not None and self._last[0] == key:
-            return self._last[1]
-        self.work.period_maps += 1
-        try:
-            Y, Yd, _ = self.solver.fixed(y0, T / self.n_phase, self.n_phase)
-        except ConvergenceError as exc:
-            raise CycleError(f"{exc}; the period is split into n_phase={self.n_phase} steps: "
-                             f"raise n_phase (e.g. to {2 * self.n_phase})", exc.t) from None
-        self._last = (key, (Y, Yd))
-        return Y, Yd
-
-    def shoot(self, y0, T, c, tol, max_newton=20):
-        """Newton-Krylov for Phi(y0, T) = y0 with theta_tip(y0) = c."""
-        N = y0.size
-        y0, T = y0.copy(), float(T)
-        for it in range(max_newton):
-            Y, _ = self.pmap(y0, T)
-            r = np.concatenate([(Y[-1] - y0) / self.scale, [y0[self.i_tip] - c]])
-            res = float(np.max(np.abs(r)))
-            logger.debug("shoot it %d: residual %.3e, T %.10g", it, res, T)
-            if not np.isfinite(res):
-                raise CycleError("the period map produced non-finite values", 0.0)
-            if res <= tol:
-                return y0, T, res
-            self.work.newton += 1
-            yend = Y[-1]
-
-            def matvec(v):
-                dy = v[:N] * self.scale
-                dT = v[N] * T
-                eps = 1e-7 / max(np.max(np.abs(v)), 1e-300)
-                Yp, _ = self.pmap(y0 + eps * dy, T + eps * dT)
-                return np.concatenate([((Yp[-1] - yend) / eps - dy) / self.scale, [dy[self.i_tip]]])
-
-            A = LinearOperator((N + 1, N + 1), matvec=matvec, dtype=float)
-            count = [0]
-
-            def cb(_):
-                count[0] += 1
-
-            # inexact Newton: the linear solve need only beat the current residual
-            forcing = min(1e-2, max(1e-6, res))
-            dx, info = gmres(A, -r, rtol=forcing, atol=0.0, restart=60, maxiter=2, callback=cb,
-                             callback_type="pr_norm")
-            self.work.gmres += count[0]
-            step_y, step_T = dx[:N] * self.scale, dx[N] * T
-            # damp wild steps (far from the orbit): keep the period positive, |dtheta| moderate
-            lam = 1.0
-            big = np.max(np.abs(step_y[: self.fil.n - 1]))
-            if big > 0.5:
-                lam = 0.5 / big
-            if T + lam * step_T <= 0.2 * T:
-                lam = min(lam, 0.8 * T / abs(step_T))
-            y0 = y0 + lam * step_y
-            T = T + lam * step_T
-        raise CycleError(f"Newton-Krylov shooting did not converge in {max_newton} iterations "
-                         f"(residual {res:.2e}); the seed may be too far from the cycle: give a seed "
-                         "from a neighbouring chi_N or raise the resolution", 0.0)
-
-    def rephase(self, y0, T):
-        """Move the start to phase 0: the upward crossing of theta_tip through its cycle mean."""
-        Y, _ = self.pmap(y0, T)
-        tip = Y[:-1, self.i_tip]
-        n = tip.size
-        coef = np.fft.rfft(tip) / n
-        mean = coef[0].real
-
-        def trig(t):  # trigonometric interpolant at time t in [0, T]
-            k = np.arange(coef.size)
-            w = np.where((k == 0) | ((n % 2 == 0) & (k == n // 2)), 1.0, 2.0)
-            return float(np.sum(w * (coef * np.exp(2j * np.pi * k * t / T)).real)) - mean
-
-        d = tip - mean
-        up = np.nonzero((d[:-1] < 0) & (d[1:] >= 0))[0]
-        if up.size == 0:
-            j = n - 1 if d[-1] < 0 <= d[0] else None
-            if j is None:
-                raise CycleError("the tip angle does not cross its mean: not an oscillation", 0.0)
-        else:
-            j = int(up[0])
-        h = T / n
-        t_star = brentq(trig, j * h, (j + 1) * h, xtol=1e-15 * T)
-        k0 = int(math.floor(t_star / h))
-        frac = t_star - k0 * h
-        y = Y[k0]
-        if frac > 0:
-            Ys, _, _ = self.solver.fixed(y, frac, 1)
-            y = Ys[-1]
-        return y
-
-    def observables(self, y0, T):
-        """Shape, drag and clamp force on the uniform phase grid (N points, phase 0 first)."""
-        Y, Yd = self.pmap(y0, T)
-        # derivatives from the collocation polynomial at each step end; at phase 0 the one at
-        # the end of the period (the orbit is closed)
-        Yd = np.concatenate([Yd[-1:], Yd[1:-1]])
-        Y = Y[:-1]
-        fil = self.fil
-        theta, kappa = fil.split(Y)
-        theta_t, _ = fil.split(Yd)
-        d = fil.drag(theta, theta_t)
-        return theta, kappa, fil.shape(theta), d, fil.clamp_force(d)
+# ------------------------------------------------------------------------------ helpers
+def _quantities(T: float, thrust: np.ndarray) -> tuple[float, float, float]:
+    return T, float(np.hypot(*thrust)), thrust_angle(*thrust)
 
 
-def _seed_from_eigenvector(st, y_eq, fil, T0, work):
-    """Grow the Hopf mode by a transient; extrapolate by the normal form while near-linear."""
-    v = fil.join(st.theta_modes[0], st.kappa_modes[0])
-    alpha = st.alpha
-    solver = Radau(fil, rtol=1e-9, atol=1e-9 * fil.scale)
-    a = 0.02
-    y = y_eq + a * np.real(v)
-    amps = []
-    n_sample = 24
-    for k in range(60):
-        Y, _, _ = solver.integrate(y, np.linspace(0.0, T0, n_sample + 1))
-        work.period_maps += 1
-        tip = Y[:, fil.n - 2]
-        amps.append(0.5 * (tip.max() - tip.min()))
-        y = Y[-1]
-        if len(amps) >= 3:
-            g_now = math.log(amps[-1] / amps[-2]) / T0
-            if abs(g_now) * T0 < 0.01 and g_now < 0.5 * alpha:
-                break  # saturated: the transient is on (or near) the cycle
-            if k >= 5 and g_now > 0.5 * alpha and g_now * T0 < 0.05:
-                # still near-linear and slow: Hopf normal form alpha_eff = alpha + l a^2
-                a_now = amps[-1]
-                if g_now < alpha:
-                    a_star = a_now * math.sqrt(alpha / (alpha - g_now))
-                else:
-                    a_star = 2 * a_now
-                y = y_eq + (a_star / a_now) * (y - y_eq)
-                break
-    return y
+def _differences(a, b) -> dict:
+    """Relative change of period and |Fbar|, absolute change of the angle, from a to b."""
+    return {"period": abs(b[0] - a[0]) / a[0], "thrust_norm": abs(b[1] - a[1]) / a[1],
+            "thrust_angle": abs(_wrap(b[2] - a[2]))}
 
 
-def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int = 10,
-                n_phase: int = 64, tol: float = 1e-10, seed: "LimitCycle | None" = None,
-                floquet: bool = True, error_estimate: bool = True) -> LimitCycle:
-    """The limit cycle of a fluttering filament, its period, averaged thrust and stability.
-
-    Parameters
-    ----------
-    params : CiliumParams
-    mesh : Mesh, optional
-        Default ``Mesh.for_params(params, degree)``.
-    n_phase : int
-        Constant steps per period = points of the uniform phase grid (>= 16).
-    tol : float
-        Newton tolerance on the scaled shooting residual.
-    seed : LimitCycle, optional
-        A converged cycle (e.g. at a neighbouring chi_N) to start from, instead of the Hopf
-        eigenvector and a transient.
-    floquet, error_estimate : bool
-        Compute the Floquet multipliers (17 period maps) / the refinement error
-        estimates (two more shooting solves from the converged cycle).
-
-    Returns
-    -------
-    LimitCycle
-        With ``flutter=False`` and zero thrust when the equilibrium is stable (no oscillation).
-
-    Raises
-    ------
-    CycleError
-        When the shooting does not converge (the message says what to change).
-    """
-    if not isinstance(params, CiliumParams):
-        raise TypeError(f"params must be a CiliumParams, got {type(params).__name__}")
-    if int(n_phase) != n_phase or n_phase < 16:
-        raise ValueError(f"n_phase must be an integer >= 16, got {n_phase}")
-    if not (0 < tol < 1e-3):
-        raise ValueError(f"tol must lie in (0, 1e-3), got {tol}")
-    mesh = mesh if mesh is not None else Mesh.for_params(params, degree)
-    try:
-        theta_lim = limit_angle(params)
-    except NoLimitAngleError:
-        theta_lim = math.nan
-    with single_threaded_blas():
-        st = stability(params, mesh=mesh, n_modes=2, check=False)
-        if st.regime != "flutter":
-            return LimitCycle(params, mesh, False, theta_lim=theta_lim, status="no oscillation",
-                              message=f"the equilibrium is {st.regime} (leading eigenvalue "
-                                      f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle, zero thrust")
-        sh = _Shooter(params, mesh, n_phase)
-        fil = sh.fil
-        y_eq = fil.equilibrium_state()
-        def converge(y0, T):
-            # section through the seed's orbit, away from the equilibrium's tip angle
-            Y, _ = sh.pmap(y0, T)
-            tip = Y[:, sh.i_tip]
-            k = int(np.argmin(np.abs(tip - 0.5 * (tip.max() + tip.min()))))
-            return sh.shoot(Y[k], T, float(Y[k][sh.i_tip]), tol)
-
-        y0 = None
-        if seed is not None and seed.flutter and seed.state0 is not None:
-            try:
-                y0, T, res = converge(_transfer(seed, fil), seed.period)
-            except ConvergenceError as exc:
-                logger.info("limit_cycle %s: seed did not converge (%s); starting from the Hopf mode", params, exc)
-                y0 = None
-        if y0 is None:
-            T = 2 * math.pi / st.beta
-            y0, T, res = converge(_seed_from_eigenvector(st, y_eq, fil, T, sh.work), T)
-        y0 = sh.rephase(y0, T)
-        y0, T, res = sh.shoot(y0, T, float(y0[sh.i_tip]), tol)
-        result = _assemble(params, mesh, sh, y0, T)
-        mults = np.zeros(0, complex)
-        fl = triv = math.nan
-        if floquet:
-            mults, fl, triv = _floquet(sh, y0, T)
-        errors = {}
-        if error_estimate:
-            errors = _error_estimates(params, mesh, n_phase, result, y0, T, tol)
-    work = {"period_maps": sh.work.period_maps, "newton": sh.work.newton, "gmres": sh.work.gmres}
-    msg = f"converged: shooting residual {res:.1e}"
-    return LimitCycle(params, mesh, True, T, result["data"], result["thrust"], theta_lim,
-                      result["tip_area"], mults, fl, triv, errors, work, "success", msg, y0)
+def _observables(fil: Filament, orbit: Orbit):
+    """Shape, drag and clamp force on the uniform phase grid (n_phase points, phase 0 first)."""
+    # rates from the collocation polynomial at each step end; at phase 0 the one at the end
+    # of the period (the orbit is closed)
+    Yd = np.concatenate([orbit.rates[-1:], orbit.rates[1:-1]])
+    Y = orbit.states[:-1]
+    theta, kappa = fil.split(Y)
+    theta_t, _ = fil.split(Yd)
+    d = fil.drag(theta, theta_t)
+    return theta, kappa, fil.shape(theta), d, fil.clamp_force(d)
 
 
-def _transfer(seed: LimitCycle, fil: Filament) -> np.ndarray:
-    """The seed's orbit point carried over as a deviation from its own equilibrium, added to
-    this problem's equilibrium (a raw copy would violate the new clamp/tip compatibility and
-    start a stiff initial layer)."""
-    sfil = Filament(seed.params, seed.mesh)
-    dth, dka = sfil.split(seed.state0 - sfil.equilibrium_state())
-    th, ka = fil.split(fil.equilibrium_state())
-    if seed.mesh != fil.mesh:
-        dth, dka = seed.mesh.interpolate(dth, fil.mesh.nodes), seed.mesh.interpolate(dka, fil.mesh.nodes)
-    return fil.join(th + dth, ka + dka)
+def _thrust(fil: Filament, orbit: Orbit) -> np.ndarray:
+    return _observables(fil, orbit)[4].mean(axis=0)
 
 
-def _assemble(params, mesh, sh: _Shooter, y0, T) -> dict:
-    theta, kappa, r, d, F = sh.observables(y0, T)
+def _assemble(params, mesh, fil, orbit: Orbit) -> dict:
+    theta, kappa, r, d, F = _observables(fil, orbit)
     Fbar = F.mean(axis=0)
     xt, yt = r[:, -1, 0], r[:, -1, 1]
     area = 0.5 * float(np.sum(xt * np.roll(yt, -1) - np.roll(xt, -1) * yt))
-    n = sh.n_phase
+    n = theta.shape[0]
     phase = np.arange(n) / n
 
     def var(dims, values, long_name):
@@ -422,85 +233,340 @@ def _assemble(params, mesh, sh: _Shooter, y0, T) -> dict:
         coords={"phase": ("phase", phase, {"long_name": "phase t/T from the upward crossing of the tip "
                                                         "angle through its cycle mean", "units": "1"}),
                 "s": ("s", mesh.nodes, {"long_name": "arc length / filament length", "units": "1"})},
-        attrs={"chi_E": params.chi_E, "eta": params.eta, "chi_N": params.chi_N, "period": T,
+        attrs={"chi_E": params.chi_E, "eta": params.eta, "chi_N": params.chi_N, "period": orbit.period,
                "package_version": __version__},
     )
     return {"data": data, "thrust": Fbar, "tip_area": area}
 
 
-def _floquet(sh: _Shooter, y0, T, m: int = 12, n_power: int = 3):
-    """Floquet multipliers of the cycle from finite-difference products with the monodromy.
+def _section_through(solver: OrbitSolver, y0, T) -> tuple[np.ndarray, float]:
+    """A point of the guessed orbit whose tip angle is mid-range (a section away from the
+    equilibrium's tip angle) and that tip angle."""
+    Y, _ = solver.orbit_states(y0, T)
+    tip = Y[:, solver.i_tip]
+    k = int(np.argmin(np.abs(tip - 0.5 * (tip.max() + tip.min()))))
+    return Y[k], float(Y[k][solver.i_tip])
 
-    The trivial multiplier belongs to the flow direction ``u = y'(0)``: it is measured as
-    ``u . A u / |u|^2`` (its distance from 1 is the accuracy diagnostic). The others are the
-    eigenvalues of ``A`` deflated by the projector onto ``u`` (``A`` is block triangular in
-    ``[u, u^perp]``): Ritz values of ``n_power`` power steps followed by an ``m``-step Arnoldi
-    run (``m + n_power + 2`` period maps). The monodromy of this stiff system has a cluster near
-    ``exp(-T)`` (the kappa relaxation; exactly ``exp(-T)`` for kappa at the clamp) and the rest
-    near 0, so the largest non-trivial modulus is resolved to a few digits.
+
+def _rephase(solver: OrbitSolver, orbit: Orbit) -> np.ndarray:
+    """The state at phase 0: the upward crossing of theta_tip through its cycle mean."""
+    Y, T = orbit.states, orbit.period
+    tip = Y[:-1, solver.i_tip]
+    n = tip.size
+    coef = np.fft.rfft(tip) / n
+    mean = coef[0].real
+    k = np.arange(coef.size)
+    wk = np.where((k == 0) | ((n % 2 == 0) & (k == n // 2)), 1.0, 2.0)
+
+    def trig(t):  # trigonometric interpolant at time t in [0, T], minus the mean
+        return float(np.sum(wk * (coef * np.exp(2j * np.pi * k * t / T)).real)) - mean
+
+    d = tip - mean
+    up = np.nonzero((d[:-1] < 0) & (d[1:] >= 0))[0]
+    if up.size == 0:
+        if not d[-1] < 0 <= d[0]:
+            raise CycleError("the tip angle does not cross its mean: not an oscillation", 0.0)
+        j = n - 1
+    else:
+        j = int(up[0])
+    h = T / n
+    t_star = brentq(trig, j * h, (j + 1) * h, xtol=1e-15 * T)
+    k0 = min(int(math.floor(t_star / h)), n - 1)
+    return solver.advance(Y[k0], t_star - k0 * h)
+
+
+def _seed_from_eigenvector(st, y_eq, fil, solver: OrbitSolver, T0):
+    """Grow the Hopf mode by a transient; extrapolate by the normal form while near-linear."""
+    v = fil.join(st.theta_modes[0], st.kappa_modes[0])
+    alpha = st.alpha
+    a = 0.02
+    y = y_eq + a * np.real(v)
+    amps = []
+    for k in range(60):
+        Y, _ = solver.orbit_states(y, T0)
+        tip = Y[:, fil.n - 2]
+        amps.append(0.5 * (tip.max() - tip.min()))
+        y = Y[-1]
+        if len(amps) >= 3:
+            g_now = math.log(amps[-1] / amps[-2]) / T0
+            if abs(g_now) * T0 < 0.01 and g_now < 0.5 * alpha:
+                break  # saturated: the transient is on (or near) the cycle
+            if k >= 5 and g_now > 0.5 * alpha and g_now * T0 < 0.05:
+                # still near-linear and slow: Hopf normal form alpha_eff = alpha + l a^2
+                a_now = amps[-1]
+                a_star = a_now * math.sqrt(alpha / (alpha - g_now)) if g_now < alpha else 2 * a_now
+                y = y_eq + (a_star / a_now) * (y - y_eq)
+                break
+    return y
+
+
+def _deviation(seed: "LimitCycle", fil: Filament) -> np.ndarray:
+    """The seed's phase-0 state as a deviation from its own equilibrium, on ``fil``'s nodes."""
+    sfil = Filament(seed.params, seed.mesh)
+    dth, dka = sfil.split(seed.state0 - sfil.equilibrium_state())
+    if seed.mesh != fil.mesh:
+        dth, dka = seed.mesh.interpolate(dth, fil.mesh.nodes), seed.mesh.interpolate(dka, fil.mesh.nodes)
+    return fil.join(dth, dka)
+
+
+def _predict(seeds: list["LimitCycle"], fil: Filament) -> tuple[np.ndarray, float]:
+    """Predictor from cycles at neighbouring chi_N: their phase-0 states carried over as
+    deviations from their own equilibria, added to this problem's equilibrium (a raw copy would
+    violate the new clamp/tip compatibility and start a stiff initial layer). With two or three
+    seeds the deviation and the period are extrapolated along the branch by the Lagrange
+    polynomial through them in chi_N (the secant, or a parabola), as long as the step is at most
+    twice their spacing; otherwise the nearest seed alone."""
+    c = fil.params.chi_N
+    seeds = sorted(seeds, key=lambda sd: abs(sd.params.chi_N - c))[:3]
+    x = np.array([sd.params.chi_N for sd in seeds])
+    y_eq = fil.equilibrium_state()
+    if len(set(x.tolist())) < len(x) or (len(x) > 1 and abs(c - x[0]) > 2 * np.ptp(x)):
+        seeds, x = seeds[:1], x[:1]
+    # Lagrange weights at c
+    w = np.array([np.prod([(c - x[j]) / (x[i] - x[j]) for j in range(len(x)) if j != i]) for i in range(len(x))])
+    dev = sum(wi * _deviation(sd, fil) for wi, sd in zip(w, seeds))
+    T = float(sum(wi * sd.period for wi, sd in zip(w, seeds)))
+    return y_eq + dev, T
+
+
+def _total_work(solvers: list[OrbitSolver]) -> dict:
+    total: dict = {}
+    for solver in solvers:
+        for k, v in solver.work.items():
+            total[k] = total.get(k, 0) + v
+    return total
+
+
+# ------------------------------------------------------------------------------ front door
+def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int = 10,
+                n_phase: int | None = None, tol: float = 1e-10, rtol: float = 1e-6,
+                method: str = "shooting", seed: "LimitCycle | Sequence[LimitCycle] | None" = None,
+                floquet: bool = True, error_estimate: bool = True) -> LimitCycle:
+    """The limit cycle of a fluttering filament, its period, averaged thrust and stability.
+
+    Parameters
+    ----------
+    params : CiliumParams
+    mesh : Mesh, optional
+        Default ``Mesh.for_params(params, degree)``.
+    n_phase : int, optional
+        Constant steps per period = points of the uniform phase grid (>= 16). Default: chosen
+        by the solver (doubling from 32 until the time error estimate is below ``rtol``).
+    tol : float
+        Newton tolerance on the scaled shooting residual.
+    rtol : float
+        Target of the time error estimate when ``n_phase`` is chosen, and the level above which
+        a result is reported ``"inaccurate"``: relative for period and ``|Fbar|``, absolute
+        (radians) for the thrust angle.
+    method : str
+        Orbit method, a key of :data:`single_cilium.orbit.METHODS`: ``"shooting"`` (exact
+        monodromy, default) or ``"newton-krylov"``.
+    seed : LimitCycle or sequence of LimitCycle, optional
+        Converged cycle(s) at neighbouring chi_N (same chi_E, eta) to start from instead of the
+        Hopf eigenvector: the nearest one's phase-0 state, or with two or three, their Lagrange
+        extrapolation along the branch (continuation in chi_N). If Newton does not converge from it, the
+        Hopf mode is used.
+    floquet, error_estimate : bool
+        Compute the Floquet multipliers (free with the exact monodromy; ``m + 5`` period maps
+        of Arnoldi with Newton-Krylov) / the error estimates (a re-converge at degree - 2 with
+        ``n_phase / 2`` steps; with a given ``n_phase`` also the time part from ``n_phase / 2``
+        steps). With ``n_phase=None`` the time part is always computed (it picks ``n_phase``).
+
+    Returns
+    -------
+    LimitCycle
+        With ``flutter=False`` and zero thrust when the equilibrium is stable (no oscillation).
+
+    Raises
+    ------
+    CycleError
+        When the orbit does not converge (the message says what to change).
     """
-    Y, Yd = sh.pmap(y0, T)
-    yend = Y[-1]
-    N = y0.size
+    if not isinstance(params, CiliumParams):
+        raise TypeError(f"params must be a CiliumParams, got {type(params).__name__}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {sorted(METHODS)}, got {method!r}")
+    if n_phase is not None and (int(n_phase) != n_phase or n_phase < 16):
+        raise ValueError(f"n_phase must be an integer >= 16 (or None: chosen by the solver), got {n_phase}")
+    if not (0 < tol < 1e-3):
+        raise ValueError(f"tol must lie in (0, 1e-3), got {tol}")
+    if not (0 < rtol < 1e-1):
+        raise ValueError(f"rtol must lie in (0, 0.1), got {rtol}")
+    mesh = mesh if mesh is not None else Mesh.for_params(params, degree)
+    try:
+        theta_lim = limit_angle(params)
+    except NoLimitAngleError:
+        theta_lim = math.nan
+    used: list[OrbitSolver] = []
 
-    def A(v):
-        eps = 1e-7 / max(np.max(np.abs(v)), 1e-300)
-        Yp, _ = sh.pmap(y0 + eps * v * sh.scale, T)
-        return (Yp[-1] - yend) / eps / sh.scale
+    def Method(f: Filament, n_steps: int) -> OrbitSolver:
+        solver = METHODS[method](f, n_steps)
+        used.append(solver)
+        return solver
 
-    u = Yd[-1] / sh.scale
-    u /= np.linalg.norm(u)
-    Au = A(u)
-    triv_mult = float(u @ Au)
+    with single_threaded_blas():
+        st = stability(params, mesh=mesh, n_modes=2, check=False)
+        if st.regime != "flutter":
+            return LimitCycle(params, mesh, False, theta_lim=theta_lim, status="no oscillation",
+                              message=f"the equilibrium is {st.regime} (leading eigenvalue "
+                                      f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle, zero thrust",
+                              method=method)
+        fil = Filament(params, mesh)
+        adaptive = n_phase is None
+        seeded = seed is not None and (isinstance(seed, LimitCycle) or len(seed) > 0)
+        if adaptive:
+            n = N_PHASE_START
+        else:
+            # without a seed, the orbit is found with half the steps (cheaper maps) and refined
+            # once, which also gives the time error estimate
+            n = int(n_phase) // 2 if (not seeded and int(n_phase) // 2 >= 16) else int(n_phase)
+        while True:
+            solver = Method(fil, n)
+            try:
+                orbit = _first_orbit(solver, fil, st, seed, tol, params)
+                break
+            except OrbitError as exc:
+                if not adaptive and exc.step_failed and n < n_phase:
+                    n = int(n_phase)  # the coarse start failed: straight to the steps asked for
+                    continue
+                if not (adaptive and exc.step_failed and 2 * n <= N_PHASE_MAX):
+                    if exc.step_failed:
+                        hint = (f"raise n_phase (e.g. to {2 * n})" if not adaptive else
+                                f"the implicit steps fail even at {n} steps per period: check the "
+                                "parameters or raise the degree")
+                    else:
+                        hint = "give a seed from a neighbouring chi_N or raise the degree"
+                    raise CycleError(f"{params}: {exc} (n_phase={n}); {hint}", exc.t) from None
+                logger.info("limit_cycle %s: %s at n_phase=%d; doubling", params, exc, n)
+                n *= 2
+        errors: dict = {}
+        c = float(orbit.state0[fil.n - 2])
+        q = _quantities(orbit.period, _thrust(fil, orbit))
+        time_err = None
+        half, q_half = None, None  # the orbit with n / 2 steps, for the error estimates
+        # the phase resolution: re-converge at 2n from (y0, T) until the time estimate is below rtol / 2
+        while (2 * n <= N_PHASE_MAX) if adaptive else (n < n_phase):
+            finer = Method(fil, 2 * n)
+            try:
+                orb2 = finer.converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
+            except OrbitError as exc:
+                if not exc.step_failed:
+                    raise CycleError(f"{params}: {exc} (refining to n_phase={2 * n})", exc.t) from None
+                logger.info("limit_cycle %s: refinement to n_phase=%d failed (%s)", params, 2 * n, exc)
+                n, solver, time_err, half = 2 * n, finer, None, None
+                try:
+                    orbit = _first_orbit(solver, fil, st, seed, tol, params)
+                except OrbitError as exc2:
+                    raise CycleError(f"{params}: {exc2} (n_phase={n})", exc2.t) from None
+                c = float(orbit.state0[fil.n - 2])
+                q = _quantities(orbit.period, _thrust(fil, orbit))
+                continue
+            q2 = _quantities(orb2.period, _thrust(fil, orb2))
+            time_err = {k: v / _RICHARDSON for k, v in _differences(q2, q).items()}
+            half, q_half = orbit, q
+            n, solver, orbit, q = 2 * n, finer, orb2, q2
+            if adaptive and max(time_err.values()) <= 0.5 * rtol:
+                break
+        if time_err is None and error_estimate:
+            half = Method(fil, n // 2).converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
+            q_half = _quantities(half.period, _thrust(fil, half))
+            time_err = {k: v / _RICHARDSON for k, v in _differences(q, q_half).items()}
+        # start at phase 0 (the same discrete orbit, sampled from there; re-converged only if
+        # the shifted start does not close to the Newton tolerance)
+        y0 = _rephase(solver, orbit)
+        shifted = solver.at_phase(y0, orbit)
+        if shifted.residual <= 100 * tol:
+            orbit = shifted
+        else:
+            orbit = solver.converge(y0, orbit.period, float(y0[fil.n - 2]), tol, jacobian=shifted)
+        T = orbit.period
+        result = _assemble(params, mesh, fil, orbit)
+        base = _quantities(T, result["thrust"])
+        mults = np.zeros(0, complex)
+        fl = triv = math.nan
+        if floquet:
+            mults = solver.multipliers(orbit)
+            triv = abs(mults[0] - 1.0)
+            fl = max(float(np.abs(mults[1])) if mults.size > 1 else 0.0, math.exp(-T))
+            mults = mults[:6]
+        if error_estimate or adaptive:
+            space_err = None
+            if error_estimate:
+                # degree - 2 against this degree, both with n / 2 steps when that orbit exists
+                # (time and space errors add to leading order; half the cost)
+                ref, q_ref = (half, q_half) if half is not None else (orbit, base)
+                m2 = Mesh(mesh.breaks, mesh.degree - 2)
+                fil2 = Filament(params, m2)
+                th, ka = fil.split(ref.state0)
+                y2 = fil2.join(mesh.interpolate(th, m2.nodes), mesh.interpolate(ka, m2.nodes))
+                o = Method(fil2, ref.n_steps).converge(y2, ref.period, float(y2[fil2.n - 2]), tol)
+                space_err = _differences(q_ref, _quantities(o.period, _thrust(fil2, o)))
+            for k in ("period", "thrust_norm", "thrust_angle"):
+                errors[k] = (time_err[k] if time_err else 0.0) + (space_err[k] if space_err else 0.0)
+            errors["time"] = max(time_err.values()) if time_err else math.nan
+            errors["space"] = max(space_err.values()) if space_err else math.nan
+    work = _total_work(used)
+    chose = f"n_phase={n} (chosen)" if adaptive else f"n_phase={n}"
+    msg = f"converged ({method}, {chose}, degree {mesh.degree}): shooting residual {orbit.residual:.1e}"
+    status = "success"
+    if not error_estimate:
+        status = "unchecked"
+        msg += "; no space error estimate (error_estimate=False)"
+    worst = max((errors.get(k, 0.0) for k in ("period", "thrust_norm", "thrust_angle")), default=0.0)
+    if errors:
+        msg += f"; error estimate {worst:.1e} (time {errors['time']:.1e}, space {errors['space']:.1e})"
+        if worst > rtol:
+            status = "inaccurate"
+            fix = ("raise n_phase" if errors["time"] >= errors.get("space", 0.0) or math.isnan(errors["space"])
+                   else "raise the degree")
+            msg += f"; above rtol={rtol:g}: {fix}"
+    return LimitCycle(params, mesh, True, T, result["data"], result["thrust"], theta_lim,
+                      result["tip_area"], mults, fl, triv, errors, work, status, msg, orbit.state0,
+                      method, n)
 
-    def B(v):
-        w = A(v - (u @ v) * u)
-        return w - (u @ w) * u
 
-    q = np.random.default_rng(12345).standard_normal(N)
-    q -= (u @ q) * u
-    for _ in range(n_power):
-        q = B(q / np.linalg.norm(q))
-    Q = np.zeros((N, m + 1))
-    H = np.zeros((m + 1, m))
-    Q[:, 0] = q / np.linalg.norm(q)
-    k_done = m
-    for j in range(m):
-        w = B(Q[:, j])
-        for _ in range(2):  # Gram-Schmidt, twice
-            c = Q[:, : j + 1].T @ w
-            H[: j + 1, j] += c
-            w -= Q[:, : j + 1] @ c
-        H[j + 1, j] = np.linalg.norm(w)
-        if H[j + 1, j] < 1e-12:
-            k_done = j + 1
-            break
-        Q[:, j + 1] = w / H[j + 1, j]
-    ritz = np.linalg.eigvals(H[:k_done, :k_done])
-    ritz = ritz[np.argsort(-np.abs(ritz))]
-    mults = np.concatenate([[triv_mult], ritz[:5]])
-    # the kappa relaxation's essential multiplier exp(-T) (exact for kappa at the clamp, which
-    # theta cannot drive) bounds the largest non-trivial modulus from below; Arnoldi resolves
-    # the cluster around it only slowly, so it is taken explicitly
-    return mults, max(float(np.abs(ritz[0])), math.exp(-T)), abs(triv_mult - 1.0)
+def _first_orbit(solver: OrbitSolver, fil: Filament, st, seed, tol, params) -> Orbit:
+    """Converge from the seed (or the Hopf mode), then move the start to phase 0 and re-converge.
+
+    Without a seed, the Hopf mode is first scaled to the amplitude guess ``0.85 sqrt(alpha)``
+    (max |theta| of the mode; the normal-form scaling, calibrated at chi_E = 200, eta = 1),
+    relaxed for two periods and handed to Newton; if that does not give a genuine cycle (no
+    convergence, or collapse onto the equilibrium), the mode is grown by a transient
+    (:func:`_seed_from_eigenvector`).
+    """
+    T0 = 2 * math.pi / st.beta
+    orbit = None
+    seeds = [sd for sd in ([seed] if isinstance(seed, LimitCycle) else list(seed or []))
+             if sd.flutter and sd.state0 is not None]
+    if seeds:
+        try:
+            y, T = _predict(seeds, fil)
+            orbit = _genuine(solver, solver.converge(y, T, float(y[solver.i_tip]), tol), T)
+        except ConvergenceError as exc:
+            logger.info("limit_cycle %s: seed did not converge (%s); starting from the Hopf mode", params, exc)
+    y_eq = fil.equilibrium_state()
+    if orbit is None:
+        v = np.real(fil.join(st.theta_modes[0], st.kappa_modes[0]))
+        v = v / np.max(np.abs(v[: fil.n - 1]))
+        a = min(1.2, 0.85 * math.sqrt(max(st.alpha, 0.0)))
+        try:
+            y = y_eq + a * v
+            for _ in range(2):
+                y = solver.orbit_states(y, T0)[0][-1]
+            y, c = _section_through(solver, y, T0)
+            orbit = _genuine(solver, solver.converge(y, T0, c, tol, max_newton=12), T0)
+        except ConvergenceError as exc:  # (a failed step too: the transient below starts smaller)
+            logger.info("limit_cycle %s: the scaled Hopf mode did not converge (%s); growing it", params, exc)
+    if orbit is None:
+        y, c = _section_through(solver, _seed_from_eigenvector(st, y_eq, fil, solver, T0), T0)
+        orbit = _genuine(solver, solver.converge(y, T0, c, tol), T0)
+    return orbit
 
 
-def _error_estimates(params, mesh, n_phase, result, y0, T, tol) -> dict:
-    """Re-converge with half the steps (time) and with the degree lowered by 2 (space)."""
-    def quantities(res_T, thrust):
-        return res_T, float(np.hypot(*thrust)), thrust_angle(*thrust)
-
-    base = quantities(T, result["thrust"])
-    diffs = {"period": 0.0, "thrust_norm": 0.0, "thrust_angle": 0.0}
-    variants = [(mesh, n_phase // 2), (Mesh(mesh.breaks, mesh.degree - 2), n_phase)]
-    for m, n in variants:
-        sh = _Shooter(params, m, n)
-        fil0 = Filament(params, mesh)
-        th, ka = fil0.split(y0)
-        yv = sh.fil.join(mesh.interpolate(th, m.nodes), mesh.interpolate(ka, m.nodes)) if m != mesh else y0
-        yv, Tv, _ = sh.shoot(yv, T, float(yv[sh.i_tip]), tol)
-        other = quantities(Tv, _assemble(params, m, sh, yv, Tv)["thrust"])
-        diffs["period"] += abs(other[0] - base[0]) / base[0]
-        diffs["thrust_norm"] += abs(other[1] - base[1]) / base[1]
-        diffs["thrust_angle"] += abs(_wrap(other[2] - base[2]))
-    return diffs
+def _genuine(solver: OrbitSolver, orbit: Orbit, T_guess: float) -> Orbit:
+    """Refuse a collapse onto the equilibrium (any period, zero amplitude) or a far-off period."""
+    tip = orbit.states[:, solver.i_tip]
+    if not (0.4 * T_guess < orbit.period < 2.5 * T_guess) or np.ptp(tip) < 1e-7:
+        raise OrbitError(f"Newton converged to a degenerate orbit (period {orbit.period:.3g}, tip amplitude "
+                         f"{np.ptp(tip):.2g}) instead of the cycle")
+    return orbit

@@ -1,12 +1,16 @@
 """The thrust lookup table over the natural curvature chi_N, for one field (chi_E, eta).
 
 :func:`build_table` computes limit cycles (:func:`~single_cilium.cycle.limit_cycle`) on a grid
-of chi_N by continuation (each worker walks a contiguous chunk of the grid, seeding every cycle
-from its neighbour), in parallel on any ``concurrent.futures.Executor`` (default: a local
-process pool; with ``scheduler=ADDRESS``, a Dask distributed cluster through its executor). It
-finds the flutter cutoff (:func:`~single_cilium.stability.flutter_cutoff`) and puts a row
-exactly there. With ``path`` every finished row is kept on disk at once, so an interrupted
-build resumes where it stopped.
+of chi_N by continuation: each worker walks a contiguous chunk of the grid (chunks of equal
+work, one per core), predicting every cycle from the last three by a parabola in chi_N, so that
+a row costs two Newton steps with the exact monodromy plus its error estimates. It runs on any
+``concurrent.futures.Executor`` (default: a local process pool; with ``scheduler=ADDRESS``, a
+Dask distributed cluster through its executor). It finds the flutter cutoff
+(:func:`~single_cilium.stability.flutter_cutoff`) and puts a row exactly there. With ``path``
+every finished row is kept on disk at once (with ``build_*`` attributes recording the field,
+settings and package version it was computed for), so an interrupted build resumes where it
+stopped; rows of a build with any other field or settings are refused, never merged, and rows
+outside the requested grid are ignored.
 
 :class:`ThrustTable` wraps the Dataset of DESIGN.md (schema below), validates it on load,
 interpolates it smoothly in chi_N (cubic splines on the flutter branch; for the shapes and
@@ -37,7 +41,7 @@ from scipy.optimize import brentq
 
 from . import __version__
 from ._io import write_netcdf
-from .cycle import LimitCycle, limit_cycle
+from .cycle import CycleError, LimitCycle, limit_cycle
 from .equilibrium import NoLimitAngleError, limit_angle
 from .params import CiliumParams
 from .progress import Progress
@@ -100,29 +104,101 @@ def _row(params: CiliumParams, cyc: LimitCycle | None, s_grid: np.ndarray, n_pha
     return ds.expand_dims(chi_N=[params.chi_N])
 
 
+def _fingerprint(chi_E: float, eta: float, settings: dict) -> dict:
+    """What a stored row was computed for (attrs ``build_*`` of each row file): a resumed build
+    reuses a row only if all of these match."""
+    return {"build_chi_E": float(chi_E), "build_eta": float(eta), "build_degree": int(settings["degree"]),
+            "build_n_phase": int(settings["n_phase"]), "build_n_s": len(settings["s"]),
+            "build_error_estimate": int(bool(settings.get("error_estimate", True))),
+            "build_tol": float(settings.get("tol", 1e-8)),
+            "build_method": str(settings.get("method", "shooting")), "build_package_version": __version__}
+
+
+def _resume(parts: Path, grid: np.ndarray, want: dict) -> dict[float, xr.Dataset]:
+    """Rows of an interrupted build in ``parts`` that match the request; refuse any other."""
+    done: dict[float, xr.Dataset] = {}
+    wanted = set(grid.tolist())
+    for f in sorted(parts.glob("row_*.nc")):
+        try:
+            with xr.open_dataset(f, engine="h5netcdf") as r:
+                r = r.load()
+        except (OSError, ValueError):
+            f.unlink()  # a row file cut short by the interruption
+            continue
+        got = {k: r.attrs.get(k) for k in want}
+        bad = [k for k in want if not _same(got[k], want[k])]
+        if bad:
+            def show(v):
+                return repr(v.item() if isinstance(v, np.generic) else v)
+
+            diff = ", ".join(f"{k[6:]} = {show(got[k])} (asked {show(want[k])})" for k in bad)
+            raise TableError(f"{f}: a row of an interrupted build with other settings ({diff}); it is not "
+                             f"merged into this table: remove {parts} (or build into another path) to "
+                             "start afresh, or repeat the original request to resume it")
+        c = float(r.chi_N.values[0])
+        if c in wanted:  # rows outside the requested grid are never merged in
+            done[c] = r
+    return done
+
+
+def _same(got, want) -> bool:
+    """A stored attribute equals the requested value (of the same kind)."""
+    if got is None:
+        return False
+    try:
+        if isinstance(want, str):
+            return str(got) == want
+        return type(want)(got) == want
+    except (TypeError, ValueError):
+        return False
+
+
 def _chunk(args):
     """Compute a contiguous run of rows by continuation; write each row to ``parts`` if given."""
     chi_E, eta, chi_Ns, settings, parts = args
     degree, n_phase, s_grid = settings["degree"], settings["n_phase"], np.asarray(settings["s"])
-    rows, seed = [], None
+    rows, seeds = [], []
     for cN in chi_Ns:
         p = CiliumParams(chi_E, eta, cN)
         st = stability(p, degree=degree, check=False, n_modes=1)
         cyc = None
         if st.regime == "flutter":
-            cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seed,
-                              error_estimate=settings.get("error_estimate", True))
-            seed = cyc
+            # continuation: the parabola through the last three cycles predicts this one
+            try:
+                cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seeds[-3:], tol=settings.get("tol", 1e-8),
+                                  error_estimate=settings.get("error_estimate", True))
+            except CycleError as exc:
+                err = CycleError(f"thrust table (chi_E = {chi_E:g}, eta = {eta:g}): the cycle at chi_N = {cN:.10g} "
+                                 f"did not converge ({exc})", exc.t)
+                err.chi_N = float(cN)
+                raise err from None
+            seeds.append(cyc)
+        else:
+            seeds = []
         row = _row(p, cyc, s_grid, n_phase, st.alpha, st.beta)
+        row.attrs.update(_fingerprint(chi_E, eta, settings))
         if parts is not None:
             write_netcdf(row, Path(parts) / f"row_{cN:.17g}.nc")
         rows.append(row)
     return rows
 
 
+def _balanced_chunks(todo: np.ndarray, chi_c: float, n_chunks: int) -> list[list[float]]:
+    """Contiguous runs of the grid (each continued from its own start), one per worker, of equal
+    work: a flutter row (below the cutoff) costs a cycle, a stable row about 5 % of one."""
+    if todo.size == 0:
+        return []
+    weight = np.where(todo < chi_c, 1.0, 0.05) if np.isfinite(chi_c) else np.ones(todo.size)
+    n_chunks = max(1, min(todo.size, n_chunks))
+    cum = np.cumsum(weight)
+    edges = np.searchsorted(cum, cum[-1] * np.arange(1, n_chunks) / n_chunks, side="right")
+    return [c.tolist() for c in np.split(todo, edges) if c.size]
+
+
 def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64, n_s: int = 65,
                 executor: Executor | None = None, scheduler: str | None = None,
-                progress: Progress | None = None, path=None, error_estimate: bool = True) -> "ThrustTable":
+                progress: Progress | None = None, path=None, error_estimate: bool = True,
+                tol: float = 1e-8) -> "ThrustTable":
     """Compute the thrust table of DESIGN.md over ``chi_N`` (>= 0, strictly increasing).
 
     Parameters
@@ -143,6 +219,9 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
         so a rerun after an interruption computes only the missing rows.
     error_estimate : bool
         Refinement error estimates per row (about doubles the cost); NaN without.
+    tol : float
+        Newton tolerance of each cycle on the scaled shooting residual (the row's quantities
+        then carry errors of about that size, far below the discretisation error estimates).
     """
     base = CiliumParams(chi_E, eta, 0.0)
     grid = np.atleast_1d(np.asarray(chi_N, dtype=float))
@@ -159,21 +238,18 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
     if np.isfinite(chi_c) and grid[0] < chi_c < grid[-1]:
         grid = np.unique(np.concatenate([grid[np.abs(grid - chi_c) > 1e-9 * chi_c], [chi_c]]))
     s_grid = np.linspace(0.0, 1.0, int(n_s))
+    if not (0 < tol < 1e-3):
+        raise ValueError(f"tol must lie in (0, 1e-3), got {tol}")
     settings = {"degree": int(degree), "n_phase": int(n_phase), "s": s_grid.tolist(),
-                "error_estimate": bool(error_estimate)}
+                "error_estimate": bool(error_estimate), "tol": float(tol)}
     parts = None
     done: dict[float, xr.Dataset] = {}
     if path is not None:
         parts = Path(str(path) + ".parts")
         parts.mkdir(parents=True, exist_ok=True)
-        for f in parts.glob("row_*.nc"):
-            try:
-                with xr.open_dataset(f, engine="h5netcdf") as r:
-                    r = r.load()
-                if r.sizes.get("phase") == n_phase and r.sizes.get("s") == n_s:
-                    done[float(r.chi_N.values[0])] = r
-            except (OSError, ValueError):
-                f.unlink()  # a row file cut short by the interruption
+        done = _resume(parts, grid, _fingerprint(base.chi_E, base.eta, settings))
+        if done:
+            logger.info("build_table: resuming %s, %d of %d rows done", parts, len(done), grid.size)
     todo = [c for c in grid if not (np.isfinite(chi_c) and c == chi_c) and c not in done]
     rows = dict(done)
     if np.isfinite(chi_c) and chi_c in grid:
@@ -194,15 +270,23 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
 
             own = executor = ProcessPoolExecutor(max_workers=os.cpu_count() or 1)
     try:
-        n_chunks = max(1, min(len(todo), 2 * (os.cpu_count() or 1)))
-        chunks = [c.tolist() for c in np.array_split(np.array(todo), n_chunks) if c.size]
+        chunks = _balanced_chunks(np.array(todo), chi_c, os.cpu_count() or 1)
         tasks = [(base.chi_E, base.eta, c, settings, str(parts) if parts else None) for c in chunks]
         finished = len(grid) - len(todo)
-        for res in executor.map(_chunk, tasks):
-            for r in res:
-                rows[float(r.chi_N.values[0])] = r
-            finished += len(res)
-            progress.update(finished)
+        try:
+            for res in executor.map(_chunk, tasks):
+                for r in res:
+                    rows[float(r.chi_N.values[0])] = r
+                finished += len(res)
+                progress.update(finished)
+        except CycleError as exc:
+            failed = getattr(exc, "chi_N", math.inf)
+            good = set(rows) | ({float(f.name[4:-3]) for f in parts.glob("row_*.nc")} if parts else set())
+            before = [c for c in good if c < failed]
+            last = f"chi_N = {max(before):.10g}" if before else "none"
+            kept = (f"; the finished rows are kept in {parts}, and the same request resumes from them"
+                    if parts is not None else "")
+            raise CycleError(f"{exc}; last good row before it: {last}{kept}", exc.t) from None
     finally:
         progress.close()
         if own is not None:
@@ -213,7 +297,8 @@ def build_table(chi_E: float, eta: float, chi_N, *, degree: int = 8, n_phase: in
         "chi_E": base.chi_E, "eta": base.eta, "chi_N_cutoff": chi_c, "chi_N_cutoff_error": cut.error,
         "schema_version": SCHEMA_VERSION, "package_version": __version__,
         "field_direction": "e2 (angles anticlockwise from e2)",
-        "discretisation": f"Mesh.for_params(params, degree={degree}); {n_phase} Radau IIA(5) steps per period",
+        "discretisation": f"Mesh.for_params(params, degree={degree}); {n_phase} Radau IIA(5) steps per period; "
+                          f"shooting (exact monodromy) to a scaled residual of {tol:g}",
         "thrust_convention": "thrust = mean force on the fluid -<int d ds>; thrust_angle = phi_Fbar - pi",
     })
     table = ThrustTable(_with_attrs(ds))
@@ -291,6 +376,14 @@ class ThrustTable:
         for k in ("chi_E", "eta"):
             if k not in ds.attrs:
                 raise TableError(f"{source}: attribute {k!r} missing")
+            v = ds.attrs[k]
+            try:
+                ok = np.ndim(v) == 0 and not isinstance(v, (str, bytes)) and math.isfinite(float(v))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok or (k == "eta" and float(v) <= 0):
+                need = "a finite number > 0" if k == "eta" else "a finite number"
+                raise TableError(f"{source}: attribute {k!r} = {v!r} is not {need}")
         c = ds.chi_N.values
         if c.size == 0 or np.any(~np.isfinite(c)) or np.any(np.diff(c) <= 0):
             raise TableError(f"{source}: chi_N coordinate must be finite and strictly increasing")

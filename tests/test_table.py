@@ -176,3 +176,70 @@ def test_vectorised_cycles_and_scalars_match_at():
         t.scalar("thrust_x", np.nan)
     with pytest.raises(KeyError, match="scalar column"):
         t.scalar("x", 1.0)
+
+
+def _interrupted(tmp_path, grid, chi_E=200.0):
+    """A build into ``t.nc`` whose rows are left in ``t.nc.parts`` as an interruption leaves them."""
+    path = tmp_path / "t.nc"
+    parts = tmp_path / "t.nc.parts"
+    with ThreadPoolExecutor(1) as ex:
+        first = build_table(chi_E, 1, grid, executor=ex, **FAST)
+    parts.mkdir()
+    for c in grid:
+        first.ds.sel(chi_N=[c]).drop_vars(["phase", "s"]).to_netcdf(parts / f"row_{c:.17g}.nc", engine="h5netcdf")
+    return path, parts
+
+
+def test_resume_refuses_rows_of_another_field(tmp_path):
+    """Issue 11 item 2: rows computed for chi_E = 200 are never merged into a chi_E = 220 table."""
+    path, parts = _interrupted(tmp_path, [150.0])
+    with pytest.raises(TableError, match=r"row_150.nc: .*other settings \(chi_E = 200.0 \(asked 220.0\)\).*remove"):
+        build_table(220, 1, [150.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert not path.exists() and (parts / "row_150.nc").exists()  # nothing written, nothing lost
+    # other discretisation settings are refused the same way
+    with pytest.raises(TableError, match=r"n_phase = 32 \(asked 16\)"):
+        build_table(200, 1, [150.0], executor=ThreadPoolExecutor(1), path=path, **{**FAST, "n_phase": 16})
+
+
+def test_resume_ignores_rows_outside_the_grid(tmp_path):
+    path, parts = _interrupted(tmp_path, [150.0])
+    with ThreadPoolExecutor(1) as ex:
+        t = build_table(200, 1, [155.0], executor=ex, path=path, **FAST)
+    assert t.ds.chi_N.values.tolist() == [155.0]
+
+
+@pytest.mark.parametrize("value", [float("nan"), "two hundred", float("inf")])
+def test_table_attribute_not_a_number(tmp_path, small, value):
+    """Issue 11 item 9: a table whose chi_E is NaN or not a number fails validation, naming the
+    file and the attribute."""
+    t, _ = small
+    bad = tmp_path / "bad.nc"
+    ds = t.ds.copy()
+    ds.attrs["chi_E"] = value
+    ds.to_netcdf(bad, engine="h5netcdf")
+    with pytest.raises(TableError, match=rf"{bad.name}: attribute 'chi_E' = .* is not a finite number"):
+        ThrustTable.load(bad)
+
+
+def test_failed_row_names_the_last_good_row(tmp_path, monkeypatch):
+    """A continuation that fails reports the row and the last good one; the rows before it are
+    kept, and the same request resumes from them."""
+    import single_cilium.table as table_mod
+    from single_cilium.cycle import CycleError
+
+    real = table_mod.limit_cycle
+
+    def failing(p, **kw):
+        if p.chi_N == 155.0:
+            raise CycleError("injected failure", 0.0)
+        return real(p, **kw)
+
+    monkeypatch.setattr(table_mod, "limit_cycle", failing)
+    path = tmp_path / "t.nc"
+    with pytest.raises(CycleError, match=r"chi_N = 155 did not converge .*last good row before it: "
+                                         r"chi_N = 150.*resumes"):
+        build_table(200, 1, [150.0, 155.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert (tmp_path / "t.nc.parts" / "row_150.nc").exists() and not path.exists()
+    monkeypatch.setattr(table_mod, "limit_cycle", real)
+    t = build_table(200, 1, [150.0, 155.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert t.ds.sizes["chi_N"] == 2 and path.exists()
