@@ -24,6 +24,7 @@ from .progress import TqdmProgress
 from .radau import ConvergenceError
 from .stability import flutter_boundary, flutter_cutoff, stability, stability_map
 from .cycle import limit_cycle
+from .orbit import METHODS
 
 logger = logging.getLogger(__name__)
 
@@ -131,8 +132,8 @@ def cmd_map(args) -> dict:
 
 
 def cmd_cycle(args) -> dict:
-    c = limit_cycle(_params(args), degree=args.degree, n_phase=args.n_phase,
-                    error_estimate=not args.no_error_estimate)
+    c = limit_cycle(_params(args), degree=args.degree, n_phase=args.n_phase, rtol=args.rtol,
+                    method=args.method, error_estimate=not args.no_error_estimate)
     if args.output and c.data is not None:
         from ._io import write_netcdf
 
@@ -198,8 +199,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     py = sub.add_parser("cycle", help="limit cycle: period, averaged thrust, Floquet multipliers")
     _add_params(py)
-    py.add_argument("--degree", type=int, default=8, help="polynomial degree per element (default 8)")
-    py.add_argument("--n-phase", dest="n_phase", type=int, default=64, help="steps per period (default 64)")
+    py.add_argument("--degree", type=int, default=10, help="polynomial degree per element (default 10)")
+    py.add_argument("--n-phase", dest="n_phase", type=int, default=None,
+                    help="steps per period (default: chosen from the time error estimate)")
+    py.add_argument("--rtol", type=float, default=1e-6,
+                    help="relative accuracy asked of period, |Fbar| and angle (default 1e-6)")
+    py.add_argument("--method", choices=sorted(METHODS), default="shooting",
+                    help="orbit solver (default shooting: exact-monodromy shooting; newton-krylov: the "
+                         "previous solver, kept as a cross-check)")
     py.add_argument("--no-error-estimate", action="store_true")
     py.add_argument("-o", "--output", help="NetCDF file with the cycle over one period")
     py.add_argument("--json", action="store_true")
