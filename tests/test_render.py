@@ -95,18 +95,6 @@ def _scene_file(tmp_path, body, name="s.toml"):
     return p
 
 
-def test_unreachable_scene_is_an_error(tmp_path):
-    p = _scene_file(tmp_path, '[carpet]\nshape = [3, 3]\n[target]\nkind = "uniform"\nangle = 85.0\n')
-    with pytest.raises(TargetError, match="reachable|range"):
-        design(load_scene(p))
-    p = _scene_file(tmp_path, '[carpet]\nshape = [4, 4]\n[target]\nkind = "focus"\nangle = 50.0\nwidth = 0.5\n'
-                    'residual = 0.001\n', "narrow.toml")
-    with pytest.raises(DesignError, match="cannot make this target"):
-        design(load_scene(p))
-    assert main(["render", str(p), "-o", str(tmp_path / "o")]) == 3
-    assert not (tmp_path / "o").exists()
-
-
 def test_output_folder_is_kept_and_atomic(tmp_path, monkeypatch):
     p = _scene_file(tmp_path, '[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 4\nperiods = 1.0\nfield_shape = [8, 8]\n'
                     'snapshots = 1\nframes = 2\npreview = false\n')

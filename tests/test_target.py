@@ -208,7 +208,12 @@ def test_control_points():
     assert np.allclose(control_points(b, fr, t), cil)
     hexa = layout.hexagonal(5, 4, spacing=2.0)
     hc = control_points(hexa, Frame.from_bases(hexa, 2.0, 0.0), "cells")
-    assert 6 <= hc.shape[0] < 20
+    # the triangle centres of a hexagonal lattice: 2 per rhombus, each 2/sqrt(3) from three bases
+    assert hc.shape[0] == 2 * 4 * 3
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(hexa).query(hc, k=4)
+    assert np.allclose(d[:, :3], 2.0 / math.sqrt(3)) and np.all(d[:, 3] > 2.0 / math.sqrt(3) + 0.5)
     with pytest.raises(TargetError):
         control_points(b, fr, "corners")
 
