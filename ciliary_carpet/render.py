@@ -269,6 +269,12 @@ def _markdown(s: dict) -> str:
                      f"{dd['residual_max']:.3g}; local layout {dd['local_rms']:.3g}; returned the {dd['returned']} "
                      f"layout; {dd['cilia_near_cutoff']} of {s['n_cilia']} cilia near the flutter cutoff; "
                      f"{dd['work']['iterations']} L-BFGS-B iterations, {dd['work']['checks']} full-model checks")
+        if "tolerance" in dd:
+            tt = dd["tolerance"]
+            lines.append(f"- fabrication tolerance (relative chi_N error sigma = {tt['sigma']:g}, {tt['samples']} "
+                         f"samples): expected rms residual {tt['mean_rms']:.3g} +- {tt['sampling_error']:.1g} "
+                         f"(spread {tt['std_rms']:.2g}; 10-90%: {tt['p10_rms']:.3g}..{tt['p90_rms']:.3g}); "
+                         f"nominal {tt['nominal_rms']:.3g}")
     if "mean_field" in s:
         m = s["mean_field"]
         fid = ", ".join(f"{k} {v:.1%}" for k, v in m["fidelity"].items())
@@ -315,7 +321,7 @@ def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
 
     X, b = d.control, carpet.bases
     lim = float(carpet.table.flutter_range[1])
-    fig, axs = plt.subplots(1, 3, figsize=(16, 5.6))
+    fig, axs = plt.subplots(1, 3, figsize=(17, 6.2))
     h = float(np.median(np.linalg.norm(np.diff(X, axis=0), axis=1))) if len(X) > 1 else 1.0
     scale = 0.8 * max(h, 0.5)
 
@@ -327,26 +333,27 @@ def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
 
     ax = axs[0]
     ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=14, zorder=1)
-    arrows(ax, d.target, color="0.55", width=0.006, zorder=2, label="target")
+    arrows(ax, d.target, color="0.6", width=0.009, zorder=2, label="target")
     arrows(ax, d.achieved, color="tab:blue", width=0.0035, zorder=3, label="achieved")
-    ax.legend(loc="upper right", fontsize=8)
-    ax.set_title("flow direction: target (grey) vs achieved (blue)", fontsize=10)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2, fontsize=8)
+    ax.set_title("mean-flow direction at the control points\ntarget (grey) vs achieved (blue), over chi_N",
+                 fontsize=10)
     ax = axs[1]
     unit = "rad" if d.kind == "angle" else "relative"
     sc = ax.scatter(X[:, 0], X[:, 1], c=d.residual, cmap="magma_r", vmin=0, s=40, marker="s")
     ax.scatter(b[:, 0], b[:, 1], c="0.7", s=6)
     fig.colorbar(sc, ax=ax, label=f"residual [{unit}]", shrink=0.85)
-    ax.set_title(f"residual per control point: rms {d.residual_rms:.3g} {unit}, worst {d.residual.max():.3g}",
-                 fontsize=10)
+    ax.set_title(f"residual per control point\nrms {d.residual_rms:.3g} {unit} (+- {d.residual_error:.1g}), worst "
+                 f"{d.residual.max():.3g}", fontsize=10)
     ax = axs[2]
     sc = ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=40)
     nc = list(d.near_cutoff)
     if nc:
         ax.scatter(b[nc, 0], b[nc, 1], facecolors="none", edgecolors="k", s=110, lw=1.2,
                    label=f"{len(nc)} near the flutter cutoff")
-        ax.legend(loc="upper right", fontsize=8)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8)
     fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.85)
-    ax.set_title(f"layout: chi_N (cutoff +-{lim:.5g}); returned the {d.returned} layout", fontsize=10)
+    ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g})\nreturned: the {d.returned} layout", fontsize=10)
     for ax in axs:
         ax.set_aspect("equal")
         ax.set_xlabel("x / L")

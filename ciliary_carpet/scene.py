@@ -20,7 +20,7 @@ Sections (all optional)::
     [table]     file   (+ [table.build] n, degree)
     [carpet]    lattice, shape, spacing, origin, points, chi_N, phases, seed, wave_vector, wall
     [target]    kind, angle, line, width, centre, file, control, residual, strict,
-                speed_floor, smoothness
+                speed_floor, smoothness, sigma, samples
     [output]    pathlines, seeds, n_seeds, periods, field, field_shape, field_margin,
                 snapshots, frames, preview
     [units]     length_m, time_s, viscosity_Pa_s
@@ -480,6 +480,11 @@ class TargetSpec:
         carpet's speed, along the target direction (:mod:`ciliary_carpet.design`).
     smoothness : float >= 0, default 0
         Weight of the neighbour-difference regulariser of the layout (fabrication cost).
+    sigma : float >= 0, default 0
+        Relative fabrication error of chi_N: with sigma > 0 the design reports the expected
+        residual and its spread (:func:`~ciliary_carpet.design.tolerance_study`).
+    samples : int >= 1, default 64
+        Samples of that study.
     residual : float > 0, default 0.05
         Acceptance threshold on the overall (rms) residual of the design: radians for angle
         targets, relative to rms |U| for "points".
@@ -496,6 +501,8 @@ class TargetSpec:
     strict: bool = False
     speed_floor: float = 0.3
     smoothness: float = 0.0
+    sigma: float = 0.0
+    samples: int = 64
 
     def __post_init__(self) -> None:
         _validate(self, _target_kw)
@@ -699,6 +706,8 @@ _TARGET_ONLY = {
     "strict": ("uniform", "points") + PATTERNS,
     "speed_floor": ("uniform",) + PATTERNS,
     "smoothness": ("uniform", "points") + PATTERNS,
+    "sigma": ("uniform", "points") + PATTERNS,
+    "samples": ("uniform", "points") + PATTERNS,
 }
 
 
@@ -854,7 +863,8 @@ def _target_kw(src, data, base_dir=None) -> dict:
         centre=r.pair("centre", None), file=file, control=control,
         residual=r.number("residual", 0.05, lo=0, lo_open=True), strict=r.boolean("strict", False),
         speed_floor=r.number("speed_floor", 0.3, lo=0, hi=1, hi_open=True),
-        smoothness=r.number("smoothness", 0.0, lo=0))
+        smoothness=r.number("smoothness", 0.0, lo=0), sigma=r.number("sigma", 0.0, lo=0),
+        samples=r.integer("samples", 64, lo=1))
 
 
 def _output_kw(src, data) -> dict:

@@ -170,6 +170,7 @@ class Target:
     strict : unreachable angles and a residual above ``residual`` are errors (else: clipped /
         the closest flow, with a warning).
     speed_floor, smoothness : design settings (:func:`~ciliary_carpet.design.design_layout`).
+    sigma, samples : the fabrication-tolerance study (:func:`~ciliary_carpet.design.tolerance_study`).
     residual : acceptance threshold on the design's rms residual.
     data_points, data_velocities : (P, 2) arrays for kind "points" (else None); see
         :meth:`velocities`.
@@ -186,6 +187,8 @@ class Target:
     strict: bool = False
     speed_floor: float = 0.3
     smoothness: float = 0.0
+    sigma: float = 0.0
+    samples: int = 64
     data_points: np.ndarray | None = None
     data_velocities: np.ndarray | None = None
     source: str | None = None
@@ -240,7 +243,8 @@ class Target:
             src = str(p)
         return cls(kind=spec.kind, amplitude=amp, line=spec.line, width=spec.width, centre=spec.centre,
                    control=spec.control, residual=spec.residual, strict=spec.strict,
-                   speed_floor=spec.speed_floor, smoothness=spec.smoothness, data_points=pts,
+                   speed_floor=spec.speed_floor, smoothness=spec.smoothness, sigma=spec.sigma,
+                   samples=spec.samples, data_points=pts,
                    data_velocities=vel, source=src)
 
     @classmethod

@@ -239,3 +239,29 @@ def test_vortex_turn_turns_anticlockwise():
     below = (d.control - fr.centre) @ -fr.flow_direction < -1
     v = d.achieved @ fr.cross
     assert v[above].mean() < 0 < v[below].mean()
+
+
+def test_tolerance_study_against_brute_force(table):
+    """The sampled study (design model + frozen defect) against the full flow model on the same
+    perturbed layouts."""
+    from ciliary_carpet.design import _with_chi, tolerance_study
+
+    c = _carpet(table, 4)
+    X = _cells(c)
+    d = design_layout(c, X, angles=-0.3 * np.tanh((X[:, 0] - 3) / 2))
+    designed = _with_chi(c, d.chi_N)
+    st = tolerance_study(designed, d, 0.1, samples=12, seed=3)
+    rng = np.random.default_rng(3)
+    full = []
+    for _ in range(12):
+        u = _with_chi(c, d.chi_N * (1 + 0.1 * rng.standard_normal(c.n))).mean_velocity(X, tol=1e-2)[:, :2]
+        r = np.angle((u[:, 0] + 1j * u[:, 1]) * np.conj(d.target[:, 0] + 1j * d.target[:, 1]))
+        full.append(math.sqrt(np.mean(r ** 2)))
+    full = np.array(full)
+    assert st.mean_rms > d.residual_rms  # errors cost accuracy
+    assert np.abs(st.rms - full).max() < 0.1 * full.mean()
+    assert abs(st.mean_rms - full.mean()) < st.sampling_error
+    with pytest.raises(ValueError, match="sigma"):
+        tolerance_study(designed, d, -0.1)
+    with pytest.raises(ValueError, match="samples"):
+        tolerance_study(designed, d, 0.1, samples=0)

@@ -155,6 +155,8 @@ def test_unknown_key_top_level_and_in_section(tmp_path):
     ('[target]\nkind = "focus"\nsmoothness = -1\n', "target.smoothness"),
     ('[target]\nkind = "points"\nfile = "a.csv"\nspeed_floor = 0.2\n', "target.speed_floor does not apply"),
     ("[carpet]\nwall = 0\n", "carpet.wall must be a positive number"),
+    ('[target]\nkind = "focus"\nsigma = -0.1\n', "target.sigma must be a number >= 0"),
+    ('[target]\nkind = "focus"\nsamples = 0\n', "target.samples must be an integer >= 1"),
     ('[target]\nkind = "points"\nfile = "nope.csv"\n', "target.file 'nope.csv' not found"),
     ('[carpet]\nlattice = "points"\n', "carpet.points is required"),
     ('[carpet]\nlattice = "points"\npoints = [[0, 0]]\nshape = [2, 2]\n', "carpet.shape does not apply"),
@@ -176,6 +178,7 @@ def test_wrong_types_and_values_name_the_key(tmp_path, text, key):
     ("[field]\nchi_E = inf\n", "field.chi_E"),
     ("[carpet]\norigin = [0, nan]\n", "carpet.origin"),
     ('[target]\nkind = "uniform"\nangle = -inf\n', "target.angle"),
+    ('[target]\nkind = "uniform"\nsigma = nan\n', "target.sigma"),
 ])
 def test_nan_and_inf_rejected(tmp_path, text, key):
     with pytest.raises(SceneError, match=key):
