@@ -40,6 +40,15 @@ def test_every_design_renders_and_meets_its_target(path, tmp_path):
         assert s["design"]["residual_rms"] <= scene.target.residual
         ds_layout = tmp_path / scene.name / "layout.nc"
         assert ds_layout.exists()
+        assert "design.png" in res.files and s["design"]["cilia_near_cutoff"] >= 0
+        r = vtk.vtkXMLPolyDataReader()
+        r.SetFileName(str(res.out_dir / "design.vtp"))
+        r.Update()
+        pd = r.GetOutput().GetPointData()
+        res_v = vtk_to_numpy(pd.GetArray("residual"))
+        assert res_v.shape == (s["design"]["control_points"],)
+        assert math.isclose(float(np.sqrt(np.mean(res_v ** 2))), s["design"]["residual_rms"], rel_tol=1e-6)
+        assert vtk_to_numpy(pd.GetArray("target")).shape[1] == 3 and pd.GetArray("achieved") is not None
     for f in ("layout.vtp", "mean_field.vti", "pathlines.vtp", "cilia.pvd", "preview.png", "summary.json",
               "summary.md"):
         assert f in res.files
