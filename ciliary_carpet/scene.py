@@ -43,6 +43,7 @@ import numpy as np
 from single_cilium.table import TableError, ThrustTable
 
 from . import layout
+from .target import KIND_KEYS, KINDS, applies_to
 
 logger = logging.getLogger(__name__)
 
@@ -51,8 +52,7 @@ __all__ = ["SceneError", "Scene", "FieldSpec", "TableSpec", "TableBuild", "Carpe
 
 LATTICES = ("row", "square", "hexagonal", "points")
 PHASES = ("random", "synchronous", "wave")
-TARGET_KINDS = ("none", "uniform", "focus", "spread", "shear", "turn", "points")
-PATTERNS = ("focus", "spread", "shear", "turn")
+TARGET_KINDS = KINDS
 CONTROLS = ("cells", "cilia")
 SEEDS = ("line", "grid")
 
@@ -694,21 +694,8 @@ class Scene:
         return replace(self, carpet=c, output=o)
 
 
-# which target keys apply to which kinds (others are an error)
-_TARGET_ONLY = {
-    "angle": ("uniform",) + PATTERNS,
-    "line": ("focus", "spread", "shear"),
-    "width": ("focus", "spread", "shear"),
-    "centre": ("turn",),
-    "file": ("points",),
-    "control": ("uniform",) + PATTERNS,
-    "residual": ("uniform", "points") + PATTERNS,
-    "strict": ("uniform", "points") + PATTERNS,
-    "speed_floor": ("uniform",) + PATTERNS,
-    "smoothness": ("uniform", "points") + PATTERNS,
-    "sigma": ("uniform", "points") + PATTERNS,
-    "samples": ("uniform", "points") + PATTERNS,
-}
+# which target keys apply to which kinds (others are an error): from the registry in target.py
+_TARGET_ONLY = {k: applies_to(k) for k in sorted({k for keys in KIND_KEYS.values() for k in keys})}
 
 
 # ------------------------------------------------------------------------------ parsing

@@ -58,14 +58,34 @@ if TYPE_CHECKING:
     from .scene import Scene, TargetSpec
 
 __all__ = ["TargetError", "Target", "Frame", "control_points", "reachable_check", "read_target_points",
-           "DEFAULT_ANGLE_FRACTION", "KINDS"]
+           "DEFAULT_ANGLE_FRACTION", "KINDS", "KIND_KEYS", "applies_to"]
 
-KINDS = ("none", "uniform", "focus", "spread", "shear", "turn", "points")
+_DESIGN_KEYS = ("residual", "strict", "smoothness", "sigma", "samples")
+_ANGLE_KEYS = ("angle", "control", "speed_floor") + _DESIGN_KEYS
+KIND_KEYS: dict[str, tuple[str, ...]] = {
+    "none": (),
+    "uniform": _ANGLE_KEYS,
+    "focus": _ANGLE_KEYS + ("line", "width"),
+    "spread": _ANGLE_KEYS + ("line", "width"),
+    "shear": _ANGLE_KEYS + ("line", "width"),
+    "turn": _ANGLE_KEYS + ("centre",),
+    "points": ("file",) + _DESIGN_KEYS,
+}
+"""The registry of target kinds: each kind with the ``[target]`` keys (besides ``kind``) that
+apply to it. The scene schema (:mod:`ciliary_carpet.scene`: which keys a kind accepts) and the
+key table of ``designs/README.md`` (checked by the tests) derive from it; adding a pattern means
+adding it here and to :meth:`Target.deflection`."""
+KINDS = tuple(KIND_KEYS)
 ANGLE_KINDS = ("uniform", "focus", "spread", "shear", "turn")
 DEFAULT_ANGLE_FRACTION = 0.9
 """Without ``target.angle`` the amplitude is this fraction of the table's reachable maximum."""
 CSV_SUFFIXES = (".csv", ".txt")
 NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".netcdf", ".h5", ".hdf5")
+
+
+def applies_to(key: str) -> tuple[str, ...]:
+    """The target kinds a ``[target]`` key applies to (from :data:`KIND_KEYS`)."""
+    return tuple(k for k, keys in KIND_KEYS.items() if key in keys)
 
 
 class TargetError(ValueError):
