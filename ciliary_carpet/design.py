@@ -41,7 +41,7 @@ Objective
   J = w / 2 per point for a switched-off carpet, far above any design worth keeping). A floor
   rather than a speed target: the target asks for directions, so the speed is free above the
   floor; relative to the straight carpet, so it is the same statement for every carpet size,
-  field and target (a cilium keeps 30% of the straight thrust up to |chi_N| of about 143 of the
+  field and target (a cilium keeps 30% of the straight thrust up to |chi_N| of about 142 of the
   cutoff 162.77 at chi_E = 200, eta = 1, which turns its own thrust by 0.82 of the reachable
   0.93 rad).
 * Velocity targets U_k: J = 1/2 sum_k |u_k - U_k|^2 / sum_k |U_k|^2 (it needs no floor).
@@ -204,7 +204,8 @@ class Design:
     :data:`NEAR_CUTOFF_FRACTION` of the straight filament's; clipped: indices of cilia whose
     request was clipped to the reachable range; status 0 converged, 1 not; message; work:
     iterations, evaluations, full-model checks, seconds; tolerance: the fabrication-tolerance
-    study (``None`` unless asked, see :func:`tolerance_study`)."""
+    study (``None`` unless asked, see :func:`tolerance_study`); carpet: the carpet with the
+    returned layout, on which the residual was measured."""
 
     chi_N: np.ndarray
     control: np.ndarray
@@ -225,6 +226,7 @@ class Design:
     message: str = ""
     work: dict = field(default_factory=dict)
     tolerance: dict | None = None
+    carpet: Carpet | None = field(default=None, repr=False, compare=False)
 
     def worst(self, k: int = 5) -> list[tuple[int, float, float, float]]:
         """The ``k`` worst control points: (index, x, y, residual)."""
@@ -431,8 +433,8 @@ def angle_objective(u, target, floor, weight: float = 1.0) -> tuple[float, np.nd
 def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cilium_angles=None, clip: bool = False,
                   tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = 0.3,
                   floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
-                  outer: int = 2, ftol: float = 1e-6, maxiter: int = 500, spacing: float | None = None,
-                  _keep_carpet: list | None = None) -> Design:
+                  outer: int = 2, ftol: float = 1e-6, maxiter: int = 500,
+                  spacing: float | None = None) -> Design:
     """Choose chi_N for the cilia of ``carpet`` (its bases, phases, field, wall and table are
     kept; its chi_N is the starting guess for velocity targets) so that the mean flow at
     ``control`` (P, 2) points along the deflection ``angles`` (P,) [rad, anticlockwise from the
@@ -597,8 +599,6 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     nrm_u = np.maximum(np.linalg.norm(u, axis=1), 1e-300)
     r_err = float(np.max(best["bound"] / nrm_u)) if kind == "angle" else \
         float(np.max(best["bound"]) / math.sqrt(scaleU / P))
-    if _keep_carpet is not None:
-        _keep_carpet.append(best["carpet"])
     thrust = mom.thrust_norm(chi)
     near = tuple(np.nonzero(thrust < NEAR_CUTOFF_FRACTION * mom.thrust0)[0].tolist())
     ratio = np.sum(u * target, axis=1) / sref if kind == "angle" else None
@@ -614,7 +614,8 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     return Design(chi_N=chi, control=X, target=target, achieved=u, residual=resid, residual_rms=rms, kind=kind,
                   residual_error=r_err, speed_ratio=ratio, local_rms=rms_loc, objective=best["J"],
                   local_objective=J_loc, returned=best["label"],
-                  near_cutoff=near, clipped=tuple(clipped), status=status, message=message, work=counters)
+                  near_cutoff=near, clipped=tuple(clipped), status=status, message=message, work=counters,
+                  carpet=best["carpet"])
 
 
 # ------------------------------------------------------------------------------ tolerance
@@ -681,7 +682,9 @@ def tolerance_study(carpet: Carpet, d: Design, sigma: float, samples: int = 64, 
 
 
 def carpet_with(design: Design, carpet: Carpet) -> Carpet:
-    """``carpet`` with the designed chi_N."""
+    """``carpet`` with the designed chi_N (the design's own carpet when it has one)."""
+    if design.carpet is not None and np.array_equal(design.carpet.bases, carpet.bases):
+        return design.carpet
     return _with_chi(carpet, design.chi_N)
 
 
@@ -713,7 +716,6 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     strict = target.strict
     kw = dict(tol=scene.tolerance, speed_floor=target.speed_floor, smoothness=target.smoothness,
               spacing=scene.carpet.spacing)
-    keep: list = []
     if target.is_angle:
         # the local layout straight away (no carpet of straight cilia is built): the request at
         # each cilium's force centre, the centre of the straight filament
@@ -727,13 +729,13 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
         carpet = scene_carpet(scene, table, chi_N=chi0)
         X = control_points(bases, frame, target.control)
         d = design_layout(carpet, X, angles=target.deflection(X, frame), cilium_angles=want, clip=not strict,
-                          _keep_carpet=keep, **kw)
+                          **kw)
         if np.any(bad):
             d = _replace(d, clipped=tuple(np.nonzero(bad)[0].tolist()))
     else:
         carpet = scene_carpet(scene, table)
         X, U = target.velocities()
-        d = design_layout(carpet, X, velocities=U, clip=not strict, _keep_carpet=keep, **kw)
+        d = design_layout(carpet, X, velocities=U, clip=not strict, **kw)
     if d.residual_rms > target.residual:
         unit = "rad" if d.kind == "angle" else "relative"
         lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
@@ -745,8 +747,8 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
         warnings.warn(msg + " (strict = false: returning the closest flow the cilia make)", UserWarning,
                       stacklevel=2)
     if target.sigma > 0:
-        d = _replace(d, tolerance=tolerance_study(keep[0], d, target.sigma, target.samples).summary())
-    return d, keep[0]
+        d = _replace(d, tolerance=tolerance_study(d.carpet, d, target.sigma, target.samples).summary())
+    return d, d.carpet
 
 
 def _replace(d: Design, **kw) -> Design:
