@@ -449,8 +449,10 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     iterations, stopped when an iteration lowers J by less than ``ftol`` times its value at the
     pass's start; no further pass once the design model's J at the pass's result is within 5%
     of the full model's, or a pass gained under 2%). The full-model checks use the tolerance ``check_tol`` (default
-    max(tol, 1e-2): the levels of detail's bound is loose, the measured difference to tol = 1e-3
-    is about 1e-5 relative; the final residual carries the bound as ``residual_error``).
+    max(tol, 3e-2): the levels of detail's bound is loose; on a 1000-cilium carpet the angles at
+    the control points differ from tol = 1e-3 by at most 4e-5 rad, at a quarter of the cost of
+    tol = 1e-2 and a sixteenth of tol = 1e-3; the residual carries the bound as
+    ``residual_error``, 0.004 rad there).
 
     Returns the best layout by the objective on the full model's flow among the local layout
     and the passes (:attr:`Design.returned`); ``carpet_with(design, carpet)`` is its carpet."""
@@ -468,9 +470,9 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
         if not (math.isfinite(v) and v >= lo):
             raise ValueError(f"{name} must be a finite number >= {lo:g}, got {v!r}")
     if not speed_floor < 1:
-        raise ValueError(f"speed_floor must be below 1 (a fraction of the local layout's speed), got {speed_floor!r}")
+        raise ValueError(f"speed_floor must be below 1 (a fraction of the straight carpet's speed), got {speed_floor!r}")
     check_control_points(carpet, X, spacing)
-    check_tol = max(tol, 1e-2) if check_tol is None else float(check_tol)
+    check_tol = max(tol, 3e-2) if check_tol is None else float(check_tol)
     rot = carpet.rotation
     d0 = rot @ np.array([0.0, -1.0])  # the straight filaments' flow direction, lab frame
     base_angle = math.atan2(d0[1], d0[0])
