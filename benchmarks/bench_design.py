@@ -221,7 +221,7 @@ def section_large(emit, table: ThrustTable, n: int = 10000):
     t_c = time.perf_counter() - t0
     log(f"N = {n}: evaluate_mean at the check tolerance")
     t0 = time.perf_counter()
-    c.evaluate_mean(X, tol=1e-2, error=True)
+    c.evaluate_mean(X, tol=3e-2, error=True)  # design_layout's default check tolerance
     t_e = time.perf_counter() - t0
     log(f"N = {n}: one design-model evaluation")
     dm = DesignModel(c, X, c.chi_N)
@@ -229,7 +229,7 @@ def section_large(emit, table: ThrustTable, n: int = 10000):
     u = dm.velocity(c.chi_N)
     dm.gradient(c.chi_N, u)
     t_m = time.perf_counter() - t0
-    emit("| N | control points | Carpet(...) [s] | full-model check, evaluate_mean(tol 1e-2, error) [s] "
+    emit("| N | control points | Carpet(...) [s] | full-model check, evaluate_mean(tol 3e-2, error) [s] "
          "| one design-model evaluation (value + gradient) [s] | projected design: 2 checks + 200 evaluations [s] "
          "| peak memory [GB] |")
     emit("|---:|---:|---:|---:|---:|---:|---:|")
