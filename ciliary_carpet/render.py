@@ -5,7 +5,10 @@ scene's tolerance and writes, into ``out_dir``:
 
 ==========================  ==================================================================
 ``layout.nc``               the designed layout (chi_N per cilium, control points, residuals)
-``layout.vtp``              base points coloured by chi_N (and thrust angle)
+``layout.vtp``              base points coloured by chi_N (and thrust angle, near_cutoff)
+``design.vtp``              control points: target and achieved flow, residual (with a target)
+``design.png``              the design at a glance: target vs achieved arrows, residual per
+                            control point, the layout coloured by chi_N (with a target)
 ``mean_field.vti``          the time-averaged velocity on a grid around the carpet (+ error bound)
 ``snapshot_NNN.vti``        instantaneous fields, tied by ``snapshots.pvd``
 ``cilia_NNN.vtp``           filament shapes per frame (arc length, drag density), ``cilia.pvd``
@@ -449,15 +452,17 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         # layout
         chi = carpet.chi_N
         th = table.scalar("thrust_angle", chi)
+        near = np.zeros(carpet.n, np.uint8)
+        if d is not None:
+            near[list(d.near_cutoff)] = 1
         write_points(stage / "layout.vtp", np.column_stack([carpet.bases * L, np.zeros(carpet.n)]),
                      {"chi_N": chi, "thrust_angle": th, "cilium_id": np.arange(carpet.n), "flutter":
-                      carpet.flutter.astype(np.uint8)})
+                      carpet.flutter.astype(np.uint8), "near_cutoff": near})
         if d is not None:
             write_netcdf(d.to_dataset(carpet), stage / "layout.nc")
-            summary["design"] = {"kind": d.kind, "residual_rms": d.residual_rms, "residual_max": float(d.residual.max()),
-                                 "residual_unit": "rad" if d.kind == "angle" else "relative",
-                                 "control_points": int(d.control.shape[0]), "clipped": list(d.clipped),
-                                 "status": d.status, "message": d.message, "work": d.work}
+            _write_design(stage, d, L, V)
+            _design_picture(stage / "design.png", scene, carpet, d)
+            summary["design"] = d.summary()
         done += 1
         progress.update(done)
         mean_field = None
@@ -557,8 +562,16 @@ def _markdown(s: dict) -> str:
     if "design" in s:
         dd = s["design"]
         lines.append(f"- design ({dd['kind']} target, {dd['control_points']} control points): rms residual "
-                     f"{dd['residual_rms']:.3g} {dd['residual_unit']}, worst {dd['residual_max']:.3g}; "
-                     f"{dd['work']['iterations']} L-BFGS-B iterations")
+                     f"{dd['residual_rms']:.3g} {dd['residual_unit']} (+- {dd['residual_error']:.1g}), worst "
+                     f"{dd['residual_max']:.3g}; local layout {dd['local_rms']:.3g}; returned the {dd['returned']} "
+                     f"layout; {dd['cilia_near_cutoff']} of {s['n_cilia']} cilia near the flutter cutoff; "
+                     f"{dd['work']['iterations']} L-BFGS-B iterations, {dd['work']['checks']} full-model checks")
+        if "tolerance" in dd:
+            tt = dd["tolerance"]
+            lines.append(f"- fabrication tolerance (relative chi_N error sigma = {tt['sigma']:g}, {tt['samples']} "
+                         f"samples): expected rms residual {tt['mean_rms']:.3g} +- {tt['sampling_error']:.1g} "
+                         f"(spread {tt['std_rms']:.2g}; 10-90%: {tt['p10_rms']:.3g}..{tt['p90_rms']:.3g}); "
+                         f"nominal {tt['nominal_rms']:.3g}")
     if "mean_field" in s:
         m = s["mean_field"]
         fid = ", ".join(f"{k} {v:.1%}" for k, v in m["fidelity"].items())
@@ -569,6 +582,84 @@ def _markdown(s: dict) -> str:
         lines.append(f"- path lines: {p['tracers']} tracers over {p['duration']:.4g}: {out}")
     lines += ["", "| stage | seconds |", "|---|---|"] + [f"| {k} | {v:.2f} |" for k, v in s["seconds"].items()]
     return "\n".join(lines) + "\n"
+
+
+def _write_design(stage: Path, d, L: float, V: float) -> None:
+    """design.vtp: the control points with the target and achieved flow and the residual."""
+    P = d.control.shape[0]
+    z = np.zeros((P, 1))
+    write_points(stage / "design.vtp", np.column_stack([d.control * L, z]),
+                 {"target": np.concatenate([d.target * (V if d.kind == "velocity" else 1.0), z], axis=1),
+                  "achieved": np.concatenate([d.achieved * V, z], axis=1), "residual": d.residual,
+                  **({"speed_ratio": d.speed_ratio} if d.speed_ratio is not None else {})})
+
+
+def _savefig(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110)
+        os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; the usual permissions, like the other files
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        Path(tmp).unlink(missing_ok=True)
+
+
+def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
+    """Three panels: target (grey) and achieved (blue) flow directions at the control points over
+    the layout coloured by chi_N; the residual per control point; the layout with the cilia
+    near the flutter cutoff ringed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    X, b = d.control, carpet.bases
+    lim = float(carpet.table.flutter_range[1])
+    fig, axs = plt.subplots(1, 3, figsize=(17, 6.2))
+    h = float(np.median(np.linalg.norm(np.diff(X, axis=0), axis=1))) if len(X) > 1 else 1.0
+    scale = 0.8 * max(h, 0.5)
+
+    def arrows(ax, v, **kw):
+        n = np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
+        vv = v / n * scale
+        ax.quiver(X[:, 0] - 0.5 * vv[:, 0], X[:, 1] - 0.5 * vv[:, 1], vv[:, 0], vv[:, 1], angles="xy",
+                  scale_units="xy", scale=1, **kw)
+
+    ax = axs[0]
+    ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=14, zorder=1)
+    arrows(ax, d.target, color="0.6", width=0.009, zorder=2, label="target")
+    arrows(ax, d.achieved, color="tab:blue", width=0.0035, zorder=3, label="achieved")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2, fontsize=8)
+    ax.set_title("mean-flow direction at the control points\ntarget (grey) vs achieved (blue), over chi_N",
+                 fontsize=10)
+    ax = axs[1]
+    unit = "rad" if d.kind == "angle" else "relative"
+    sc = ax.scatter(X[:, 0], X[:, 1], c=d.residual, cmap="magma_r", vmin=0, s=40, marker="s")
+    ax.scatter(b[:, 0], b[:, 1], c="0.7", s=6)
+    fig.colorbar(sc, ax=ax, label=f"residual [{unit}]", shrink=0.85)
+    ax.set_title(f"residual per control point\nrms {d.residual_rms:.3g} {unit} (+- {d.residual_error:.1g}), worst "
+                 f"{d.residual.max():.3g}", fontsize=10)
+    ax = axs[2]
+    sc = ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=40)
+    nc = list(d.near_cutoff)
+    if nc:
+        ax.scatter(b[nc, 0], b[nc, 1], facecolors="none", edgecolors="k", s=110, lw=1.2,
+                   label=f"{len(nc)} near the flutter cutoff")
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8)
+    fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.85)
+    ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g})\nreturned: the {d.returned} layout", fontsize=10)
+    for ax in axs:
+        ax.set_aspect("equal")
+        ax.set_xlabel("x / L")
+        ax.set_ylabel("y / L")
+    fig.suptitle(f"{scene.name}: design ({d.kind} target, {len(X)} control points; local layout rms "
+                 f"{d.local_rms:.3g})", fontsize=11)
+    fig.tight_layout()
+    _savefig(fig, path)
 
 
 def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None:
@@ -604,12 +695,4 @@ def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> Non
     ax.set_xlabel("x / L")
     ax.set_ylabel("y / L")
     fig.tight_layout()
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110)
-        os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; the usual permissions, like the other files
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        Path(tmp).unlink(missing_ok=True)
+    _savefig(fig, path)

@@ -19,7 +19,8 @@ Sections (all optional)::
     [field]     chi_E, eta, direction
     [table]     file   (+ [table.build] n, degree)
     [carpet]    lattice, shape, spacing, origin, points, chi_N, phases, seed, wave_vector, wall
-    [target]    kind, angle, line, width, centre, file, control, clip, residual
+    [target]    kind, angle, line, width, centre, file, control, residual, strict,
+                speed_floor, smoothness, sigma, samples
     [output]    pathlines, seeds, n_seeds, periods, field, field_shape, field_margin,
                 snapshots, frames, preview
     [units]     length_m, time_s, viscosity_Pa_s
@@ -43,6 +44,7 @@ from single_cilium.table import TableError, ThrustTable
 
 from . import layout
 from .paths import check_name, check_scene_paths
+from .target import KIND_KEYS, KINDS, applies_to
 
 logger = logging.getLogger(__name__)
 
@@ -51,8 +53,7 @@ __all__ = ["SceneError", "Scene", "FieldSpec", "TableSpec", "TableBuild", "Carpe
 
 LATTICES = ("row", "square", "hexagonal", "points")
 PHASES = ("random", "synchronous", "wave")
-TARGET_KINDS = ("none", "uniform", "focus", "spread", "shear", "turn", "points")
-PATTERNS = ("focus", "spread", "shear", "turn")
+TARGET_KINDS = KINDS
 CONTROLS = ("cells", "cilia")
 SEEDS = ("line", "grid")
 
@@ -471,8 +472,20 @@ class TargetSpec:
     control : "cells" | "cilia" | tuple of (x, y), default "cells"
         Where the designed mean flow is compared with the target
         (:func:`~ciliary_carpet.target.control_points`).
-    clip : bool, default False
-        Clip unreachable angles to the reachable range with a warning instead of failing.
+    strict : bool, default False
+        False: unreachable angle requests are clipped to the reachable range and a design above
+        ``residual`` is returned (the closest flow the cilia make), both with a warning naming
+        where and by how much; True (batch runs): both are errors (the command line exits 3).
+    speed_floor : float in [0, 1), default 0.3
+        Angle targets: each control point must keep at least this fraction of the straight
+        carpet's speed, along the target direction (:mod:`ciliary_carpet.design`).
+    smoothness : float >= 0, default 0
+        Weight of the neighbour-difference regulariser of the layout (fabrication cost).
+    sigma : float >= 0, default 0
+        Relative fabrication error of chi_N: with sigma > 0 the design reports the expected
+        residual and its spread (:func:`~ciliary_carpet.design.tolerance_study`).
+    samples : int >= 1, default 64
+        Samples of that study.
     residual : float > 0, default 0.05
         Acceptance threshold on the overall (rms) residual of the design: radians for angle
         targets, relative to rms |U| for "points".
@@ -485,8 +498,12 @@ class TargetSpec:
     centre: tuple[float, float] | None = None
     file: str | None = None
     control: str | tuple = "cells"
-    clip: bool = False
     residual: float = 0.05
+    strict: bool = False
+    speed_floor: float = 0.3
+    smoothness: float = 0.0
+    sigma: float = 0.0
+    samples: int = 64
 
     def __post_init__(self) -> None:
         _validate(self, _target_kw)
@@ -678,17 +695,8 @@ class Scene:
         return replace(self, carpet=c, output=o)
 
 
-# which target keys apply to which kinds (others are an error)
-_TARGET_ONLY = {
-    "angle": ("uniform",) + PATTERNS,
-    "line": ("focus", "spread", "shear"),
-    "width": ("focus", "spread", "shear"),
-    "centre": ("turn",),
-    "file": ("points",),
-    "control": ("uniform",) + PATTERNS,
-    "clip": ("uniform",) + PATTERNS,
-    "residual": ("uniform", "points") + PATTERNS,
-}
+# which target keys apply to which kinds (others are an error): from the registry in target.py
+_TARGET_ONLY = {k: applies_to(k) for k in sorted({k for keys in KIND_KEYS.values() for k in keys})}
 
 
 # ------------------------------------------------------------------------------ parsing
@@ -843,8 +851,11 @@ def _target_kw(src, data, base_dir=None) -> dict:
         control = r.pairs("control", None, '"cells", "cilia" or a list of points [[x, y], ...]')
     return dict(
         kind=kind, angle=angle, line=r.number("line", 0.0), width=r.number("width", None, lo=0, lo_open=True),
-        centre=r.pair("centre", None), file=file, control=control, clip=r.boolean("clip", False),
-        residual=r.number("residual", 0.05, lo=0, lo_open=True))
+        centre=r.pair("centre", None), file=file, control=control,
+        residual=r.number("residual", 0.05, lo=0, lo_open=True), strict=r.boolean("strict", False),
+        speed_floor=r.number("speed_floor", 0.3, lo=0, hi=1, hi_open=True),
+        smoothness=r.number("smoothness", 0.0, lo=0), sigma=r.number("sigma", 0.0, lo=0),
+        samples=r.integer("samples", 64, lo=1))
 
 
 def _output_kw(src, data) -> dict:

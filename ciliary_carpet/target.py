@@ -34,10 +34,10 @@ cross-stream coordinate measured from the line)
   from a file (:func:`read_target_points`).
 
 Control points (:func:`control_points`): "cilia" = every base point moved half a spacing
-downstream (along d0); "cells" = the centres of the lattice cells by the simple rule "base points
-moved by spacing/2 along d0 and along cross, kept if inside the carpet's convex hull" (the cell
-centres of a square lattice for any field direction that is a multiple of 90 degrees; points
-inside the cells otherwise), and for a carpet whose base points lie on a line (a row) the
+downstream (along d0); "cells" = the centres of the lattice cells: the circumcentres of the
+Delaunay triangles of the base points (the Voronoi vertices: the points farthest from every
+base), merged where two triangles share one (the cell centres of a square lattice, the triangle
+centres of a hexagonal one), and for a carpet whose base points lie on a line (a row) the
 "cilia" rule; or an explicit list.
 """
 from __future__ import annotations
@@ -58,14 +58,34 @@ if TYPE_CHECKING:
     from .scene import Scene, TargetSpec
 
 __all__ = ["TargetError", "UnreachableTargetError", "Target", "Frame", "control_points", "reachable_check",
-           "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS"]
+           "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS", "KIND_KEYS", "applies_to"]
 
-KINDS = ("none", "uniform", "focus", "spread", "shear", "turn", "points")
+_DESIGN_KEYS = ("residual", "strict", "smoothness", "sigma", "samples")
+_ANGLE_KEYS = ("angle", "control", "speed_floor") + _DESIGN_KEYS
+KIND_KEYS: dict[str, tuple[str, ...]] = {
+    "none": (),
+    "uniform": _ANGLE_KEYS,
+    "focus": _ANGLE_KEYS + ("line", "width"),
+    "spread": _ANGLE_KEYS + ("line", "width"),
+    "shear": _ANGLE_KEYS + ("line", "width"),
+    "turn": _ANGLE_KEYS + ("centre",),
+    "points": ("file",) + _DESIGN_KEYS,
+}
+"""The registry of target kinds: each kind with the ``[target]`` keys (besides ``kind``) that
+apply to it. The scene schema (:mod:`ciliary_carpet.scene`: which keys a kind accepts) and the
+key table of ``designs/README.md`` (checked by the tests) derive from it; adding a pattern means
+adding it here and to :meth:`Target.deflection`."""
+KINDS = tuple(KIND_KEYS)
 ANGLE_KINDS = ("uniform", "focus", "spread", "shear", "turn")
 DEFAULT_ANGLE_FRACTION = 0.9
 """Without ``target.angle`` the amplitude is this fraction of the table's reachable maximum."""
 CSV_SUFFIXES = (".csv", ".txt")
 NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".netcdf", ".h5", ".hdf5")
+
+
+def applies_to(key: str) -> tuple[str, ...]:
+    """The target kinds a ``[target]`` key applies to (from :data:`KIND_KEYS`)."""
+    return tuple(k for k, keys in KIND_KEYS.items() if key in keys)
 
 
 class TargetError(ValueError):
@@ -171,7 +191,10 @@ class Target:
     width : transition width (L), or None = ``frame.spacing``.
     centre : (x, y) of the turn, or None = ``frame.centre``.
     control : "cells" | "cilia" | tuple of (x, y): see :func:`control_points`.
-    clip : clip unreachable angles (with a warning) instead of failing.
+    strict : unreachable angles and a residual above ``residual`` are errors (else: clipped /
+        the closest flow, with a warning).
+    speed_floor, smoothness : design settings (:func:`~ciliary_carpet.design.design_layout`).
+    sigma, samples : the fabrication-tolerance study (:func:`~ciliary_carpet.design.tolerance_study`).
     residual : acceptance threshold on the design's rms residual.
     data_points, data_velocities : (P, 2) arrays for kind "points" (else None); see
         :meth:`velocities`.
@@ -184,8 +207,12 @@ class Target:
     width: float | None = None
     centre: tuple | None = None
     control: object = "cells"
-    clip: bool = False
     residual: float = 0.05
+    strict: bool = False
+    speed_floor: float = 0.3
+    smoothness: float = 0.0
+    sigma: float = 0.0
+    samples: int = 64
     data_points: np.ndarray | None = None
     data_velocities: np.ndarray | None = None
     source: str | None = None
@@ -239,7 +266,9 @@ class Target:
             pts, vel = read_target_points(p)
             src = str(p)
         return cls(kind=spec.kind, amplitude=amp, line=spec.line, width=spec.width, centre=spec.centre,
-                   control=spec.control, clip=spec.clip, residual=spec.residual, data_points=pts,
+                   control=spec.control, residual=spec.residual, strict=spec.strict,
+                   speed_floor=spec.speed_floor, smoothness=spec.smoothness, sigma=spec.sigma,
+                   samples=spec.samples, data_points=pts,
                    data_velocities=vel, source=src)
 
     @classmethod
@@ -300,8 +329,8 @@ def control_points(bases, frame: Frame, control="cells") -> np.ndarray:
     """(P, 2) points where the designed mean flow is compared with the target.
 
     ``control``: "cilia" (each base point moved half a spacing along d0, just downstream of its
-    cilium), "cells" (base points moved by spacing/2 along d0 and along cross, kept inside the
-    convex hull of the base points; for collinear base points, a row, the "cilia" rule), a list
+    cilium), "cells" (the circumcentres of the Delaunay triangles of the base points, duplicates
+    merged: the cell centres; for collinear base points, a row, the "cilia" rule), a list
     of points (P, 2), or anything with a ``control`` attribute holding one of these (a Target or
     a TargetSpec)."""
     if hasattr(control, "control"):
@@ -318,15 +347,30 @@ def control_points(bases, frame: Frame, control="cells") -> np.ndarray:
     sv = np.linalg.svd(b - b.mean(axis=0), compute_uv=False)
     if sv[1] <= 1e-9 * max(sv[0], h):  # collinear: a row
         return down
-    from scipy.spatial import ConvexHull
+    from scipy.spatial import Delaunay
 
-    cand = b + 0.5 * h * (d0 + cr)
-    eq = ConvexHull(b).equations
-    inside = np.all(cand @ eq[:, :2].T + eq[:, 2] <= 1e-9 * h, axis=1)
+    tri = Delaunay(b)
+    cand = _circumcentres(b[tri.simplices])
+    # the two triangles of a square cell share their circumcentre: keep one
+    key = np.round((cand - b.min(axis=0)) / (1e-6 * h)).astype(np.int64)
+    _, first = np.unique(key, axis=0, return_index=True)
+    cand = cand[np.sort(first)]
+    inside = tri.find_simplex(cand, tol=1e-9 * h) >= 0
     if not np.any(inside):
         raise TargetError("no cell centre lies inside the carpet (too few cilia for control = \"cells\"); "
                           "use control = \"cilia\" or a list of points")
-    return cand[inside]
+    cand = cand[inside]
+    return cand[np.lexsort((cand[:, 0], cand[:, 1]))]
+
+
+def _circumcentres(t: np.ndarray) -> np.ndarray:
+    """(T, 2) circumcentres of the triangles t (T, 3, 2)."""
+    a, bb, c = t[:, 0], t[:, 1], t[:, 2]
+    d = 2.0 * (a[:, 0] * (bb[:, 1] - c[:, 1]) + bb[:, 0] * (c[:, 1] - a[:, 1]) + c[:, 0] * (a[:, 1] - bb[:, 1]))
+    sa, sb, sc = (a ** 2).sum(1), (bb ** 2).sum(1), (c ** 2).sum(1)
+    ux = (sa * (bb[:, 1] - c[:, 1]) + sb * (c[:, 1] - a[:, 1]) + sc * (a[:, 1] - bb[:, 1])) / d
+    uy = (sa * (c[:, 0] - bb[:, 0]) + sb * (a[:, 0] - c[:, 0]) + sc * (bb[:, 0] - a[:, 0])) / d
+    return np.column_stack([ux, uy])
 
 
 # ------------------------------------------------------------------------------ reachability
@@ -359,7 +403,7 @@ def reachable_check(angles, angle_range, clip: bool = False, *, what: str = "con
         msg = (f"{idx.size} of {a.size} {what}s ask for a deflection outside the reachable range "
                f"|angle| <= {math.degrees(hi):.2f} deg ({hi:.4f} rad) of this field: {'; '.join(items)}{more}")
         if not clip:
-            raise UnreachableTargetError(msg + "; lower target.angle or set target.clip = true")
+            raise UnreachableTargetError(msg + "; lower target.angle, or set target.strict = false to clip them")
         warnings.warn(msg + "; clipped to the reachable range", UserWarning, stacklevel=2)
         a = np.clip(a, -hi, hi)
     return a, bad

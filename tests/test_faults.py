@@ -354,10 +354,20 @@ def test_9_non_finite_summary_is_not_a_success(tmp_path, monkeypatch):
 
 
 # ------------------------------------------------------------------------------ 10: smaller ones
-def test_10_unreachable_target_exits_3(tmp_path, capsys):
-    p = _scene(tmp_path, TINY + '[target]\nkind = "uniform"\nangle = 85.0\n')
+def test_10_unreachable_target_exits_3_in_strict_mode(tmp_path, capsys):
+    p = _scene(tmp_path, TINY + '[target]\nkind = "uniform"\nangle = 85.0\nstrict = true\n')
     code, _, err = _carpet(capsys, "render", p, "-o", tmp_path / "o")
     assert code == 3 and "reachable" in err and str(p) in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_10_unreachable_target_gives_the_closest_flow_by_default(tmp_path, capsys):
+    p = _scene(tmp_path, TINY + '[target]\nkind = "uniform"\nangle = 85.0\n')
+    with pytest.warns(UserWarning, match="cannot make this target"):
+        code, _, _ = _carpet(capsys, "render", p, "-o", tmp_path / "o")
+    assert code == 0
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["design"]["residual_rms"] > 0.05
 
 
 @pytest.mark.parametrize("extra,needle", [

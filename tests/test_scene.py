@@ -58,7 +58,8 @@ def test_defaults_filled(tmp_path):
     assert (s.carpet.lattice, s.carpet.shape, s.carpet.spacing, s.carpet.origin) == ("square", (10, 10), 2.0, (0, 0))
     assert (s.carpet.chi_N, s.carpet.phases, s.carpet.seed, s.carpet.wall) == (0.0, "random", 0, None)
     assert s.target == TargetSpec() and s.target.kind == "none" and s.target.angle is None
-    assert s.target.control == "cells" and s.target.clip is False and s.target.residual == 0.05
+    assert s.target.control == "cells" and s.target.strict is False and s.target.residual == 0.05
+    assert (s.target.speed_floor, s.target.smoothness) == (0.3, 0.0)
     assert s.output == OutputSpec()
     assert (s.output.seeds, s.output.n_seeds, s.output.periods, s.output.field_shape) == ("line", 100, 20.0, (80, 80))
     assert (s.output.field_margin, s.output.snapshots, s.output.frames) == (5.0, 4, 40)
@@ -89,7 +90,9 @@ wall = 1.5
 kind = "uniform"
 angle = -20
 control = [[1, 2], [3, 4]]
-clip = true
+strict = true
+speed_floor = 0.2
+smoothness = 0.01
 [output]
 seeds = [[0, 0], [1, 1], [2, 2]]
 field_shape = [10, 12]
@@ -104,7 +107,8 @@ viscosity_Pa_s = 1e-3
     assert math.isclose(s.field.direction_rad, math.pi / 2)
     assert s.carpet.shape == (7,) and s.carpet.wall == 1.5 and s.carpet.wave_vector == (0.5, 0.0)
     assert np.allclose(s.carpet.bases()[:, 1], 2) and np.allclose(s.carpet.bases()[-1], [19, 2])
-    assert s.target.angle == -20 and s.target.control == ((1.0, 2.0), (3.0, 4.0)) and s.target.clip
+    assert s.target.angle == -20 and s.target.control == ((1.0, 2.0), (3.0, 4.0)) and s.target.strict
+    assert (s.target.speed_floor, s.target.smoothness) == (0.2, 0.01)
     assert s.output.seeds == ((0.0, 0.0), (1.0, 1.0), (2.0, 2.0)) and s.output.field_shape == (10, 12)
     assert s.units.length_m == 1e-4
     assert scene_from_dict(s.to_dict(), s.source) == s
@@ -147,6 +151,12 @@ def test_unknown_key_top_level_and_in_section(tmp_path):
     ('[target]\nkind = "turn"\nangle = -10\n', "target.angle must be an amplitude"),
     ('[target]\nkind = "uniform"\ncontrol = [[1, 2, 3]]\n', "target.control[0] must be two numbers"),
     ('[target]\nkind = "points"\n', "target.file is required"),
+    ('[target]\nkind = "focus"\nspeed_floor = 1.0\n', "target.speed_floor must be a number in [0, 1)"),
+    ('[target]\nkind = "focus"\nsmoothness = -1\n', "target.smoothness"),
+    ('[target]\nkind = "points"\nfile = "a.csv"\nspeed_floor = 0.2\n', "target.speed_floor does not apply"),
+    ("[carpet]\nwall = 0\n", "carpet.wall must be a positive number"),
+    ('[target]\nkind = "focus"\nsigma = -0.1\n', "target.sigma must be a number >= 0"),
+    ('[target]\nkind = "focus"\nsamples = 0\n', "target.samples must be an integer >= 1"),
     ('[target]\nkind = "points"\nfile = "nope.csv"\n', "target.file 'nope.csv' not found"),
     ('[carpet]\nlattice = "points"\n', "carpet.points is required"),
     ('[carpet]\nlattice = "points"\npoints = [[0, 0]]\nshape = [2, 2]\n', "carpet.shape does not apply"),
@@ -168,6 +178,7 @@ def test_wrong_types_and_values_name_the_key(tmp_path, text, key):
     ("[field]\nchi_E = inf\n", "field.chi_E"),
     ("[carpet]\norigin = [0, nan]\n", "carpet.origin"),
     ('[target]\nkind = "uniform"\nangle = -inf\n', "target.angle"),
+    ('[target]\nkind = "uniform"\nsigma = nan\n', "target.sigma"),
 ])
 def test_nan_and_inf_rejected(tmp_path, text, key):
     with pytest.raises(SceneError, match=key):

@@ -208,7 +208,12 @@ def test_control_points():
     assert np.allclose(control_points(b, fr, t), cil)
     hexa = layout.hexagonal(5, 4, spacing=2.0)
     hc = control_points(hexa, Frame.from_bases(hexa, 2.0, 0.0), "cells")
-    assert 6 <= hc.shape[0] < 20
+    # the triangle centres of a hexagonal lattice: 2 per rhombus, each 2/sqrt(3) from three bases
+    assert hc.shape[0] == 2 * 4 * 3
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(hexa).query(hc, k=4)
+    assert np.allclose(d[:, :3], 2.0 / math.sqrt(3)) and np.all(d[:, 3] > 2.0 / math.sqrt(3) + 0.5)
     with pytest.raises(TargetError):
         control_points(b, fr, "corners")
 
@@ -248,3 +253,27 @@ def test_design_targets_are_reachable_and_patterns_right():
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             reachable_check(t.deflection(X, fr), table.thrust_angle_range(), clip=False, points=X)
+
+
+def test_registry_drives_the_schema_and_the_readme():
+    """The kinds and keys of [target] come from target.KIND_KEYS: the scene's TargetSpec has
+    exactly those keys, a key that does not apply to a kind is rejected, and designs/README.md
+    documents every kind and every key."""
+    import re
+    from dataclasses import fields
+
+    from ciliary_carpet.scene import SceneError, TargetSpec, scene_from_dict
+    from ciliary_carpet.target import KIND_KEYS, KINDS
+
+    keys = {k for v in KIND_KEYS.values() for k in v}
+    assert {f.name for f in fields(TargetSpec)} == keys | {"kind"}
+    for kind, ok in KIND_KEYS.items():
+        for k in sorted(keys - set(ok)):
+            with pytest.raises(SceneError, match=f"target.{k} does not apply to kind = \"{kind}\""):
+                scene_from_dict({"target": {"kind": kind, k: 1}})
+    text = (DESIGNS / "README.md").read_text()
+    section = text.split("### `[target]`", 1)[1].split("\n### ", 1)[0]
+    rows = re.findall(r"^\| `([a-z_]+)` \|(.*)$", section, flags=re.M)
+    assert {k for k, _ in rows} == keys | {"kind"}
+    kind_row = dict(rows)["kind"]
+    assert set(re.findall(r'`"([a-z]+)"`', kind_row.split("|")[0])) == set(KINDS)

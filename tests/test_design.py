@@ -1,0 +1,268 @@
+"""Inverse design: the design model and its gradient, recovery of known layouts, the never-worse
+guarantee, the cutoff guard, unreachable targets, bad input, and each bundled scene's intent."""
+import math
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ciliary_carpet import layout
+from ciliary_carpet.carpet import Carpet
+from ciliary_carpet.cli import main
+from ciliary_carpet.design import (
+    DesignError,
+    DesignModel,
+    angle_objective,
+    cycle_moments,
+    design,
+    design_layout,
+)
+from ciliary_carpet.scene import SceneError, load_scene
+from ciliary_carpet.target import Frame, TargetError, control_points
+from single_cilium.table import ThrustTable
+
+DESIGNS = Path(__file__).resolve().parents[1] / "designs"
+
+
+@pytest.fixture(scope="module")
+def table():
+    return ThrustTable.default()
+
+
+def _carpet(table, n, chi=0.0, wall=None, seed=0):
+    b = layout.square(n, n, 2.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return Carpet(b, chi, table, layout.random_phases(n * n, seed), wall=wall)
+
+
+def _cells(c):
+    return control_points(c.bases, Frame.from_bases(c.bases, 2.0, c.direction), "cells")
+
+
+def test_cycle_moments_match_the_table_and_are_mirror_symmetric(table):
+    m = cycle_moments(table)
+    chi = np.array([-150.0, -60.3, -1.0, 0.0, 2.5, 47.0, 120.0, 162.0])
+    F = m(chi)["F"]
+    Ft = np.column_stack([table.scalar("thrust_x", chi), table.scalar("thrust_y", chi)])
+    # the table's scalar thrust and the Simpson sum over its cycles agree to the table's precision
+    # (1e-6 on the branch; within a unit of the cutoff its two interpolants differ by ~1e-3)
+    assert np.abs(F - Ft)[:-1].max() < 2e-6 * m.thrust0
+    assert np.abs(F - Ft)[-1].max() < 1e-3 * m.thrust0
+    # mirror image: F_x odd, F_y even
+    assert np.allclose(m(-chi)["F"][:, 0], -F[:, 0]) and np.allclose(m(-chi)["F"][:, 1], F[:, 1])
+    # spline derivative against central differences
+    h = 1e-3
+    dF = (m(chi[1:-1] + h)["F"] - m(chi[1:-1] - h)["F"]) / (2 * h)
+    assert np.allclose(m(chi[1:-1], 1)["F"], dF, rtol=1e-5, atol=1e-8)
+    # off the flutter branch a cilium is still
+    assert np.all(m(np.array([170.0]))["F"] == 0)
+
+
+@pytest.mark.parametrize("wall", [None, 0.5], ids=["free", "wall"])
+def test_design_model_gradient_matches_finite_differences(table, wall):
+    c = _carpet(table, 3, wall=wall)
+    X = _cells(c)
+    rng = np.random.default_rng(1)
+    chi = rng.uniform(-120, 120, c.n)
+    dm = DesignModel(c, X, chi)
+    g_u = rng.normal(size=(X.shape[0], 2))
+    g = dm.gradient(chi, g_u)
+    h = 1e-4
+    fd = np.empty(c.n)
+    for j in range(c.n):
+        e = np.zeros(c.n)
+        e[j] = h
+        fd[j] = np.sum(g_u * (dm.velocity(chi + e) - dm.velocity(chi - e))) / (2 * h)
+    assert np.allclose(g, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
+    # and the angle objective's gradient in u
+    u = dm.velocity(chi)
+    t = u / np.linalg.norm(u, axis=1)[:, None]
+    t = np.column_stack([np.cos(0.3), np.sin(0.3)]) @ np.array([[t[0, 0], t[0, 1]], [-t[0, 1], t[0, 0]]])
+    t = np.repeat(t, X.shape[0], axis=0)
+    floor = 0.9 * np.linalg.norm(u, axis=1)
+    J, gu = angle_objective(u, t, floor, 1.0)
+    fdu = np.zeros_like(u)
+    for k in range(u.shape[0]):
+        for a in range(2):
+            e = np.zeros_like(u)
+            e[k, a] = 1e-7
+            fdu[k, a] = (angle_objective(u + e, t, floor, 1.0)[0] - angle_objective(u - e, t, floor, 1.0)[0]) / 2e-7
+    assert np.allclose(gu, fdu, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("wall", [None, 0.5], ids=["free", "wall"])
+def test_design_model_is_the_mean_level_of_the_flow_model(table, wall):
+    """Far from the cilia the design model and the full model's mean flow agree (both carry the
+    monopole and dipole; the rest decays like R^-3)."""
+    rng = np.random.default_rng(2)
+    c = _carpet(table, 3, chi=rng.uniform(-120, 120, 9), wall=wall)
+    far = np.array([[2.0, -8.0], [-6.0, 2.0], [12.0, 3.0], [2.0, 14.0]])
+    u_full = c.mean_velocity(far, tol=0.0)[:, :2]
+    u_mod = DesignModel(c, far, c.chi_N).velocity(c.chi_N)
+    assert np.abs(u_mod - u_full).max() < 0.02 * np.abs(u_full).max()
+
+
+@pytest.mark.parametrize("n, wall", [(4, None), (6, 0.5)], ids=["free-16", "wall-36"])
+def test_velocity_target_from_a_known_layout_is_recovered(table, n, wall):
+    c = _carpet(table, n, wall=wall)
+    X = _cells(c)
+    b = c.bases
+    truth = _carpet(table, n, chi=90 * np.sin(b[:, 0] / 7) * np.cos(b[:, 1] / 9), wall=wall)
+    U = truth.mean_velocity(X)[:, :2]
+    d = design_layout(c, X, velocities=U)
+    assert d.kind == "velocity" and d.residual_rms < 0.03 < d.local_rms
+    assert d.objective <= d.local_objective and d.returned != "local"
+
+
+def test_never_worse_than_the_local_layout(table, monkeypatch):
+    """A design model that points the optimiser the wrong way: the full-model check catches it
+    and the local layout is returned."""
+    c = _carpet(table, 4)
+    X = _cells(c)
+    ang = -0.3 * np.tanh((X[:, 0] - 3) / 2)
+    orig = DesignModel.velocity
+    monkeypatch.setattr(DesignModel, "velocity", lambda self, chi: -orig(self, chi))
+    d = design_layout(c, X, angles=ang, outer=2)
+    assert d.returned == "local" and d.residual_rms == d.local_rms and d.objective == d.local_objective
+    assert "returned the local layout" in d.message
+
+
+def test_speed_floor_keeps_the_flow_on(table):
+    """An angle-only objective trades thrust for angle (the thrust angle grows up to the flutter
+    cutoff while the thrust vanishes); the speed floor keeps the flow at every control point."""
+    c = _carpet(table, 4)
+    X = _cells(c)
+    ang = -math.radians(40) * np.tanh((X[:, 0] - 3) / 2)
+    free = design_layout(c, X, angles=ang, speed_floor=0.0, floor_weight=0.0, outer=1)
+    kept = design_layout(c, X, angles=ang, outer=1)
+    assert kept.speed_ratio.min() > 0.2  # a soft floor at 0.3 of the straight carpet's speed
+    assert free.speed_ratio.min() < kept.speed_ratio.min()
+    assert len(kept.near_cutoff) < len(free.near_cutoff)
+
+
+def test_bad_control_points_and_settings_are_named_errors(table):
+    c = _carpet(table, 3)
+    with pytest.raises(TargetError, match="outside the carpet"):
+        design_layout(c, np.array([[1.0, 1.0], [40.0, 1.0]]), angles=[0.1, 0.1])
+    with pytest.raises(TargetError, match="on a cilium"):
+        design_layout(c, c.bases[:1] + [0.0, 0.3], angles=[0.1])
+    with pytest.raises(ValueError, match="speed_floor"):
+        design_layout(c, _cells(c), angles=0.1, speed_floor=1.5)
+    with pytest.raises(ValueError, match="speed_floor"):
+        design_layout(c, _cells(c), angles=0.1, speed_floor=float("nan"))
+
+
+def _scene(tmp_path, body, name="s.toml"):
+    p = tmp_path / name
+    p.write_text(body)
+    return p
+
+
+def test_wall_at_or_above_the_plane_is_an_error(tmp_path):
+    for w in ("0.0", "-0.5"):
+        with pytest.raises(SceneError, match="carpet.wall"):
+            load_scene(_scene(tmp_path, f"[carpet]\nwall = {w}\n"))
+
+
+def test_unreachable_targets_in_both_modes(tmp_path):
+    # beyond the table's angles: clipped with a warning, or an error when strict
+    body = '[carpet]\nshape = [3, 3]\n[target]\nkind = "uniform"\nangle = 85.0\n'
+    with pytest.warns(UserWarning, match="reachable range"):
+        d, _ = design(load_scene(_scene(tmp_path, body)))
+    assert len(d.clipped) == 9 and d.residual_rms > 0.5
+    with pytest.raises(TargetError, match="reachable"):
+        design(load_scene(_scene(tmp_path, body + "strict = true\n", "strict.toml")))
+    # a pattern too sharp for the lattice: the closest flow plus where it misses, or exit 3
+    body = '[carpet]\nshape = [4, 4]\n[target]\nkind = "focus"\nangle = 50.0\nwidth = 0.5\nresidual = 0.001\n'
+    with pytest.warns(UserWarning, match="worst control points #"):
+        d, carpet = design(load_scene(_scene(tmp_path, body, "sharp.toml")))
+    assert d.residual_rms > 0.001 and d.objective <= d.local_objective and carpet.n == 16
+    assert "worst" in d.summary() and len(d.summary()["worst"]) == 5
+    p = _scene(tmp_path, body + "strict = true\n", "sharp_strict.toml")
+    with pytest.raises(DesignError, match="cannot make this target"):
+        design(load_scene(p))
+    assert main(["render", str(p), "-o", str(tmp_path / "o")]) == 3
+    assert not (tmp_path / "o").exists()
+
+
+def _intent(name):
+    scene = load_scene(DESIGNS / f"{name}.toml").reduced()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        d, carpet = design(scene)
+    return scene, d, carpet
+
+
+@pytest.mark.parametrize("name, sign", [("focusing", 1), ("spreading", -1)])
+def test_focusing_converges_and_spreading_diverges(name, sign):
+    scene, d, carpet = _intent(name)
+    assert d.residual_rms <= scene.target.residual
+    fr = Frame.from_scene(scene, carpet.bases)
+    xi = fr.cross_coordinate(d.control)
+    v = d.achieved @ fr.cross  # cross-stream velocity
+    left, right = xi < -0.5, xi > 0.5
+    # focusing: toward the line from both sides; spreading: away from it
+    assert np.all(sign * v[left] > 0) and np.all(sign * v[right] < 0)
+    # chi_N changes sign across the line (focusing: positive on the -cross side, turning the
+    # flow toward +cross)
+    xc = fr.cross_coordinate(carpet.bases)
+    assert np.all(sign * carpet.chi_N[xc < -0.5] > 0) and np.all(sign * carpet.chi_N[xc > 0.5] < 0)
+
+
+def test_shear_layer_turns_one_side():
+    scene, d, carpet = _intent("shear_layer")
+    assert d.residual_rms <= scene.target.residual
+    fr = Frame.from_scene(scene, carpet.bases)
+    xi = fr.cross_coordinate(d.control)
+    ang = np.arctan2(d.achieved @ fr.cross, d.achieved @ fr.flow_direction)
+    A = math.radians(scene.target.angle)
+    assert ang[xi < -1].mean() > 0.6 * A and abs(ang[xi > 1].mean()) < 0.4 * A
+
+
+def test_vortex_turn_turns_anticlockwise():
+    scene, d, carpet = _intent("vortex_turn")
+    assert d.residual_rms <= scene.target.residual
+    fr = Frame.from_scene(scene, carpet.bases)
+    # circulation of the mean flow minus its mean drift around a circle about the centre
+    th = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    r = 1.5
+    pts = fr.centre + r * np.column_stack([np.cos(th), np.sin(th)])
+    u = carpet.mean_velocity(pts)[:, :2]
+    u = u - u.mean(axis=0)
+    tang = np.column_stack([-np.sin(th), np.cos(th)])
+    assert np.mean(np.sum(u * tang, axis=1)) > 0
+    # deflection toward -cross above the centre (downstream is -y), toward +cross below it
+    above = (d.control - fr.centre) @ -fr.flow_direction > 1
+    below = (d.control - fr.centre) @ -fr.flow_direction < -1
+    v = d.achieved @ fr.cross
+    assert v[above].mean() < 0 < v[below].mean()
+
+
+def test_tolerance_study_against_brute_force(table):
+    """The sampled study (design model + frozen defect) against the full flow model on the same
+    perturbed layouts."""
+    from ciliary_carpet.design import tolerance_study
+
+    c = _carpet(table, 4)
+    X = _cells(c)
+    d = design_layout(c, X, angles=-0.3 * np.tanh((X[:, 0] - 3) / 2))
+    designed = d.carpet
+    assert np.array_equal(designed.chi_N, d.chi_N)
+    st = tolerance_study(designed, d, 0.1, samples=12, seed=3)
+    rng = np.random.default_rng(3)
+    full = []
+    for _ in range(12):
+        u = _carpet(table, 4, chi=d.chi_N * (1 + 0.1 * rng.standard_normal(c.n))).mean_velocity(X, tol=1e-2)[:, :2]
+        r = np.angle((u[:, 0] + 1j * u[:, 1]) * np.conj(d.target[:, 0] + 1j * d.target[:, 1]))
+        full.append(math.sqrt(np.mean(r ** 2)))
+    full = np.array(full)
+    assert st.mean_rms > d.residual_rms  # errors cost accuracy
+    assert np.abs(st.rms - full).max() < 0.1 * full.mean()
+    assert abs(st.mean_rms - full.mean()) < st.sampling_error
+    with pytest.raises(ValueError, match="sigma"):
+        tolerance_study(designed, d, -0.1)
+    with pytest.raises(ValueError, match="samples"):
+        tolerance_study(designed, d, 0.1, samples=0)
