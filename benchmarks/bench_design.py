@@ -1,6 +1,7 @@
 """Cost of the inverse design and of rendering the bundled scenes (see benchmarks/README.md).
 
-    python benchmarks/bench_design.py [--quick] [--cap S] [--out FILE]
+    python benchmarks/bench_design.py [--quick] [--cap S] [--out FILE] [--sections design large velocity render]
+                                      [--sizes 100 1000] [--old-max-n N]
 
 Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also writes them to a file.
 
@@ -158,9 +159,17 @@ def section_design(emit, table: ThrustTable, sizes, cap: float, old_max_n: int):
          f"included. \"before\": `design_layout` of commit {OLD_COMMIT} on the same carpet (its time excludes the "
          f"Carpet), capped at {cap:g} s. Residuals in rad, measured with the full flow model.")
     emit("")
+    emit("Split of the time: the local Carpet, the carpets of the checked layouts, their full-model "
+         "evaluations (`evaluate_mean`), the L-BFGS-B solves on the design model; CPU = process CPU time of the "
+         "whole row (2 numba threads), less inflated by the other processes on the machine than the wall clock. "
+         "\"whole-carpet floor\": the same design with the speed floor relative to the whole straight carpet "
+         "(`floor_radius=inf`, the floor of commit b0bebbe), same carpet, same process.")
+    emit("")
     emit("| N | target | local rms | design rms (+- bound) | worst | returned | near cutoff | iterations | checks "
-         "| time [s] | peak memory [GB] | before: rms | before: near cutoff | before: time [s] | time before / now |")
-    emit("|---:|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+         "| time [s] | local Carpet / check carpets / evaluate_mean / design model [s] | CPU [s] "
+         "| peak memory [GB] | whole-carpet floor: rms | near cutoff | time [s] "
+         "| before: rms | before: near cutoff | before: time [s] | time before / now |")
+    emit("|---:|---|---:|---:|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     old = old_design_layout()
     mom = cycle_moments(table)
     for n in sizes:
@@ -175,17 +184,28 @@ def section_design(emit, table: ThrustTable, sizes, cap: float, old_max_n: int):
             want = f(centres0)
 
             def run():
+                t0 = time.perf_counter()
                 c = local_carpet(table, bases, phases, want)
-                return c, design_layout(c, X, angles=f(X), cilium_angles=want)
+                t_c = time.perf_counter() - t0
+                return c, t_c, design_layout(c, X, angles=f(X), cilium_angles=want)
 
+            cpu0 = time.process_time()
             out, t_d = timed(run, cap)
+            cpu = time.process_time() - cpu0
             if out is None:
-                emit(f"| {n} | {name} | stopped after {t_d:.0f} s (> cap) |" + " |" * 13)
+                emit(f"| {n} | {name} | stopped after {t_d:.0f} s (> cap) |" + " |" * 17)
                 continue
-            c, d = out
+            c, t_c, d = out
+            w = d.work
+            split = (f"{t_c:.1f} / {w['seconds_carpets']:.1f} / {w['seconds_checks']:.1f} / "
+                     f"{w['seconds_model']:.1f}")
             row = [str(n), name, f3(d.local_rms), f"{d.residual_rms:.3g} (+- {d.residual_error:.1g})",
                    f3(float(d.residual.max())), d.returned, str(len(d.near_cutoff)), str(d.work["iterations"]),
-                   str(d.work["checks"]), f"{t_d:.1f}", f"{maxrss_gb():.2f}"]
+                   str(d.work["checks"]), f"{t_d:.1f}", split, f"{cpu:.1f}", f"{maxrss_gb():.2f}"]
+            log(f"N = {n}, {name}: design with the whole-carpet floor")
+            d_w, t_w = timed(lambda: design_layout(c, X, angles=f(X), cilium_angles=want, floor_radius=math.inf), cap)
+            row += ["stopped", "", f"> {cap:g}"] if d_w is None else [
+                f3(d_w.residual_rms), str(len(d_w.near_cutoff)), f"{t_w:.1f}"]
             if n <= old_max_n:
                 log(f"N = {n}, {name}: design before ({OLD_COMMIT})")
                 with warnings.catch_warnings():
@@ -245,8 +265,8 @@ def section_velocity(emit, table: ThrustTable, cap: float):
          "starts from chi_N = 0. Time = `Carpet(...)` + `design_layout(...)`; rms relative to the rms target speed.")
     emit("")
     emit("| cilia | control points | wall | start rms | design rms (+- bound) | returned | iterations | checks "
-         "| time [s] |")
-    emit("|---:|---:|---|---:|---:|---|---:|---:|---:|")
+         "| time [s] | check carpets / evaluate_mean / design model [s] | CPU [s] |")
+    emit("|---:|---:|---|---:|---:|---|---:|---:|---:|---|---:|")
     for n, wall, n_ctrl in ((30, None, 400), (12, 0.5, None)):
         bases = layout.square(n, n, SPACING)
         phases = layout.random_phases(n * n, 0)
@@ -266,13 +286,17 @@ def section_velocity(emit, table: ThrustTable, cap: float):
                 c = Carpet(bases, 0.0, table, phases, wall=wall)
             return design_layout(c, X, velocities=U)
 
+        cpu0 = time.process_time()
         d, t_d = timed(run, cap)
+        cpu = time.process_time() - cpu0
         if d is None:
-            emit(f"| {n * n} | {X.shape[0]} | {wall} | stopped after {t_d:.0f} s |" + " |" * 5)
+            emit(f"| {n * n} | {X.shape[0]} | {wall} | stopped after {t_d:.0f} s |" + " |" * 7)
             continue
+        w = d.work
         emit(f"| {n * n} | {X.shape[0]} | {'none' if wall is None else f'{wall} L below'} | {f3(d.local_rms)} | "
              f"{d.residual_rms:.3g} (+- {d.residual_error:.1g}) | {d.returned} | {d.work['iterations']} | "
-             f"{d.work['checks']} | {t_d:.1f} |")
+             f"{d.work['checks']} | {t_d:.1f} | {w['seconds_carpets']:.1f} / {w['seconds_checks']:.1f} / "
+             f"{w['seconds_model']:.1f} | {cpu:.1f} |")
     emit("")
 
 
@@ -343,6 +367,9 @@ def main(argv=None):
     ap.add_argument("--old-max-n", type=int, default=1000,
                     help="run the design before this version up to this N (default 1000)")
     ap.add_argument("--out", type=Path, default=None, help="also write the tables to this file")
+    ap.add_argument("--sections", nargs="+", default=["design", "large", "velocity", "render"],
+                    choices=["design", "large", "velocity", "render"], help="the sections to run (default: all)")
+    ap.add_argument("--sizes", nargs="+", type=int, default=[100, 1000], help="carpet sizes of section 1")
     args = ap.parse_args(argv)
     lines: list[str] = []
 
@@ -364,20 +391,23 @@ def main(argv=None):
     warm_up(table)
     emit(f"- `ThrustTable.default()`: {t_table:.2f} s (not in the times below); warm-up done before timing")
     emit("")
-    sizes = (100,) if args.quick else (100, 1000)
+    sizes = (100,) if args.quick else tuple(args.sizes)
+    run = set(args.sections)
     t1 = time.perf_counter()
-    section_design(emit, table, sizes, args.cap, args.old_max_n)
-    if not args.quick:
+    if "design" in run:
+        section_design(emit, table, sizes, args.cap, args.old_max_n)
+    if "large" in run and not args.quick:
         section_large(emit, table)
     emit(f"- load average after section 1: {loadavg()}")
     emit("")
-    if not args.quick:
+    if "velocity" in run and not args.quick:
         section_velocity(emit, table, args.cap)
         emit(f"- load average after section 2: {loadavg()}")
         emit("")
     t_s1 = time.perf_counter() - t1
     t2 = time.perf_counter()
-    section_render(emit, args.quick, args.cap)
+    if "render" in run:
+        section_render(emit, args.quick, args.cap)
     t_s2 = time.perf_counter() - t2
     emit(f"- run time: {time.perf_counter() - t_start:.0f} s (design sections: {t_s1:.0f} s, renders: {t_s2:.0f} s); "
          f"load average at end: {loadavg()}")

@@ -213,7 +213,9 @@ class Design:
     the never-worse guarantee); near_cutoff: indices of cilia whose thrust is below
     :data:`NEAR_CUTOFF_FRACTION` of the straight filament's; clipped: indices of cilia whose
     request was clipped to the reachable range; status 0 converged, 1 not; message; work:
-    iterations, evaluations, full-model checks, seconds; tolerance: the fabrication-tolerance
+    iterations, evaluations, full-model checks, seconds (wall clock; of which seconds_carpets
+    building the carpets of the checked layouts, seconds_checks their full-model evaluations,
+    seconds_model the L-BFGS-B solves on the design model); tolerance: the fabrication-tolerance
     study (``None`` unless asked, see :func:`tolerance_study`); carpet: the carpet with the
     returned layout, on which the residual was measured."""
 
@@ -400,7 +402,7 @@ class DesignModel:
         m = self.moments(np.asarray(chi, dtype=float), nu)
         F = m["F"] @ self.rot.T
         D = self.rot @ m["D"] @ self.rot.T
-        return F[:, None, :] / 3.0 + (2.0 / (3.0 * self.delta))[:, None, None] * np.einsum("jab,ka->jkb", D, _E)
+        return F[:, None, :] / 3.0 + (2.0 / (3.0 * self.delta))[:, None, None] * (_E @ D)  # (E D)_jkb = e_k . D_j:b
 
     def velocity(self, chi) -> np.ndarray:
         """(P, 2) mean flow at the control points for curvatures ``chi`` (N,)."""
@@ -491,7 +493,8 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
                   tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = 0.3,
                   floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
                   outer: int = 2, ftol: float = 1e-6, maxiter: int = 500,
-                  spacing: float | None = None, floor_radius: float | None = None) -> Design:
+                  spacing: float | None = None, floor_radius: float | None = None,
+                  robust_sigma: float = 0.0, robust_samples: int = 16, robust_seed: int = 12345) -> Design:
     """Choose chi_N for the cilia of ``carpet`` (its bases, phases, field, wall and table are
     kept; its chi_N is the starting guess for velocity targets) so that the mean flow at
     ``control`` (P, 2) points along the deflection ``angles`` (P,) [rad, anticlockwise from the
@@ -529,6 +532,12 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
             raise ValueError(f"{name} must be a finite number >= {lo:g}, got {v!r}")
     if not speed_floor < 1:
         raise ValueError(f"speed_floor must be below 1 (a fraction of the straight carpet's speed), got {speed_floor!r}")
+    rs = float(robust_sigma)
+    if not (math.isfinite(rs) and rs >= 0):
+        raise ValueError(f"robust_sigma must be a finite number >= 0 (a relative chi_N error), got {robust_sigma!r}")
+    if rs > 0 and (isinstance(robust_samples, bool) or not isinstance(robust_samples, (int, np.integer))
+                   or robust_samples < 1):
+        raise ValueError(f"robust_samples must be an integer >= 1, got {robust_samples!r}")
     check_control_points(carpet, X, spacing)
     check_tol = max(tol, 3e-2) if check_tol is None else float(check_tol)
     rot = carpet.rotation
@@ -565,7 +574,8 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     if kind == "velocity" and scaleU == 0:
         raise TargetError("target velocities are all zero")
     edges = _edges(carpet.bases) if smoothness > 0 else np.zeros((0, 2), np.int64)
-    counters = {"iterations": 0, "evaluations": 0, "checks": 0}
+    counters = {"iterations": 0, "evaluations": 0, "checks": 0, "seconds_carpets": 0.0, "seconds_checks": 0.0,
+                "seconds_model": 0.0}
 
     def residual(u):
         if kind == "angle":
@@ -574,20 +584,50 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
 
     def check(chi):
         counters["checks"] += 1
+        t0 = _time.perf_counter()
         c = _with_chi(carpet, chi)
+        t1 = _time.perf_counter()
         s = c.evaluate_mean(X, tol=check_tol, error=True)
+        counters["seconds_carpets"] += t1 - t0
+        counters["seconds_checks"] += _time.perf_counter() - t1
         return c, s.velocity[:, :2], s.error_bound
 
     # the reference speed of the floor: what the straight carpet makes at each control point
     zero = np.zeros(N)
     sref = floor_reference(carpet, X, floor_radius, spacing, moments=mom)
 
-    def score(u, chi):
-        """The design objective measured on the full model's flow ``u`` (what "best" means)."""
+    def data(u):
+        """The data term of J and dJ/du at the flow ``u`` (P, 2)."""
         if kind == "angle":
-            J = angle_objective(u, target, speed_floor * sref, floor_weight)[0]
+            return angle_objective(u, target, speed_floor * sref, floor_weight)
+        r = u - target
+        return 0.5 * float(np.sum(r ** 2)) / scaleU, r / scaleU
+
+    # the fabrication-tolerance samples of the robust objective: chi_j (1 + sigma eps_sj)
+    mult = (1.0 + rs * np.random.default_rng(robust_seed).standard_normal((int(robust_samples), N))) if rs > 0 \
+        else np.ones((1, N))
+
+    def expected(dmodel, shift_u, c, grad: bool):
+        """The data term averaged over the samples (the nominal one without robust_sigma) of
+        the flow dmodel.velocity(chi (1 + sigma eps)) + shift_u, and its chi gradient."""
+        J, g = 0.0, np.zeros(N)
+        for m in mult:
+            cm = c * m
+            Jm, gu = data(dmodel.velocity(cm) + shift_u)
+            J += Jm / mult.shape[0]
+            if grad:
+                g += dmodel.gradient(cm, gu) * m / mult.shape[0]
+        return J, g
+
+    def score(u, chi, c_full=None):
+        """The design objective measured on the full model's flow ``u`` (what "best" means); the
+        robust one: the sample average with the defect frozen at ``chi``."""
+        if rs > 0:
+            dmc = DesignModel(carpet if c_full is None else c_full, X, chi, moments=mom)
+            with _threads(3 * N * P):
+                J = expected(dmc, u - dmc.velocity(chi), chi, False)[0]
         else:
-            J = 0.5 * float(np.sum((u - target) ** 2)) / scaleU
+            J = data(u)[0]
         return J + regularization * float(np.sum(((chi - chi0) / b1) ** 2)) / N + (
             smoothness * float(np.sum(((chi[edges[:, 0]] - chi[edges[:, 1]]) / b1) ** 2)) / len(edges)
             if edges.size else 0.0)
@@ -596,7 +636,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     c_loc, u_loc, e_loc = check(chi0)
     r_loc = residual(u_loc)
     rms_loc = float(np.sqrt(np.mean(r_loc ** 2)))
-    J_loc = score(u_loc, chi0)
+    J_loc = score(u_loc, chi0, c_loc)
     best = {"rms": rms_loc, "J": J_loc, "chi": chi0.copy(), "u": u_loc, "resid": r_loc,
             "label": "local", "carpet": c_loc, "res": None, "bound": e_loc}
 
@@ -611,14 +651,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
         def fun(x):
             counters["evaluations"] += 1
             c = x * b1
-            u = dm.velocity(c) + shift
-            if kind == "angle":
-                J, g_u = angle_objective(u, target, speed_floor * sref, floor_weight)
-            else:
-                r = u - target
-                J = 0.5 * float(np.sum(r ** 2)) / scaleU
-                g_u = r / scaleU
-            g = dm.gradient(c, g_u)
+            J, g = expected(dm, shift, c, True)
             dc = (c - chi0) / b1
             J += regularization * float(np.sum(dc ** 2)) / N
             g = g + 2.0 * regularization * dc / (b1 * N)
@@ -629,19 +662,21 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
                 g = g + np.bincount(edges[:, 0], ge, N) - np.bincount(edges[:, 1], ge, N)
             return J / J_scale, g * (b1 / J_scale)
 
+        t_model = _time.perf_counter()
         with _threads(3 * N * P):
             # J in units of its value at the pass's start: ftol is then relative to it
             J_scale = max(fun(chi / b1)[0], 1e-300)
             res = minimize(fun, chi / b1, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * N,
                            options={"gtol": 1e-10, "ftol": ftol, "maxiter": maxiter})
         counters["iterations"] += int(res.nit)
+        counters["seconds_model"] += _time.perf_counter() - t_model
         chi = np.clip(res.x * b1, -b1, b1)
         c_full, u_full, e_full = check(chi)
         resid = residual(u_full)
         rms = float(np.sqrt(np.mean(resid ** 2)))
         logger.info("design pass %d: full-model rms residual %.4g (model objective %.4g of its start), "
                     "%d iterations", p, rms, float(res.fun), res.nit)
-        J_full = score(u_full, chi)
+        J_full = score(u_full, chi, c_full)
         J_model = float(res.fun) * J_scale
         logger.info("design pass %d: objective %.4g on the full model, %.4g on the design model", p, J_full, J_model)
         gain = (best["J"] - J_full) / max(best["J"], 1e-300)
@@ -664,7 +699,9 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     last = best["res"] if best["res"] is not None else res
     status = 0 if (last is not None and last.success) else 1
     unit = " rad" if kind == "angle" else " (relative)"
-    message = (f"{kind} target at {P} control points: rms residual {rms:.3g}{unit} (+- {r_err:.1g}), worst "
+    robust = (f"designed for the expected objective under a relative chi_N error {rs:g} "
+              f"({mult.shape[0]} samples); ") if rs > 0 else ""
+    message = (f"{kind} target at {P} control points: {robust}rms residual {rms:.3g}{unit} (+- {r_err:.1g}), worst "
                f"{float(resid.max()):.3g}; local layout {rms_loc:.3g}; returned the {best['label']} layout; "
                f"{len(near)} of {N} cilia near the flutter cutoff; L-BFGS-B "
                f"{'converged' if status == 0 else 'stopped: ' + str(getattr(last, 'message', ''))}")
@@ -774,7 +811,7 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     frame = Frame.from_scene(scene, bases)
     strict = target.strict
     kw = dict(tol=scene.tolerance, speed_floor=target.speed_floor, smoothness=target.smoothness,
-              spacing=scene.carpet.spacing)
+              spacing=scene.carpet.spacing, robust_sigma=target.sigma if target.robust else 0.0)
     if target.is_angle:
         # the local layout straight away (no carpet of straight cilia is built): the request at
         # each cilium's force centre, the centre of the straight filament

@@ -20,7 +20,7 @@ Sections (all optional)::
     [table]     file   (+ [table.build] n, degree)
     [carpet]    lattice, shape, spacing, origin, points, chi_N, phases, seed, wave_vector, wall
     [target]    kind, angle, line, width, centre, file, control, residual, strict,
-                speed_floor, smoothness, sigma, samples
+                speed_floor, smoothness, sigma, samples, robust
     [output]    pathlines, seeds, n_seeds, periods, field, field_shape, field_margin,
                 snapshots, frames, preview
     [units]     length_m, time_s, viscosity_Pa_s
@@ -477,8 +477,9 @@ class TargetSpec:
         ``residual`` is returned (the closest flow the cilia make), both with a warning naming
         where and by how much; True (batch runs): both are errors (the command line exits 3).
     speed_floor : float in [0, 1), default 0.3
-        Angle targets: each control point must keep at least this fraction of the straight
-        carpet's speed, along the target direction (:mod:`ciliary_carpet.design`).
+        Angle targets: each control point must keep at least this fraction of the speed the
+        straight cilia within 5 spacings make there, along the target direction
+        (:func:`~ciliary_carpet.design.floor_reference`).
     smoothness : float >= 0, default 0
         Weight of the neighbour-difference regulariser of the layout (fabrication cost).
     sigma : float >= 0, default 0
@@ -486,6 +487,9 @@ class TargetSpec:
         residual and its spread (:func:`~ciliary_carpet.design.tolerance_study`).
     samples : int >= 1, default 64
         Samples of that study.
+    robust : bool, default False
+        Design for the expected objective under the error ``sigma`` (a sample average over 16
+        fixed samples) instead of the nominal one; needs sigma > 0.
     residual : float > 0, default 0.05
         Acceptance threshold on the overall (rms) residual of the design: radians for angle
         targets, relative to rms |U| for "points".
@@ -504,6 +508,7 @@ class TargetSpec:
     smoothness: float = 0.0
     sigma: float = 0.0
     samples: int = 64
+    robust: bool = False
 
     def __post_init__(self) -> None:
         _validate(self, _target_kw)
@@ -849,13 +854,17 @@ def _target_kw(src, data, base_dir=None) -> dict:
             raise r.fail("control", '"cells", "cilia" or a list of points [[x, y], ...]', control)
     else:
         control = r.pairs("control", None, '"cells", "cilia" or a list of points [[x, y], ...]')
+    sigma, robust = r.number("sigma", 0.0, lo=0), r.boolean("robust", False)
+    if robust and not sigma > 0:
+        raise r.fail("robust", "false unless target.sigma > 0 (it designs for the fabrication tolerance sigma)",
+                     robust)
     return dict(
         kind=kind, angle=angle, line=r.number("line", 0.0), width=r.number("width", None, lo=0, lo_open=True),
         centre=r.pair("centre", None), file=file, control=control,
         residual=r.number("residual", 0.05, lo=0, lo_open=True), strict=r.boolean("strict", False),
         speed_floor=r.number("speed_floor", 0.3, lo=0, hi=1, hi_open=True),
-        smoothness=r.number("smoothness", 0.0, lo=0), sigma=r.number("sigma", 0.0, lo=0),
-        samples=r.integer("samples", 64, lo=1))
+        smoothness=r.number("smoothness", 0.0, lo=0), sigma=sigma,
+        samples=r.integer("samples", 64, lo=1), robust=robust)
 
 
 def _output_kw(src, data) -> dict:

@@ -60,7 +60,7 @@ if TYPE_CHECKING:
 __all__ = ["TargetError", "UnreachableTargetError", "Target", "Frame", "control_points", "reachable_check",
            "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS", "KIND_KEYS", "applies_to"]
 
-_DESIGN_KEYS = ("residual", "strict", "smoothness", "sigma", "samples")
+_DESIGN_KEYS = ("residual", "strict", "smoothness", "sigma", "samples", "robust")
 _ANGLE_KEYS = ("angle", "control", "speed_floor") + _DESIGN_KEYS
 KIND_KEYS: dict[str, tuple[str, ...]] = {
     "none": (),
@@ -195,6 +195,8 @@ class Target:
         the closest flow, with a warning).
     speed_floor, smoothness : design settings (:func:`~ciliary_carpet.design.design_layout`).
     sigma, samples : the fabrication-tolerance study (:func:`~ciliary_carpet.design.tolerance_study`).
+    robust : design for the expected objective under the relative chi_N error ``sigma`` (needs
+        sigma > 0; ``robust_sigma`` of :func:`~ciliary_carpet.design.design_layout`).
     residual : acceptance threshold on the design's rms residual.
     data_points, data_velocities : (P, 2) arrays for kind "points" (else None); see
         :meth:`velocities`.
@@ -213,6 +215,7 @@ class Target:
     smoothness: float = 0.0
     sigma: float = 0.0
     samples: int = 64
+    robust: bool = False
     data_points: np.ndarray | None = None
     data_velocities: np.ndarray | None = None
     source: str | None = None
@@ -226,6 +229,9 @@ class Target:
             if self.kind != "uniform" and self.amplitude <= 0:
                 raise TargetError(f"the amplitude of a {self.kind!r} target must be > 0, got {self.amplitude!r}")
             object.__setattr__(self, "amplitude", float(self.amplitude))
+        if self.robust and not self.sigma > 0:
+            raise TargetError(f"target robust = true designs for the fabrication tolerance sigma, which must then be "
+                              f"> 0, got sigma = {self.sigma!r}")
         if self.width is not None and not (math.isfinite(self.width) and self.width > 0):
             raise TargetError(f"target width must be a positive number, got {self.width!r}")
         if not math.isfinite(self.line):
@@ -268,7 +274,7 @@ class Target:
         return cls(kind=spec.kind, amplitude=amp, line=spec.line, width=spec.width, centre=spec.centre,
                    control=spec.control, residual=spec.residual, strict=spec.strict,
                    speed_floor=spec.speed_floor, smoothness=spec.smoothness, sigma=spec.sigma,
-                   samples=spec.samples, data_points=pts,
+                   samples=spec.samples, robust=spec.robust, data_points=pts,
                    data_velocities=vel, source=src)
 
     @classmethod

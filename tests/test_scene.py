@@ -319,3 +319,18 @@ def test_scene_is_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         s.name = "other"
     assert isinstance(s, Scene) and scene_mod.LATTICES == ("row", "square", "hexagonal", "points")
+
+
+def test_robust_needs_a_fabrication_tolerance(tmp_path):
+    """[target] robust = true without sigma > 0 is a named error; with sigma it reaches the Target."""
+    from ciliary_carpet.scene import SceneError, load_scene
+    from ciliary_carpet.target import Target
+
+    base = '[carpet]\nshape = [3, 3]\n[target]\nkind = "uniform"\nangle = 10\nrobust = true\n'
+    p = tmp_path / "r.toml"
+    p.write_text(base)
+    with pytest.raises(SceneError, match="robust"):
+        load_scene(p)
+    p.write_text(base + "sigma = 0.1\n")
+    s = load_scene(p)
+    assert s.target.robust and Target.from_scene(s).robust
