@@ -93,7 +93,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["design", "design_layout", "carpet_with", "scene_carpet", "Design", "DesignError", "DesignModel",
            "ToleranceStudy", "tolerance_study",
-           "CycleMoments", "cycle_moments", "angle_objective", "floor_reference", "FLOOR_RADIUS_SPACINGS", "check_control_points", "NEAR_CUTOFF_FRACTION"]
+           "CycleMoments", "cycle_moments", "angle_objective", "floor_reference", "FLOOR_RADIUS_SPACINGS",
+           "Reachability", "reachability", "check_control_points", "NEAR_CUTOFF_FRACTION"]
 
 NEAR_CUTOFF_FRACTION = 0.25
 """A cilium is reported "near the cutoff" when its mean thrust is below this fraction of the
@@ -216,7 +217,8 @@ class Design:
     iterations, evaluations, full-model checks, seconds (wall clock; of which seconds_carpets
     building the carpets of the checked layouts, seconds_checks their full-model evaluations,
     seconds_model the L-BFGS-B solves on the design model); tolerance: the fabrication-tolerance
-    study (``None`` unless asked, see :func:`tolerance_study`); carpet: the carpet with the
+    study (``None`` unless asked, see :func:`tolerance_study`); reachability: what the carpet
+    can make (:func:`reachability`; angle targets of :func:`design`); carpet: the carpet with the
     returned layout, on which the residual was measured."""
 
     chi_N: np.ndarray
@@ -238,6 +240,7 @@ class Design:
     message: str = ""
     work: dict = field(default_factory=dict)
     tolerance: dict | None = None
+    reachability: dict | None = None
     carpet: Carpet | None = field(default=None, repr=False, compare=False)
 
     def worst(self, k: int = 5) -> list[tuple[int, float, float, float]]:
@@ -260,6 +263,8 @@ class Design:
             out["speed_ratio_min"] = float(np.min(self.speed_ratio))
         if self.tolerance is not None:
             out["tolerance"] = self.tolerance
+        if self.reachability is not None:
+            out["reachability"] = self.reachability
         return out
 
     def to_dataset(self, carpet: Carpet):
@@ -452,10 +457,16 @@ def floor_reference(carpet: Carpet, control, radius: float | None = None, spacin
 
 
 def _local_speed(dm: "DesignModel", chi: np.ndarray, radius: float) -> np.ndarray:
+    return np.linalg.norm(_local_velocity(dm, chi, radius), axis=1)
+
+
+def _local_velocity(dm: "DesignModel", chi: np.ndarray, radius: float) -> np.ndarray:
+    """(P, 2) the flow at each control point of the cilia whose force centre lies within
+    ``radius`` of it (design model at ``chi``; every cilium when radius is infinite)."""
     f = dm.carriers(chi).reshape(-1, 2)
     F3 = np.column_stack([f, np.zeros(f.shape[0])])
     if not math.isfinite(radius):
-        return np.linalg.norm(stokeslet_velocity(dm.X3, dm.pos3, F3, dm.carpet.mu, wall=dm.wall)[:, :2], axis=1)
+        return stokeslet_velocity(dm.X3, dm.pos3, F3, dm.carpet.mu, wall=dm.wall)[:, :2]
     from scipy.spatial import cKDTree
 
     cen = dm.pos3[:, :2].reshape(-1, 3, 2).mean(axis=1)
@@ -464,8 +475,7 @@ def _local_speed(dm: "DesignModel", chi: np.ndarray, radius: float) -> np.ndarra
     ptr = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
     j = np.concatenate([np.asarray(x, np.int64) for x in lists]) if cnt.sum() else np.zeros(0, np.int64)
     ranges = np.column_stack([3 * j, 3 * j + 3]).astype(np.int64)
-    u = stokeslet_velocity_ranges(dm.X3, dm.pos3, F3, ptr, ranges, dm.carpet.mu, wall=dm.wall)
-    return np.linalg.norm(u[:, :2], axis=1)
+    return stokeslet_velocity_ranges(dm.X3, dm.pos3, F3, ptr, ranges, dm.carpet.mu, wall=dm.wall)[:, :2]
 
 
 def angle_objective(u, target, floor, weight: float = 1.0) -> tuple[float, np.ndarray]:
@@ -714,6 +724,64 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
                   carpet=best["carpet"])
 
 
+# ------------------------------------------------------------------------------ reachability
+@dataclass(frozen=True)
+class Reachability:
+    """What a carpet can make under its field, up front (angles in radians).
+
+    angle_max: the largest deflection of one cilium's thrust (the table's
+    ``thrust_angle_range()``): a uniform target is reachable up to it. angle_floor: the
+    deflection of a cilium that keeps ``speed_floor`` of the straight filament's thrust (how far
+    the design's floor lets a cilium turn at full weight). pattern_max: the deflection a
+    two-sided pattern (focus, spread) holds away from its line: the flow angle of the *split
+    layout* -- every cilium on one side of the line turned by angle_floor toward it, on the
+    other side away from it -- at the control points 3 spacings or more from the line (median;
+    design model, every cilium). Less than angle_floor because each side's cross-stream flow is
+    partly cancelled by the other's (Stokeslets decay as 1/r). An estimate, not a bound;
+    validated against full designs (tests and benchmarks/results/bench_design.md): 10 x 10 and
+    20 x 12 lattices of spacing 2, pattern_max 22.6 and 26.6 deg; focusing (width 4) at 20 and
+    25 deg meets 0.05 rad (0.006, 0.023), at 30 and 40 deg it misses (0.060, 0.19-0.21).
+
+    Width: the narrowest transition a lattice resolves is not estimated here. Measured
+    (focusing at 20 deg, spacing h = 2, 100 and 240 cilia): width 1.5 L = 0.75 h meets 0.05 rad
+    (0.047), width h/2 and below miss (0.066-0.071); the kernel's smoothing of the split layout
+    (its flow angle reaches 0.76 of pattern_max only 3.7 L from the line on 100 cilia, 10.6 L
+    on 1000) would call widths the designs meet unreachable, because the design concentrates
+    the cross-stream force near the line."""
+
+    angle_max: float
+    angle_floor: float
+    pattern_max: float
+    line: float = 0.0
+
+    def summary(self) -> dict:
+        return {"angle_max_deg": math.degrees(self.angle_max), "angle_floor_deg": math.degrees(self.angle_floor),
+                "pattern_max_deg": math.degrees(self.pattern_max), "line": self.line,
+                "method": "pattern_max: design model, split layout at the speed floor (an estimate, not a bound)"}
+
+
+def reachability(carpet: Carpet, control, frame: Frame, speed_floor: float = 0.3, line: float = 0.0) -> Reachability:
+    """The :class:`Reachability` of ``carpet`` at the control points (P, 2) with the pattern's
+    line at cross-stream offset ``line`` of ``frame`` (one design-model evaluation)."""
+    X = np.asarray(control, dtype=float)
+    t = carpet.table
+    mom = cycle_moments(t)
+    grid = np.linspace(0.0, mom.cutoff, 2001)
+    keep = np.nonzero(mom.thrust_norm(grid) >= float(speed_floor) * mom.thrust0)[0]
+    chi_f = float(grid[keep.max()]) if keep.size else 0.0
+    a_f = float(t.scalar("thrust_angle", np.array([chi_f]))[0])
+    sgn = 1.0 if a_f >= 0 else -1.0
+    chi = -np.sign(frame.cross_coordinate(carpet.centres) - line) * sgn * chi_f  # toward the line on both sides
+    u = DesignModel(carpet, X, chi, moments=mom).velocity(chi)
+    delta = np.arctan2(u @ frame.cross, u @ frame.flow_direction)
+    xi = np.abs(frame.cross_coordinate(X) - line)
+    far = xi >= 3.0 * frame.spacing
+    if not np.any(far):
+        far = xi >= np.median(xi)
+    return Reachability(angle_max=float(t.thrust_angle_range()[1]), angle_floor=abs(a_f),
+                        pattern_max=float(np.median(np.abs(delta[far]))), line=float(line))
+
+
 # ------------------------------------------------------------------------------ tolerance
 @dataclass(frozen=True)
 class ToleranceStudy:
@@ -826,8 +894,13 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
         X = control_points(bases, frame, target.control)
         d = design_layout(carpet, X, angles=target.deflection(X, frame), cilium_angles=want, clip=not strict,
                           **kw)
-        if np.any(bad):
-            d = _replace(d, clipped=tuple(np.nonzero(bad)[0].tolist()))
+        reach = reachability(d.carpet, X, frame, target.speed_floor, target.line)
+        d = _replace(d, reachability=reach.summary(), **({"clipped": tuple(np.nonzero(bad)[0].tolist())}
+                                                        if np.any(bad) else {}))
+        if target.kind in ("focus", "spread") and target.amplitude > reach.pattern_max:
+            logger.info("design: the %s amplitude %.1f deg exceeds the estimated reachable %.1f deg of a two-sided "
+                        "pattern on this carpet", target.kind, math.degrees(target.amplitude),
+                        math.degrees(reach.pattern_max))
     else:
         carpet = scene_carpet(scene, table)
         X, U = target.velocities()
@@ -835,8 +908,12 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     if d.residual_rms > target.residual:
         unit = "rad" if d.kind == "angle" else "relative"
         lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
+        est = ""
+        if target.kind in ("focus", "spread") and d.reachability is not None:
+            est = (f" (estimated reachable amplitude of a two-sided pattern on this carpet: "
+                   f"{d.reachability['pattern_max_deg']:.1f} deg, asked {math.degrees(target.amplitude):.1f} deg)")
         msg = (f"{scene.source_name}: the cilia cannot make this target: rms residual {d.residual_rms:.3g} "
-               f"{unit} exceeds [target] residual = {target.residual:g}; worst control points {lst}. "
+               f"{unit} exceeds [target] residual = {target.residual:g}{est}; worst control points {lst}. "
                "Lower the target angle, widen the pattern, or move the control points away from the cilia")
         if strict:
             raise DesignError(msg)

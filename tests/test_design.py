@@ -322,3 +322,30 @@ def test_robust_design_lowers_the_expected_residual(table):
         design_layout(c, X, angles=ang, robust_sigma=float("nan"))
     with pytest.raises(ValueError, match="robust_samples"):
         design_layout(c, X, angles=ang, robust_sigma=0.1, robust_samples=0)
+
+
+def test_reachability_of_a_two_sided_pattern_matches_designs(table):
+    """The estimated reachable amplitude of a focusing pattern (10 x 10 cilia, spacing 2) lies
+    between an amplitude the design meets (20 deg) and one it misses (40 deg); the per-cilium
+    range is the table's."""
+    from ciliary_carpet.design import reachability
+
+    c = _carpet(table, 10)
+    fr = Frame.from_bases(c.bases, 2.0, c.direction)
+    X = _cells(c)
+    r = reachability(c, X, fr)
+    assert r.angle_max == pytest.approx(table.thrust_angle_range()[1])
+    assert r.pattern_max < r.angle_floor < r.angle_max
+    assert math.radians(20) < r.pattern_max < math.radians(40)
+    cen0 = c.bases + cycle_moments(table)(np.zeros(1))["offset"]
+    rms = {}
+    for A in (20, 40):
+        def f(p):
+            return -math.radians(A) * np.tanh(fr.cross_coordinate(p) / 4.0)
+
+        want = f(cen0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            cc = Carpet(c.bases, np.array([table.chi_N_for_angle(a) for a in want]), table, c.phases)
+        rms[A] = design_layout(cc, X, angles=f(X), cilium_angles=want).residual_rms
+    assert rms[20] < 0.05 < rms[40]
