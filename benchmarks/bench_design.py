@@ -26,6 +26,9 @@ Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also write
    centre), free space; 12 x 12 cilia above a wall 0.5 L below the plane.
 3. ``ciliary_carpet.render.render`` of every ``designs/*.toml``: the per-stage seconds of
    ``summary["seconds"]`` and the design's figures.
+4. (``reach``) ``ciliary_carpet.design.reachability``'s estimate of the amplitude a two-sided
+   pattern can hold against focusing designs at amplitudes 20-40 degrees (width 4 L) and widths
+   1-2 L (20 degrees), on 10 x 10 and 20 x 12 cilia.
 
 Timing: wall clock, single run, after a warm-up (numba kernels, table). The machine is shared: the
 load average at start and end is printed and inflates every time here; the ratios against the
@@ -300,6 +303,40 @@ def section_velocity(emit, table: ThrustTable, cap: float):
     emit("")
 
 
+def section_reach(emit, table: ThrustTable):
+    """reachability() against designs: focusing at several amplitudes and widths."""
+    from ciliary_carpet.design import reachability
+
+    emit("## 4. Reachability estimate against designs")
+    emit("")
+    emit("`reachability(carpet, control, frame).pattern_max` (the amplitude a two-sided pattern holds away from "
+         "its line) against the focusing design's rms residual (full model; threshold 0.05 rad), square lattices "
+         f"of spacing {SPACING:g}, random phases (seed 0), control points \"cells\".")
+    emit("")
+    emit("| cilia | pattern_max [deg] | amplitude [deg] | width [L] | design rms [rad] | meets 0.05 | "
+         "amplitude <= pattern_max |")
+    emit("|---:|---:|---:|---:|---:|---|---|")
+    mom = cycle_moments(table)
+    for nx, ny in ((10, 10), (20, 12)):
+        bases = layout.square(nx, ny, SPACING)
+        phases = layout.random_phases(nx * ny, 0)
+        frame = Frame.from_bases(bases, SPACING, 0.0)
+        X = control_points(bases, frame, "cells")
+        c0 = local_carpet(table, bases, phases, np.zeros(nx * ny))
+        pm = math.degrees(reachability(c0, X, frame).pattern_max)
+        centres0 = bases + mom(np.zeros(1))["offset"]
+        for amp, w in ((20, 4.0), (25, 4.0), (30, 4.0), (40, 4.0), (20, 1.0), (20, 1.5), (20, 2.0)):
+            def f(p, amp=amp, w=w):
+                return -math.radians(amp) * np.tanh(frame.cross_coordinate(p) / w)
+
+            want = f(centres0)
+            c = local_carpet(table, bases, phases, want)
+            d = design_layout(c, X, angles=f(X), cilium_angles=want)
+            emit(f"| {nx * ny} | {pm:.1f} | {amp} | {w:g} | {d.residual_rms:.3g} | "
+                 f"{'yes' if d.residual_rms <= 0.05 else 'no'} | {'yes' if amp <= pm else 'no'} |")
+    emit("")
+
+
 def warm_up(table: ThrustTable) -> None:
     bases = layout.square(3, 2, SPACING)
     frame = Frame.from_bases(bases, SPACING, 0.0)
@@ -367,8 +404,9 @@ def main(argv=None):
     ap.add_argument("--old-max-n", type=int, default=1000,
                     help="run the design before this version up to this N (default 1000)")
     ap.add_argument("--out", type=Path, default=None, help="also write the tables to this file")
-    ap.add_argument("--sections", nargs="+", default=["design", "large", "velocity", "render"],
-                    choices=["design", "large", "velocity", "render"], help="the sections to run (default: all)")
+    ap.add_argument("--sections", nargs="+", default=["design", "large", "velocity", "reach", "render"],
+                    choices=["design", "large", "velocity", "reach", "render"],
+                    help="the sections to run (default: all)")
     ap.add_argument("--sizes", nargs="+", type=int, default=[100, 1000], help="carpet sizes of section 1")
     args = ap.parse_args(argv)
     lines: list[str] = []
@@ -406,6 +444,8 @@ def main(argv=None):
         emit("")
     t_s1 = time.perf_counter() - t1
     t2 = time.perf_counter()
+    if "reach" in run:
+        section_reach(emit, table)
     if "render" in run:
         section_render(emit, args.quick, args.cap)
     t_s2 = time.perf_counter() - t2

@@ -737,14 +737,16 @@ class Reachability:
     layout* -- every cilium on one side of the line turned by angle_floor toward it, on the
     other side away from it -- at the control points 3 spacings or more from the line (median;
     design model, every cilium). Less than angle_floor because each side's cross-stream flow is
-    partly cancelled by the other's (Stokeslets decay as 1/r). An estimate, not a bound;
-    validated against full designs (tests and benchmarks/results/bench_design.md): 10 x 10 and
-    20 x 12 lattices of spacing 2, pattern_max 22.6 and 26.6 deg; focusing (width 4) at 20 and
-    25 deg meets 0.05 rad (0.006, 0.023), at 30 and 40 deg it misses (0.060, 0.19-0.21).
+    partly cancelled by the other's (Stokeslets decay as 1/r). An estimate, not a bound, and on
+    the safe side by up to about 5 degrees; validated against full designs (tests; table 4 of
+    benchmarks/results/bench_design.md), focusing of width 4 L, spacing 2: on 10 x 10 cilia
+    pattern_max 22.6 deg, 20 and 25 deg meet 0.05 rad (0.006, 0.033), 30 and 40 miss (0.083,
+    0.21); on 20 x 12 cilia 26.6 deg, 20 and 25 meet (0.009, 0.023), 30 and 40 miss (0.060,
+    0.19).
 
     Width: the narrowest transition a lattice resolves is not estimated here. Measured
-    (focusing at 20 deg, spacing h = 2, 100 and 240 cilia): width 1.5 L = 0.75 h meets 0.05 rad
-    (0.047), width h/2 and below miss (0.066-0.071); the kernel's smoothing of the split layout
+    (focusing at 20 deg, spacing h = 2, 100 and 240 cilia): width h meets 0.05 rad (0.036),
+    0.75 h is on the threshold (0.052, 0.047), h/2 misses (0.066, 0.057); the kernel's smoothing of the split layout
     (its flow angle reaches 0.76 of pattern_max only 3.7 L from the line on 100 cilia, 10.6 L
     on 1000) would call widths the designs meet unreachable, because the design concentrates
     the cross-stream force near the line."""
