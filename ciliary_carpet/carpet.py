@@ -10,12 +10,16 @@ whole single-filament picture (field along e2) is rotated by it. Cilium j is at 
 flow is in general quasi-periodic, and nothing here assumes a common period. The fluid velocity
 is the superposition of the filaments' line distributions of Stokeslets,
 
-    u(x, t) = 1/(8 pi mu) sum_j int_0^1 G(x - r_j(s, t)) f_j(s, t) ds,   G(R) = I/|R| + R R^T/|R|^3,
+    u(x, t) = 1/(8 pi mu) sum_j int_0^1 G(x, r_j(s, t)) f_j(s, t) ds,
 
-with f = -d the force per length on the fluid (the table's fx, fy). The arc length integral is
+with f = -d the force per length on the fluid (the table's fx, fy) and G the regularised
+Stokeslet of blob size ``blob`` (the filament radius; :mod:`ciliary_carpet.kernel`), so that the
+velocity stays bounded on and between the filaments and tracers pass through the carpet; away
+from a filament it differs from the singular Stokeslet I/|R| + R R^T/|R|^3 by O(blob^2/|R|^3). The arc length integral is
 the composite Simpson rule on the table's uniform s grid; the phase dependence is the
 trigonometric interpolant of the table's uniform phase samples (spectral: the cycle is smooth).
-With ``wall=h`` a no-slip plane lies at z = -h (Blake's image system). The model ignores
+With ``wall=h`` a no-slip plane lies at z = -h (the regularised image system of Ainley et al.
+2008; Blake's for ``blob=None``). The model ignores
 contact and hydrodynamic interaction between filaments (each beats as if alone); a base point
 inside another cilium's swept region is warned about.
 
@@ -38,8 +42,9 @@ with remainder their error for a target at distance R > a from c is at most
     |u_level - u_resolved| <= C2 (Q + Q_rep) / (2 * 8 pi mu (R - a)^3),
 
 with Q_rep = sum_k delta^2 |f_k| the second moment of the three-point carrier and C2 = 4 the
-maximum of |(h.grad)^2 G f| over unit vectors at unit distance (computed in the tests; with
-a wall, C2 = :data:`C2_WALL`, measured over wall heights and directions in the tests). A pair is
+maximum of |(h.grad)^2 G f| over unit vectors at unit distance (:attr:`Kernel.c2
+<ciliary_carpet.kernel.Kernel.c2>`: computed in the tests; with a wall, C2 = 16, measured over
+wall heights and directions; the regularised kernels stay below the singular constants). A pair is
 summed cheaply when this bound is at most ``tol * S_j / (8 pi mu R)``, where S_j is the cilium's
 force scale (|Fbar_j| for the mean flow, the r.m.s. of |F_j(t)| over the cycle for the
 instantaneous flow), so that at every point
@@ -64,18 +69,17 @@ from single_cilium.equilibrium import equilibrium_shape
 from single_cilium.params import CiliumParams
 from single_cilium.table import ThrustTable
 
-from .stokeslet import Backend, Wall, stokeslet_velocity, stokeslet_velocity_ranges
+from .kernel import C2_FREE, C2_WALL, Kernel, Wall, make_kernel
+from .stokeslet import Backend, stokeslet_velocity, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "LEVELS"]
+__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "LEVELS", "BLOB"]
 
-C2_FREE = 4.0
-"""sup |(h . grad)^2 G(e) f| over unit h, f, e: the Taylor constant of the free-space Stokeslet."""
-C2_WALL = 16.0
-"""The same constant for Blake's tensor, second derivatives in the in-plane source position,
-relative to the source distance (a safe upper bound of the measured supremum, see the tests)."""
 LEVELS = ("mean", "point", "resolved")
+BLOB = 0.02
+"""Default blob size eps of the regularised Stokeslets, in units of L: the filament radius of a
+slender filament of aspect ratio L / (2 a) = 25 (scene key ``[carpet] blob``)."""
 
 
 @dataclass(frozen=True)
@@ -161,7 +165,10 @@ class Carpet:
     mu : fluid viscosity in model units (B tau / L^4); 1 by default.
     wall : distance h > 0 of a no-slip wall z = -h below the plane, or None (free space).
     scales : optional :class:`Scales` for output in SI units.
-    backend : kernel strategy for the dense sums (:mod:`ciliary_carpet.stokeslet`); default Auto.
+    backend : evaluator of the sums (:mod:`ciliary_carpet.stokeslet`); default Auto.
+    blob : regularisation length eps of the Stokeslets (:data:`BLOB`, the filament radius), > 0
+        and at most half the smallest distance between base points; None: singular Stokeslets
+        (the flow is then unbounded at the filaments).
 
     Cilia whose chi_N does not flutter stand still in their equilibrium shape and make no flow.
     """
@@ -175,6 +182,7 @@ class Carpet:
     wall: float | None = None
     scales: Scales | None = None
     backend: Backend | None = None
+    blob: float | None = BLOB
     _c: dict = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -201,6 +209,19 @@ class Carpet:
             raise ValueError(f"mu must be positive, got {self.mu}")
         if self.wall is not None and not (math.isfinite(self.wall) and self.wall > 0):
             raise ValueError(f"wall must be a positive distance below the plane (or None), got {self.wall!r}")
+        if self.blob is not None:
+            try:
+                e = float(self.blob)
+            except (TypeError, ValueError):
+                raise ValueError(f"blob must be a positive length (or None), got {self.blob!r}") from None
+            if not (math.isfinite(e) and e > 0):
+                raise ValueError(f"blob must be a positive length in units of L (the filament radius), got {e}")
+            if n > 1:
+                gap = float(cKDTree(b).query(b, k=2)[0][:, 1].min())
+                if e > 0.5 * gap:
+                    raise ValueError(f"blob = {e:g} is larger than half the smallest spacing of the base points "
+                                     f"({gap:g} L): the blobs of neighbouring filaments would overlap")
+            object.__setattr__(self, "blob", e)
         if not isinstance(self.table, ThrustTable):
             raise TypeError(f"table must be a ThrustTable, got {type(self.table).__name__}")
         object.__setattr__(self, "bases", b)
@@ -263,7 +284,7 @@ class Carpet:
         return dict(flutter=fl, n_s=n_s, n_phase=n_p, s=s, w=w, coef=coef, k=np.arange(K),
                     period=period, rate=np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0),
                     centre=centre, radius=radius, F=F, D=D, Q=Q, F_rms=np.sqrt((F ** 2).sum(-1).mean(axis=1)),
-                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls)
+                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls, radii={})
 
     def _warn_overlaps(self) -> None:
         c = self._c
@@ -320,8 +341,16 @@ class Carpet:
         return self._c["s"].copy()
 
     @property
-    def _wall(self) -> Wall | None:
-        return None if self.wall is None else Wall(z=-float(self.wall))
+    def kernel(self) -> Kernel:
+        """The Green's function of the flow: regularised (blob) or singular, free or with the wall."""
+        return make_kernel(None if self.wall is None else Wall(z=-float(self.wall)), self.blob or 0.0)
+
+    def filament_distance(self, points, t: float) -> np.ndarray:
+        """(M,) distance of ``points`` (M, 2) or (M, 3) from the nearest filament at time ``t``
+        (to the sampled centre lines, the table's s grid; in-plane)."""
+        p = np.asarray(points, dtype=float)[:, :2]
+        pos, _, _ = self.state(t)
+        return cKDTree(pos.reshape(-1, 2)).query(p)[0]
 
     def phase_at(self, t: float) -> np.ndarray:
         """(N,) phase of every cilium at time t, in [0, 1)."""
@@ -375,7 +404,7 @@ class Carpet:
         """Per cilium the distance R* beyond which the cheap level's bound
         C2 Q R / (2 (R - a)^3) <= tol S holds (inf when S = 0 but Q > 0)."""
         a = self._c["radius"]
-        C2 = C2_WALL if self.wall is not None else C2_FREE
+        C2 = self.kernel.c2
         k = 0.5 * C2 * Q
         with np.errstate(divide="ignore", invalid="ignore"):
             g = lambda R: k * R - tol * S * (R - a) ** 3  # noqa: E731 -- decreasing past its root
@@ -395,6 +424,27 @@ class Carpet:
         R = np.where(S > 0, R, np.where(Q > 0, np.inf, a))
         return R
 
+    def _near_radii(self, tol: float, level: str) -> np.ndarray:
+        """:meth:`_near_radius` for the ``point`` level (second moments maximised over the cycle's
+        phase samples, so that one radius serves every time) or the ``mean`` level; memoised per
+        tolerance."""
+        key = (level, tol)
+        cache = self._c["radii"]
+        if key not in cache:
+            c = self._c
+            if level == "mean":
+                Qt = c["Q_mean"] + self._carriers(c["F_mean"], c["D_mean"])[2]
+                S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
+            else:
+                Qt = np.max([c["Q"][:, p] + self._carriers(c["F"][:, p], c["D"][:, p])[2]
+                             for p in range(c["n_phase"])], axis=0)
+                S = c["F_rms"] * c["flutter"]
+            R = self._near_radius(Qt, S, tol) if tol > 0 else np.full(self.n, np.inf)
+            if len(cache) > 32:
+                cache.clear()
+            cache[key] = np.where((S > 0) | (Qt > 0), R, -1.0)
+        return cache[key]
+
     def _sum(self, targets: np.ndarray, resolved, F: np.ndarray, D: np.ndarray, Q: np.ndarray, S: np.ndarray,
              tol: float, error: bool, cheap_level: str) -> FlowSample:
         """Cheap carriers everywhere (one dense sum), plus resolved-minus-cheap corrections on the
@@ -405,13 +455,12 @@ class Carpet:
         active = S > 0
         cpos, cf, q_rep = self._carriers(F, D)
         m = targets.shape[0]
-        wall = self._wall
-        rstar = self._near_radius(Q + q_rep, S, tol) if tol > 0 else np.full(n, np.inf)
-        rstar = np.where(active | (Q > 0), rstar, -1.0)
+        kernel = self.kernel
+        rstar = self._near_radii(tol, cheap_level)
         u = np.zeros((m, 3))
         if np.any(active):
             u += stokeslet_velocity(targets, _pad(cpos[active].reshape(-1, 2)), _pad(cf[active].reshape(-1, 2)),
-                                    self.mu, wall=wall, backend=self.backend)
+                                    self.mu, kernel=kernel, backend=self.backend)
         # near pairs, from a tree over the targets
         cand = np.nonzero(rstar > 0)[0]
         pi, pj = [], []
@@ -442,10 +491,11 @@ class Carpet:
             ptr = np.zeros(m + 1, dtype=np.int64)
             np.add.at(ptr, pi + 1, 2)
             ptr = np.cumsum(ptr)
-            u += stokeslet_velocity_ranges(targets, src, frc, ptr, ranges, self.mu, wall=wall)
+            u += stokeslet_velocity_ranges(targets, src, frc, ptr, ranges, self.mu, kernel=kernel,
+                                           backend=self.backend)
         bound = np.zeros(m)
         if error and np.any(active):
-            C2 = C2_WALL if self.wall is not None else C2_FREE
+            C2 = kernel.c2
             cen = _pad(c["centre"])
             near = np.zeros((m, n), bool)
             if n_near:

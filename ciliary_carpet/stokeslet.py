@@ -300,7 +300,8 @@ def _direct(code, T, S, F, e2, scale, out):  # pragma: no cover - compiled
 @njit(cache=True, fastmath=_FASTMATH, parallel=True)
 def _ranges_kernel(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no cover - compiled
     """out[i] = scale * sum over k in ptr[i]:ptr[i+1], j in ranges[k, 0]:ranges[k, 1] of
-    G(T[:, i], S[:, j]) F[:, j] for the kernel ``code`` (as :func:`_direct`)."""
+    G(T[:, i], S[:, j]) F[:, j] for the kernel ``code`` (as :func:`_direct`; one loop per code so
+    that each inner sum vectorises)."""
     sx = S[0]
     sy = S[1]
     sz = S[2]
@@ -311,12 +312,27 @@ def _ranges_kernel(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no co
         ux = 0.0
         uy = 0.0
         uz = 0.0
-        for k in range(ptr[i], ptr[i + 1]):
-            a, b, c = _acc(code, T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz, e2,
-                           ranges[k, 0], ranges[k, 1])
-            ux += a
-            uy += b
-            uz += c
+        x = T[0, i]
+        y = T[1, i]
+        z = T[2, i]
+        if code == 0:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_free(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
+        elif code == 1:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
+        else:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_regwall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
         out[i, 0] = scale * ux
         out[i, 1] = scale * uy
         out[i, 2] = scale * uz
