@@ -20,8 +20,8 @@ flow changes within a blob size) re-integrate the same interval with smaller ste
 (recursively, at most :data:`MAX_DEPTH` levels), so that one tracer near a filament does not slow
 down all others. Every stage evaluates the flow once for all the tracers it advances (one
 vectorised sum). Output is dense: positions at the common times ``t0 + k dt`` with at least
-``samples_per_period`` samples per (shortest) beat period, by cubic Hermite interpolation of the
-accepted steps (error O(h^4), below the local tolerance of the steps), plus the final point.
+``samples_per_period`` samples per (shortest) beat period, by the pair's continuous extension of
+order 4 (Shampine 1986) within the accepted steps, plus the final point.
 
 Termination (:data:`REASONS`): the end time, leaving the domain, or a step size underflow (the
 flow is not resolved). With the regularised kernel the velocity is bounded everywhere, so
@@ -46,13 +46,18 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PathLines", "pathlines", "REASONS", "ResolvedFlow", "MeanFlow", "SeedError", "PathLineError",
-           "MAX_DEPTH", "MAX_OUTPUT_BYTES"]
+__all__ = ["PathLines", "pathlines", "check_seeds", "REASONS", "ResolvedFlow", "MeanFlow", "SeedError",
+           "PathLineError", "MAX_DEPTH", "MAX_OUTPUT_BYTES", "MEAN_MODEL_ERROR"]
 
 REASONS = ("reached end time", "left the domain", "step size underflow")
 END, DOMAIN, UNDERFLOW = range(3)
 MAX_DEPTH = 12
 """Most levels of step halving a tracer may take below the common step (H / 4096)."""
+MEAN_MODEL_ERROR = 0.05
+"""End-point error of the long-time model (:class:`MeanFlow`) relative to the distance travelled,
+against time-resolved path lines: the largest over the tracers of the 10 x 10 carpets measured by
+``benchmarks/bench_flow.py --sections longtime`` (benchmarks/results/bench_pathlines.md), rounded
+up. Renders take the model automatically only when the scene's tolerance is at least this."""
 MAX_OUTPUT_BYTES = 2 * 1024 ** 3
 """Largest dense output (positions and velocities, float64) a run may allocate."""
 
@@ -64,6 +69,16 @@ _A = [[], [1 / 5], [3 / 40, 9 / 40], [44 / 45, -56 / 15, 32 / 9],
       [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84]]
 _B = np.array([35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0])
 _E = _B - np.array([5179 / 57600, 0, 7571 / 16695, 393 / 640, -92097 / 339200, 187 / 2100, 1 / 40])
+# its continuous extension of order 4 (Shampine 1986; the coefficients of scipy's RK45 and
+# Hairer-Norsett-Wanner's DOPRI5): x(t + s h) = x + h sum_i k_i sum_q _P[i, q] s^(q+1)
+_P = np.array([
+    [1, -8048581381 / 2820520608, 8663915743 / 2820520608, -12715105075 / 11282082432],
+    [0, 0, 0, 0],
+    [0, 131558114200 / 32700410799, -68118460800 / 10900136933, 87487479700 / 32700410799],
+    [0, -1754552775 / 470086768, 14199869525 / 1410260304, -10690763975 / 1880347072],
+    [0, 127303824393 / 49829197408, -318862633887 / 49829197408, 701980252875 / 199316789632],
+    [0, -282668133 / 205662961, 2019193451 / 616988883, -1453857185 / 822651844],
+    [0, 40617522 / 29380423, -110615467 / 29380423, 69997945 / 29380423]])
 
 
 class SeedError(ValueError):
@@ -181,27 +196,30 @@ class PathLines:
         return write_pathlines(path, [p * L for p in self.points], [t * T for t in self.times],
                                [v * (L / T) for v in self.velocities], self.seed_ids, self.reason, REASONS)
 
-    def write_particles(self, folder, name: str = "particles", scales=None) -> Path:
-        """Write the tracers' positions over time as ParaView's ParticlePath gives them: one
-        ``.vtp`` point set per output time (``name_NNNNN.vtp`` in ``folder``, point data
-        SeedIds, velocity, speed) tied by ``name.pvd``; returns the .pvd."""
+    def write_particles(self, path, scales=None, max_frames: int = 200) -> Path:
+        """Write the tracers' positions over time as ParaView's ParticlePath gives them: a
+        ``.pvd`` at ``path`` over point sets ``<stem>/<stem>_NNNNN.vtp`` (point data SeedIds,
+        velocity, speed), at most ``max_frames`` of the dense output times (evenly strided)."""
         from .vtkfiles import write_points, write_pvd
 
-        folder = Path(folder)
+        path = Path(path)
+        folder = path.parent / path.stem
         L, T = (scales.length_m, scales.time_s) if scales is not None else (1.0, 1.0)
         grid = self.times[int(np.argmax([t.size for t in self.times]))]
+        stride = max(1, int(math.ceil(grid.size / max(1, int(max_frames)))))
         entries = []
-        for j, t in enumerate(grid):
+        for j in range(0, grid.size, stride):
+            t = grid[j]
             alive = [k for k, tk in enumerate(self.times) if j < tk.size and tk[j] == t]
             if not alive:
                 continue
             p = np.array([self.points[k][j] for k in alive]) * L
             v = np.array([self.velocities[k][j] for k in alive]) * (L / T)
-            f = write_points(folder / f"{name}_{j:05d}.vtp", p,
+            f = write_points(folder / f"{path.stem}_{j:05d}.vtp", p,
                              {"SeedIds": self.seed_ids[alive].astype(np.int32), "velocity": v,
                               "speed": np.linalg.norm(v, axis=1)})
-            entries.append((float(t) * T, f.name))
-        return write_pvd(folder / f"{name}.pvd", entries)
+            entries.append((float(t) * T, f))
+        return write_pvd(path, entries)
 
 
 def _domain(domain, carpet: "Carpet", seeds: np.ndarray) -> np.ndarray:
@@ -239,12 +257,14 @@ def check_seeds(carpet: "Carpet", seeds, t0: float = 0.0) -> np.ndarray:
     return x0
 
 
-def _hermite(x0, u0, x1, u1, h, s):
-    """Cubic Hermite positions and velocities at fractions ``s`` (J,) of a step: (J, M, 3) each."""
-    s = s[:, None, None]
-    s2, s3 = s * s, s * s * s
-    p = ((2 * s3 - 3 * s2 + 1) * x0 + (s3 - 2 * s2 + s) * h * u0 + (-2 * s3 + 3 * s2) * x1 + (s3 - s2) * h * u1)
-    v = ((6 * s2 - 6 * s) * (x0 - x1) / h + (3 * s2 - 4 * s + 1) * u0 + (3 * s2 - 2 * s) * u1)
+def _dense(x0, k, h, s):
+    """Positions and velocities at fractions ``s`` (J,) of a step from ``x0`` (M, 3) with stages
+    ``k`` (7, M, 3), by the order-4 continuous extension: (J, M, 3) each."""
+    Q = np.tensordot(_P.T, k, axes=1)  # (4, M, 3)
+    pw = np.stack([s, s ** 2, s ** 3, s ** 4], axis=1)  # (J, 4)
+    dpw = np.stack([np.ones_like(s), 2 * s, 3 * s ** 2, 4 * s ** 3], axis=1)
+    p = x0[None] + h * np.tensordot(pw, Q, axes=1)
+    v = np.tensordot(dpw, Q, axes=1)
     return p, v
 
 
@@ -287,8 +307,8 @@ class _Run:
         return np.any((x < self.dom[0::2]) | (x > self.dom[1::2]), axis=1)
 
     def step(self, idx: np.ndarray, t: float, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One Dormand-Prince step of tracers ``idx`` from ``t``: new positions, end velocities
-        (FSAL) and error norms."""
+        """One Dormand-Prince step of tracers ``idx`` from ``t``: new positions, stages (7, M, 3)
+        (the last is the end velocity, FSAL) and error norms."""
         if self.n_steps + self.n_rej >= self.max_steps:
             raise RuntimeError(f"path lines: max_steps = {self.max_steps} reached at t = {t:.6g} of {self.t1:.6g}; "
                                "raise max_steps or loosen rtol/atol")
@@ -300,15 +320,16 @@ class _Run:
         x_new = xa + h * np.tensordot(_B[:6], k[:6], axes=1)
         err = h * np.tensordot(_E, k, axes=1)
         scale = self.atol + self.rtol * np.maximum(np.linalg.norm(xa, axis=1), np.linalg.norm(x_new, axis=1))
-        return x_new, k[6], np.linalg.norm(err, axis=1) / scale
+        return x_new, k, np.linalg.norm(err, axis=1) / scale
 
-    def accept(self, idx: np.ndarray, t: float, h: float, x_new: np.ndarray, u_new: np.ndarray) -> None:
+    def accept(self, idx: np.ndarray, t: float, h: float, x_new: np.ndarray, k: np.ndarray) -> None:
         """Record the accepted step of tracers ``idx`` over (t, t + h]: dense output, domain test."""
+        u_new = k[6]
         lo = int(np.searchsorted(self.t_out, t, side="right"))
         hi = int(np.searchsorted(self.t_out, t + h + 1e-12 * max(abs(t), h), side="right"))
         if hi > lo:
             s = np.clip((self.t_out[lo:hi] - t) / h, 0.0, 1.0)
-            p, v = _hermite(self.x[idx], self.u[idx], x_new, u_new, h, s)
+            p, v = _dense(self.x[idx], k, h, s)
             self.out_x[lo:hi, idx] = p
             self.out_u[lo:hi, idx] = v
         self.x[idx] = x_new
@@ -333,16 +354,16 @@ class _Run:
             h = min(h, tb - t)
             if tb - t - h < 1e-9 * h:
                 h = tb - t
-            x_new, u_new, en = self.step(idx, t, h)
+            x_new, k, en = self.step(idx, t, h)
             ok = en <= 1.0
-            q = float(np.quantile(en, 0.9)) if en.size > 1 else float(en[0])
+            q = float(np.quantile(en, 0.9, method="lower"))  # the 90 % best: one outlier cannot set H
             if not math.isfinite(q):
                 raise FloatingPointError(f"path lines: non-finite error estimate at t = {t:.6g}")
             if ok.all() or (q <= 1.0 and depth < MAX_DEPTH):
                 self.n_steps += 1
                 if depth:
                     self.n_sub += 1
-                self.accept(idx[ok], t, h, x_new[ok], u_new[ok])
+                self.accept(idx[ok], t, h, x_new[ok], k[:, ok])
                 bad = idx[~ok]
                 if bad.size:
                     hb = h * max(0.1, 0.9 * float(en[~ok].max()) ** -0.2)
