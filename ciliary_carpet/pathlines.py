@@ -282,8 +282,10 @@ class _Run:
         self.t_end = np.full(K, t1)
         self.x_end = x0.copy()
         self.u_end = np.zeros_like(x0)
-        self.out_x = np.full((t_out.size, K, 3), np.nan)
-        self.out_u = np.full((t_out.size, K, 3), np.nan)
+        # dense output, tracer-major so that each tracer's samples are contiguous; sample j of
+        # tracer k is valid while t_out[j] <= t_end[k] (steps fill it in time order)
+        self.out_x = np.empty((K, t_out.size, 3))
+        self.out_u = np.empty((K, t_out.size, 3))
         self.n_eval = self.n_steps = self.n_rej = self.n_sub = 0
         self.max_steps = max_steps
         self.progress = progress
@@ -293,8 +295,8 @@ class _Run:
         self.active &= ~outside
         self.u = self.velocity(self.x, t0)
         self.u_end[:] = self.u
-        self.out_x[0] = np.where(self.active[:, None], self.x, np.nan)
-        self.out_u[0] = np.where(self.active[:, None], self.u, np.nan)
+        self.out_x[:, 0] = self.x
+        self.out_u[:, 0] = self.u
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
         self.n_eval += 1
@@ -330,8 +332,8 @@ class _Run:
         if hi > lo:
             s = np.clip((self.t_out[lo:hi] - t) / h, 0.0, 1.0)
             p, v = _dense(self.x[idx], k, h, s)
-            self.out_x[lo:hi, idx] = p
-            self.out_u[lo:hi, idx] = v
+            self.out_x[idx, lo:hi] = p.transpose(1, 0, 2)
+            self.out_u[idx, lo:hi] = v.transpose(1, 0, 2)
         self.x[idx] = x_new
         self.u[idx] = u_new
         out = self._outside(x_new)
@@ -342,9 +344,6 @@ class _Run:
             self.t_end[gone] = t + h
             self.x_end[gone] = x_new[out]
             self.u_end[gone] = u_new[out]
-            if hi > lo:  # samples after the exit are not part of the path
-                self.out_x[lo:hi, gone] = np.nan
-                self.out_u[lo:hi, gone] = np.nan
 
     def advance(self, idx: np.ndarray, ta: float, tb: float, h: float, depth: int) -> float:
         """Integrate tracers ``idx`` from ``ta`` to ``tb``; returns the next step size guess."""
@@ -481,11 +480,12 @@ def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: floa
     run.x_end[done] = run.x[done]
     run.u_end[done] = run.u[done]
     pts, tms, vel = [], [], []
+    n_valid = np.searchsorted(t_out, run.t_end, side="right")
+    n_valid[run.t_end <= t0] = 0
     for k in range(K):
-        n = int(np.searchsorted(t_out, run.t_end[k] * (1 + 1e-14) + 1e-300, side="right"))
-        keep = np.isfinite(run.out_x[:n, k, 0])
-        p, v, tt = run.out_x[:n, k][keep], run.out_u[:n, k][keep], t_out[:n][keep]
-        if tt.size == 0 or run.t_end[k] > tt[-1] * (1 + 1e-14) + 1e-14:
+        n = int(n_valid[k])
+        p, v, tt = run.out_x[k, :n], run.out_u[k, :n], t_out[:n]
+        if tt.size == 0 or run.t_end[k] > tt[-1]:
             p = np.concatenate([p, run.x_end[k][None]])
             v = np.concatenate([v, run.u_end[k][None]])
             tt = np.concatenate([tt, [run.t_end[k]]])

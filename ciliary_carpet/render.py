@@ -15,6 +15,8 @@ scene's tolerance and writes, into ``out_dir``:
 ``particles.pvd``           the tracers as moving points (``particles/``), as ParticlePath gives
 ``open_in_paraview.py``     ``pvpython open_in_paraview.py`` (or ``paraview --script=...``) opens
                             the whole scene: fields, cilia, path lines, particles
+``ftle.vti``                finite-time Lyapunov exponent over the carpet (mean flow, a quarter of
+                            the path-line duration); the mixing number is in the summary
 ``preview.png``             the mean flow (streamlines) with the layout and path lines
 ``summary.json``, ``.md``   residuals, timings, fidelity used, error bounds, path-line outcome
 ==========================  ==================================================================
@@ -54,6 +56,7 @@ from single_cilium.progress import Progress
 
 from .carpet import Carpet
 from .design import design
+from .ftle import ftle_field
 from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_seeds
 from .scene import Scene
 from .vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
@@ -162,6 +165,16 @@ def _field_box(scene: Scene, carpet: Carpet) -> tuple:
     return (lo[0], hi[0], lo[1], hi[1])
 
 
+def _mean_flow(scene: Scene, carpet: Carpet, mean_field, tol: float) -> MeanFlow:
+    """The long-time model from the render's mean field (or evaluated on the same grid)."""
+    if mean_field is not None:
+        shape = mean_field[2]
+        return MeanFlow.from_grid(*_grid_lines(mean_field), mean_field[4].reshape(shape[1], shape[0], 3))
+    box = _field_box(scene, carpet)
+    spacing = min((box[1] - box[0]) / (scene.output.field_shape[0] - 1), (box[3] - box[2]) / (scene.output.field_shape[1] - 1))
+    return MeanFlow.from_carpet(carpet, box, spacing=spacing, tol=max(tol, 1e-6))
+
+
 def _grid_lines(mean_field) -> tuple[np.ndarray, np.ndarray]:
     origin, spacing, shape = mean_field[:3]
     return (origin[0] + spacing[0] * np.arange(shape[0]), origin[1] + spacing[1] * np.arange(shape[1]))
@@ -254,7 +267,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
     summary = {"scene": scene.name, "source": scene.source_name, "n_cilia": carpet.n, "tolerance": tol,
                "units": "SI" if sc is not None else "L, tau", "T0": T0 * T}
-    steps = 1 + bool(o.field) + (o.snapshots > 0) + (o.frames > 0) + bool(o.pathlines) + bool(o.preview) + 1
+    steps = 1 + bool(o.field) + (o.snapshots > 0) + (o.frames > 0) + bool(o.pathlines) + bool(o.ftle) + bool(o.preview) + 1
     progress.start(steps, f"render {scene.name}")
     done = 0
     try:
@@ -328,12 +341,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
             t1 = _time.perf_counter()
             duration, how = pathline_duration(scene, carpet, T0)
             model = pathline_model(scene)
-            flow = "resolved"
-            if model == "mean":
-                box = _field_box(scene, carpet)
-                flow = (MeanFlow.from_grid(*_grid_lines(mean_field), mean_field[4].reshape(
-                    mean_field[2][1], mean_field[2][0], 3)) if mean_field is not None
-                    else MeanFlow.from_carpet(carpet, box, tol=max(tol, 1e-6)))
+            flow = _mean_flow(scene, carpet, mean_field, tol) if model == "mean" else "resolved"
             pl = carpet.pathlines(seeds, (0.0, duration), rtol=1e-6, atol=1e-4 * scene.carpet.spacing, tol=tol,
                                   model=flow, samples_per_period=o.samples_per_period)
             pl.write(stage / "pathlines.vtp", scales=sc)
@@ -344,6 +352,22 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
                                     "periods": duration / T0, "model": model, "samples_per_period": o.samples_per_period,
                                     "outcome": pl.counts(), "stopped_early": early, "status": pl.status,
                                     "message": pl.message, "work": pl.stats}
+            done += 1
+            progress.update(done)
+        if o.ftle:
+            t1 = _time.perf_counter()
+            duration = pathline_duration(scene, carpet, T0)[0] if pl is None else summary["pathlines"]["duration"] / T
+            flow = _mean_flow(scene, carpet, mean_field, tol)
+            b = carpet.bases
+            nx, ny = max(3, o.field_shape[0] // 2), max(3, o.field_shape[1] // 2)
+            f = ftle_field(carpet, (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
+                           0.25 * duration, model=flow, rtol=1e-6, atol=1e-4 * scene.carpet.spacing)
+            f.write(stage / "ftle.vti", scales=sc)
+            clock["ftle"] = _time.perf_counter() - t1
+            summary["mixing"] = {"mixing_number": f.mixing_number, "ftle_max": float(np.nanmax(f.ftle)) / T
+                                 if np.any(np.isfinite(f.ftle)) else None, "duration": f.duration * T,
+                                 "grid": [nx, ny], "model": f.model,
+                                 "defined_fraction": float(np.mean(np.isfinite(f.ftle)))}
             done += 1
             progress.update(done)
         if o.preview:
@@ -407,6 +431,11 @@ def _markdown(s: dict) -> str:
         out = ", ".join(f"{v} {k}" for k, v in p["outcome"].items() if v)
         lines.append(f"- path lines: {p['tracers']} tracers, {p['model']} flow, over {p['duration']:.4g} "
                      f"({p['periods']:.3g} beats; {p['duration_from']}): {out}; {p['stopped_early']} stopped early")
+    if "mixing" in s:
+        mx = s["mixing"]
+        top = "n/a" if mx["ftle_max"] is None else f"{mx['ftle_max']:.3g}"
+        lines.append(f"- mixing: number {mx['mixing_number']:.3g} (mean log-stretching over {mx['duration']:.4g}, "
+                     f"{mx['model']} flow; FTLE max {top}, defined on {mx['defined_fraction']:.0%} of the grid)")
     lines += ["", "| stage | seconds |", "|---|---|"] + [f"| {k} | {v:.2f} |" for k, v in s["seconds"].items()]
     return "\n".join(lines) + "\n"
 

@@ -530,6 +530,9 @@ class OutputSpec:
         is at least the model's measured error (``pathlines.MEAN_MODEL_ERROR``).
     samples_per_period : int >= 1, default 16
         Path-line points per beat period (dense output).
+    ftle : bool, default True
+        The finite-time Lyapunov exponent field (ftle.vti) and the mixing number
+        (:mod:`ciliary_carpet.ftle`).
     field : bool, default True
         The mean velocity field (.vti).
     field_shape : (nx, ny) ints >= 2, default (80, 80)
@@ -550,6 +553,7 @@ class OutputSpec:
     periods: float | None = None
     pathline_model: str = "auto"
     samples_per_period: int = 16
+    ftle: bool = True
     field: bool = True
     field_shape: tuple[int, int] = (80, 80)
     field_margin: float = 5.0
@@ -881,7 +885,8 @@ def _output_kw(src, data) -> dict:
         pathlines=r.boolean("pathlines", True), seeds=seeds, n_seeds=r.integer("n_seeds", 100, lo=1),
         periods=r.number("periods", None, lo=0, lo_open=True),
         pathline_model=r.string("pathline_model", "auto", ("auto", "resolved", "mean")),
-        samples_per_period=r.integer("samples_per_period", 16, lo=1), field=r.boolean("field", True),
+        samples_per_period=r.integer("samples_per_period", 16, lo=1), ftle=r.boolean("ftle", True),
+        field=r.boolean("field", True),
         field_shape=(int(fs[0]), int(fs[1])), field_margin=r.number("field_margin", 5.0, lo=0),
         snapshots=r.integer("snapshots", 4, lo=0), frames=r.integer("frames", 40, lo=0),
         preview=r.boolean("preview", True))

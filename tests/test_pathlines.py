@@ -200,3 +200,55 @@ def test_bad_input_named_before_any_work(one, table):
         Carpet(np.array([[0.0, 0.0], [1.0, 0.0]]), [0.0, 0.0], table, blob=0.6)
     with pytest.raises(ValueError, match="model"):
         pathlines(one, np.array([[5.0, 0.0]]), (0.0, 1.0), model="fast")
+
+
+def test_ftle_of_a_linear_hyperbolic_flow(one):
+    from ciliary_carpet.ftle import FTLEError, ftle_field
+
+    class Saddle:  # u = (a x, -a y): stretching rate a everywhere
+        def velocity(self, x, t):
+            u = np.zeros_like(x)
+            u[:, 0] = 0.7 * (x[:, 0] - 10.0)
+            u[:, 1] = -0.7 * x[:, 1]
+            return u
+
+    f = ftle_field(one, (9.0, 11.0, -1.0, 1.0), (7, 5), 2.0, model=Saddle(), rtol=1e-9, atol=1e-9)
+    assert f.ftle.shape == (5, 7) and f.shape == (7, 5)
+    assert np.allclose(f.ftle, 0.7, atol=1e-6)
+    assert f.mixing_number == pytest.approx(1.4, abs=1e-5)
+    rot = ftle_field(one, (5.0, 7.0, -1.0, 1.0), (5, 5), 1.0, model=Rotation(), rtol=1e-9, atol=1e-9)
+    assert np.allclose(rot.ftle, 0.0, atol=1e-6)  # a rotation does not stretch
+    for shape in ((0, 5), (2, 9)):
+        with pytest.raises(FTLEError, match="at least 3 x 3"):
+            ftle_field(one, (9.0, 11.0, -1.0, 1.0), shape, 2.0, model=Saddle())
+    with pytest.raises(FTLEError, match="box"):
+        ftle_field(one, (9.0, 9.0, -1.0, 1.0), (5, 5), 2.0, model=Saddle())
+    with pytest.raises(FTLEError, match="duration"):
+        ftle_field(one, (9.0, 11.0, -1.0, 1.0), (5, 5), 0.0, model=Saddle())
+
+
+def test_render_writes_paraview_ready_path_lines(tmp_path):
+    import json
+    import py_compile
+
+    from ciliary_carpet.render import render
+    from ciliary_carpet.scene import SceneError, scene_from_dict
+
+    data = {"name": "tiny", "carpet": {"lattice": "square", "shape": [2, 2], "spacing": 2.0, "chi_N": 3.0},
+            "output": {"n_seeds": 6, "periods": 2.0, "field_shape": [12, 12], "snapshots": 1, "frames": 2}}
+    res = render(scene_from_dict(data), tmp_path / "tiny")
+    s = json.loads((res.out_dir / "summary.json").read_text())
+    p = s["pathlines"]
+    assert p["stopped_early"] == 0 and p["model"] == "resolved" and p["duration_from"] == "scene"
+    assert p["outcome"]["reached end time"] + p["outcome"]["left the domain"] == 6
+    assert {"particles.pvd", "open_in_paraview.py", "ftle.vti", "pathlines.vtp"} <= set(res.files)
+    py_compile.compile(str(res.out_dir / "open_in_paraview.py"), doraise=True)
+    assert "mixing_number" in s["mixing"] and 0 < s["mixing"]["defined_fraction"] <= 1
+    r = vtk.vtkXMLImageDataReader()
+    r.SetFileName(str(res.out_dir / "mean_field.vti"))
+    r.Update()
+    pd = r.GetOutput().GetPointData()
+    assert pd.GetVectors().GetName() == "velocity" and pd.GetArray("vorticity").GetNumberOfComponents() == 3
+    bad = dict(data, carpet=dict(data["carpet"], blob=1.5))
+    with pytest.raises(SceneError, match="blob"):
+        scene_from_dict(bad)
