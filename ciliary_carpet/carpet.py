@@ -27,24 +27,24 @@ Levels of detail (DESIGN.md "flow fidelity")
 --------------------------------------------
 Per (cilium, evaluation point) pair the cheapest representation whose error bound is under the
 tolerance is used. Around the force centre c_j (the centroid of the cilium's swept samples;
-every filament point lies within the radius a_j of it), with F = int f ds, D = int (r-c) f^T ds,
-Q = int |r - c|^2 |f| ds:
+every filament point lies within the radius a_j of it), with h = r - c, the moments
+F = int f ds, D = int h f^T ds, T = int h h f ds (second moments) and Q3 = int |h|^3 |f| ds:
 
-* ``point``: the total force F(t) and its first moment D(t) at the current phase, carried by three
-  point forces at c + delta u_k (u_k at 0, 120, 240 degrees, delta = a/2) with
-  f_k = F/3 + 2/(3 delta) D^T u_k, which reproduce F and D exactly;
-* ``mean``: the same with the cycle means Fbar, Dbar (the steady, time-averaged flow only);
+* ``point``: F(t), D(t) and T(t) at the current phase, carried by six point forces, one at c and
+  five at c + delta u_m (u_m at 72 degree steps, delta = a/2), whose forces solve the 6 x 6
+  moment system, so that they reproduce F, D and T exactly;
+* ``mean``: the same with the cycle means (the steady, time-averaged flow only);
 * ``resolved``: the full line distribution (for the mean flow: averaged over the phase samples).
 
-Both cheap levels share the monopole and dipole with the resolved sum, so by Taylor's theorem
-with remainder their error for a target at distance R > a from c is at most
+Both cheap levels share the monopole, dipole and quadrupole with the resolved sum, so by
+Taylor's theorem with remainder their error for a target at distance R > a from c is at most
 
-    |u_level - u_resolved| <= C2 (Q + Q_rep) / (2 * 8 pi mu (R - a)^3),
+    |u_level - u_resolved| <= C3 (Q3 + Q3_rep) / (6 * 8 pi mu (R - a)^4),
 
-with Q_rep = sum_k delta^2 |f_k| the second moment of the three-point carrier and C2 = 4 the
-maximum of |(h.grad)^2 G f| over unit vectors at unit distance (:attr:`Kernel.c2
-<ciliary_carpet.kernel.Kernel.c2>`: computed in the tests; with a wall, C2 = 16, measured over
-wall heights and directions; the regularised kernels stay below the singular constants). A pair is
+with Q3_rep = sum_m delta^3 |f_m| the third moment of the carrier and C3 the supremum of
+|(h.grad)^3 G f| over unit in-plane h, f at unit distance (:attr:`Kernel.c3
+<ciliary_carpet.kernel.Kernel.c3>`; sampled in the tests: 12.3 free, 12.9 times R^4 with a wall;
+the constants 16 and 64 leave a margin). A pair is
 summed cheaply when this bound is at most ``tol * S_j / (8 pi mu R)``, where S_j is the cilium's
 force scale (|Fbar_j| for the mean flow, the r.m.s. of |F_j(t)| over the cycle for the
 instantaneous flow), so that at every point
@@ -69,14 +69,20 @@ from single_cilium.equilibrium import equilibrium_shape
 from single_cilium.params import CiliumParams
 from single_cilium.table import ThrustTable
 
-from .kernel import C2_FREE, C2_WALL, Kernel, Wall, make_kernel
+from .kernel import C2_FREE, C2_WALL, C3_FREE, C3_WALL, Kernel, Wall, make_kernel
 from .stokeslet import Backend, stokeslet_velocity, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "LEVELS", "BLOB"]
+__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL", "LEVELS", "BLOB"]
 
 LEVELS = ("mean", "point", "resolved")
+_UNIT = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2), math.sin(2 * math.pi * m / 5 + math.pi / 2)]
+                                 for m in range(5)])
+"""Carrier positions of the cheap levels for unit delta: the centre and a regular pentagon."""
+_UNIT_INV = np.linalg.inv(np.stack([np.ones(6), _UNIT[:, 0], _UNIT[:, 1], _UNIT[:, 0] ** 2,
+                                    _UNIT[:, 0] * _UNIT[:, 1], _UNIT[:, 1] ** 2]))
+"""Inverse of the carrier's moment matrix (rows: the monomials 1, x, y, x^2, xy, y^2)."""
 BLOB = 0.02
 """Default blob size eps of the regularised Stokeslets, in units of L: the filament radius of a
 slender filament of aspect ratio L / (2 a) = 25 (scene key ``[carpet] blob``)."""
@@ -245,6 +251,7 @@ class Carpet:
         coef = np.empty((n, 2 * K - 1, n_s, 4))
         centre, radius = np.empty((n, 2)), np.empty(n)
         F, D, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p))
+        T2 = np.empty((n, n_p, 2, 2, 2))
         hulls = []
         m = np.full(K, 2.0)
         m[0] = 1.0
@@ -272,7 +279,8 @@ class Carpet:
             fw = f * w[None, None, :, None]
             F[sl] = fw.sum(axis=2)
             D[sl] = np.einsum("jpsa,jpsb->jpab", rel, fw)
-            Q[sl] = (dist ** 2 * np.sqrt((f ** 2).sum(-1)) * w).sum(axis=2)
+            T2[sl] = np.einsum("jpsa,jpsb,jpsc->jpabc", rel, rel, fw, optimize=True)
+            Q[sl] = (dist ** 3 * np.sqrt((f ** 2).sum(-1)) * w).sum(axis=2)
             for i in range(xy.shape[0]):
                 try:
                     hulls.append(ConvexHull(xy[i].reshape(-1, 2) + self.bases[lo + i]).equations)
@@ -284,7 +292,8 @@ class Carpet:
         return dict(flutter=fl, n_s=n_s, n_phase=n_p, s=s, w=w, coef=coef, k=np.arange(K),
                     period=period, rate=np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0),
                     centre=centre, radius=radius, F=F, D=D, Q=Q, F_rms=np.sqrt((F ** 2).sum(-1).mean(axis=1)),
-                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls, radii={})
+                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls, radii={},
+                    T=T2, T_mean=T2.mean(axis=1))
 
     def _warn_overlaps(self) -> None:
         c = self._c
@@ -390,24 +399,27 @@ class Carpet:
         return np.all(p @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
 
     # ------------------------------------------------------------------ flow
-    def _carriers(self, F: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Three point forces per cilium reproducing F (N, 2) and D (N, 2, 2) about c_j."""
+    def _carriers(self, F: np.ndarray, D: np.ndarray, T: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Six point forces per cilium reproducing F (N, 2), D (N, 2, 2) and T (N, 2, 2, 2) about
+        c_j: positions (N, 6, 2), forces (N, 6, 2) and their third moments Q3_rep (N,)."""
         c = self._c
-        u = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
         delta = 0.5 * np.maximum(c["radius"], 1e-12)
-        pos = c["centre"][:, None, :] + delta[:, None, None] * u[None]
-        fk = F[:, None, :] / 3.0 + (2.0 / (3.0 * delta))[:, None, None] * np.einsum("jab,ka->jkb", D, u)
-        q_rep = (delta ** 2) * np.sqrt((fk ** 2).sum(-1)).sum(axis=1)
+        pos = c["centre"][:, None, :] + delta[:, None, None] * _UNIT[None]
+        # moments (1, D_x, D_y, T_xx, T_xy, T_yy) of each force component, scaled to unit delta
+        b = np.stack([F, D[:, 0, :], D[:, 1, :], T[:, 0, 0, :], T[:, 0, 1, :], T[:, 1, 1, :]], axis=1)
+        scale = np.stack([np.ones_like(delta), delta, delta, delta ** 2, delta ** 2, delta ** 2], axis=1)
+        fk = np.einsum("mq,jqk->jmk", _UNIT_INV, b / scale[:, :, None])
+        q_rep = (delta ** 3) * np.sqrt((fk ** 2).sum(-1)).sum(axis=1)
         return pos, fk, q_rep
 
     def _near_radius(self, Q: np.ndarray, S: np.ndarray, tol: float) -> np.ndarray:
         """Per cilium the distance R* beyond which the cheap level's bound
-        C2 Q R / (2 (R - a)^3) <= tol S holds (inf when S = 0 but Q > 0)."""
+        C3 Q R / (6 (R - a)^4) <= tol S holds (inf when S = 0 but Q > 0)."""
         a = self._c["radius"]
-        C2 = self.kernel.c2
-        k = 0.5 * C2 * Q
+        k = self.kernel.c3 * Q / 6.0
         with np.errstate(divide="ignore", invalid="ignore"):
-            g = lambda R: k * R - tol * S * (R - a) ** 3  # noqa: E731 -- decreasing past its root
+            g = lambda R: k * R - tol * S * (R - a) ** 4  # noqa: E731 -- decreasing past its root
             lo = a.copy()
             hi = a + 1.0
             for _ in range(200):
@@ -433,10 +445,10 @@ class Carpet:
         if key not in cache:
             c = self._c
             if level == "mean":
-                Qt = c["Q_mean"] + self._carriers(c["F_mean"], c["D_mean"])[2]
+                Qt = c["Q_mean"] + self._carriers(c["F_mean"], c["D_mean"], c["T_mean"])[2]
                 S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
             else:
-                Qt = np.max([c["Q"][:, p] + self._carriers(c["F"][:, p], c["D"][:, p])[2]
+                Qt = np.max([c["Q"][:, p] + self._carriers(c["F"][:, p], c["D"][:, p], c["T"][:, p])[2]
                              for p in range(c["n_phase"])], axis=0)
                 S = c["F_rms"] * c["flutter"]
             R = self._near_radius(Qt, S, tol) if tol > 0 else np.full(self.n, np.inf)
@@ -445,15 +457,15 @@ class Carpet:
             cache[key] = np.where((S > 0) | (Qt > 0), R, -1.0)
         return cache[key]
 
-    def _sum(self, targets: np.ndarray, resolved, F: np.ndarray, D: np.ndarray, Q: np.ndarray, S: np.ndarray,
-             tol: float, error: bool, cheap_level: str) -> FlowSample:
+    def _sum(self, targets: np.ndarray, resolved, F: np.ndarray, D: np.ndarray, T: np.ndarray, Q: np.ndarray,
+             S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
         """Cheap carriers everywhere (one dense sum), plus resolved-minus-cheap corrections on the
         near pairs (one sparse sum). ``resolved(js)`` gives the resolved sources of cilia ``js``:
         positions and weighted forces, (len(js), n_src, 2) each."""
         c = self._c
         n = self.n
         active = S > 0
-        cpos, cf, q_rep = self._carriers(F, D)
+        cpos, cf, q_rep = self._carriers(F, D, T)
         m = targets.shape[0]
         kernel = self.kernel
         rstar = self._near_radii(tol, cheap_level)
@@ -486,8 +498,9 @@ class Carpet:
             ranges = np.empty((2 * n_near, 2), dtype=np.int64)
             ranges[0::2, 0] = local * n_src
             ranges[0::2, 1] = (local + 1) * n_src
-            ranges[1::2, 0] = js.size * n_src + 3 * local
-            ranges[1::2, 1] = js.size * n_src + 3 * local + 3
+            nc = _UNIT.shape[0]
+            ranges[1::2, 0] = js.size * n_src + nc * local
+            ranges[1::2, 1] = js.size * n_src + nc * local + nc
             ptr = np.zeros(m + 1, dtype=np.int64)
             np.add.at(ptr, pi + 1, 2)
             ptr = np.cumsum(ptr)
@@ -495,7 +508,7 @@ class Carpet:
                                            backend=self.backend)
         bound = np.zeros(m)
         if error and np.any(active):
-            C2 = kernel.c2
+            C3 = kernel.c3
             cen = _pad(c["centre"])
             near = np.zeros((m, n), bool)
             if n_near:
@@ -505,7 +518,7 @@ class Carpet:
                 hi = min(m, lo + step)
                 R = np.linalg.norm(targets[lo:hi, None, :] - cen[None], axis=-1)
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    b = 0.5 * C2 * (Q + q_rep)[None] / (R - c["radius"][None]) ** 3
+                    b = C3 * (Q + q_rep)[None] / (6.0 * (R - c["radius"][None]) ** 4)
                 bound[lo:hi] = np.where(near[lo:hi] | ~active[None], 0.0, b).sum(axis=1) / (8 * math.pi * self.mu)
         n_pairs = m * int(active.sum())
         n_res = int(np.sum(active[pj])) if n_near else 0
@@ -542,8 +555,10 @@ class Carpet:
         rel = pos - c["centre"][:, None, :]
         F = fw.sum(axis=1)
         D = np.einsum("jsa,jsb->jab", rel, fw)
-        Q = ((rel ** 2).sum(-1) * np.sqrt((f ** 2).sum(-1)) * c["w"]).sum(axis=1)
-        return self._sum(x, lambda js: (pos[js], fw[js]), F, D, Q, c["F_rms"] * c["flutter"], tol, error, "point")
+        T = np.einsum("jsa,jsb,jsc->jabc", rel, rel, fw, optimize=True)
+        Q = ((rel ** 2).sum(-1) ** 1.5 * np.sqrt((f ** 2).sum(-1)) * c["w"]).sum(axis=1)
+        return self._sum(x, lambda js: (pos[js], fw[js]), F, D, T, Q, c["F_rms"] * c["flutter"], tol, error,
+                         "point")
 
     def velocity(self, points, t: float, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) fluid velocity at ``points`` at time ``t`` (see :meth:`evaluate`)."""
@@ -562,7 +577,7 @@ class Carpet:
             return pos.reshape(len(js), -1, 2), fw.reshape(len(js), -1, 2)
 
         S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
-        return self._sum(x, resolved, c["F_mean"], c["D_mean"], c["Q_mean"], S, tol, error, "mean")
+        return self._sum(x, resolved, c["F_mean"], c["D_mean"], c["T_mean"], c["Q_mean"], S, tol, error, "mean")
 
     def mean_velocity(self, points, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) time-averaged fluid velocity (see :meth:`evaluate_mean`)."""

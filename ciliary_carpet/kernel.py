@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["Wall", "Kernel", "Stokeslet", "Blake", "RegularisedStokeslet", "RegularisedBlake", "make_kernel",
-           "C2_FREE", "C2_WALL"]
+           "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL"]
 
 C2_FREE = 4.0
 """sup |(h . grad)^2 G^S(e) f| over unit h, f, e: the Taylor constant of the free-space Stokeslet
@@ -48,6 +48,14 @@ C2_FREE = 4.0
 C2_WALL = 16.0
 """The same constant for Blake's tensor, second derivatives in the in-plane source position,
 relative to the source distance (a safe upper bound of the measured supremum, tested)."""
+
+
+C3_FREE = 16.0
+"""sup |(h . grad)^3 G^S(e) f| over unit in-plane h, f and unit e (sampled maximum 12.3, tested);
+the Taylor constant of the third-order levels of detail."""
+C3_WALL = 64.0
+"""The same for Blake's tensor times R^4, over wall heights and directions (sampled maximum 12.9,
+tested; a wide margin as for C2_WALL)."""
 
 
 @dataclass(frozen=True)
@@ -109,6 +117,11 @@ class Kernel:
     def c2(self) -> float:
         """Taylor constant of the levels of detail (module docstring)."""
         return C2_WALL if self.wall is not None else C2_FREE
+
+    @property
+    def c3(self) -> float:
+        """Third-order Taylor constant of the levels of detail (:data:`C3_FREE`, :data:`C3_WALL`)."""
+        return C3_WALL if self.wall is not None else C3_FREE
 
     @property
     def symmetric(self) -> bool:
