@@ -126,9 +126,21 @@ def _cmd_batch(a) -> int:
     return 1 if n["failed"] else 0
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("cilia-flow")
+    except PackageNotFoundError:
+        from single_cilium import __version__
+
+        return __version__
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="ciliary-carpet", description=__doc__.split("\n\n")[0])
     ap.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
+    ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("render", help="design (if the scene has a target), run the flow, write VTK/PNG/summary")
     r.add_argument("scene")

@@ -46,7 +46,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PathLines", "pathlines", "check_seeds", "REASONS", "ResolvedFlow", "MeanFlow", "SeedError",
+__all__ = ["PathLines", "pathlines", "check_seeds", "check_output_size", "REASONS", "ResolvedFlow", "MeanFlow", "SeedError",
            "PathLineError", "MAX_DEPTH", "MAX_OUTPUT_BYTES", "MEAN_MODEL_ERROR"]
 
 REASONS = ("reached end time", "left the domain", "step size underflow")
@@ -257,6 +257,22 @@ def check_seeds(carpet: "Carpet", seeds, t0: float = 0.0) -> np.ndarray:
     return x0
 
 
+def check_output_size(carpet: "Carpet", n_tracers: int, duration: float, samples_per_period: int
+                      ) -> tuple[int, float]:
+    """The number of dense output times and the shortest beat period of a run, or
+    :class:`PathLineError` if its output would exceed :data:`MAX_OUTPUT_BYTES`."""
+    periods = carpet.periods[np.isfinite(carpet.periods)]
+    t_beat = float(periods.min()) if periods.size else float(duration)
+    n_out = int(math.ceil(duration / t_beat * int(samples_per_period))) + 1
+    need = 2 * n_out * int(n_tracers) * 3 * 8
+    if need > MAX_OUTPUT_BYTES:
+        raise PathLineError(f"path lines: {n_tracers} tracers over {duration:.4g} time units with "
+                            f"{samples_per_period} samples per period need {need / 2 ** 30:.1f} GiB of output "
+                            f"(limit {MAX_OUTPUT_BYTES / 2 ** 30:.0f} GiB): shorten the duration, use fewer "
+                            "seeds or fewer samples per period")
+    return n_out, t_beat
+
+
 def _dense(x0, k, h, s):
     """Positions and velocities at fractions ``s`` (J,) of a step from ``x0`` (M, 3) with stages
     ``k`` (7, M, 3), by the order-4 continuous extension: (J, M, 3) each."""
@@ -431,15 +447,7 @@ def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: floa
         raise ValueError("rtol and atol cannot both be 0")
     if int(samples_per_period) < 1:
         raise ValueError(f"samples_per_period must be >= 1, got {samples_per_period!r}")
-    periods = carpet.periods[np.isfinite(carpet.periods)]
-    t_beat = float(periods.min()) if periods.size else (t1 - t0)
-    n_out = int(math.ceil((t1 - t0) / t_beat * int(samples_per_period))) + 1
-    need = 2 * n_out * x0.shape[0] * 3 * 8
-    if need > MAX_OUTPUT_BYTES:
-        raise PathLineError(f"path lines: {x0.shape[0]} tracers over {t1 - t0:.4g} time units with "
-                            f"{samples_per_period} samples per period need {need / 2 ** 30:.1f} GiB of output "
-                            f"(limit {MAX_OUTPUT_BYTES / 2 ** 30:.0f} GiB): shorten the duration, use fewer "
-                            "seeds or fewer samples per period")
+    n_out, t_beat = check_output_size(carpet, x0.shape[0], t1 - t0, samples_per_period)
     t_out = np.linspace(t0, t1, n_out)
     dom = _domain(domain, carpet, x0)
     if isinstance(model, str):

@@ -57,7 +57,7 @@ from single_cilium.progress import Progress
 from .carpet import Carpet
 from .design import design
 from .ftle import ftle_field
-from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_seeds
+from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds
 from .scene import Scene
 from .vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
 
@@ -260,9 +260,11 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     clock["design"] = _time.perf_counter() - t0
     o, tol = scene.output, scene.tolerance
     seeds = check_seeds(carpet, _seeds(scene, carpet)) if o.pathlines else None  # SeedError before any output
+    T0 = float(table.scalar("period", 0.0))
+    if o.pathlines:  # PathLineError (output too large for memory) before any output
+        check_output_size(carpet, seeds.shape[0], pathline_duration(scene, carpet, T0)[0], o.samples_per_period)
     sc = carpet.scales
     L, T, V = (sc.length_m, sc.time_s, sc.velocity) if sc is not None else (1.0, 1.0, 1.0)
-    T0 = float(table.scalar("period", 0.0))
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".partial", dir=out_dir.parent))
     summary = {"scene": scene.name, "source": scene.source_name, "n_cilia": carpet.n, "tolerance": tol,
