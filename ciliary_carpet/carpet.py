@@ -251,6 +251,14 @@ class Carpet:
         coef = np.empty((n, 2 * K - 1, n_s, 4))
         centre, radius = np.empty((n, 2)), np.empty(n)
         F, D, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p))
+        n_m = 2 * n_p  # moments are products of up to three K-band functions: sampled without aliasing
+        Km = n_m // 2
+        mom_coef = np.empty((n, 2 * Km - 1, 14))
+        ph_m = np.arange(n_m) / n_m
+        arg_m = 2.0 * math.pi * ph_m[:, None] * np.arange(K)[None, :]
+        basis_m = np.concatenate([np.cos(arg_m), np.sin(arg_m[:, 1:])], axis=1)
+        mm = np.full(Km, 2.0)
+        mm[0] = mm[-1] = 1.0
         T2 = np.empty((n, n_p, 2, 2, 2))
         hulls = []
         m = np.full(K, 2.0)
@@ -271,6 +279,18 @@ class Carpet:
             # trigonometric interpolation in phase: cos terms k = 0..K-1, then sin terms k = 1..K-1
             spec = np.fft.rfft(np.concatenate([xy, f], axis=-1), axis=1)[:, :K] / n_p * m[None, :, None, None]
             coef[sl] = np.concatenate([spec.real, -spec.imag[:, 1:]], axis=1)
+            # F, D, T on the oversampled phase grid, then their trigonometric coefficients
+            vm = np.einsum("pk,jksq->jpsq", basis_m, coef[sl], optimize=True)
+            relm = vm[..., :2] + self.bases[sl][:, None, None, :]
+            cen_m = relm.reshape(relm.shape[0], -1, 2).mean(axis=1)
+            relm = relm - cen_m[:, None, None, :]
+            fwm = vm[..., 2:] * w[None, None, :, None]
+            Fm = fwm.sum(axis=2)
+            Dm = np.einsum("jpsa,jpsb->jpab", relm, fwm)
+            Tm = np.einsum("jpsa,jpsb,jpsc->jpabc", relm, relm, fwm, optimize=True)
+            allm = np.concatenate([Fm, Dm.reshape(*Dm.shape[:2], 4), Tm.reshape(*Tm.shape[:2], 8)], axis=-1)
+            sm = np.fft.rfft(allm, axis=1)[:, :Km] / n_m * mm[None, :, None]
+            mom_coef[sl] = np.concatenate([sm.real, -sm.imag[:, 1:]], axis=1)
             cen = xy.reshape(xy.shape[0], -1, 2).mean(axis=1)
             rel = xy - cen[:, None, None, :]
             dist = np.sqrt((rel ** 2).sum(-1))
@@ -293,7 +313,8 @@ class Carpet:
                     period=period, rate=np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0),
                     centre=centre, radius=radius, F=F, D=D, Q=Q, F_rms=np.sqrt((F ** 2).sum(-1).mean(axis=1)),
                     F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls, radii={},
-                    T=T2, T_mean=T2.mean(axis=1))
+                    T=T2, T_mean=T2.mean(axis=1), mom_coef=mom_coef, k_m=np.arange(Km),
+                    Q_max=Q.max(axis=1))
 
     def _warn_overlaps(self) -> None:
         c = self._c
@@ -376,6 +397,19 @@ class Carpet:
         basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)  # (N, 2K-1)
         vals = np.einsum("jk,jksq->jsq", basis, c["coef"], optimize=True)
         return vals[..., :2] + self.bases[:, None, :], vals[..., 2:], ph
+
+    def _state_of(self, js: np.ndarray, ph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and forces per length (len(js), n_s, 2) of cilia ``js`` at phases ``ph``."""
+        c = self._c
+        arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
+        basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)
+        if 4 * len(js) > self.n:  # most cilia: no copy of their coefficients
+            full = np.zeros((self.n, basis.shape[1]))
+            full[js] = basis
+            vals = np.einsum("jk,jksq->jsq", full, c["coef"], optimize=True)[js]
+        else:
+            vals = np.einsum("jk,jksq->jsq", basis, c["coef"][js], optimize=True)
+        return vals[..., :2] + self.bases[js][:, None, :], vals[..., 2:]
 
     def cycle_samples(self, js) -> tuple[np.ndarray, np.ndarray]:
         """Positions and forces per length of cilia ``js`` at the table's phase samples:
@@ -475,21 +509,22 @@ class Carpet:
                                     self.mu, kernel=kernel, backend=self.backend)
         # near pairs, from a tree over the targets
         cand = np.nonzero(rstar > 0)[0]
-        pi, pj = [], []
-        if cand.size:
-            lists = cKDTree(targets).query_ball_point(_pad(c["centre"][cand]), np.minimum(rstar[cand], 1e300))
-            for j, lst in zip(cand, lists):
-                if lst:
-                    pi.append(np.asarray(lst, dtype=np.int64))
-                    pj.append(np.full(len(lst), j, dtype=np.int64))
         n_near = 0
-        if pi:
-            pi = np.concatenate(pi)
-            pj = np.concatenate(pj)
+        if cand.size:
+            r = np.minimum(rstar[cand], 1e300)
+            sdm = cKDTree(_pad(c["centre"][cand])).sparse_distance_matrix(cKDTree(targets), float(r.max()),
+                                                                         output_type="ndarray")
+            keep = sdm["v"] <= r[sdm["i"]]
+            pj = cand[sdm["i"][keep]].astype(np.int64)
+            pi = sdm["j"][keep].astype(np.int64)
             n_near = pi.size
-            order = np.lexsort((pj, pi))
+        if n_near:
+            order = np.argsort(pi, kind="stable")  # grouped by target (CSR); the order within is free
             pi, pj = pi[order], pj[order]
-            js, local = np.unique(pj, return_inverse=True)
+            used = np.bincount(pj, minlength=n) > 0
+            js = np.nonzero(used)[0]
+            lut = np.cumsum(used) - 1
+            local = lut[pj]
             rpos, rf = resolved(js)
             n_src = rpos.shape[1]
             # sources: resolved of the near cilia, then their negated cheap carriers
@@ -550,15 +585,17 @@ class Carpet:
         x = self._targets(points)
         tol = self._tol(tol)
         c = self._c
-        pos, f, ph = self.state(t)
-        fw = f * c["w"][None, :, None]
-        rel = pos - c["centre"][:, None, :]
-        F = fw.sum(axis=1)
-        D = np.einsum("jsa,jsb->jab", rel, fw)
-        T = np.einsum("jsa,jsb,jsc->jabc", rel, rel, fw, optimize=True)
-        Q = ((rel ** 2).sum(-1) ** 1.5 * np.sqrt((f ** 2).sum(-1)) * c["w"]).sum(axis=1)
-        return self._sum(x, lambda js: (pos[js], fw[js]), F, D, T, Q, c["F_rms"] * c["flutter"], tol, error,
-                         "point")
+        ph = self.phase_at(t)
+        arg = 2.0 * math.pi * ph[:, None] * c["k_m"][None, :]
+        basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)
+        mom = np.einsum("jk,jkq->jq", basis, c["mom_coef"])
+        F, D, T = mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
+
+        def resolved(js):
+            pos, f = self._state_of(js, ph[js])
+            return pos, f * c["w"][None, :, None]
+
+        return self._sum(x, resolved, F, D, T, c["Q_max"], c["F_rms"] * c["flutter"], tol, error, "point")
 
     def velocity(self, points, t: float, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) fluid velocity at ``points`` at time ``t`` (see :meth:`evaluate`)."""
