@@ -77,6 +77,9 @@ logger = logging.getLogger(__name__)
 __all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL", "LEVELS", "BLOB"]
 
 LEVELS = ("mean", "point", "resolved")
+_MEAN_CACHE_BYTES = 256 * 1024 ** 2
+"""Largest memory the resolved sources of the mean flow (every cilium's phase samples) may take
+when kept between evaluations (about 1900 cilia with the shipped table)."""
 _UNIT = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2), math.sin(2 * math.pi * m / 5 + math.pi / 2)]
                                  for m in range(5)])
 """Carrier positions of the cheap levels for unit delta: the centre and a regular pentagon."""
@@ -609,9 +612,15 @@ class Carpet:
         c = self._c
 
         def resolved(js):
+            if "mean_sources" in c:
+                pos, fw = c["mean_sources"]
+                return pos[js], fw[js]
             pos, f = self.cycle_samples(js)
             fw = f * (c["w"] / c["n_phase"])[None, None, :, None]
             return pos.reshape(len(js), -1, 2), fw.reshape(len(js), -1, 2)
+
+        if "mean_sources" not in c and self.n * c["n_phase"] * c["n_s"] * 32 <= _MEAN_CACHE_BYTES:
+            c["mean_sources"] = resolved(np.arange(self.n))  # static: computed once per carpet
 
         S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
         return self._sum(x, resolved, c["F_mean"], c["D_mean"], c["T_mean"], c["Q_mean"], S, tol, error, "mean")
