@@ -702,9 +702,10 @@ class ThrustTable:
                                           else template[k].values) for k in template.data_vars})
             row["flutter"] = template.flutter.copy(data=np.int8(1))
         else:
-            nearest = self.ds.sel(chi_N=a, method="nearest")
-            if int(nearest.flutter) == 1:
+            still = self.ds.flutter.values == 0
+            if (self._branch.size and self._branch[0] <= a <= self._branch[-1]) or not np.any(still):
                 raise TableError(f"chi_N = {a:g} lies between flutter rows that are too few to interpolate")
+            nearest = self.ds.isel(chi_N=np.flatnonzero(still)).sel(chi_N=a, method="nearest")
             row = nearest.drop_vars("chi_N")
             p = CiliumParams(self.chi_E, self.eta, a)
             try:
