@@ -492,7 +492,8 @@ class ThrustTable:
 
     # ------------------------------------------------------------------ tables over chi_E
     def _init_grid(self) -> None:
-        """The fields' own tables, and the ones with a flutter branch (interpolated between)."""
+        """The fields' own tables, and the ones with a flutter branch and a cutoff (interpolated
+        between)."""
         ds = self.ds
         self._grid = {}
         for i, E in enumerate(ds.chi_E.values.tolist()):
@@ -500,17 +501,18 @@ class ThrustTable:
             one.attrs = {**ds.attrs, "chi_E": E, "chi_N_cutoff": float(ds.chi_N_cutoff[i]),
                          "chi_N_cutoff_error": float(ds.chi_N_cutoff_error[i])}
             self._grid[E] = ThrustTable(one, f"{self._source} (chi_E = {E:g})")
-        self._knots = [E for E, t in self._grid.items() if t._branch.size >= 2 and t._cut is not None]
+        self._knots = [E for E, t in self._grid.items()
+                       if t._branch.size >= 2 and np.isfinite(float(t.ds.attrs["chi_N_cutoff"]))]
 
     @property
     def chi_E_range(self) -> tuple[float, float]:
         """The field strengths the table serves: its own chi_E (one field), or the span of the
-        grid's fields whose flutter branch reaches their cutoff (a table over chi_E)."""
+        grid's fields with a flutter branch and a cutoff (a table over chi_E)."""
         if "chi_E" not in self.ds.dims:
             return self.chi_E, self.chi_E
         if len(self._knots) < 2:
             raise TableError(f"{self._source}: fewer than two fields of the chi_E grid have a flutter branch "
-                             "up to their cutoff: nothing to interpolate in chi_E")
+                             "and a cutoff: nothing to interpolate in chi_E")
         return self._knots[0], self._knots[-1]
 
     def _table(self, chi_E) -> "ThrustTable":
@@ -547,13 +549,17 @@ class ThrustTable:
         def across(values):  # (n_fields, ...) -> value at E
             return make_interp_spline(Es, np.asarray(values), k=k, axis=0, check_finite=False)(E)
 
-        cj = np.array([t._cut for t in tabs])
+        cj = np.array([float(t.ds.attrs["chi_N_cutoff"]) for t in tabs])
         c = float(across(cj))
+        # the fractions of the cutoff that every field's branch covers
         r_lo = max(t._branch[0] / cc for t, cc in zip(tabs, cj))
+        r_hi = min(t._branch[-1] / cc for t, cc in zip(tabs, cj))
+        to_cutoff = all(t._cut is not None for t in tabs)  # every branch ends at its cutoff row
         near = int(np.argmin(np.abs(Es - E)))
         r = tabs[near]._branch / cj[near]
-        r = np.unique(np.concatenate([[r_lo], r[r > r_lo * (1 + 1e-12)]]))
-        r[-1] = 1.0
+        r = np.unique(np.concatenate([[r_lo, r_hi], r[(r > r_lo * (1 + 1e-12)) & (r < r_hi * (1 - 1e-12))]]))
+        if to_cutoff:
+            r[-1] = 1.0
         n = r.size
         scal = {}
         for name in SCALARS:
@@ -564,14 +570,16 @@ class ThrustTable:
             scal[name] = across(vals)
         cyc = [t.cycles(np.clip(r * cc, t._branch[0], t._branch[-1])) for t, cc in zip(tabs, cj)]
         fields = {name: across([cy[name] for cy in cyc]) for name in FIELDS}
-        # the last row is the zero-amplitude cycle at the cutoff, as in a one-field build
-        for name in ("thrust_norm", "thrust_x", "thrust_y", "tip_area"):
-            scal[name][-1] = 0.0
-        scal["thrust_angle"][-1] = np.nan
-        fields["fx"][-1] = fields["fy"][-1] = 0.0
+        if to_cutoff:  # the last row is the zero-amplitude cycle at the cutoff, as in a one-field build
+            for name in ("thrust_norm", "thrust_x", "thrust_y", "tip_area"):
+                scal[name][-1] = 0.0
+            scal["thrust_angle"][-1] = np.nan
+            fields["fx"][-1] = fields["fy"][-1] = 0.0
         chi = r * c
-        # rows of the grid above the cutoff: no flutter
-        above = self.ds.chi_N.values[self.ds.chi_N.values > c * (1 + 1e-12)]
+        # rows of the grid above the cutoff: no flutter (none when a branch ends before its cutoff:
+        # the table then ends with the branch)
+        grid = self.ds.chi_N.values
+        above = grid[grid > c * (1 + 1e-12)] if to_cutoff else grid[:0]
         m = above.size
         for name in SCALARS:
             scal[name] = np.concatenate([scal[name], np.full(m, np.nan)])
