@@ -1,4 +1,5 @@
-"""The thrust lookup table over the natural curvature chi_N, for one field (chi_E, eta).
+"""The thrust lookup table over the natural curvature chi_N, for one field (chi_E, eta) or over a
+grid of field strengths chi_E (at one eta).
 
 :func:`build_table` computes limit cycles (:func:`~single_cilium.cycle.limit_cycle`) on a grid
 of chi_N by continuation: each worker walks a contiguous chunk of the grid (chunks of equal
@@ -10,19 +11,31 @@ Dask distributed cluster through its executor). It finds the flutter cutoff
 every finished row is kept on disk at once (with ``build_*`` attributes recording the field,
 settings and package version it was computed for), so an interrupted build resumes where it
 stopped; rows of a build with any other field or settings are refused, never merged, and rows
-outside the requested grid are ignored.
+outside the requested grid are ignored. With a grid of chi_E (``build_table([180, 200, 220], eta,
+chi_N)``) each worker walks its chunk of chi_N for every field in turn, continued in chi_N; a
+neighbouring field's cycle at the same chi_N was measured to be a worse start than the field's
+own Hopf mode, so there is no continuation across fields.
 
 :class:`ThrustTable` wraps the Dataset of DESIGN.md (schema below), validates it on load,
 interpolates it smoothly in chi_N (cubic splines on the flutter branch; for the shapes and
 forces in ``sqrt(chi_c - chi_N)``, in which their Hopf onset is smooth), inverts the thrust
-angle, and mirrors negative chi_N.
+angle, and mirrors negative chi_N; a table over chi_E is interpolated in chi_E too, at fixed
+fractions of each field's cutoff (:class:`ThrustTable`).
 
 Schema (version 1): dims ``chi_N``, ``phase`` (uniform in [0, 1)), ``s`` (uniform in [0, 1]);
 per chi_N ``flutter`` (int8 0/1), ``period``, ``thrust_norm``, ``thrust_angle``, ``thrust_x``,
 ``thrust_y``, ``theta_lim``, ``alpha``, ``beta``, ``floquet``, ``tip_area`` and the error
 estimates ``period_error``, ``thrust_norm_error``, ``thrust_angle_error``,
 ``floquet_trivial_error``; per (chi_N, phase, s) ``x``, ``y``, ``fx``, ``fy`` (force per
-length on the fluid, ``-d``). Rows without flutter: period NaN, thrust 0, cycle data NaN.
+length on the fluid, ``-d``); ``coiled`` (int8; 1 where ``|chi_N| > |chi_E|``: no equilibrium,
+the row is not computed; absent from tables built before it, read as 0). Rows without flutter:
+period NaN, thrust 0, cycle data NaN. Attributes ``chi_E``, ``eta``, ``chi_N_cutoff``,
+``chi_N_cutoff_error`` and ``build_*`` (what the rows were computed for).
+
+A table over chi_E has the same variables with a leading dimension ``chi_E`` (> 0, strictly
+increasing): per (chi_E, chi_N) the scalars, per (chi_E, chi_N, phase, s) the fields, and per
+chi_E ``chi_N_cutoff`` and ``chi_N_cutoff_error`` as variables (no ``chi_E`` attribute; the
+``chi_N`` grid holds every field's cutoff, each a plain row for the other fields).
 """
 from __future__ import annotations
 
@@ -180,16 +193,18 @@ def _same(got, want) -> bool:
 
 def _chunk(args):
     """Compute a contiguous run of chi_N rows for every field of ``chi_Es`` in turn, by
-    continuation: in chi_N (the parabola through the last three cycles of the same field), and
-    in chi_E (the first cycle of a run is seeded by the cycle of the previous field at the same
-    chi_N). Rows at a field's own cutoff are left to the caller; coiled rows are only marked.
-    Each row is written to ``parts`` if given. Returns ``[(chi_E, chi_N, row)]``."""
+    continuation in chi_N (the parabola through the last three cycles of the same field); the
+    first cycle of each field's run starts from its Hopf mode (:func:`limit_cycle` without a
+    seed). Continuation in chi_E does not pay: the cycle of a neighbouring field at the same
+    chi_N as seed (its deviation from its own equilibrium carried onto this field's mesh) cost
+    1.3-1.4x the unseeded start for fields 2 to 10 apart and 1.4-4x for 20 apart (degree 8, 64
+    steps, chi_N = 0 and 100 at chi_E = 200; 0.36-0.40 s unseeded). Rows at a field's own cutoff
+    are left to the caller; coiled rows are only marked. Each row is written to ``parts`` if
+    given. Returns ``[(chi_E, chi_N, row)]``."""
     chi_Es, eta, chi_Ns, settings, parts, cutoffs, two_d = args
     degree, n_phase, s_grid = settings["degree"], settings["n_phase"], np.asarray(settings["s"])
     out = []
-    previous: dict[float, LimitCycle] = {}  # the last field's cycles, by chi_N
     for chi_E in chi_Es:
-        rows_E: dict[float, LimitCycle] = {}
         seeds: list[LimitCycle] = []
         for cN in chi_Ns:
             if cN == cutoffs[chi_E]:
@@ -204,9 +219,8 @@ def _chunk(args):
                 st = stability(p, degree=degree, check=False, n_modes=1)
                 alpha, beta = st.alpha, st.beta
                 if st.regime == "flutter":
-                    seed = seeds[-3:] if seeds else previous.get(cN)
                     try:
-                        cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seed,
+                        cyc = limit_cycle(p, degree=degree, n_phase=n_phase, seed=seeds[-3:],
                                           tol=settings.get("tol", 1e-8),
                                           error_estimate=settings.get("error_estimate", True))
                     except CycleError as exc:
@@ -215,7 +229,6 @@ def _chunk(args):
                         err.chi_N, err.chi_E = float(cN), float(chi_E)
                         raise err from None
                     seeds.append(cyc)
-                    rows_E[cN] = cyc
                 else:
                     seeds = []
             row = _row(p, cyc, s_grid, n_phase, alpha, beta)
@@ -225,7 +238,6 @@ def _chunk(args):
             if parts is not None:
                 write_netcdf(row, _row_file(parts, chi_E, cN, two_d))
             out.append((float(chi_E), float(cN), row))
-        previous = rows_E
     return out
 
 
@@ -270,8 +282,8 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
         The field strength: a number gives the table of one field (dims ``chi_N, phase, s``); a
         strictly increasing grid of at least two values > 0 gives a table over chi_E (dims
         ``chi_E, chi_N, phase, s``) that :class:`ThrustTable` interpolates in chi_E too (see
-        there). Each field's rows are continued in chi_N, and the first cycle of each run of
-        rows from the previous field's cycle at the same chi_N (continuation in chi_E).
+        there). Each field's rows are continued in chi_N; each worker walks its chunk of chi_N
+        for every field in turn (continuation in chi_E does not pay, see ``_chunk``).
     eta : float
         The drag ratio.
     chi_N : array_like
