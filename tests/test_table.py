@@ -364,3 +364,23 @@ def test_resume_fingerprint_includes_the_chi_E_grid(tmp_path, over_chi_E):
     with pytest.raises(TableError, match=r"chi_E = None \(asked 200.0\)"):
         build_table(200.0, 1, [57.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
     assert (parts / "row_200_57.nc").exists() and not path.exists()
+
+
+def test_failed_row_of_a_chi_E_grid_names_its_field(tmp_path, monkeypatch):
+    import single_cilium.table as table_mod
+    from single_cilium.cycle import CycleError
+
+    real = table_mod.limit_cycle
+
+    def failing(p, **kw):
+        if (p.chi_E, p.chi_N) == (210.0, 57.0):
+            raise CycleError("injected failure", 0.0)
+        return real(p, **kw)
+
+    monkeypatch.setattr(table_mod, "limit_cycle", failing)
+    path = tmp_path / "t.nc"
+    with pytest.raises(CycleError, match=r"chi_E = 210, eta = 1\): the cycle at chi_N = 57 did not converge .*"
+                                         r"last good row before it: chi_N = 50.*resumes"):
+        build_table([190.0, 210.0], 1, [50.0, 57.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert sorted(f.name for f in (tmp_path / "t.nc.parts").glob("row_*.nc")) == [
+        "row_190_50.nc", "row_190_57.nc", "row_210_50.nc"]
