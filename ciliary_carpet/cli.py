@@ -292,7 +292,7 @@ def _version() -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="ciliary-carpet", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="ciliary-carpet", description=__doc__.split("\n\n")[0].replace("``", ""))
     ap.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
     ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     ap.add_argument("--debug", action="store_true", help="show the traceback of a failure")

@@ -164,8 +164,8 @@ def cmd_table(args) -> dict:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0])
-    ap.add_argument("--version", action="version", version=__version__)
+    ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0].replace("``", ""))
+    ap.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="log progress information")
     ap.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     sub = ap.add_subparsers(dest="command", required=True)
