@@ -10,12 +10,16 @@ whole single-filament picture (field along e2) is rotated by it. Cilium j is at 
 flow is in general quasi-periodic, and nothing here assumes a common period. The fluid velocity
 is the superposition of the filaments' line distributions of Stokeslets,
 
-    u(x, t) = 1/(8 pi mu) sum_j int_0^1 G(x - r_j(s, t)) f_j(s, t) ds,   G(R) = I/|R| + R R^T/|R|^3,
+    u(x, t) = 1/(8 pi mu) sum_j int_0^1 G(x, r_j(s, t)) f_j(s, t) ds,
 
-with f = -d the force per length on the fluid (the table's fx, fy). The arc length integral is
+with f = -d the force per length on the fluid (the table's fx, fy) and G the regularised
+Stokeslet of blob size ``blob`` (the filament radius; :mod:`ciliary_carpet.kernel`), so that the
+velocity stays bounded on and between the filaments and tracers pass through the carpet; away
+from a filament it differs from the singular Stokeslet I/|R| + R R^T/|R|^3 by O(blob^2/|R|^3). The arc length integral is
 the composite Simpson rule on the table's uniform s grid; the phase dependence is the
 trigonometric interpolant of the table's uniform phase samples (spectral: the cycle is smooth).
-With ``wall=h`` a no-slip plane lies at z = -h (Blake's image system). The model ignores
+With ``wall=h`` a no-slip plane lies at z = -h (the regularised image system of Ainley et al.
+2008; Blake's for ``blob=None``). The model ignores
 contact and hydrodynamic interaction between filaments (each beats as if alone); a base point
 inside another cilium's swept region is warned about.
 
@@ -23,23 +27,24 @@ Levels of detail (DESIGN.md "flow fidelity")
 --------------------------------------------
 Per (cilium, evaluation point) pair the cheapest representation whose error bound is under the
 tolerance is used. Around the force centre c_j (the centroid of the cilium's swept samples;
-every filament point lies within the radius a_j of it), with F = int f ds, D = int (r-c) f^T ds,
-Q = int |r - c|^2 |f| ds:
+every filament point lies within the radius a_j of it), with h = r - c, the moments
+F = int f ds, D = int h f^T ds, T = int h h f ds (second moments) and Q3 = int |h|^3 |f| ds:
 
-* ``point``: the total force F(t) and its first moment D(t) at the current phase, carried by three
-  point forces at c + delta u_k (u_k at 0, 120, 240 degrees, delta = a/2) with
-  f_k = F/3 + 2/(3 delta) D^T u_k, which reproduce F and D exactly;
-* ``mean``: the same with the cycle means Fbar, Dbar (the steady, time-averaged flow only);
+* ``point``: F(t), D(t) and T(t) at the current phase, carried by six point forces, one at c and
+  five at c + delta u_m (u_m at 72 degree steps, delta = a/2), whose forces solve the 6 x 6
+  moment system, so that they reproduce F, D and T exactly;
+* ``mean``: the same with the cycle means (the steady, time-averaged flow only);
 * ``resolved``: the full line distribution (for the mean flow: averaged over the phase samples).
 
-Both cheap levels share the monopole and dipole with the resolved sum, so by Taylor's theorem
-with remainder their error for a target at distance R > a from c is at most
+Both cheap levels share the monopole, dipole and quadrupole with the resolved sum, so by
+Taylor's theorem with remainder their error for a target at distance R > a from c is at most
 
-    |u_level - u_resolved| <= C2 (Q + Q_rep) / (2 * 8 pi mu (R - a)^3),
+    |u_level - u_resolved| <= C3 (Q3 + Q3_rep) / (6 * 8 pi mu (R - a)^4),
 
-with Q_rep = sum_k delta^2 |f_k| the second moment of the three-point carrier and C2 = 4 the
-maximum of |(h.grad)^2 G f| over unit vectors at unit distance (computed in the tests; with
-a wall, C2 = :data:`C2_WALL`, measured over wall heights and directions in the tests). A pair is
+with Q3_rep = sum_m delta^3 |f_m| the third moment of the carrier and C3 the supremum of
+|(h.grad)^3 G f| over unit in-plane h, f at unit distance (:attr:`Kernel.c3
+<ciliary_carpet.kernel.Kernel.c3>`; sampled in the tests: 12.3 free, 12.9 times R^4 with a wall;
+the constants 16 and 64 leave a margin). A pair is
 summed cheaply when this bound is at most ``tol * S_j / (8 pi mu R)``, where S_j is the cilium's
 force scale (|Fbar_j| for the mean flow, the r.m.s. of |F_j(t)| over the cycle for the
 instantaneous flow), so that at every point
@@ -64,18 +69,26 @@ from single_cilium.equilibrium import equilibrium_shape
 from single_cilium.params import CiliumParams
 from single_cilium.table import ThrustTable
 
-from .stokeslet import Backend, Wall, stokeslet_velocity, stokeslet_velocity_ranges
+from .kernel import C2_FREE, C2_WALL, C3_FREE, C3_WALL, Kernel, Wall, make_kernel
+from .stokeslet import Backend, stokeslet_velocity, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "LEVELS"]
+__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL", "LEVELS", "BLOB"]
 
-C2_FREE = 4.0
-"""sup |(h . grad)^2 G(e) f| over unit h, f, e: the Taylor constant of the free-space Stokeslet."""
-C2_WALL = 16.0
-"""The same constant for Blake's tensor, second derivatives in the in-plane source position,
-relative to the source distance (a safe upper bound of the measured supremum, see the tests)."""
 LEVELS = ("mean", "point", "resolved")
+_MEAN_CACHE_BYTES = 256 * 1024 ** 2
+"""Largest memory the resolved sources of the mean flow (every cilium's phase samples) may take
+when kept between evaluations (about 1900 cilia with the shipped table)."""
+_UNIT = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2), math.sin(2 * math.pi * m / 5 + math.pi / 2)]
+                                 for m in range(5)])
+"""Carrier positions of the cheap levels for unit delta: the centre and a regular pentagon."""
+_UNIT_INV = np.linalg.inv(np.stack([np.ones(6), _UNIT[:, 0], _UNIT[:, 1], _UNIT[:, 0] ** 2,
+                                    _UNIT[:, 0] * _UNIT[:, 1], _UNIT[:, 1] ** 2]))
+"""Inverse of the carrier's moment matrix (rows: the monomials 1, x, y, x^2, xy, y^2)."""
+BLOB = 0.02
+"""Default blob size eps of the regularised Stokeslets, in units of L: the filament radius of a
+slender filament of aspect ratio L / (2 a) = 25 (scene key ``[carpet] blob``)."""
 
 
 @dataclass(frozen=True)
@@ -161,7 +174,10 @@ class Carpet:
     mu : fluid viscosity in model units (B tau / L^4); 1 by default.
     wall : distance h > 0 of a no-slip wall z = -h below the plane, or None (free space).
     scales : optional :class:`Scales` for output in SI units.
-    backend : kernel strategy for the dense sums (:mod:`ciliary_carpet.stokeslet`); default Auto.
+    backend : evaluator of the sums (:mod:`ciliary_carpet.stokeslet`); default Auto.
+    blob : regularisation length eps of the Stokeslets (:data:`BLOB`, the filament radius), > 0
+        and at most half the smallest distance between base points; None: singular Stokeslets
+        (the flow is then unbounded at the filaments).
 
     Cilia whose chi_N does not flutter stand still in their equilibrium shape and make no flow.
     """
@@ -175,6 +191,7 @@ class Carpet:
     wall: float | None = None
     scales: Scales | None = None
     backend: Backend | None = None
+    blob: float | None = BLOB
     _c: dict = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -201,6 +218,19 @@ class Carpet:
             raise ValueError(f"mu must be positive, got {self.mu}")
         if self.wall is not None and not (math.isfinite(self.wall) and self.wall > 0):
             raise ValueError(f"wall must be a positive distance below the plane (or None), got {self.wall!r}")
+        if self.blob is not None:
+            try:
+                e = float(self.blob)
+            except (TypeError, ValueError):
+                raise ValueError(f"blob must be a positive length (or None), got {self.blob!r}") from None
+            if not (math.isfinite(e) and e > 0):
+                raise ValueError(f"blob must be a positive length in units of L (the filament radius), got {e}")
+            if n > 1:
+                gap = float(cKDTree(b).query(b, k=2)[0][:, 1].min())
+                if e > 0.5 * gap:
+                    raise ValueError(f"blob = {e:g} is larger than half the smallest spacing of the base points "
+                                     f"({gap:g} L): the blobs of neighbouring filaments would overlap")
+            object.__setattr__(self, "blob", e)
         if not isinstance(self.table, ThrustTable):
             raise TypeError(f"table must be a ThrustTable, got {type(self.table).__name__}")
         object.__setattr__(self, "bases", b)
@@ -224,6 +254,15 @@ class Carpet:
         coef = np.empty((n, 2 * K - 1, n_s, 4))
         centre, radius = np.empty((n, 2)), np.empty(n)
         F, D, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p))
+        n_m = 2 * n_p  # moments are products of up to three K-band functions: sampled without aliasing
+        Km = n_m // 2
+        mom_coef = np.empty((n, 2 * Km - 1, 14))
+        ph_m = np.arange(n_m) / n_m
+        arg_m = 2.0 * math.pi * ph_m[:, None] * np.arange(K)[None, :]
+        basis_m = np.concatenate([np.cos(arg_m), np.sin(arg_m[:, 1:])], axis=1)
+        mm = np.full(Km, 2.0)
+        mm[0] = mm[-1] = 1.0
+        T2 = np.empty((n, n_p, 2, 2, 2))
         hulls = []
         m = np.full(K, 2.0)
         m[0] = 1.0
@@ -243,6 +282,18 @@ class Carpet:
             # trigonometric interpolation in phase: cos terms k = 0..K-1, then sin terms k = 1..K-1
             spec = np.fft.rfft(np.concatenate([xy, f], axis=-1), axis=1)[:, :K] / n_p * m[None, :, None, None]
             coef[sl] = np.concatenate([spec.real, -spec.imag[:, 1:]], axis=1)
+            # F, D, T on the oversampled phase grid, then their trigonometric coefficients
+            vm = np.einsum("pk,jksq->jpsq", basis_m, coef[sl], optimize=True)
+            relm = vm[..., :2] + self.bases[sl][:, None, None, :]
+            cen_m = relm.reshape(relm.shape[0], -1, 2).mean(axis=1)
+            relm = relm - cen_m[:, None, None, :]
+            fwm = vm[..., 2:] * w[None, None, :, None]
+            Fm = fwm.sum(axis=2)
+            Dm = np.einsum("jpsa,jpsb->jpab", relm, fwm)
+            Tm = np.einsum("jpsa,jpsb,jpsc->jpabc", relm, relm, fwm, optimize=True)
+            allm = np.concatenate([Fm, Dm.reshape(*Dm.shape[:2], 4), Tm.reshape(*Tm.shape[:2], 8)], axis=-1)
+            sm = np.fft.rfft(allm, axis=1)[:, :Km] / n_m * mm[None, :, None]
+            mom_coef[sl] = np.concatenate([sm.real, -sm.imag[:, 1:]], axis=1)
             cen = xy.reshape(xy.shape[0], -1, 2).mean(axis=1)
             rel = xy - cen[:, None, None, :]
             dist = np.sqrt((rel ** 2).sum(-1))
@@ -251,7 +302,8 @@ class Carpet:
             fw = f * w[None, None, :, None]
             F[sl] = fw.sum(axis=2)
             D[sl] = np.einsum("jpsa,jpsb->jpab", rel, fw)
-            Q[sl] = (dist ** 2 * np.sqrt((f ** 2).sum(-1)) * w).sum(axis=2)
+            T2[sl] = np.einsum("jpsa,jpsb,jpsc->jpabc", rel, rel, fw, optimize=True)
+            Q[sl] = (dist ** 3 * np.sqrt((f ** 2).sum(-1)) * w).sum(axis=2)
             for i in range(xy.shape[0]):
                 try:
                     hulls.append(ConvexHull(xy[i].reshape(-1, 2) + self.bases[lo + i]).equations)
@@ -263,7 +315,9 @@ class Carpet:
         return dict(flutter=fl, n_s=n_s, n_phase=n_p, s=s, w=w, coef=coef, k=np.arange(K),
                     period=period, rate=np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0),
                     centre=centre, radius=radius, F=F, D=D, Q=Q, F_rms=np.sqrt((F ** 2).sum(-1).mean(axis=1)),
-                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls)
+                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls, radii={},
+                    T=T2, T_mean=T2.mean(axis=1), mom_coef=mom_coef, k_m=np.arange(Km),
+                    Q_max=Q.max(axis=1))
 
     def _warn_overlaps(self) -> None:
         c = self._c
@@ -320,8 +374,16 @@ class Carpet:
         return self._c["s"].copy()
 
     @property
-    def _wall(self) -> Wall | None:
-        return None if self.wall is None else Wall(z=-float(self.wall))
+    def kernel(self) -> Kernel:
+        """The Green's function of the flow: regularised (blob) or singular, free or with the wall."""
+        return make_kernel(None if self.wall is None else Wall(z=-float(self.wall)), self.blob or 0.0)
+
+    def filament_distance(self, points, t: float) -> np.ndarray:
+        """(M,) distance of ``points`` (M, 2) or (M, 3) from the nearest filament at time ``t``
+        (to the sampled centre lines, the table's s grid; in-plane)."""
+        p = np.asarray(points, dtype=float)[:, :2]
+        pos, _, _ = self.state(t)
+        return cKDTree(pos.reshape(-1, 2)).query(p)[0]
 
     def phase_at(self, t: float) -> np.ndarray:
         """(N,) phase of every cilium at time t, in [0, 1)."""
@@ -338,6 +400,19 @@ class Carpet:
         basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)  # (N, 2K-1)
         vals = np.einsum("jk,jksq->jsq", basis, c["coef"], optimize=True)
         return vals[..., :2] + self.bases[:, None, :], vals[..., 2:], ph
+
+    def _state_of(self, js: np.ndarray, ph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and forces per length (len(js), n_s, 2) of cilia ``js`` at phases ``ph``."""
+        c = self._c
+        arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
+        basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)
+        if 4 * len(js) > self.n:  # most cilia: no copy of their coefficients
+            full = np.zeros((self.n, basis.shape[1]))
+            full[js] = basis
+            vals = np.einsum("jk,jksq->jsq", full, c["coef"], optimize=True)[js]
+        else:
+            vals = np.einsum("jk,jksq->jsq", basis, c["coef"][js], optimize=True)
+        return vals[..., :2] + self.bases[js][:, None, :], vals[..., 2:]
 
     def cycle_samples(self, js) -> tuple[np.ndarray, np.ndarray]:
         """Positions and forces per length of cilia ``js`` at the table's phase samples:
@@ -361,24 +436,27 @@ class Carpet:
         return np.all(p @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
 
     # ------------------------------------------------------------------ flow
-    def _carriers(self, F: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Three point forces per cilium reproducing F (N, 2) and D (N, 2, 2) about c_j."""
+    def _carriers(self, F: np.ndarray, D: np.ndarray, T: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Six point forces per cilium reproducing F (N, 2), D (N, 2, 2) and T (N, 2, 2, 2) about
+        c_j: positions (N, 6, 2), forces (N, 6, 2) and their third moments Q3_rep (N,)."""
         c = self._c
-        u = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
         delta = 0.5 * np.maximum(c["radius"], 1e-12)
-        pos = c["centre"][:, None, :] + delta[:, None, None] * u[None]
-        fk = F[:, None, :] / 3.0 + (2.0 / (3.0 * delta))[:, None, None] * np.einsum("jab,ka->jkb", D, u)
-        q_rep = (delta ** 2) * np.sqrt((fk ** 2).sum(-1)).sum(axis=1)
+        pos = c["centre"][:, None, :] + delta[:, None, None] * _UNIT[None]
+        # moments (1, D_x, D_y, T_xx, T_xy, T_yy) of each force component, scaled to unit delta
+        b = np.stack([F, D[:, 0, :], D[:, 1, :], T[:, 0, 0, :], T[:, 0, 1, :], T[:, 1, 1, :]], axis=1)
+        scale = np.stack([np.ones_like(delta), delta, delta, delta ** 2, delta ** 2, delta ** 2], axis=1)
+        fk = np.einsum("mq,jqk->jmk", _UNIT_INV, b / scale[:, :, None])
+        q_rep = (delta ** 3) * np.sqrt((fk ** 2).sum(-1)).sum(axis=1)
         return pos, fk, q_rep
 
     def _near_radius(self, Q: np.ndarray, S: np.ndarray, tol: float) -> np.ndarray:
         """Per cilium the distance R* beyond which the cheap level's bound
-        C2 Q R / (2 (R - a)^3) <= tol S holds (inf when S = 0 but Q > 0)."""
+        C3 Q R / (6 (R - a)^4) <= tol S holds (inf when S = 0 but Q > 0)."""
         a = self._c["radius"]
-        C2 = C2_WALL if self.wall is not None else C2_FREE
-        k = 0.5 * C2 * Q
+        k = self.kernel.c3 * Q / 6.0
         with np.errstate(divide="ignore", invalid="ignore"):
-            g = lambda R: k * R - tol * S * (R - a) ** 3  # noqa: E731 -- decreasing past its root
+            g = lambda R: k * R - tol * S * (R - a) ** 4  # noqa: E731 -- decreasing past its root
             lo = a.copy()
             hi = a + 1.0
             for _ in range(200):
@@ -395,40 +473,61 @@ class Carpet:
         R = np.where(S > 0, R, np.where(Q > 0, np.inf, a))
         return R
 
-    def _sum(self, targets: np.ndarray, resolved, F: np.ndarray, D: np.ndarray, Q: np.ndarray, S: np.ndarray,
-             tol: float, error: bool, cheap_level: str) -> FlowSample:
+    def _near_radii(self, tol: float, level: str) -> np.ndarray:
+        """:meth:`_near_radius` for the ``point`` level (second moments maximised over the cycle's
+        phase samples, so that one radius serves every time) or the ``mean`` level; memoised per
+        tolerance."""
+        key = (level, tol)
+        cache = self._c["radii"]
+        if key not in cache:
+            c = self._c
+            if level == "mean":
+                Qt = c["Q_mean"] + self._carriers(c["F_mean"], c["D_mean"], c["T_mean"])[2]
+                S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
+            else:
+                Qt = np.max([c["Q"][:, p] + self._carriers(c["F"][:, p], c["D"][:, p], c["T"][:, p])[2]
+                             for p in range(c["n_phase"])], axis=0)
+                S = c["F_rms"] * c["flutter"]
+            R = self._near_radius(Qt, S, tol) if tol > 0 else np.full(self.n, np.inf)
+            if len(cache) > 32:
+                cache.clear()
+            cache[key] = np.where((S > 0) | (Qt > 0), R, -1.0)
+        return cache[key]
+
+    def _sum(self, targets: np.ndarray, resolved, F: np.ndarray, D: np.ndarray, T: np.ndarray, Q: np.ndarray,
+             S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
         """Cheap carriers everywhere (one dense sum), plus resolved-minus-cheap corrections on the
         near pairs (one sparse sum). ``resolved(js)`` gives the resolved sources of cilia ``js``:
         positions and weighted forces, (len(js), n_src, 2) each."""
         c = self._c
         n = self.n
         active = S > 0
-        cpos, cf, q_rep = self._carriers(F, D)
+        cpos, cf, q_rep = self._carriers(F, D, T)
         m = targets.shape[0]
-        wall = self._wall
-        rstar = self._near_radius(Q + q_rep, S, tol) if tol > 0 else np.full(n, np.inf)
-        rstar = np.where(active | (Q > 0), rstar, -1.0)
+        kernel = self.kernel
+        rstar = self._near_radii(tol, cheap_level)
         u = np.zeros((m, 3))
         if np.any(active):
             u += stokeslet_velocity(targets, _pad(cpos[active].reshape(-1, 2)), _pad(cf[active].reshape(-1, 2)),
-                                    self.mu, wall=wall, backend=self.backend)
+                                    self.mu, kernel=kernel, backend=self.backend)
         # near pairs, from a tree over the targets
         cand = np.nonzero(rstar > 0)[0]
-        pi, pj = [], []
-        if cand.size:
-            lists = cKDTree(targets).query_ball_point(_pad(c["centre"][cand]), np.minimum(rstar[cand], 1e300))
-            for j, lst in zip(cand, lists):
-                if lst:
-                    pi.append(np.asarray(lst, dtype=np.int64))
-                    pj.append(np.full(len(lst), j, dtype=np.int64))
         n_near = 0
-        if pi:
-            pi = np.concatenate(pi)
-            pj = np.concatenate(pj)
+        if cand.size:
+            r = np.minimum(rstar[cand], 1e300)
+            sdm = cKDTree(_pad(c["centre"][cand])).sparse_distance_matrix(cKDTree(targets), float(r.max()),
+                                                                         output_type="ndarray")
+            keep = sdm["v"] <= r[sdm["i"]]
+            pj = cand[sdm["i"][keep]].astype(np.int64)
+            pi = sdm["j"][keep].astype(np.int64)
             n_near = pi.size
-            order = np.lexsort((pj, pi))
+        if n_near:
+            order = np.argsort(pi, kind="stable")  # grouped by target (CSR); the order within is free
             pi, pj = pi[order], pj[order]
-            js, local = np.unique(pj, return_inverse=True)
+            used = np.bincount(pj, minlength=n) > 0
+            js = np.nonzero(used)[0]
+            lut = np.cumsum(used) - 1
+            local = lut[pj]
             rpos, rf = resolved(js)
             n_src = rpos.shape[1]
             # sources: resolved of the near cilia, then their negated cheap carriers
@@ -437,15 +536,17 @@ class Carpet:
             ranges = np.empty((2 * n_near, 2), dtype=np.int64)
             ranges[0::2, 0] = local * n_src
             ranges[0::2, 1] = (local + 1) * n_src
-            ranges[1::2, 0] = js.size * n_src + 3 * local
-            ranges[1::2, 1] = js.size * n_src + 3 * local + 3
+            nc = _UNIT.shape[0]
+            ranges[1::2, 0] = js.size * n_src + nc * local
+            ranges[1::2, 1] = js.size * n_src + nc * local + nc
             ptr = np.zeros(m + 1, dtype=np.int64)
             np.add.at(ptr, pi + 1, 2)
             ptr = np.cumsum(ptr)
-            u += stokeslet_velocity_ranges(targets, src, frc, ptr, ranges, self.mu, wall=wall)
+            u += stokeslet_velocity_ranges(targets, src, frc, ptr, ranges, self.mu, kernel=kernel,
+                                           backend=self.backend)
         bound = np.zeros(m)
         if error and np.any(active):
-            C2 = C2_WALL if self.wall is not None else C2_FREE
+            C3 = kernel.c3
             cen = _pad(c["centre"])
             near = np.zeros((m, n), bool)
             if n_near:
@@ -455,7 +556,7 @@ class Carpet:
                 hi = min(m, lo + step)
                 R = np.linalg.norm(targets[lo:hi, None, :] - cen[None], axis=-1)
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    b = 0.5 * C2 * (Q + q_rep)[None] / (R - c["radius"][None]) ** 3
+                    b = C3 * (Q + q_rep)[None] / (6.0 * (R - c["radius"][None]) ** 4)
                 bound[lo:hi] = np.where(near[lo:hi] | ~active[None], 0.0, b).sum(axis=1) / (8 * math.pi * self.mu)
         n_pairs = m * int(active.sum())
         n_res = int(np.sum(active[pj])) if n_near else 0
@@ -487,13 +588,17 @@ class Carpet:
         x = self._targets(points)
         tol = self._tol(tol)
         c = self._c
-        pos, f, ph = self.state(t)
-        fw = f * c["w"][None, :, None]
-        rel = pos - c["centre"][:, None, :]
-        F = fw.sum(axis=1)
-        D = np.einsum("jsa,jsb->jab", rel, fw)
-        Q = ((rel ** 2).sum(-1) * np.sqrt((f ** 2).sum(-1)) * c["w"]).sum(axis=1)
-        return self._sum(x, lambda js: (pos[js], fw[js]), F, D, Q, c["F_rms"] * c["flutter"], tol, error, "point")
+        ph = self.phase_at(t)
+        arg = 2.0 * math.pi * ph[:, None] * c["k_m"][None, :]
+        basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)
+        mom = np.einsum("jk,jkq->jq", basis, c["mom_coef"])
+        F, D, T = mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
+
+        def resolved(js):
+            pos, f = self._state_of(js, ph[js])
+            return pos, f * c["w"][None, :, None]
+
+        return self._sum(x, resolved, F, D, T, c["Q_max"], c["F_rms"] * c["flutter"], tol, error, "point")
 
     def velocity(self, points, t: float, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) fluid velocity at ``points`` at time ``t`` (see :meth:`evaluate`)."""
@@ -507,12 +612,18 @@ class Carpet:
         c = self._c
 
         def resolved(js):
+            if "mean_sources" in c:
+                pos, fw = c["mean_sources"]
+                return pos[js], fw[js]
             pos, f = self.cycle_samples(js)
             fw = f * (c["w"] / c["n_phase"])[None, None, :, None]
             return pos.reshape(len(js), -1, 2), fw.reshape(len(js), -1, 2)
 
+        if "mean_sources" not in c and self.n * c["n_phase"] * c["n_s"] * 32 <= _MEAN_CACHE_BYTES:
+            c["mean_sources"] = resolved(np.arange(self.n))  # static: computed once per carpet
+
         S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
-        return self._sum(x, resolved, c["F_mean"], c["D_mean"], c["Q_mean"], S, tol, error, "mean")
+        return self._sum(x, resolved, c["F_mean"], c["D_mean"], c["T_mean"], c["Q_mean"], S, tol, error, "mean")
 
     def mean_velocity(self, points, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) time-averaged fluid velocity (see :meth:`evaluate_mean`)."""

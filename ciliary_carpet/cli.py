@@ -280,9 +280,21 @@ def _cmd_batch(a) -> int:
     return 1 if n["failed"] else 0
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("cilia-flow")
+    except PackageNotFoundError:
+        from single_cilium import __version__
+
+        return __version__
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="ciliary-carpet", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="ciliary-carpet", description=__doc__.split("\n\n")[0].replace("``", ""))
     ap.add_argument("-v", "--verbose", action="store_true", help="log progress messages")
+    ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     ap.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     ap.add_argument("--allow-outside-paths", action="store_true",
                     help="let scene files name table/target files outside their own folder (trusted scenes only)")

@@ -77,7 +77,7 @@ import logging
 import math
 import time as _time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -343,8 +343,7 @@ def _with_chi(carpet: Carpet, chi: np.ndarray) -> Carpet:
         return carpet
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        return Carpet(carpet.bases, chi, carpet.table, carpet.phases, carpet.direction, carpet.mu, carpet.wall,
-                      carpet.scales, carpet.backend)
+        return replace(carpet, chi_N=chi)
 
 
 @contextlib.contextmanager
@@ -860,7 +859,7 @@ def scene_carpet(scene, table: ThrustTable | None = None, chi_N=None) -> Carpet:
     bases = scene.carpet.bases()
     return Carpet(bases, scene.carpet.chi_N if chi_N is None else chi_N, table,
                   scene.carpet.initial_phases(bases), direction=scene.field.direction_rad, wall=scene.carpet.wall,
-                  scales=None if scene.units is None else scene.units.scales())
+                  scales=None if scene.units is None else scene.units.scales(), blob=scene.carpet.blob)
 
 
 def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carpet]:
@@ -927,6 +926,4 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
 
 
 def _replace(d: Design, **kw) -> Design:
-    from dataclasses import replace
-
     return replace(d, **kw)

@@ -394,6 +394,9 @@ class CarpetSpec:
         Metachronal wave of "wave" phases (only with phases = "wave").
     wall : float > 0 or None
         Distance of a no-slip wall below the plane (None: free space).
+    blob : float > 0, default 0.02
+        Blob size of the regularised Stokeslets in L: the filament radius (default: aspect ratio
+        25). Less than half the spacing. See :mod:`ciliary_carpet.kernel`.
     """
 
     lattice: str = "square"
@@ -406,6 +409,7 @@ class CarpetSpec:
     seed: int = 0
     wave_vector: tuple[float, float] = (0.0, 0.0)
     wall: float | None = None
+    blob: float = 0.02
 
     def __post_init__(self) -> None:
         _validate(self, _carpet_kw)
@@ -539,8 +543,19 @@ class OutputSpec:
         the carpet; or explicit points.
     n_seeds : int >= 1, default 100
         Number of seeds for "line"/"grid" (not used with explicit seeds).
-    periods : float > 0, default 20
-        Path-line duration, in periods of the straight filament.
+    periods : float > 0 or None (default)
+        Path-line duration, in periods of the straight filament; None (key left out): long
+        enough for the tracers to cross the whole carpet at its mean speed (see
+        :func:`ciliary_carpet.render.render`).
+    pathline_model : "auto" | "resolved" | "mean", default "auto"
+        Flow the tracers follow: the time-resolved beat, or the long-time model (the mean flow,
+        :mod:`ciliary_carpet.pathlines`); "auto" takes the mean flow when the scene's tolerance
+        is at least the model's measured error (``pathlines.MEAN_MODEL_ERROR``).
+    samples_per_period : int >= 1, default 16
+        Path-line points per beat period (dense output).
+    ftle : bool, default True
+        The finite-time Lyapunov exponent field (ftle.vti) and the mixing number
+        (:mod:`ciliary_carpet.ftle`).
     field : bool, default True
         The mean velocity field (.vti).
     field_shape : (nx, ny) ints >= 2, default (80, 80)
@@ -558,7 +573,10 @@ class OutputSpec:
     pathlines: bool = True
     seeds: str | tuple = "line"
     n_seeds: int = 100
-    periods: float = 20.0
+    periods: float | None = None
+    pathline_model: str = "auto"
+    samples_per_period: int = 16
+    ftle: bool = True
     field: bool = True
     field_shape: tuple[int, int] = (80, 80)
     field_margin: float = 5.0
@@ -695,7 +713,7 @@ class Scene:
             seeds = tuple(seeds[i] for i in idx)
         o = replace(o, seeds=seeds, n_seeds=min(o.n_seeds, int(n_seeds)),
                     field_shape=(min(o.field_shape[0], int(field_shape[0])), min(o.field_shape[1], int(field_shape[1]))),
-                    periods=min(o.periods, float(periods)), snapshots=min(o.snapshots, int(snapshots)),
+                    periods=float(periods) if o.periods is None else min(o.periods, float(periods)), snapshots=min(o.snapshots, int(snapshots)),
                     frames=min(o.frames, int(frames)))
         return replace(self, carpet=c, output=o)
 
@@ -823,7 +841,15 @@ def _carpet_kw(src, data) -> dict:
         lattice=lattice, shape=shape, spacing=spacing, origin=r.pair("origin", (0.0, 0.0)), points=points,
         chi_N=r.number("chi_N", 0.0), phases=phases, seed=r.integer("seed", 0, lo=0),
         wave_vector=r.pair("wave_vector", (0.0, 0.0), "two numbers [kx, ky] (rad per L)"),
-        wall=r.number("wall", None, lo=0, lo_open=True))
+        wall=r.number("wall", None, lo=0, lo_open=True), blob=_blob(r, spacing))
+
+
+def _blob(r, spacing) -> float:
+    blob = r.number("blob", 0.02, lo=0, lo_open=True, what="a positive length in L (the filament radius)")
+    if spacing is not None and blob >= 0.5 * spacing:
+        raise r.fail("blob", f"less than half the spacing ({0.5 * spacing:g} L): the blobs of neighbouring "
+                     "filaments would overlap", blob)
+    return blob
 
 
 def _target_kw(src, data, base_dir=None) -> dict:
@@ -881,7 +907,10 @@ def _output_kw(src, data) -> dict:
         raise r.fail("field_shape", "two integers >= 2 [nx, ny]", fs)
     return dict(
         pathlines=r.boolean("pathlines", True), seeds=seeds, n_seeds=r.integer("n_seeds", 100, lo=1),
-        periods=r.number("periods", 20.0, lo=0, lo_open=True), field=r.boolean("field", True),
+        periods=r.number("periods", None, lo=0, lo_open=True),
+        pathline_model=r.string("pathline_model", "auto", ("auto", "resolved", "mean")),
+        samples_per_period=r.integer("samples_per_period", 16, lo=1), ftle=r.boolean("ftle", True),
+        field=r.boolean("field", True),
         field_shape=(int(fs[0]), int(fs[1])), field_margin=r.number("field_margin", 5.0, lo=0),
         snapshots=r.integer("snapshots", 4, lo=0), frames=r.integer("frames", 40, lo=0),
         preview=r.boolean("preview", True))

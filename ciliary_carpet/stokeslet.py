@@ -66,8 +66,11 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from .kernel import Kernel, Stokeslet, Wall, make_kernel, regularised_blake_tensor
+
 __all__ = [
     "Wall",
+    "Kernel",
     "Backend",
     "Direct",
     "FMM",
@@ -86,6 +89,10 @@ logger = logging.getLogger(__name__)
 #: random points in the unit cube: M = N ~ 1e6, extrapolated from M = N = 1e5 (at eps = 1e-6 it
 #: would be M = N ~ 5e5). In practice Auto therefore means Direct unless a scene is huge.
 FMM_CROSSOVER_PAIRS: float = 1.0e12
+
+#: Sums of fewer pairs than this run serially: starting the threads of a parallel region costs more
+#: (tens of microseconds idle, milliseconds on a loaded machine) than ~1e5 pairs take on one core.
+SERIAL_PAIRS: int = 200_000
 
 #: Value-safe fast-math flags: reassociation (vectorised reductions), FMA contraction, no signed
 #: zeros, reciprocal allowed. Not ``afn`` (approximate ``1/sqrt``) nor ``nnan``/``ninf``.
@@ -124,33 +131,6 @@ def _points(name: str, a: Any) -> np.ndarray:
     return np.ascontiguousarray(arr)
 
 
-@dataclass(frozen=True)
-class Wall:
-    """A no-slip plane wall ``z = z`` (fluid above it, ``z > z_wall``).
-
-    Parameters
-    ----------
-    z : float, default 0
-        Height of the wall; must be finite.
-
-    Raises
-    ------
-    ValueError
-        If ``z`` is not a finite real number.
-    """
-
-    z: float = 0.0
-
-    def __post_init__(self) -> None:
-        try:
-            z = float(self.z)
-        except (TypeError, ValueError):
-            raise ValueError(f"Wall.z must be a real number, got {self.z!r}") from None
-        if not math.isfinite(z):
-            raise ValueError(f"Wall.z must be finite, got {z}")
-        object.__setattr__(self, "z", z)
-
-
 def _check_wall(wall: Any, targets: np.ndarray, sources: np.ndarray) -> Wall | None:
     if wall is None:
         return None
@@ -182,8 +162,9 @@ def _validate(targets: Any, sources: Any, forces: Any, mu: Any, wall: Any
 
 # --------------------------------------------------------------------------- numba kernels
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
-def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, lo, hi):  # pragma: no cover - compiled
-    """Sum of ``G^S(x - xi_j) f_j`` for ``j`` in ``[lo, hi)`` (no 1/(8 pi mu))."""
+def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
+    """Sum of ``G^eps(x - xi_j) f_j`` for ``j`` in ``[lo, hi)`` (no 1/(8 pi mu)), ``e2 = eps^2``:
+    ``(f (r^2 + 2 e2) + R (R.f)) / (r^2 + e2)^{3/2}``; the singular Stokeslet for ``e2 = 0``."""
     ux = 0.0
     uy = 0.0
     uz = 0.0
@@ -192,15 +173,17 @@ def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, lo, hi):  # pragma: no cover -
         dy = yi - sy[j]
         dz = zi - sz[j]
         r2 = dx * dx + dy * dy + dz * dz
-        ir = 1.0 / np.sqrt(r2) if r2 > 0.0 else 0.0
+        q2 = r2 + e2
+        ir = 1.0 / np.sqrt(q2) if q2 > 0.0 else 0.0
         ir3 = ir * ir * ir
         a = fx[j]
         b = fy[j]
         c = fz[j]
         rf = (dx * a + dy * b + dz * c) * ir3
-        ux += a * ir + dx * rf
-        uy += b * ir + dy * rf
-        uz += c * ir + dz * rf
+        iso = (r2 + 2.0 * e2) * ir3
+        ux += a * iso + dx * rf
+        uy += b * iso + dy * rf
+        uz += c * iso + dz * rf
     return ux, uy, uz
 
 
@@ -247,9 +230,63 @@ def _acc_wall(xi, yi, zt, sx, sy, sh, fx, fy, fz, lo, hi):  # pragma: no cover -
     return ux, uy, uz
 
 
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _acc_regwall(xi, yi, zt, sx, sy, sh, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
+    """Sum of the regularised Blake tensor (:func:`ciliary_carpet.kernel.regularised_blake_tensor`)
+    times ``f_j`` for ``j`` in ``[lo, hi)``, wall at z = 0, ``e2 = eps^2`` (no 1/(8 pi mu)).
+
+    With ``r = x - xi``, ``R = x - xi*``, ``g = (f_x, f_y, -f_z)`` the tensor's terms collect to
+    ``G^eps(r) f + a_f f + a_g g + a_R R + a_z e_z`` (coefficients below)."""
+    ux = 0.0
+    uy = 0.0
+    uz = 0.0
+    for j in range(lo, hi):
+        h = sh[j]
+        dx = xi - sx[j]
+        dy = yi - sy[j]
+        dz = zt - h
+        ez = zt + h
+        p2 = dx * dx + dy * dy
+        r2 = p2 + dz * dz
+        R2 = p2 + ez * ez
+        ir = 1.0 / np.sqrt(r2 + e2)
+        ir3 = ir * ir * ir
+        iq = 1.0 / np.sqrt(R2 + e2)
+        iq3 = iq * iq * iq
+        iq5 = iq3 * iq * iq
+        a = fx[j]
+        b = fy[j]
+        c = fz[j]
+        pf = dx * a + dy * b
+        rf = (pf + dz * c) * ir3
+        Rf = pf + ez * c
+        Rg = pf - ez * c
+        iso = (r2 + 2.0 * e2) * ir3
+        hh = h * h
+        cf = -(R2 + 2.0 * e2) * iq3 + 6.0 * h * e2 * iq5 * ez
+        cg = (2.0 * hh - 2.0 * h * ez) * iq3 - 6.0 * hh * e2 * iq5
+        cR = -Rf * iq3 + (6.0 * h * ez - 6.0 * hh) * Rg * iq5 + 2.0 * h * c * iq3
+        cz = 2.0 * h * Rg * (R2 + 4.0 * e2) * iq5 - 6.0 * h * e2 * iq5 * Rf
+        ux += a * (iso + cf) + dx * (rf + cR) + cg * a
+        uy += b * (iso + cf) + dy * (rf + cR) + cg * b
+        uz += c * (iso + cf) + dz * rf + ez * cR - cg * c + cz
+    return ux, uy, uz
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _acc(code, x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
+    """Dispatch on the kernel code (0 free / regularised free, 1 Blake, 2 regularised Blake)."""
+    if code == 0:
+        return _acc_free(x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi)
+    if code == 1:
+        return _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, lo, hi)
+    return _acc_regwall(x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi)
+
+
 @njit(cache=True, fastmath=_FASTMATH, parallel=True)
-def _direct_free(T, S, F, scale, out):  # pragma: no cover - compiled
-    """out[i] = scale * sum_j G^S(T[:, i] - S[:, j]) F[:, j]; T (3, M), S, F (3, N) C-order."""
+def _direct(code, T, S, F, e2, scale, out):  # pragma: no cover - compiled
+    """out[i] = scale * sum_j G(T[:, i], S[:, j]) F[:, j]; T (3, M), S, F (3, N) C-order,
+    heights above the wall z = 0 for codes 1, 2."""
     sx = S[0]
     sy = S[1]
     sz = S[2]
@@ -258,33 +295,17 @@ def _direct_free(T, S, F, scale, out):  # pragma: no cover - compiled
     fz = F[2]
     n = sx.shape[0]
     for i in prange(T.shape[1]):
-        ux, uy, uz = _acc_free(T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz, 0, n)
+        ux, uy, uz = _acc(code, T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz, e2, 0, n)
         out[i, 0] = scale * ux
         out[i, 1] = scale * uy
         out[i, 2] = scale * uz
 
 
 @njit(cache=True, fastmath=_FASTMATH, parallel=True)
-def _direct_wall(T, S, F, scale, out):  # pragma: no cover - compiled
-    """As :func:`_direct_free` with the Blake tensor of the wall z = 0 (T[2], S[2] heights)."""
-    sx = S[0]
-    sy = S[1]
-    sh = S[2]
-    fx = F[0]
-    fy = F[1]
-    fz = F[2]
-    n = sx.shape[0]
-    for i in prange(T.shape[1]):
-        ux, uy, uz = _acc_wall(T[0, i], T[1, i], T[2, i], sx, sy, sh, fx, fy, fz, 0, n)
-        out[i, 0] = scale * ux
-        out[i, 1] = scale * uy
-        out[i, 2] = scale * uz
-
-
-@njit(cache=True, fastmath=_FASTMATH, parallel=True)
-def _ranges_kernel(T, S, F, ptr, ranges, scale, wall, out):  # pragma: no cover - compiled
+def _ranges_kernel(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no cover - compiled
     """out[i] = scale * sum over k in ptr[i]:ptr[i+1], j in ranges[k, 0]:ranges[k, 1] of
-    G(T[:, i], S[:, j]) F[:, j]; Blake tensor of the wall z = 0 if ``wall``."""
+    G(T[:, i], S[:, j]) F[:, j] for the kernel ``code`` (as :func:`_direct`; one loop per code so
+    that each inner sum vectorises)."""
     sx = S[0]
     sy = S[1]
     sz = S[2]
@@ -295,16 +316,86 @@ def _ranges_kernel(T, S, F, ptr, ranges, scale, wall, out):  # pragma: no cover 
         ux = 0.0
         uy = 0.0
         uz = 0.0
-        for k in range(ptr[i], ptr[i + 1]):
-            if wall:
-                a, b, c = _acc_wall(T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz,
-                                    ranges[k, 0], ranges[k, 1])
-            else:
-                a, b, c = _acc_free(T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz,
-                                    ranges[k, 0], ranges[k, 1])
-            ux += a
-            uy += b
-            uz += c
+        x = T[0, i]
+        y = T[1, i]
+        z = T[2, i]
+        if code == 0:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_free(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
+        elif code == 1:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
+        else:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_regwall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
+        out[i, 0] = scale * ux
+        out[i, 1] = scale * uy
+        out[i, 2] = scale * uz
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _direct_serial(code, T, S, F, e2, scale, out):  # pragma: no cover - compiled
+    """Serial :func:`_direct` (small sums: no thread start-up). out[i] = scale * sum_j G(T[:, i], S[:, j]) F[:, j]; T (3, M), S, F (3, N) C-order,
+    heights above the wall z = 0 for codes 1, 2."""
+    sx = S[0]
+    sy = S[1]
+    sz = S[2]
+    fx = F[0]
+    fy = F[1]
+    fz = F[2]
+    n = sx.shape[0]
+    for i in range(T.shape[1]):
+        ux, uy, uz = _acc(code, T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz, e2, 0, n)
+        out[i, 0] = scale * ux
+        out[i, 1] = scale * uy
+        out[i, 2] = scale * uz
+
+
+@njit(cache=True, fastmath=_FASTMATH)
+def _ranges_serial(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no cover - compiled
+    """Serial :func:`_ranges_kernel`. out[i] = scale * sum over k in ptr[i]:ptr[i+1], j in ranges[k, 0]:ranges[k, 1] of
+    G(T[:, i], S[:, j]) F[:, j] for the kernel ``code`` (as :func:`_direct`; one loop per code so
+    that each inner sum vectorises)."""
+    sx = S[0]
+    sy = S[1]
+    sz = S[2]
+    fx = F[0]
+    fy = F[1]
+    fz = F[2]
+    for i in range(T.shape[1]):
+        ux = 0.0
+        uy = 0.0
+        uz = 0.0
+        x = T[0, i]
+        y = T[1, i]
+        z = T[2, i]
+        if code == 0:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_free(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
+        elif code == 1:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
+        else:
+            for k in range(ptr[i], ptr[i + 1]):
+                a, b, c = _acc_regwall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
+                ux += a
+                uy += b
+                uz += c
         out[i, 0] = scale * ux
         out[i, 1] = scale * uy
         out[i, 2] = scale * uz
@@ -321,44 +412,73 @@ def _soa(a: np.ndarray, z_shift: float = 0.0) -> np.ndarray:
 
 # --------------------------------------------------------------------------- backends
 class Backend:
-    """Strategy that evaluates the Stokeslet sum (base class).
+    """Evaluator of velocity sums for any :class:`~ciliary_carpet.kernel.Kernel` (base class).
 
-    A subclass implements :meth:`velocity`. :func:`stokeslet_velocity` validates and normalises
-    the inputs before calling it, so an implementation may assume: ``targets`` (M, 3),
-    ``sources`` (N, 3) and ``forces`` (N, 3) C-contiguous finite float64 arrays with
-    ``M, N >= 1``; ``mu`` a finite float > 0; ``wall`` a :class:`Wall` (sources strictly above
-    it, targets on or above it) or None. It must return the (M, 3) float64 velocity
-    ``u(x) = 1/(8 pi mu) sum_j G(x, xi_j) f_j`` (module docstring), skip the singular term of a
-    coincident target-source pair, and raise ValueError for a configuration it cannot handle.
+    One interface for the two sums a flow model needs: :meth:`dense` (every source for every
+    target) and :meth:`ranged` (per target, a CSR list of source index ranges: near-field
+    corrections). The front doors (:func:`stokeslet_velocity`, :func:`stokeslet_velocity_ranges`)
+    validate and normalise the inputs first, so an implementation may assume: ``targets`` (M, 3),
+    ``sources`` (N, 3), ``forces`` (N, 3) C-contiguous finite float64 arrays, ``M, N >= 1``;
+    ``mu`` a finite float > 0; sources strictly above / targets on or above the kernel's wall;
+    valid ``ptr`` (M + 1,) and ``ranges`` (K, 2) int64 arrays. It returns the (M, 3) float64
+    velocity ``u(x) = 1/(8 pi mu) sum_j G(x, xi_j) f_j``, skips the singular term of a coincident
+    pair, and raises ValueError for a kernel it cannot evaluate.
     """
 
-    def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
-                 wall: Wall | None) -> np.ndarray:
-        """Velocity (M, 3) at ``targets`` of ``forces`` at ``sources``; see the class docstring."""
-        raise NotImplementedError
+    def dense(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
+              mu: float) -> np.ndarray:
+        """Velocity (M, 3) at ``targets`` of every source; see the class docstring."""
+        raise TypeError(f"{type(self).__name__} does not implement dense sums")
+
+    def ranged(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
+               ptr: np.ndarray, ranges: np.ndarray, mu: float) -> np.ndarray:
+        """Velocity (M, 3) at ``targets`` of each one's listed source ranges (the sparse
+        near-field sums are always evaluated directly, by :class:`Direct`)."""
+        return Direct().ranged(kernel, targets, sources, forces, ptr, ranges, mu)
+
+
+def _shift(kernel: Kernel) -> float:
+    return 0.0 if kernel.wall is None else kernel.wall.z
 
 
 @dataclass(frozen=True)
 class Direct(Backend):
-    """Direct O(M N) sum, compiled with numba.
+    """Direct O(M N) sums compiled with numba, every kernel.
 
     Parallel over targets (``prange``, numba's default thread count), the reduction over sources
     vectorised (structure-of-arrays copies of sources and forces are made once per call).
-    Exact up to rounding (about 1e-15 relative); free space and wall. Measured on 2 Zen 3 cores:
-    1.5e9 pair interactions per second in free space, 7e8 with the wall, for M = N = 3e4..1e5
-    (benchmarks/results/bench_kernel.md).
+    Exact up to rounding (about 1e-15 relative). Throughput on 2 cores:
+    benchmarks/results/bench_kernel.md.
     """
 
-    def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
-                 wall: Wall | None) -> np.ndarray:
+    def dense(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
+              mu: float) -> np.ndarray:
         out = np.zeros((targets.shape[0], 3))
         if targets.shape[0] == 0 or sources.shape[0] == 0:
             return out
-        scale = _INV_8PI / mu
-        if wall is None:
-            _direct_free(_soa(targets), _soa(sources), _soa(forces), scale, out)
-        else:
-            _direct_wall(_soa(targets, wall.z), _soa(sources, wall.z), _soa(forces), scale, out)
+        z = _shift(kernel)
+        f = _direct if targets.shape[0] * sources.shape[0] >= SERIAL_PAIRS else _direct_serial
+        f(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), kernel.eps ** 2, _INV_8PI / mu, out)
+        return out
+
+    def ranged(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
+               ptr: np.ndarray, ranges: np.ndarray, mu: float) -> np.ndarray:
+        out = np.zeros((targets.shape[0], 3))
+        if targets.shape[0] == 0 or sources.shape[0] == 0 or ranges.shape[0] == 0:
+            return out
+        z = _shift(kernel)
+        pairs = int(np.sum(ranges[:, 1] - ranges[:, 0]))  # an upper bound of the pairs summed
+        if pairs < SERIAL_PAIRS:
+            _ranges_serial(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), ptr, ranges,
+                           kernel.eps ** 2, _INV_8PI / mu, out)
+            return out
+        old = numba.get_parallel_chunksize()
+        numba.set_parallel_chunksize(16)  # the work per target is uneven (near-field lists)
+        try:
+            _ranges_kernel(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), ptr, ranges,
+                           kernel.eps ** 2, _INV_8PI / mu, out)
+        finally:
+            numba.set_parallel_chunksize(old)
         return out
 
 
@@ -377,11 +497,11 @@ def _fmm_available() -> bool:
 
 @dataclass(frozen=True)
 class FMM(Backend):
-    """Stokes fast multipole method, ``fmm3dpy.stfmm3d`` (free space only).
+    """Stokes fast multipole method, ``fmm3dpy.stfmm3d``: the singular free-space Stokeslet only.
 
     ``stfmm3d`` computes ``sum_j (1/(8 pi)) G^S(x - xi_j) f_j`` (its Stokeslet carries the
     ``1/(8 pi)``; checked numerically), and omits coincident pairs; the result is divided by
-    ``mu``. The pip wheel of fmm3dpy 2.1.0 runs on one thread.
+    ``mu``. The pip wheel of fmm3dpy 2.1.0 runs on one thread. Ranged sums run :class:`Direct`.
 
     Parameters
     ----------
@@ -391,9 +511,10 @@ class FMM(Backend):
     Raises
     ------
     ImportError
-        From :meth:`velocity`, if fmm3dpy is not installed (``pip install cilia-flow[fmm]``).
+        From :meth:`dense`, if fmm3dpy is not installed (``pip install cilia-flow[fmm]``).
     ValueError
-        From :meth:`velocity`, with a wall (the FMM has no image system: use :class:`Direct`).
+        From :meth:`dense`, for a kernel other than :class:`~ciliary_carpet.kernel.Stokeslet`
+        (the FMM has no image system and no blob: use :class:`Direct`).
     """
 
     eps: float = 1e-12
@@ -404,11 +525,11 @@ class FMM(Backend):
             raise ValueError(f"eps must be < 1, got {eps}")
         object.__setattr__(self, "eps", eps)
 
-    def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
-                 wall: Wall | None) -> np.ndarray:
-        if wall is not None:
-            raise ValueError("the FMM backend supports free space only; with a wall use "
-                             "backend=Direct() (or Auto())")
+    def dense(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
+              mu: float) -> np.ndarray:
+        if not isinstance(kernel, Stokeslet):
+            raise ValueError(f"the FMM backend supports the singular free-space Stokeslet only, not "
+                             f"{type(kernel).__name__}; use backend=Direct() (or Auto())")
         m = targets.shape[0]
         if m == 0 or sources.shape[0] == 0:
             return np.zeros((m, 3))
@@ -429,8 +550,8 @@ class FMM(Backend):
 class Auto(Backend):
     """:class:`Direct` or :class:`FMM`, whichever is expected to be faster.
 
-    :class:`Direct` when ``M * N < threshold``, or a wall is given, or fmm3dpy is not
-    installed; :class:`FMM` (precision ``eps``) otherwise.
+    :class:`Direct` when ``M * N < threshold``, or the kernel is not the singular free-space
+    Stokeslet, or fmm3dpy is not installed; :class:`FMM` (precision ``eps``) otherwise.
 
     Parameters
     ----------
@@ -448,28 +569,45 @@ class Auto(Backend):
         FMM(self.eps)  # validates eps
         object.__setattr__(self, "eps", float(self.eps))
 
-    def choose(self, m: int, n: int, wall: Wall | None) -> Backend:
-        """The backend used for ``m`` targets, ``n`` sources and ``wall``."""
-        if wall is not None or float(m) * float(n) < self.threshold or not _fmm_available():
+    def choose(self, m: int, n: int, kernel: Kernel | Wall | None = None) -> Backend:
+        """The backend used for ``m`` targets, ``n`` sources and ``kernel`` (a Wall or None
+        stand for the singular kernels with and without wall)."""
+        if not isinstance(kernel, Kernel):
+            kernel = make_kernel(kernel)
+        if (not isinstance(kernel, Stokeslet) or float(m) * float(n) < self.threshold
+                or not _fmm_available()):
             return Direct()
         return FMM(self.eps)
 
-    def velocity(self, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray, mu: float,
-                 wall: Wall | None) -> np.ndarray:
-        b = self.choose(targets.shape[0], sources.shape[0], wall)
-        logger.debug("Auto: %s for M=%d, N=%d, wall=%s", type(b).__name__, targets.shape[0],
-                     sources.shape[0], wall)
-        return b.velocity(targets, sources, forces, mu, wall)
+    def dense(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
+              mu: float) -> np.ndarray:
+        b = self.choose(targets.shape[0], sources.shape[0], kernel)
+        logger.debug("Auto: %s for M=%d, N=%d, %s", type(b).__name__, targets.shape[0], sources.shape[0], kernel)
+        return b.dense(kernel, targets, sources, forces, mu)
 
 
 # --------------------------------------------------------------------------- public functions
+def _kernel(kernel: Kernel | None, wall: Wall | None) -> Kernel:
+    if kernel is None:
+        if wall is not None and not isinstance(wall, Wall):
+            raise TypeError(f"wall must be a Wall or None, got {type(wall).__name__}")
+        return make_kernel(wall)
+    if not isinstance(kernel, Kernel):
+        raise TypeError(f"kernel must be a Kernel, got {type(kernel).__name__}")
+    if wall is not None and wall != kernel.wall:
+        raise ValueError(f"wall = {wall} contradicts the kernel's wall {kernel.wall}: give the wall in the kernel")
+    return kernel
+
+
 def stokeslet_velocity(targets: Any, sources: Any, forces: Any, mu: float = 1.0, *,
-                       wall: Wall | None = None, backend: Backend | None = None) -> np.ndarray:
+                       wall: Wall | None = None, backend: Backend | None = None,
+                       kernel: Kernel | None = None) -> np.ndarray:
     """Velocity of point forces in Stokes flow, ``u(x_i) = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j``.
 
-    ``G`` is the Stokeslet ``I/|R| + R R^T/|R|^3`` (``R = x - xi``) in free space, the Blake
-    tensor with a no-slip ``wall`` (module docstring). The singular term of a target that
-    coincides with a source is skipped (contributes zero).
+    ``G`` is the ``kernel`` (:mod:`ciliary_carpet.kernel`); by default the Stokeslet
+    ``I/|R| + R R^T/|R|^3`` (``R = x - xi``) in free space, the Blake tensor with a no-slip
+    ``wall`` (module docstring). The singular term of a target that coincides with a source is
+    skipped (contributes zero).
 
     Parameters
     ----------
@@ -482,9 +620,12 @@ def stokeslet_velocity(targets: Any, sources: Any, forces: Any, mu: float = 1.0,
     mu : float, default 1
         Dynamic viscosity, finite and > 0.
     wall : Wall, optional
-        No-slip plane ``z = wall.z``: sources strictly above it, targets on or above it.
+        No-slip plane ``z = wall.z`` for the singular kernels (or give a ``kernel``).
     backend : Backend, optional
         Evaluation strategy; default :class:`Auto` ().
+    kernel : Kernel, optional
+        The Green's function; default ``make_kernel(wall)``. Sources strictly above its wall,
+        targets on or above it.
 
     Returns
     -------
@@ -496,21 +637,23 @@ def stokeslet_velocity(targets: Any, sources: Any, forces: Any, mu: float = 1.0,
     ValueError
         Naming the argument: wrong ndim or width, sources and forces with different row counts,
         NaN or inf, ``mu`` not finite and > 0, a source not above / a target below the wall; or
-        from the backend (the FMM with a wall).
+        from the backend (the FMM with another kernel than the free Stokeslet).
     """
-    t, s, f, m, w = _validate(targets, sources, forces, mu, wall)
+    k = _kernel(kernel, wall)
+    t, s, f, m, _ = _validate(targets, sources, forces, mu, k.wall)
     if backend is None:
         backend = Auto()
     elif not isinstance(backend, Backend):
         raise TypeError(f"backend must be a Backend, got {type(backend).__name__}")
     if t.shape[0] == 0 or s.shape[0] == 0:
         return np.zeros((t.shape[0], 3))
-    return backend.velocity(t, s, f, m, w)
+    return backend.dense(k, t, s, f, m)
 
 
 def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any, ranges: Any,
-                              mu: float = 1.0, *, wall: Wall | None = None) -> np.ndarray:
-    """Stokeslet velocities with a sparse, per-target list of source blocks (numba).
+                              mu: float = 1.0, *, wall: Wall | None = None, backend: Backend | None = None,
+                              kernel: Kernel | None = None) -> np.ndarray:
+    """Velocities with a sparse, per-target list of source blocks.
 
     For target ``i`` the sum runs over sources ``j`` in ``ranges[k, 0] : ranges[k, 1]`` for every
     ``k`` in ``ptr[i] : ptr[i + 1]`` (a CSR list of source blocks per target)::
@@ -532,6 +675,8 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
         ``0 <= ranges[k, 0] <= ranges[k, 1] <= N``.
     mu : float, default 1
     wall : Wall, optional
+    backend : Backend, optional (default :class:`Direct`)
+    kernel : Kernel, optional
 
     Returns
     -------
@@ -544,7 +689,8 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
         arrays of the right shape, ``ptr`` is not monotone or out of ``[0, K]``, or a range is
         reversed or outside ``[0, N]``.
     """
-    t, s, f, m, w = _validate(targets, sources, forces, mu, wall)
+    k = _kernel(kernel, wall)
+    t, s, f, m, _ = _validate(targets, sources, forces, mu, k.wall)
     M, N = t.shape[0], s.shape[0]
     p = np.asarray(ptr)
     r = np.asarray(ranges)
@@ -563,17 +709,10 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
         raise ValueError(f"ptr must be non-decreasing within [0, K = {K}]")
     if K and (np.any(r[:, 0] < 0) or np.any(r[:, 1] > N) or np.any(r[:, 0] > r[:, 1])):
         raise ValueError(f"ranges must satisfy 0 <= ranges[k, 0] <= ranges[k, 1] <= N = {N}")
-    out = np.zeros((M, 3))
     if M == 0 or N == 0 or K == 0:
-        return out
-    zs = 0.0 if w is None else w.z
-    old = numba.get_parallel_chunksize()
-    numba.set_parallel_chunksize(16)  # the work per target is uneven (near-field lists)
-    try:
-        _ranges_kernel(_soa(t, zs), _soa(s, zs), _soa(f), p, r, _INV_8PI / m, w is not None, out)
-    finally:
-        numba.set_parallel_chunksize(old)
-    return out
+        return np.zeros((M, 3))
+    backend = Direct() if backend is None else backend
+    return backend.ranged(k, t, s, f, p, r, m)
 
 
 def _blake_numpy(R: np.ndarray, Rs: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -603,16 +742,20 @@ def _blake_numpy(R: np.ndarray, Rs: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 
 def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float = 1.0,
-                             wall: Wall | None = None, *, chunk_pairs: int = 65536) -> np.ndarray:
+                             wall: Wall | None = None, *, chunk_pairs: int = 65536,
+                             kernel: Kernel | None = None) -> np.ndarray:
     """Plain-numpy reference of :func:`stokeslet_velocity` (slow; for tests and benchmarks).
 
     Vectorised over all pairs of a chunk of targets (about ``chunk_pairs`` pairs at a time, which
     bounds the memory: a few hundred bytes per pair of the chunk); free space in the vector form
-    ``f/|R| + R (R.f)/|R|^3``, the wall as the full 3x3 Blake tensors written term by term
-    (independent of the algebra of the numba kernel). Same arguments, conventions and validation
-    as :func:`stokeslet_velocity`; always exact (no FMM).
+    ``(f (r^2 + 2 eps^2) + R (R.f)) / (r^2 + eps^2)^{3/2}``, the walls as full 3x3 tensors written
+    term by term (Blake; :func:`ciliary_carpet.kernel.regularised_blake_tensor`), independent of
+    the algebra of the numba kernels. Same arguments, conventions and validation as
+    :func:`stokeslet_velocity`; always exact (no FMM).
     """
-    t, s, f, m, w = _validate(targets, sources, forces, mu, wall)
+    k = _kernel(kernel, wall)
+    t, s, f, m, w = _validate(targets, sources, forces, mu, k.wall)
+    e2 = k.eps ** 2
     M, N = t.shape[0], s.shape[0]
     out = np.zeros((M, 3))
     if M == 0 or N == 0:
@@ -632,19 +775,25 @@ def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float 
             dy = x[:, 1:2] - sy
             dz = x[:, 2:3] - sz
             r2 = dx * dx + dy * dy + dz * dz
-            with np.errstate(divide="ignore"):
-                ir = 1.0 / np.sqrt(r2)
-            ir[r2 == 0.0] = 0.0  # coincident points: skipped
-            rf = (dx * fx + dy * fy + dz * fz) * (ir * ir * ir)
-            u = np.column_stack([ir @ fx + np.einsum("ij,ij->i", dx, rf),
-                                 ir @ fy + np.einsum("ij,ij->i", dy, rf),
-                                 ir @ fz + np.einsum("ij,ij->i", dz, rf)])
+            q2 = r2 + e2
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ir3 = 1.0 / (q2 * np.sqrt(q2))
+                iso = (r2 + 2 * e2) * ir3
+            ir3[q2 == 0.0] = 0.0  # coincident points: skipped
+            iso[q2 == 0.0] = 0.0
+            rf = (dx * fx + dy * fy + dz * fz) * ir3
+            u = np.column_stack([iso @ fx + np.einsum("ij,ij->i", dx, rf),
+                                 iso @ fy + np.einsum("ij,ij->i", dy, rf),
+                                 iso @ fz + np.einsum("ij,ij->i", dz, rf)])
         else:
             xs = x.copy()
             xs[:, 2] -= w.z
-            R = xs[:, None, :] - sh[None]
-            Rs = xs[:, None, :] - simg[None]
-            G = _blake_numpy(R, Rs, np.broadcast_to(sh[:, 2], R.shape[:2]))
+            if k.regularised:
+                G = regularised_blake_tensor(xs, sh, k.eps)
+            else:
+                R = xs[:, None, :] - sh[None]
+                Rs = xs[:, None, :] - simg[None]
+                G = _blake_numpy(R, Rs, np.broadcast_to(sh[:, 2], R.shape[:2]))
             u = np.einsum("mnij,nj->mi", G, f)
         out[lo:lo + step] = u / (8.0 * math.pi * m)
     return out

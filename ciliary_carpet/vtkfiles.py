@@ -344,11 +344,14 @@ def write_pathlines(path, points: Sequence[np.ndarray], times: Sequence[np.ndarr
 
     Notes
     -----
-    Arrays in the file: point data ``"time"`` (float64), ``"velocity"`` (3 components, float64)
-    and ``"speed"`` (``|velocity|``); cell data ``"SeedIds"`` and ``"ReasonForTermination"``
-    (int32, as vtkStreamTracer writes them); field data ``"ReasonNames"`` (string array) to
-    decode the codes. Points of tracer k are stored consecutively, after those of tracers
-    0 .. k-1, and polyline k lists them in order.
+    Arrays in the file, with ParaView's names where it has one: point data ``"time"``
+    (float64), ``"IntegrationTime"`` (time since the tracer's first point, as vtkStreamTracer and
+    ParticlePath name it), ``"velocity"`` (3 components, float64; the active vectors, so that
+    Glyph orients by it) and ``"speed"`` (``|velocity|``); cell data ``"SeedIds"`` (int32) and
+    ``"TerminationReason"`` (int32 codes of our own, deliberately not VTK's
+    ``ReasonForTermination``, whose codes mean other things), decoded by the field data string
+    array ``"TerminationReasonNames"`` (entry c names code c). Points of tracer k are stored
+    consecutively, after those of tracers 0 .. k-1, and polyline k lists them in order.
 
     Raises
     ------
@@ -390,11 +393,13 @@ def write_pathlines(path, points: Sequence[np.ndarray], times: Sequence[np.ndarr
                        lines=pv.CellArray.from_arrays(offsets, np.arange(offsets[-1]), deep=True))
     velocity = np.concatenate(vs)
     mesh.point_data["time"] = np.concatenate(ts)
+    mesh.point_data["IntegrationTime"] = np.concatenate([t - t[0] for t in ts])
     mesh.point_data["velocity"] = velocity
+    mesh.point_data.active_vectors_name = "velocity"
     mesh.point_data["speed"] = np.linalg.norm(velocity, axis=1)
     mesh.cell_data["SeedIds"] = seeds
-    mesh.cell_data["ReasonForTermination"] = codes
-    mesh.field_data["ReasonNames"] = names
+    mesh.cell_data["TerminationReason"] = codes
+    mesh.field_data["TerminationReasonNames"] = names
     logger.debug("writing %d path lines (%d points) to %s", K, int(offsets[-1]), path)
     return _save_mesh(mesh, path)
 
@@ -416,7 +421,8 @@ def write_field(path, origin, spacing, shape, arrays: dict[str, np.ndarray], *,
     arrays : dict str -> array
         Point data, each ``(n,)`` or ``(n, k)`` with ``n = nx * ny * nz`` in VTK point order
         (x fastest: point ``(i, j, k)`` is row ``i + nx * (j + ny * k)``; evaluate on
-        :func:`grid_points` to get it). Typically ``"velocity"`` (n, 3) and ``"speed"`` (n,).
+        :func:`grid_points` to get it). Typically ``"velocity"`` (n, 3; made the active
+        vectors), ``"speed"`` (n,) and ``"vorticity"``.
         Integer and float dtypes are kept; bool is stored as uint8. ``NaN`` is allowed.
     time : float, optional
         Stored as field data ``"TimeValue"``.
@@ -443,6 +449,8 @@ def write_field(path, origin, spacing, shape, arrays: dict[str, np.ndarray], *,
     grid = pv.ImageData(dimensions=dims, spacing=tuple(h), origin=tuple(o))
     for name, a in data.items():
         grid.point_data[name] = a
+    if "velocity" in data and data["velocity"].ndim == 2 and data["velocity"].shape[1] == 3:
+        grid.point_data.active_vectors_name = "velocity"
     if t is not None:
         grid.field_data["TimeValue"] = np.array([t])
     logger.debug("writing a %d x %d x %d grid (%s) to %s", *dims, ", ".join(data) or "no arrays", path)

@@ -146,18 +146,26 @@ def cmd_cycle(args) -> dict:
 def cmd_table(args) -> dict:
     from .table import build_table
 
-    t = build_table(args.chi_E, args.eta, args.chi_N, degree=args.degree, n_phase=args.n_phase,
+    # one value: the table of one field; a grid: a table over chi_E (interpolated in chi_E too)
+    chi_E = float(args.chi_E[0]) if args.chi_E.size == 1 else args.chi_E
+    t = build_table(chi_E, args.eta, args.chi_N, degree=args.degree, n_phase=args.n_phase,
                     scheduler=args.scheduler, path=args.output,
                     progress=None if args.quiet else TqdmProgress(delay=0.5),
-                    error_estimate=not args.no_error_estimate)
+                    error_estimate=not args.no_error_estimate, tol=args.tol)
     ds = t.ds
-    return {"chi_E": t.chi_E, "eta": t.eta, "output": args.output, "rows": int(ds.sizes["chi_N"]),
-            "flutter_rows": int(ds.flutter.sum()), "chi_N_cutoff": ds.attrs["chi_N_cutoff"]}
+    out = {"chi_E": t.chi_E if args.chi_E.size == 1 else ds.chi_E.values.tolist(), "eta": t.eta,
+           "output": args.output, "rows": int(ds.flutter.size), "flutter_rows": int(ds.flutter.sum()),
+           "coiled_rows": int(ds.coiled.sum())}
+    if args.chi_E.size == 1:
+        out["chi_N_cutoff"] = ds.attrs["chi_N_cutoff"]
+    else:
+        out["chi_N_cutoff"] = ds.chi_N_cutoff.values.tolist()
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0])
-    ap.add_argument("--version", action="version", version=__version__)
+    ap = argparse.ArgumentParser(prog="single-cilium", description=__doc__.splitlines()[0].replace("``", ""))
+    ap.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="log progress information")
     ap.add_argument("--debug", action="store_true", help="show the traceback of a failure")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -212,8 +220,11 @@ def build_parser() -> argparse.ArgumentParser:
     py.add_argument("--json", action="store_true")
     py.set_defaults(func=cmd_cycle)
 
-    pt = sub.add_parser("table", help="thrust lookup table over chi_N (resumable; local pool or Dask)")
-    pt.add_argument("--chi-E", dest="chi_E", type=float, required=True)
+    pt = sub.add_parser("table", help="thrust lookup table over chi_N, for one field or a chi_E grid "
+                                      "(resumable; local pool or Dask)")
+    pt.add_argument("--chi-E", dest="chi_E", type=_grid, required=True,
+                    help="one field, or a grid 'start:stop:num' or a list (a table over chi_E, interpolated "
+                         "in chi_E by ThrustTable)")
     pt.add_argument("--eta", type=float, required=True)
     pt.add_argument("--chi-N", dest="chi_N", type=_grid, required=True, help="'start:stop:num' or a list")
     pt.add_argument("-o", "--output", required=True, help="NetCDF file (rows kept in OUTPUT.parts/ until done)")
@@ -221,6 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--degree", type=int, default=8)
     pt.add_argument("--n-phase", dest="n_phase", type=int, default=64)
     pt.add_argument("--no-error-estimate", action="store_true")
+    pt.add_argument("--tol", type=float, default=1e-8,
+                    help="Newton tolerance of each cycle on the scaled shooting residual (default 1e-8)")
     pt.add_argument("--quiet", action="store_true")
     pt.add_argument("--json", action="store_true")
     pt.set_defaults(func=cmd_table)

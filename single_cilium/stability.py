@@ -57,6 +57,7 @@ __all__ = ["stability", "Stability", "ResolutionWarning", "flutter_cutoff", "Cut
            "flutter_boundary", "FlutterBoundary", "stability_map", "spectrum"]
 
 DEFAULT_DEGREE = 10
+_STATUSES = ("success", "inaccurate", "unchecked")
 COILED_ALPHA = -1.0  # stands for "stable" where coiled points are not computed
 
 
@@ -151,8 +152,14 @@ class Stability:
         an essential spectrum that do not converge one by one): the error of the coarser, an
         upper estimate for this one; 0 when neither mesh has such an eigenvalue (stable, every
         rate <= -1). NaN without ``check``.
+    status, message : str
+        How the solve ended, in the convention of :mod:`single_cilium` results
+        (:class:`~single_cilium.cycle.LimitCycle`, :class:`~single_cilium.dynamics.Simulation`):
+        ``"success"`` (``error <= rtol``), ``"inaccurate"`` (``error > rtol``; a
+        :class:`ResolutionWarning` is issued and the message says what to refine) or
+        ``"unchecked"`` (``check=False``: no error estimate); ``message`` is one line.
     converged : bool
-        ``error <= rtol`` (a :class:`ResolutionWarning` is issued otherwise).
+        Derived: ``status != "inaccurate"`` (True also when unchecked, as before).
     """
 
     params: CiliumParams
@@ -162,8 +169,16 @@ class Stability:
     kappa_modes: np.ndarray
     s: np.ndarray
     error: float = math.nan
-    converged: bool = True
+    status: str = "unchecked"
     message: str = ""
+
+    def __post_init__(self):
+        if self.status not in _STATUSES:
+            raise ValueError(f"status must be one of {_STATUSES}, got {self.status!r}")
+
+    @property
+    def converged(self) -> bool:
+        return self.status != "inaccurate"
 
     @property
     def omega(self) -> complex:
@@ -189,7 +204,7 @@ class Stability:
         return {"chi_E": self.params.chi_E, "eta": self.params.eta, "chi_N": self.params.chi_N,
                 "alpha": self.alpha, "beta": self.beta, "regime": self.regime,
                 "period_estimate": self.period_estimate, "error": self.error,
-                "converged": self.converged, "mesh": self.mesh.describe(),
+                "status": self.status, "message": self.message, "mesh": self.mesh.describe(),
                 "eigenvalues": [[float(z.real), float(z.imag)] for z in self.eigenvalues]}
 
 
@@ -222,7 +237,7 @@ def stability(params: CiliumParams, *, mesh: Mesh | None = None, degree: int = D
     norm = th[np.arange(k), np.argmax(np.abs(th), axis=1)]
     norm[norm == 0] = 1.0
     th, ka = th / norm[:, None], ka / norm[:, None]
-    error, converged, message = math.nan, True, "not checked"
+    error, status, message = math.nan, "unchecked", "not checked (check=False): no error estimate"
     if check:
         coarse = Mesh(mesh.breaks, max(4, mesh.degree - 2))
         w_all, w_c = spectrum(params, mesh), spectrum(params, coarse)
@@ -237,13 +252,13 @@ def stability(params: CiliumParams, *, mesh: Mesh | None = None, degree: int = D
             error = math.inf
         else:
             error = abs(a - b) / max(abs(a), 1e-300)
-        converged = error <= rtol
+        status = "success" if error <= rtol else "inaccurate"
         message = (f"leading eigenvalues change by {error:.1e} (relative) from degree "
                    f"{coarse.degree} to {mesh.degree}")
-        if not converged:
+        if status == "inaccurate":
             message += f" > rtol={rtol:g}: raise the degree or refine the mesh"
             warnings.warn(f"stability{params}: {message}", ResolutionWarning, stacklevel=2)
-    return Stability(params, mesh, w, th, ka, mesh.nodes, error, converged, message)
+    return Stability(params, mesh, w, th, ka, mesh.nodes, error, status, message)
 
 
 # ---------------------------------------------------------------------------------- cutoff

@@ -187,3 +187,30 @@ def test_wall_flow_vanishes_on_the_wall(table):
     u = c.velocity(on_wall, 0.2, tol=1e-3)
     free = Carpet(layout.row(3), [30.0, 0.0, -30.0], table).velocity(on_wall, 0.2, tol=1e-3)
     assert np.abs(u).max() < 1e-10 * np.abs(free).max()
+
+
+@pytest.mark.parametrize("wall", [False, True])
+def test_third_order_taylor_constants(wall):
+    """C3_FREE / C3_WALL bound the third in-plane source derivatives of the (regularised) kernels
+    times R^4: the constants of the levels of detail."""
+    from ciliary_carpet.carpet import C3_FREE, C3_WALL
+    from ciliary_carpet.kernel import make_kernel
+
+    rng = np.random.default_rng(7)
+    best = 0.0
+    for i in range(300):
+        hgt = 10 ** rng.uniform(-2, 1)
+        x = rng.normal(size=3)
+        if wall:
+            x[2] = rng.uniform(-hgt, 3)
+        R = np.linalg.norm(x)
+        h = np.array([*rng.normal(size=2), 0.0])
+        h /= np.linalg.norm(h)
+        f = np.array([*rng.normal(size=2), 0.0])
+        f /= np.linalg.norm(f)
+        k = make_kernel(Wall(-hgt) if wall else None, 0.0 if i % 2 else 0.02 * R)
+        e = 2e-3 * R
+        u = [stokeslet_velocity(x[None], (s * e * h)[None], f[None], mu=1 / (8 * math.pi), kernel=k)[0]
+             for s in (-2, -1, 1, 2)]
+        best = max(best, np.linalg.norm((u[3] - 2 * u[2] + 2 * u[1] - u[0]) / (2 * e ** 3)) * R ** 4)
+    assert 5.0 < best <= (C3_WALL if wall else C3_FREE)

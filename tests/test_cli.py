@@ -105,3 +105,27 @@ def test_table_command_rejects_nan_grid(tmp_path, capsys):
     code, _, err = run(capsys, "table", "--chi-E", "200", "--eta", "1", "--chi-N", "1,nan", "-o",
                        str(tmp_path / "t.nc"), "--quiet")
     assert code == 2 and "NaN" in err
+
+
+def test_table_command_over_a_chi_E_grid(tmp_path, capsys):
+    out = tmp_path / "t2.nc"
+    code, o, err = run(capsys, "table", "--chi-E", "190,210", "--eta", "1", "--chi-N", "80:120:3", "-o", str(out),
+                       "--degree", "6", "--n-phase", "32", "--no-error-estimate", "--tol", "1e-7", "--quiet",
+                       "--json")
+    assert code == 0, err
+    d = json.loads(o)
+    assert d["chi_E"] == [190.0, 210.0] and d["rows"] == 6 and d["flutter_rows"] == 6 and d["coiled_rows"] == 0
+    assert 140 < d["chi_N_cutoff"][0] < d["chi_N_cutoff"][1] < 180
+    from single_cilium.table import TableError, ThrustTable
+    t = ThrustTable.load(out)
+    assert t.ds.attrs["build_tol"] == 1e-7 and t.chi_E_range == (190.0, 210.0)
+    assert int(t.at(105.0, chi_E=200.0).flutter) == 1
+    # the fields share rows up to 120 / 174.9 of their cutoffs: at chi_E = 200 (cutoff 162.8) up to 111.7
+    with pytest.raises(TableError, match="outside the table's range"):
+        t.at(113.0, chi_E=200.0)
+
+
+def test_table_command_rejects_bad_tol(tmp_path, capsys):
+    code, _, err = run(capsys, "table", "--chi-E", "200", "--eta", "1", "--chi-N", "100", "-o",
+                       str(tmp_path / "t.nc"), "--tol", "0.1", "--quiet")
+    assert code == 2 and "tol must lie in" in err and not (tmp_path / "t.nc").exists()

@@ -60,7 +60,7 @@ def test_every_design_renders_and_meets_its_target(path, tmp_path):
     assert pd.GetNumberOfCells() == s["pathlines"]["tracers"]
     for name in ("time", "velocity", "speed"):
         assert pd.GetPointData().GetArray(name) is not None
-    assert pd.GetCellData().GetArray("ReasonForTermination") is not None
+    assert pd.GetCellData().GetArray("TerminationReason") is not None
     r = vtk.vtkXMLImageDataReader()
     r.SetFileName(str(res.out_dir / "mean_field.vti"))
     r.Update()

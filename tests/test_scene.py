@@ -61,7 +61,7 @@ def test_defaults_filled(tmp_path):
     assert s.target.control == "cells" and s.target.strict is False and s.target.residual == 0.05
     assert (s.target.speed_floor, s.target.smoothness) == (0.3, 0.0)
     assert s.output == OutputSpec()
-    assert (s.output.seeds, s.output.n_seeds, s.output.periods, s.output.field_shape) == ("line", 100, 20.0, (80, 80))
+    assert (s.output.seeds, s.output.n_seeds, s.output.periods, s.output.field_shape) == ("line", 100, None, (80, 80))
     assert (s.output.field_margin, s.output.snapshots, s.output.frames) == (5.0, 4, 40)
     assert s.tolerance == 1e-3 and s.units is None
     d = s.to_dict()
@@ -278,7 +278,7 @@ def test_reduced_shrinks(tmp_path):
     assert r.target == s.target and r.field == s.field and r.name == s.name
     # never enlarges; other shapes and lattices
     tiny = s.reduced(max_cilia=1000, n_seeds=1000, field_shape=(500, 500), periods=100, snapshots=9, frames=99)
-    assert tiny == s
+    assert tiny == dataclasses.replace(s, output=dataclasses.replace(s.output, periods=100.0))  # auto -> bounded
     wide = dataclasses.replace(s, carpet=dataclasses.replace(s.carpet, lattice="square", shape=(20, 5)))
     assert wide.reduced().carpet.shape == (8, 2)
     row = load_scene(write(tmp_path, '[carpet]\nlattice = "row"\nshape = [40]\n')).reduced(max_cilia=5)

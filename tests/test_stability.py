@@ -20,6 +20,8 @@ def test_published_case_flutters(published):
     assert r.beta == pytest.approx(22.8022358, rel=1e-8)
     assert r.period_estimate == pytest.approx(2 * np.pi / r.beta)
     assert r.converged and r.error < 1e-7
+    assert r.status == "success" and "change by" in r.message
+    assert r.as_dict()["status"] == "success"
     assert r.theta_modes[0, 0] == 0 and np.max(np.abs(r.theta_modes[0])) == pytest.approx(1.0)
 
 
@@ -35,6 +37,13 @@ def test_coarse_mesh_warns():
     with pytest.warns(ResolutionWarning, match="raise the degree"):
         r = stability(p, mesh=Mesh.graded(0.05, degree=6), rtol=1e-6)
     assert not r.converged
+    assert r.status == "inaccurate" and "raise the degree" in r.message
+
+
+def test_unchecked_status(published):
+    r = stability(published, degree=6, check=False)
+    assert r.status == "unchecked" and r.converged and math.isnan(r.error)
+    assert "not checked" in r.message
 
 
 @pytest.mark.parametrize("chi_N", [0.0, 8 * TWO_PI, 16 * TWO_PI])

@@ -16,6 +16,14 @@ from ciliary_carpet.stokeslet import (
     stokeslet_velocity_numpy,
     stokeslet_velocity_ranges,
 )
+from ciliary_carpet.kernel import (
+    C2_FREE,
+    Blake,
+    RegularisedBlake,
+    RegularisedStokeslet,
+    Stokeslet,
+    make_kernel,
+)
 
 WALLS = [None, Wall(0.0), Wall(-0.7)]
 
@@ -158,8 +166,8 @@ def test_backend_parameter_validation():
             FMM(bad)
     with pytest.raises(ValueError, match="threshold"):
         Auto(threshold=0.0)
-    with pytest.raises(NotImplementedError):
-        Backend().velocity(*GOOD.values(), 1.0, None)
+    with pytest.raises(TypeError, match="dense"):
+        Backend().dense(Stokeslet(), *GOOD.values(), 1.0)
 
 
 # ------------------------------------------------------------------ coincident points
@@ -468,3 +476,120 @@ def test_ranges_validation(ptr, ranges, name):
     with pytest.raises(ValueError, match=name):
         stokeslet_velocity_ranges(GOOD["targets"], GOOD["sources"], GOOD["forces"], np.array(ptr),
                                   np.array(ranges))
+
+
+# ------------------------------------------------------------------ regularised kernels
+REG = [RegularisedStokeslet(0.05), RegularisedBlake(0.05, Wall(-0.3)), RegularisedStokeslet(0.3),
+       RegularisedBlake(0.01, Wall(0.0))]
+
+
+@pytest.mark.parametrize("kernel", REG, ids=lambda k: f"{type(k).__name__}-{k.eps}")
+def test_regularised_direct_and_ranges_match_numpy_reference(kernel):
+    T, S, F = random_case(120, 90, seed=30, zmin=0.02)
+    u = stokeslet_velocity_numpy(T, S, F, 0.7, kernel=kernel)
+    assert rel_err(stokeslet_velocity(T, S, F, 0.7, kernel=kernel, backend=Direct()), u) < 1e-12
+    ptr = np.arange(0, 2 * len(T) + 1, 2)
+    ranges = np.tile([[0, 40], [40, 90]], (len(T), 1))
+    assert rel_err(stokeslet_velocity_ranges(T, S, F, ptr, ranges, 0.7, kernel=kernel), u) < 1e-12
+
+
+def test_regularised_far_field_difference_decays_as_eps2_over_r3():
+    """|G^eps - G^S| f ~ eps^2 / r^3: halving eps quarters it, doubling r divides it by 8."""
+    f = np.array([[0.3, -1.0, 0.4]])
+    src = np.array([[0.0, 0.0, 0.0]])
+    d = np.array([0.6, 0.48, 0.64])
+    for eps in (0.02, 0.01):
+        diffs = []
+        for r in (2.0, 4.0, 8.0):
+            x = (r * d)[None]
+            diffs.append(np.abs(stokeslet_velocity(x, src, f, kernel=RegularisedStokeslet(eps))
+                                - stokeslet_velocity(x, src, f)).max())
+        order = np.log2(np.array(diffs[:-1]) / np.array(diffs[1:]))
+        assert np.allclose(order, 3.0, atol=0.01), order
+        if eps == 0.02:
+            d02 = diffs[0]
+    assert abs(np.log2(d02 / diffs[0]) - 2.0) < 0.01
+    # the leading term: eps^2 (f/2 - 3 R (R.f) / (2 r^2)) / r^3 / (8 pi)
+    x = 8.0 * d
+    lead = 0.01 ** 2 * (f[0] / 2 - 1.5 * d * (d @ f[0])) / 8.0 ** 3 / (8 * math.pi)
+    du = (stokeslet_velocity(x[None], src, f, kernel=RegularisedStokeslet(0.01))
+          - stokeslet_velocity(x[None], src, f))[0]
+    assert np.allclose(du, lead, rtol=1e-3, atol=0)
+
+
+@pytest.mark.parametrize("kernel", [RegularisedStokeslet(0.05), RegularisedBlake(0.05, Wall(-1.0))])
+def test_regularised_core_is_bounded(kernel):
+    """At the source the regularised Stokeslet is 2 f / (8 pi mu eps) (plus bounded images); the
+    velocity is bounded near it, largest at the source."""
+    f = np.array([[1.0, 0.0, 0.0]])
+    src = np.array([[0.0, 0.0, 0.0]])
+    r = np.concatenate([[0.0], np.geomspace(1e-8, 1.0, 60)])
+    x = np.column_stack([r, np.zeros_like(r), np.zeros_like(r)])
+    u = stokeslet_velocity(x, src, f, kernel=kernel)
+    speed = np.linalg.norm(u, axis=1)
+    assert np.all(np.isfinite(speed))
+    assert speed.max() == pytest.approx(speed[0], rel=1e-9)
+    if kernel.wall is None:
+        assert u[0, 0] == pytest.approx(2.0 / (8 * math.pi * kernel.eps), rel=1e-14)
+
+
+def test_regularised_wall_vanishes_on_the_wall_and_tends_to_blake():
+    T, S, F = random_case(60, 50, seed=31, zmin=0.02)
+    w = Wall(-1.0)
+    Tw = T.copy()
+    Tw[:, 2] = w.z
+    for eps in (0.01, 0.1, 0.5):
+        k = RegularisedBlake(eps, w)
+        scale = np.abs(stokeslet_velocity(T, S, F, kernel=k)).max()
+        assert np.abs(stokeslet_velocity(Tw, S, F, kernel=k)).max() < 1e-13 * scale
+    blake = stokeslet_velocity(T, S, F, wall=w)
+    errs = [rel_err(stokeslet_velocity(T, S, F, kernel=RegularisedBlake(e, w)), blake) for e in (1e-3, 5e-4)]
+    assert errs[0] < 1e-2 and 3.0 < errs[0] / errs[1] < 5.0  # O(eps^2) away from the sources
+
+
+def test_regularised_kernel_is_divergence_free():
+    rng = np.random.default_rng(32)
+    S = rng.uniform(-0.2, 0.2, (5, 3)) + [0, 0, 0.5]
+    F = rng.normal(size=(5, 3))
+    x0 = np.array([[0.03, -0.05, 0.45]])  # inside the blobs
+    for k in (RegularisedStokeslet(0.1), RegularisedBlake(0.1, Wall(0.0))):
+        h = 1e-4
+        div = sum((stokeslet_velocity(x0 + h * e, S, F, kernel=k) - stokeslet_velocity(x0 - h * e, S, F, kernel=k))
+                  [0, i] / (2 * h) for i, e in enumerate(np.eye(3)))
+        assert abs(div) < 1e-6 * np.abs(stokeslet_velocity(x0, S, F, kernel=k)).max() / 0.1
+
+
+def test_kernel_objects():
+    assert make_kernel() == Stokeslet() and make_kernel(Wall(1.0)) == Blake(Wall(1.0))
+    assert make_kernel(None, 0.1) == RegularisedStokeslet(0.1)
+    assert make_kernel(Wall(), 0.1) == RegularisedBlake(0.1, Wall())
+    assert all(k.symmetric for k in (Stokeslet(), Blake(), RegularisedStokeslet(0.1)))
+    assert not RegularisedBlake(0.1).symmetric
+    assert RegularisedStokeslet(0.1).c2 == C2_FREE
+    for bad in (0.0, -1.0, np.nan, "x"):
+        with pytest.raises(ValueError, match="blob"):
+            RegularisedStokeslet(bad)
+    with pytest.raises(ValueError, match="Direct"):
+        stokeslet_velocity(*random_case(3, 3), kernel=RegularisedStokeslet(0.1), backend=FMM())
+    assert isinstance(Auto(threshold=1.0).choose(50, 50, RegularisedStokeslet(0.1)), Direct)
+    with pytest.raises(ValueError, match="contradicts"):
+        stokeslet_velocity(*random_case(3, 3), wall=Wall(-5.0), kernel=Blake(Wall(-4.0)))
+
+
+def test_regularised_taylor_constant_bounded_by_singular():
+    """sup over unit h, f at unit distance of |(h.grad)^2 G^eps f| <= C2_FREE for eps <= 0.5."""
+    rng = np.random.default_rng(33)
+    hs = rng.normal(size=(200, 3))
+    hs /= np.linalg.norm(hs, axis=1)[:, None]
+    fs = rng.normal(size=(200, 3))
+    fs /= np.linalg.norm(fs, axis=1)[:, None]
+    d = 1e-3
+    x = np.array([[1.0, 0.0, 0.0]])
+    src = np.zeros((1, 3))
+    for eps in (0.05, 0.2, 0.5):
+        k = RegularisedStokeslet(eps)
+        worst = 0.0
+        for h, f in zip(hs, fs):
+            u = [stokeslet_velocity(x + s * d * h, src, f[None], kernel=k)[0] * 8 * math.pi for s in (-1, 0, 1)]
+            worst = max(worst, np.linalg.norm(u[0] - 2 * u[1] + u[2]) / d ** 2)
+        assert worst <= C2_FREE

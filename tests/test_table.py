@@ -7,6 +7,7 @@ import xarray as xr
 
 from single_cilium import CiliumParams
 from single_cilium.cycle import limit_cycle
+from single_cilium.stability import flutter_cutoff
 from single_cilium.table import SCHEMA_VERSION, TableError, ThrustTable, build_table
 
 FAST = dict(degree=6, n_phase=32, n_s=17, error_estimate=False)
@@ -243,3 +244,143 @@ def test_failed_row_names_the_last_good_row(tmp_path, monkeypatch):
     monkeypatch.setattr(table_mod, "limit_cycle", real)
     t = build_table(200, 1, [150.0, 155.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
     assert t.ds.sizes["chi_N"] == 2 and path.exists()
+
+
+# ------------------------------------------------------------------------------ tables over chi_E
+GRID_E = [180.0, 200.0, 220.0]
+
+
+@pytest.fixture(scope="module")
+def over_chi_E(tmp_path_factory):
+    path = tmp_path_factory.mktemp("t2") / "table2d.nc"
+    with ThreadPoolExecutor(2) as ex:
+        t = build_table(GRID_E, 1, np.linspace(0.0, 190.0, 11), executor=ex, path=path, **FAST)
+    return t, path
+
+
+def test_chi_E_grid_rows_cutoffs_and_coiled(over_chi_E):
+    t, path = over_chi_E
+    ds = t.ds
+    assert ds.flutter.dims == ("chi_E", "chi_N") and ds.x.dims == ("chi_E", "chi_N", "phase", "s")
+    cut = ds.chi_N_cutoff.values
+    assert 130 < cut[0] < cut[1] < cut[2] < 190  # the cutoff grows with the field
+    c = ds.chi_N.values
+    assert all(x in c for x in cut) and c.size == 11 + 3  # every field's cutoff is a row of every field
+    for i, E in enumerate(GRID_E):
+        fl = ds.flutter.values[i].astype(bool)
+        assert np.array_equal(fl, c <= cut[i])  # no flutter above the field's own cutoff
+        assert np.array_equal(ds.coiled.values[i].astype(bool), c > E)  # chi_E = 180: 186.8 and 190 coil
+        assert float(ds.thrust_norm[i, list(c).index(cut[i])]) == 0.0
+    assert ds.coiled.values[0, -1] == 1 and np.isnan(float(ds.theta_lim[0, -1])) and np.isnan(float(ds.alpha[0, -1]))
+    assert ds.attrs["build_chi_E_grid"] == "180,200,220" and "chi_E" not in ds.attrs
+    # round trip: the chi_E dimension, its cutoffs and every row come back
+    back = ThrustTable.load(path)
+    assert back.ds.chi_E.values.tolist() == GRID_E
+    assert back.ds.identical(t.ds)
+    assert back.chi_E_range == (180.0, 220.0) and back.chi_N_range == (0.0, 190.0)
+
+
+def test_chi_E_grid_values_are_the_fields_tables(over_chi_E):
+    """At a field of the grid the table is that field's own table: a one-field build agrees."""
+    t, _ = over_chi_E
+    one = build_table(200, 1, [60.0, 76.0], executor=ThreadPoolExecutor(1), **FAST)
+    r2, r1 = t.at(76.0, chi_E=200), one.at(76.0)
+    assert float(r2.chi_E) == 200
+    assert float(r2.period) == pytest.approx(float(r1.period), rel=1e-7)
+    assert float(r2.thrust_norm) == pytest.approx(float(r1.thrust_norm), rel=1e-6)
+
+
+def test_chi_E_interpolation_against_fresh_cycles(over_chi_E):
+    """Between the fields (chi_E = 190, 210: half way between grid values 20 apart) the
+    interpolant matches fresh cycles of the same discretisation: measured 1.6e-4 - 2.3e-4 in
+    period, 2.3e-4 - 2e-3 in |thrust| up to 0.9 chi_c, 2.6e-4 rad in angle, 3e-4 in the cutoff."""
+    t, _ = over_chi_E
+    for E in (190.0, 210.0):
+        cut = flutter_cutoff(E, 1.0, degree=6).chi_N_cutoff
+        sub = t._table(E)
+        assert sub.ds.attrs["chi_N_cutoff"] == pytest.approx(cut, rel=5e-4)
+        for cN in (50.0, 0.9 * cut):
+            fresh = limit_cycle(CiliumParams(E, 1, cN), degree=6, n_phase=32, error_estimate=False, floquet=False)
+            r = t.at(cN, chi_E=E)
+            assert int(r.flutter) == 1
+            assert float(r.period) == pytest.approx(fresh.period, rel=5e-4)
+            assert float(r.thrust_norm) == pytest.approx(fresh.thrust_norm, rel=3e-3)
+            assert float(r.thrust_angle) == pytest.approx(fresh.thrust_angle, abs=5e-4)
+            x = fresh.mesh.interpolate(fresh.data.x.values.T, t.ds.s.values).T
+            assert np.max(np.abs(r.x.values - x)) < 1e-3
+        assert int(t.at(1.01 * cut, chi_E=E).flutter) == 0  # above its own cutoff: no flutter
+        assert t.scalar("thrust_x", 1.01 * cut, chi_E=E) == 0.0
+
+
+def test_chi_E_knob_inversion_and_vectorised(over_chi_E):
+    t, _ = over_chi_E
+    lo, hi = t.thrust_angle_range(chi_E=205.0)
+    target = 0.5 * (lo + hi)
+    c = t.chi_N_for_angle(target, chi_E=205.0)
+    assert float(t.at(c, chi_E=205.0).thrust_angle) == pytest.approx(target, abs=1e-10)
+    assert t.chi_N_for_angle(-target, chi_E=205.0) == pytest.approx(-c)
+    cyc = t.cycles([-50.0, 100.0, 185.0], chi_E=205.0)
+    assert cyc["flutter"].tolist() == [True, True, False]
+    assert np.array_equal(cyc["x"][1], t.at(100.0, chi_E=205.0).x.values)
+    assert t.scalar("thrust_x", -50.0, chi_E=205.0) == pytest.approx(-float(t.at(50.0, chi_E=205.0).thrust_x))
+    # the stronger field turns the same curvature into a smaller angle (its cutoff lies further out)
+    assert t.scalar("thrust_angle", 100.0, chi_E=215.0) < t.scalar("thrust_angle", 100.0, chi_E=185.0)
+
+
+def test_chi_E_requests_that_cannot_be_served(over_chi_E, small):
+    t, _ = over_chi_E
+    with pytest.raises(TableError, match=r"spans chi_E in \[180, 220\]: say which field"):
+        t.at(50.0)
+    with pytest.raises(TableError, match=r"chi_E = 230 is outside the table's range \[180, 220\]"):
+        t.at(50.0, chi_E=230.0)
+    with pytest.raises(TableError, match="no single chi_E"):
+        t.chi_E
+    with pytest.raises(TableError, match="flutter branch per field"):
+        t.flutter_range
+    one, _ = small
+    assert float(one.at(140.0, chi_E=200).period) == float(one.at(140.0).period)
+    with pytest.raises(TableError, match=r"for chi_E = 200 only .*chi_E grid"):
+        one.at(140.0, chi_E=210.0)
+
+
+@pytest.mark.parametrize("grid,match", [([200.0], "at least 2"), ([220.0, 200.0], "increasing"),
+                                        ([-10.0, 200.0], "> 0"), ([np.nan, 200.0], "NaN")])
+def test_bad_chi_E_grids(grid, match):
+    with pytest.raises(ValueError, match=match):
+        build_table(grid, 1, [100.0])
+
+
+def test_resume_fingerprint_includes_the_chi_E_grid(tmp_path, over_chi_E):
+    """Rows of a build over one chi_E grid are refused by a build over another (continued from
+    other fields) and by a one-field build."""
+    t, _ = over_chi_E
+    path, parts = tmp_path / "t.nc", tmp_path / "t.nc.parts"
+    parts.mkdir()
+    row = t.ds.isel(chi_E=[1], chi_N=[3]).drop_vars(["phase", "s", "chi_N_cutoff", "chi_N_cutoff_error"])
+    row.to_netcdf(parts / "row_200_57.nc", engine="h5netcdf")
+    with pytest.raises(TableError, match=r"chi_E_grid = None \(asked '180,210'\)|chi_E_grid = '180,200,220' "
+                                         r"\(asked '180,210'\)"):
+        build_table([180.0, 210.0], 1, [57.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    with pytest.raises(TableError, match=r"chi_E = None \(asked 200.0\)"):
+        build_table(200.0, 1, [57.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert (parts / "row_200_57.nc").exists() and not path.exists()
+
+
+def test_failed_row_of_a_chi_E_grid_names_its_field(tmp_path, monkeypatch):
+    import single_cilium.table as table_mod
+    from single_cilium.cycle import CycleError
+
+    real = table_mod.limit_cycle
+
+    def failing(p, **kw):
+        if (p.chi_E, p.chi_N) == (210.0, 57.0):
+            raise CycleError("injected failure", 0.0)
+        return real(p, **kw)
+
+    monkeypatch.setattr(table_mod, "limit_cycle", failing)
+    path = tmp_path / "t.nc"
+    with pytest.raises(CycleError, match=r"chi_E = 210, eta = 1\): the cycle at chi_N = 57 did not converge .*"
+                                         r"last good row before it: chi_N = 50.*resumes"):
+        build_table([190.0, 210.0], 1, [50.0, 57.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert sorted(f.name for f in (tmp_path / "t.nc.parts").glob("row_*.nc")) == [
+        "row_190_50.nc", "row_190_57.nc", "row_210_50.nc"]

@@ -88,9 +88,13 @@ def test_pathlines_read_back(tmp_path, tracers):
     np.testing.assert_array_equal(arr(pd, "velocity"), v)
     np.testing.assert_allclose(arr(pd, "speed"), np.linalg.norm(v, axis=1), rtol=1e-15)
     np.testing.assert_array_equal(arr(cd, "SeedIds"), [7, 3, 11, 0])
-    np.testing.assert_array_equal(arr(cd, "ReasonForTermination"), [0, 1, 2, 3])
-    assert arr(cd, "ReasonForTermination").dtype.kind == "i"
-    assert strings(poly.GetFieldData(), "ReasonNames") == list(REASONS)
+    np.testing.assert_array_equal(arr(cd, "TerminationReason"), [0, 1, 2, 3])
+    assert arr(cd, "TerminationReason").dtype.kind == "i"
+    assert cd.GetArray("ReasonForTermination") is None  # VTK's name, other codes: not used
+    assert strings(poly.GetFieldData(), "TerminationReasonNames") == list(REASONS)
+    np.testing.assert_allclose(arr(pd, "IntegrationTime"),
+                               np.concatenate([t - t[0] for t in tracers["times"]]))
+    assert pd.GetVectors().GetName() == "velocity"
 
 
 def test_pathlines_validation(tmp_path, tracers):

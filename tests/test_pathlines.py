@@ -1,0 +1,254 @@
+"""Path lines (ciliary_carpet.pathlines): analytic flows, convergence in the tolerance, dense
+output, termination reasons, tracers passing a filament, the long-time model, bad input."""
+import math
+import warnings
+
+import numpy as np
+import pytest
+import vtk
+from vtk.util.numpy_support import vtk_to_numpy
+
+from ciliary_carpet.carpet import Carpet
+from ciliary_carpet.pathlines import (
+    DOMAIN,
+    END,
+    MEAN_MODEL_ERROR,
+    REASONS,
+    UNDERFLOW,
+    MeanFlow,
+    PathLineError,
+    SeedError,
+    pathlines,
+)
+from single_cilium.table import ThrustTable
+
+
+@pytest.fixture(scope="module")
+def table():
+    return ThrustTable.default()
+
+
+@pytest.fixture(scope="module")
+def one(table):
+    """A single curved cilium at the origin."""
+    return Carpet(np.zeros((1, 2)), [4.0], table, phases=[0.3])
+
+
+class Rotation:
+    """Solid-body rotation u = w (-y, x): circles of period 2 pi / w."""
+
+    def __init__(self, w=1.0):
+        self.w = w
+        self.calls = 0
+
+    def velocity(self, x, t):
+        self.calls += 1
+        u = np.zeros_like(x)
+        u[:, 0] = -self.w * x[:, 1]
+        u[:, 1] = self.w * x[:, 0]
+        return u
+
+
+class Oscillating:
+    """u = (cos(2 pi t / P), 0): x(t) = x0 + P sin(2 pi t / P) / (2 pi)."""
+
+    def __init__(self, period):
+        self.P = period
+
+    def velocity(self, x, t):
+        u = np.zeros_like(x)
+        u[:, 0] = math.cos(2 * math.pi * t / self.P)
+        return u
+
+
+def _rotation_error(one, rtol):
+    seeds = np.column_stack([np.linspace(3.0, 6.0, 4), np.zeros(4)])
+    t1 = 2.5
+    pl = pathlines(one, seeds, (0.0, t1), rtol=rtol, atol=rtol, model=Rotation(), domain=(-20, 20, -20, 20))
+    exact = np.column_stack([seeds[:, 0] * math.cos(t1), seeds[:, 0] * math.sin(t1), np.zeros(4)])
+    return float(np.abs(pl.end_points - exact).max()), pl
+
+
+def test_known_flow_and_convergence_in_tolerance(one):
+    errs = [_rotation_error(one, r)[0] for r in (1e-4, 1e-6, 1e-8)]
+    assert errs[2] < 1e-6
+    # the global error follows the tolerance: each factor 100 in rtol gains at least a factor 20
+    assert errs[0] / errs[1] > 20 and errs[1] / errs[2] > 20, errs
+    _, pl = _rotation_error(one, 1e-8)
+    assert pl.status == 0 and np.all(pl.reason == END)
+    for p, t in zip(pl.points, pl.times):  # every sample on its circle at its own time
+        r0 = np.hypot(*p[0, :2])
+        exact = np.column_stack([r0 * np.cos(t), r0 * np.sin(t)])
+        assert np.abs(p[:, :2] - exact).max() < 1e-6
+
+
+def test_dense_output_is_smooth_and_accurate(one):
+    P = float(one.periods[0])
+    seeds = np.array([[5.0, 0.0], [6.0, 1.0]])
+    pl = pathlines(one, seeds, (0.0, 3 * P), rtol=1e-9, atol=1e-9, model=Oscillating(P), samples_per_period=16)
+    for p, t, v in zip(pl.points, pl.times, pl.velocities):
+        assert np.diff(t).max() <= P / 16 * (1 + 1e-9)
+        assert t.size >= 3 * 16 + 1
+        exact = p[0, 0] + P * np.sin(2 * np.pi * t / P) / (2 * np.pi)
+        assert np.abs(p[:, 0] - exact).max() < 1e-6 * P  # Hermite samples between the steps
+        assert np.abs(v[:, 0] - np.cos(2 * np.pi * t / P)).max() < 1e-3
+    assert pl.dt == pytest.approx(P / 16)
+
+
+def test_termination_reasons(one):
+    class Jump:  # a velocity jump of 1e15 at x = 0.5: no step can resolve it
+        def velocity(self, x, t):
+            u = np.zeros_like(x)
+            u[:, 0] = 1.0 + 1e15 * (x[:, 0] > 0.5)
+            return u
+
+    seeds = np.array([[0.45, 3.0], [-50.0, 3.0], [5.0, 3.0]])
+    pl = pathlines(one, seeds, (0.0, 1.0), model=Jump(), domain=(-100, 10, -10, 10))
+    assert list(pl.reason) == [UNDERFLOW, END, DOMAIN]
+    assert pl.status == 1 and "underflow" in pl.message
+    assert pl.counts() == {REASONS[END]: 1, REASONS[DOMAIN]: 1, REASONS[UNDERFLOW]: 1}
+    assert pl.points[2][-1, 0] > 10  # the exit point ends the line
+    assert pl.times[0][-1] == pytest.approx(0.05, abs=1e-3)
+
+
+def test_tracers_pass_a_single_filament(one):
+    """A line of tracers laid across the beating filament's swept region: the filament sweeps
+    over them, none is stopped, and the velocity stays bounded on the filament itself."""
+    P = float(one.periods[0])
+    c, a = one.centres[0], one.radii[0]
+    seeds = np.column_stack([np.linspace(c[0] - 0.6 * a, c[0] + 0.6 * a, 9), np.full(9, c[1])])
+    seeds = seeds[one.filament_distance(seeds, 0.0) > 2 * one.blob]
+    assert len(seeds) >= 6 and all(one.in_swept_region(seeds, 0))
+    pl = pathlines(one, seeds, (0.0, P), rtol=1e-5, atol=1e-5, tol=1e-3)
+    assert np.all(pl.reason == END), pl.message
+    # the filament passed over the tracers: each is within a few blob sizes of it at some time
+    closest = [min(one.filament_distance(p[j:j + 1], t[j])[0] for j in range(len(t)))
+               for p, t in zip(pl.points, pl.times)]
+    assert sum(d < 0.1 for d in closest) >= 3, closest
+    pos, _, _ = one.state(0.37 * P)
+    u = one.velocity(pos[0], 0.37 * P)
+    assert np.all(np.isfinite(u)) and np.abs(u).max() < 1e3
+    singular = Carpet(one.bases, one.chi_N, one.table, one.phases, blob=None)
+    near = pos[0, 20] + [1e-7, 0.0]
+    assert np.abs(singular.velocity(near[None], 0.37 * P)).max() > 100 * np.abs(one.velocity(near[None], 0.37 * P)).max()
+
+
+def test_long_time_model_against_time_resolved(table):
+    """Over 12 beats of a 2 x 2 carpet the mean-flow path lines end within MEAN_MODEL_ERROR of the
+    distance travelled from the time-resolved ones."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        carpet = Carpet(np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.0], [2.0, 2.0]]), [3.0, 3.0, 3.0, 3.0], table,
+                        phases=[0.0, 0.25, 0.5, 0.75])
+    seeds = np.column_stack([np.linspace(-0.5, 2.5, 6), np.full(6, 3.7)])
+    span = (0.0, 12 * float(carpet.periods[0]))
+    box = (-2.0, 4.0, -2.0, 5.0)
+    resolved = pathlines(carpet, seeds, span, rtol=1e-6, atol=1e-5, tol=1e-3, domain=box)
+    mean = pathlines(carpet, seeds, span, model=MeanFlow.from_carpet(carpet, box, spacing=0.25, tol=1e-3),
+                     domain=box)
+    assert mean.model == "mean" and resolved.model == "resolved"
+    ok = (resolved.reason == END) & (mean.reason == END)
+    assert ok.sum() >= 4
+    travel = np.linalg.norm(resolved.end_points - seeds_3d(seeds), axis=1)
+    err = np.linalg.norm(mean.end_points - resolved.end_points, axis=1)
+    print("mean model error / travel", err[ok] / travel[ok])
+    assert np.all(travel[ok] > 0.3)
+    assert np.all(err[ok] <= MEAN_MODEL_ERROR * travel[ok]), (err / travel)[ok]
+    assert mean.stats["seconds"] < resolved.stats["seconds"]
+
+
+def seeds_3d(s):
+    return np.column_stack([s, np.zeros(len(s))])
+
+
+def test_write_pathlines_and_particles(one, tmp_path):
+    P = float(one.periods[0])
+    pl = pathlines(one, np.array([[5.0, 0.0], [6.0, 1.0]]), (0.0, 2 * P), model=Oscillating(P))
+    f = pl.write(tmp_path / "p.vtp")
+    r = vtk.vtkXMLPolyDataReader()
+    r.SetFileName(str(f))
+    r.Update()
+    out = r.GetOutput()
+    assert out.GetNumberOfCells() == 2
+    it = vtk_to_numpy(out.GetPointData().GetArray("IntegrationTime"))
+    assert it[0] == 0 and it.max() == pytest.approx(2 * P)
+    names = out.GetFieldData().GetAbstractArray("TerminationReasonNames")
+    assert [names.GetValue(i) for i in range(names.GetNumberOfValues())] == list(REASONS)
+    pvd = pl.write_particles(tmp_path / "particles.pvd", max_frames=10)
+    files = sorted(tmp_path.glob("particles_*.vtp"))
+    assert 5 <= len(files) <= 10 and pvd.exists()
+    rd = vtk.vtkXMLPolyDataReader()
+    rd.SetFileName(str(files[-1]))
+    rd.Update()
+    assert rd.GetOutput().GetNumberOfPoints() == 2
+
+
+def test_bad_input_named_before_any_work(one, table):
+    pos, _, _ = one.state(0.0)
+    with pytest.raises(SeedError, match="inside a filament"):
+        pathlines(one, pos[0, 30:31] + [0.005, 0.0], (0.0, 1.0))
+    with pytest.raises(SeedError, match="shape"):
+        pathlines(one, np.zeros((3, 4)), (0.0, 1.0))
+    flow = Rotation()
+    with pytest.raises(PathLineError, match="GiB"):
+        pathlines(one, np.full((1000, 2), 5.0), (0.0, 1e6), model=flow)
+    assert flow.calls == 0
+    for bad in (0.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="blob"):
+            Carpet(np.zeros((1, 2)), [0.0], table, blob=bad)
+    with pytest.raises(ValueError, match="blob = 0.6 is larger than half"):
+        Carpet(np.array([[0.0, 0.0], [1.0, 0.0]]), [0.0, 0.0], table, blob=0.6)
+    with pytest.raises(ValueError, match="model"):
+        pathlines(one, np.array([[5.0, 0.0]]), (0.0, 1.0), model="fast")
+
+
+def test_ftle_of_a_linear_hyperbolic_flow(one):
+    from ciliary_carpet.ftle import FTLEError, ftle_field
+
+    class Saddle:  # u = (a x, -a y): stretching rate a everywhere
+        def velocity(self, x, t):
+            u = np.zeros_like(x)
+            u[:, 0] = 0.7 * (x[:, 0] - 10.0)
+            u[:, 1] = -0.7 * x[:, 1]
+            return u
+
+    f = ftle_field(one, (9.0, 11.0, -1.0, 1.0), (7, 5), 2.0, model=Saddle(), rtol=1e-9, atol=1e-9)
+    assert f.ftle.shape == (5, 7) and f.shape == (7, 5)
+    assert np.allclose(f.ftle, 0.7, atol=1e-6)
+    assert f.mixing_number == pytest.approx(1.4, abs=1e-5)
+    rot = ftle_field(one, (5.0, 7.0, -1.0, 1.0), (5, 5), 1.0, model=Rotation(), rtol=1e-9, atol=1e-9)
+    assert np.allclose(rot.ftle, 0.0, atol=1e-6)  # a rotation does not stretch
+    for shape in ((0, 5), (2, 9)):
+        with pytest.raises(FTLEError, match="at least 3 x 3"):
+            ftle_field(one, (9.0, 11.0, -1.0, 1.0), shape, 2.0, model=Saddle())
+    with pytest.raises(FTLEError, match="box"):
+        ftle_field(one, (9.0, 9.0, -1.0, 1.0), (5, 5), 2.0, model=Saddle())
+    with pytest.raises(FTLEError, match="duration"):
+        ftle_field(one, (9.0, 11.0, -1.0, 1.0), (5, 5), 0.0, model=Saddle())
+
+
+def test_render_writes_paraview_ready_path_lines(tmp_path):
+    import json
+    import py_compile
+
+    from ciliary_carpet.render import render
+    from ciliary_carpet.scene import SceneError, scene_from_dict
+
+    data = {"name": "tiny", "carpet": {"lattice": "square", "shape": [2, 2], "spacing": 2.0, "chi_N": 3.0},
+            "output": {"n_seeds": 6, "periods": 2.0, "field_shape": [12, 12], "snapshots": 1, "frames": 2}}
+    res = render(scene_from_dict(data), tmp_path / "tiny")
+    s = json.loads((res.out_dir / "summary.json").read_text())
+    p = s["pathlines"]
+    assert p["stopped_early"] == 0 and p["model"] == "resolved" and p["duration_from"] == "scene"
+    assert p["outcome"]["reached end time"] + p["outcome"]["left the domain"] == 6
+    assert {"particles.pvd", "open_in_paraview.py", "ftle.vti", "pathlines.vtp"} <= set(res.files)
+    py_compile.compile(str(res.out_dir / "open_in_paraview.py"), doraise=True)
+    assert "mixing_number" in s["mixing"] and 0 < s["mixing"]["defined_fraction"] <= 1
+    r = vtk.vtkXMLImageDataReader()
+    r.SetFileName(str(res.out_dir / "mean_field.vti"))
+    r.Update()
+    pd = r.GetOutput().GetPointData()
+    assert pd.GetVectors().GetName() == "velocity" and pd.GetArray("vorticity").GetNumberOfComponents() == 3
+    bad = dict(data, carpet=dict(data["carpet"], blob=1.5))
+    with pytest.raises(SceneError, match="blob"):
+        scene_from_dict(bad)
