@@ -213,7 +213,9 @@ class Design:
     full model's flow of the returned and of the local layout (objective <= local_objective:
     the never-worse guarantee); near_cutoff: indices of cilia whose thrust is below
     :data:`NEAR_CUTOFF_FRACTION` of the straight filament's; clipped: indices of cilia whose
-    request was clipped to the reachable range; status 0 converged, 1 not; message; work:
+    request was clipped to the reachable range; status: ``"success"`` (L-BFGS-B converged on the
+    design model) or ``"inaccurate"`` (it stopped early: the message says why), the words of the
+    other results of the toolkit (:class:`single_cilium.cycle.LimitCycle`); message; work:
     iterations, evaluations, full-model checks, seconds (wall clock; of which seconds_carpets
     building the carpets of the checked layouts, seconds_checks their full-model evaluations,
     seconds_model the L-BFGS-B solves on the design model); tolerance: the fabrication-tolerance
@@ -236,7 +238,7 @@ class Design:
     returned: str = "local"
     near_cutoff: tuple = ()
     clipped: tuple = ()
-    status: int = 0
+    status: str = "success"
     message: str = ""
     work: dict = field(default_factory=dict)
     tolerance: dict | None = None
@@ -706,14 +708,14 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     near = tuple(np.nonzero(thrust < NEAR_CUTOFF_FRACTION * mom.thrust0)[0].tolist())
     ratio = np.sum(u * target, axis=1) / sref if kind == "angle" else None
     last = best["res"] if best["res"] is not None else res
-    status = 0 if (last is not None and last.success) else 1
+    status = "success" if (last is not None and last.success) else "inaccurate"
     unit = " rad" if kind == "angle" else " (relative)"
     robust = (f"designed for the expected objective under a relative chi_N error {rs:g} "
               f"({mult.shape[0]} samples); ") if rs > 0 else ""
     message = (f"{kind} target at {P} control points: {robust}rms residual {rms:.3g}{unit} (+- {r_err:.1g}), worst "
                f"{float(resid.max()):.3g}; local layout {rms_loc:.3g}; returned the {best['label']} layout; "
                f"{len(near)} of {N} cilia near the flutter cutoff; L-BFGS-B "
-               f"{'converged' if status == 0 else 'stopped: ' + str(getattr(last, 'message', ''))}")
+               f"{'converged' if status == 'success' else 'stopped: ' + str(getattr(last, 'message', ''))}")
     logger.info("design: %s", message)
     counters["seconds"] = _time.perf_counter() - clock
     return Design(chi_N=chi, control=X, target=target, achieved=u, residual=resid, residual_rms=rms, kind=kind,

@@ -117,6 +117,7 @@ def test_velocity_target_from_a_known_layout_is_recovered(table, n, wall):
     d = design_layout(c, X, velocities=U)
     assert d.kind == "velocity" and d.residual_rms < 0.03 < d.local_rms
     assert d.objective <= d.local_objective and d.returned != "local"
+    assert d.status == "success" and "converged" in d.message
 
 
 def test_never_worse_than_the_local_layout(table, monkeypatch):
