@@ -119,12 +119,15 @@ class FlowSample:
 
     velocity (M, 3); error_bound (M,): the bound of the levels of detail against the resolved
     sum (zero where every pair was resolved); pairs: number of (cilium, point) pairs evaluated
-    at each level; tol: the tolerance asked for."""
+    at each level; tol: the tolerance asked for; work: counters of the work done: ``sources``,
+    the (point, source) interactions summed (the cost: each is one kernel evaluation), and
+    ``ranges``, the source blocks of the sparse sum."""
 
     velocity: np.ndarray
     error_bound: np.ndarray
     pairs: dict
     tol: float
+    work: dict = field(default_factory=dict)
 
     @property
     def fidelity(self) -> dict:
@@ -506,10 +509,23 @@ class Carpet:
         m = targets.shape[0]
         kernel = self.kernel
         rstar = self._near_radii(tol, cheap_level)
+        if tol == 0:  # the resolved sum itself: one dense sum over every source
+            js = np.nonzero(active)[0]
+            u = np.zeros((m, 3))
+            n_src = 0
+            if js.size:
+                rpos, rf = resolved(js)
+                n_src = rpos.shape[1]
+                u = stokeslet_velocity(targets, _pad(rpos.reshape(-1, 2)), _pad(rf.reshape(-1, 2)), self.mu,
+                                       kernel=kernel, backend=self.backend)
+            return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": m * js.size},
+                              tol=tol, work=dict(sources=m * js.size * n_src, ranges=0))
         u = np.zeros((m, 3))
+        work = dict(sources=0, ranges=0)
         if np.any(active):
             u += stokeslet_velocity(targets, _pad(cpos[active].reshape(-1, 2)), _pad(cf[active].reshape(-1, 2)),
                                     self.mu, kernel=kernel, backend=self.backend)
+            work["sources"] = m * 6 * int(active.sum())
         # near pairs, from a tree over the targets
         cand = np.nonzero(rstar > 0)[0]
         n_near = 0
@@ -522,28 +538,24 @@ class Carpet:
             pi = sdm["j"][keep].astype(np.int64)
             n_near = pi.size
         if n_near:
-            order = np.argsort(pi, kind="stable")  # grouped by target (CSR); the order within is free
+            # grouped by target (CSR; the order within is free): a counting sort, O(pairs)
+            order = np.argsort(pi.astype(np.uint16) if m <= 65536 else pi, kind="stable")
             pi, pj = pi[order], pj[order]
             used = np.bincount(pj, minlength=n) > 0
             js = np.nonzero(used)[0]
-            lut = np.cumsum(used) - 1
-            local = lut[pj]
+            local = (np.cumsum(used) - 1)[pj]
             rpos, rf = resolved(js)
-            n_src = rpos.shape[1]
-            # sources: resolved of the near cilia, then their negated cheap carriers
-            src = np.concatenate([_pad(rpos.reshape(-1, 2)), _pad(cpos[js].reshape(-1, 2))])
-            frc = np.concatenate([_pad(rf.reshape(-1, 2)), _pad(-cf[js].reshape(-1, 2))])
-            ranges = np.empty((2 * n_near, 2), dtype=np.int64)
-            ranges[0::2, 0] = local * n_src
-            ranges[0::2, 1] = (local + 1) * n_src
-            nc = _UNIT.shape[0]
-            ranges[1::2, 0] = js.size * n_src + nc * local
-            ranges[1::2, 1] = js.size * n_src + nc * local + nc
-            ptr = np.zeros(m + 1, dtype=np.int64)
-            np.add.at(ptr, pi + 1, 2)
-            ptr = np.cumsum(ptr)
+            # per near cilium one contiguous block: its resolved sources, then its negated carriers
+            # (one range per pair: long ranges vectorise in the kernel)
+            blk = rpos.shape[1] + _UNIT.shape[0]
+            src = _pad(np.concatenate([rpos, cpos[js]], axis=1).reshape(-1, 2))
+            frc = _pad(np.concatenate([rf, -cf[js]], axis=1).reshape(-1, 2))
+            ranges = np.stack([local * blk, (local + 1) * blk], axis=1)
+            ptr = np.concatenate([[0], np.cumsum(np.bincount(pi, minlength=m))]).astype(np.int64)
             u += stokeslet_velocity_ranges(targets, src, frc, ptr, ranges, self.mu, kernel=kernel,
                                            backend=self.backend)
+            work["sources"] += n_near * blk
+            work["ranges"] = n_near
         bound = np.zeros(m)
         if error and np.any(active):
             C3 = kernel.c3
@@ -561,7 +573,7 @@ class Carpet:
         n_pairs = m * int(active.sum())
         n_res = int(np.sum(active[pj])) if n_near else 0
         pairs = {cheap_level: n_pairs - n_res, "resolved": n_res}
-        return FlowSample(velocity=u, error_bound=bound, pairs=pairs, tol=tol)
+        return FlowSample(velocity=u, error_bound=bound, pairs=pairs, tol=tol, work=work)
 
     def _targets(self, points) -> np.ndarray:
         p = np.asarray(points, dtype=float)
