@@ -26,7 +26,7 @@ inside another cilium's swept region is warned about.
 Levels of detail (DESIGN.md "flow fidelity")
 --------------------------------------------
 Per (cilium, evaluation point) pair the cheapest representation whose error bound is under the
-tolerance is used. Around the force centre c_j (the centroid of the cilium's swept samples;
+tolerance is expected to meet it is used. Around the force centre c_j (the centroid of the cilium's swept samples;
 every filament point lies within the radius a_j of it), with h = r - c, the moments
 F = int f ds, D = int h f^T ds, T = int h h f ds (second moments) and Q3 = int |h|^3 |f| ds:
 
@@ -45,15 +45,17 @@ with Q3_rep = sum_m delta^3 |f_m| the third moment of the carrier and C3 the sup
 |(h.grad)^3 G f| over unit in-plane h, f at unit distance (:attr:`Kernel.c3
 <ciliary_carpet.kernel.Kernel.c3>`; sampled in the tests: 12.3 free, 12.9 times R^4 with a wall;
 the constants 16 and 64 leave a margin). A pair is
-summed cheaply when this bound is at most ``tol * S_j / (8 pi mu R)``, where S_j is the cilium's
-force scale (|Fbar_j| for the mean flow, the r.m.s. of |F_j(t)| over the cycle for the
-instantaneous flow), so that at every point
+summed cheaply when this bound is at most ``LOD_SLACK * tol * S_j / (8 pi mu R)``, where S_j is
+the cilium's force scale (|Fbar_j| for the mean flow, the r.m.s. of |F_j(t)| over the cycle for
+the instantaneous flow) and :data:`LOD_SLACK` = 8 a calibration, so that at every point
 
-    |u - u_resolved| <= tol * sum_j S_j / (8 pi mu |x - c_j|),
+    |u - u_resolved| <= LOD_SLACK * tol * sum_j S_j / (8 pi mu |x - c_j|)
 
-i.e. ``tol`` relative to the sum of the cilia's far-field magnitudes (for a carpet whose cilia
-push roughly the same way, relative to |u| itself). Measured on a 10 x 10 carpet: see the tests
-and benchmarks/bench_flow.py.
+rigorously (the ``error_bound`` of the result: the pairs' bounds summed), while the measured error
+stays below ``0.09 * tol`` times the same sum (tested; the worst-case alignments and signs that
+the bound adds up do not occur, see :data:`LOD_SLACK`): ``tol`` is relative to the sum of the
+cilia's far-field magnitudes (for a carpet whose cilia push roughly the same way, relative to |u|
+itself). Measured on 10 x 10 and 30 x 30 carpets: see the tests and benchmarks/bench_flow.py.
 """
 from __future__ import annotations
 
@@ -74,7 +76,8 @@ from .stokeslet import Backend, stokeslet_velocity, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL", "LEVELS", "BLOB"]
+__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL", "LEVELS", "BLOB",
+           "LOD_SLACK"]
 
 LEVELS = ("mean", "point", "resolved")
 _MEAN_CACHE_BYTES = 256 * 1024 ** 2
@@ -86,6 +89,16 @@ _UNIT = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2), m
 _UNIT_INV = np.linalg.inv(np.stack([np.ones(6), _UNIT[:, 0], _UNIT[:, 1], _UNIT[:, 0] ** 2,
                                     _UNIT[:, 0] * _UNIT[:, 1], _UNIT[:, 1] ** 2]))
 """Inverse of the carrier's moment matrix (rows: the monomials 1, x, y, x^2, xy, y^2)."""
+LOD_SLACK = 8.0
+"""Calibration of the levels of detail: a pair is summed cheaply when its Taylor bound is at most
+``LOD_SLACK * tol * S_j / (8 pi mu R)`` (module docstring). The bound adds worst-case magnitudes:
+every pair's third-order term at its worst alignment, and all pairs with the same sign; in fact
+the force density changes sign along the filament (the third moment cancels in part) and the
+cilia's errors add with mixed signs. Measured (tests/test_carpet.py, 10 x 10 carpets with and
+without wall, tol 1e-2 to 1e-4, four times and the mean flow, points 0.05 L from the swept
+regions and beyond): with 8 the error stays below 0.09 tol sum_j S_j / (8 pi mu |x - c_j|) (free
+space; 0.011 with a wall), i.e. an 11-fold margin left, while the near pairs fall 3-fold
+(benchmarks/bench_flow.py, levels). The rigorous bound is still what ``error_bound`` reports."""
 BLOB = 0.02
 """Default blob size eps of the regularised Stokeslets, in units of L: the filament radius of a
 slender filament of aspect ratio L / (2 a) = 25 (scene key ``[carpet] blob``)."""
@@ -455,9 +468,9 @@ class Carpet:
 
     def _near_radius(self, Q: np.ndarray, S: np.ndarray, tol: float) -> np.ndarray:
         """Per cilium the distance R* beyond which the cheap level's bound
-        C3 Q R / (6 (R - a)^4) <= tol S holds (inf when S = 0 but Q > 0)."""
+        C3 Q R / (6 (R - a)^4) <= LOD_SLACK tol S holds (inf when S = 0 but Q > 0)."""
         a = self._c["radius"]
-        k = self.kernel.c3 * Q / 6.0
+        k = self.kernel.c3 * Q / (6.0 * LOD_SLACK)
         with np.errstate(divide="ignore", invalid="ignore"):
             g = lambda R: k * R - tol * S * (R - a) ** 4  # noqa: E731 -- decreasing past its root
             lo = a.copy()
