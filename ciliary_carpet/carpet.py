@@ -535,10 +535,6 @@ class Carpet:
                               tol=tol, work=dict(sources=m * js.size * n_src, ranges=0))
         u = np.zeros((m, 3))
         work = dict(sources=0, ranges=0)
-        if np.any(active):
-            u += stokeslet_velocity(targets, _pad(cpos[active].reshape(-1, 2)), _pad(cf[active].reshape(-1, 2)),
-                                    self.mu, kernel=kernel, backend=self.backend)
-            work["sources"] = m * 6 * int(active.sum())
         # near pairs, from a tree over the targets
         cand = np.nonzero(rstar > 0)[0]
         n_near = 0
@@ -550,6 +546,17 @@ class Carpet:
             pj = cand[sdm["i"][keep]].astype(np.int64)
             pi = sdm["j"][keep].astype(np.int64)
             n_near = pi.size
+        if not np.any(active) and not n_near:
+            return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": 0}, tol=tol,
+                              work=work)
+        # One sparse sum (one parallel region per evaluation: on a loaded machine each costs a time
+        # slice): every point sums the carriers of every active cilium (the first block), then per
+        # near cilium one contiguous block, its resolved sources and its negated carriers (long
+        # ranges vectorise in the kernel).
+        n0 = 6 * int(active.sum())
+        src = [_pad(cpos[active].reshape(-1, 2))]
+        frc = [_pad(cf[active].reshape(-1, 2))]
+        cnt = np.zeros(m, dtype=np.int64)
         if n_near:
             # grouped by target (CSR; the order within is free): a counting sort, O(pairs)
             order = np.argsort(pi.astype(np.uint16) if m <= 65536 else pi, kind="stable")
@@ -558,17 +565,22 @@ class Carpet:
             js = np.nonzero(used)[0]
             local = (np.cumsum(used) - 1)[pj]
             rpos, rf = resolved(js)
-            # per near cilium one contiguous block: its resolved sources, then its negated carriers
-            # (one range per pair: long ranges vectorise in the kernel)
             blk = rpos.shape[1] + _UNIT.shape[0]
-            src = _pad(np.concatenate([rpos, cpos[js]], axis=1).reshape(-1, 2))
-            frc = _pad(np.concatenate([rf, -cf[js]], axis=1).reshape(-1, 2))
-            ranges = np.stack([local * blk, (local + 1) * blk], axis=1)
-            ptr = np.concatenate([[0], np.cumsum(np.bincount(pi, minlength=m))]).astype(np.int64)
-            u += stokeslet_velocity_ranges(targets, src, frc, ptr, ranges, self.mu, kernel=kernel,
-                                           backend=self.backend)
-            work["sources"] += n_near * blk
-            work["ranges"] = n_near
+            src.append(_pad(np.concatenate([rpos, cpos[js]], axis=1).reshape(-1, 2)))
+            frc.append(_pad(np.concatenate([rf, -cf[js]], axis=1).reshape(-1, 2)))
+            cnt = np.bincount(pi, minlength=m)
+        ptr = np.concatenate([[0], np.cumsum(cnt + 1)]).astype(np.int64)
+        ranges = np.empty((m + n_near, 2), dtype=np.int64)
+        ranges[ptr[:-1]] = (0, n0)
+        if n_near:
+            first = np.concatenate([[0], np.cumsum(cnt)[:-1]])  # the first near pair of each point
+            at = ptr[pi] + 1 + np.arange(n_near) - first[pi]
+            ranges[at, 0] = n0 + local * blk
+            ranges[at, 1] = n0 + (local + 1) * blk
+        u += stokeslet_velocity_ranges(targets, np.concatenate(src), np.concatenate(frc), ptr, ranges, self.mu,
+                                       kernel=kernel, backend=self.backend)
+        work["sources"] = m * n0 + (n_near * blk if n_near else 0)
+        work["ranges"] = m + n_near
         bound = np.zeros(m)
         if error and np.any(active):
             C3 = kernel.c3
