@@ -65,6 +65,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 from scipy.spatial import ConvexHull, cKDTree
 
 from single_cilium.equilibrium import equilibrium_shape
@@ -165,6 +166,23 @@ def _modes(table: ThrustTable, floor: float = 1e-7) -> int:
 def _pad(a: np.ndarray) -> np.ndarray:
     """(..., 2) -> (..., 3) with z = 0."""
     return np.concatenate([a, np.zeros(a.shape[:-1] + (1,))], axis=-1)
+
+
+@njit(cache=True)
+def _trig_rows(coef, basis, js, out):  # pragma: no cover - compiled
+    """out[i, p] = sum_k basis[i, k] coef[js[i], k, p]: the trigonometric interpolants of the
+    cilia ``js`` at their phases (coef (N, 2K-1, P), basis (len(js), 2K-1), out (len(js), P)); one
+    pass over the coefficients of ``js`` only, the inner loop contiguous (memory-bound: about 3x
+    faster than numpy's einsum here)."""
+    P = coef.shape[2]
+    for i in range(js.shape[0]):
+        j = js[i]
+        for p in range(P):
+            out[i, p] = 0.0
+        for k in range(coef.shape[1]):
+            b = basis[i, k]
+            for p in range(P):
+                out[i, p] += b * coef[j, k, p]
 
 
 def _simpson(n: int) -> np.ndarray:
@@ -422,12 +440,10 @@ class Carpet:
         c = self._c
         arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
         basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)
-        if 4 * len(js) > self.n:  # most cilia: no copy of their coefficients
-            full = np.zeros((self.n, basis.shape[1]))
-            full[js] = basis
-            vals = np.einsum("jk,jksq->jsq", full, c["coef"], optimize=True)[js]
-        else:
-            vals = np.einsum("jk,jksq->jsq", basis, c["coef"][js], optimize=True)
+        coef = c["coef"]
+        vals = np.empty((len(js), coef.shape[2] * coef.shape[3]))
+        _trig_rows(coef.reshape(coef.shape[0], coef.shape[1], -1), basis, np.asarray(js, dtype=np.int64), vals)
+        vals = vals.reshape(len(js), coef.shape[2], coef.shape[3])
         return vals[..., :2] + self.bases[js][:, None, :], vals[..., 2:]
 
     def cycle_samples(self, js) -> tuple[np.ndarray, np.ndarray]:
