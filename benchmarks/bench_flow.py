@@ -307,9 +307,16 @@ def bench_levels(quick: bool, emit) -> dict:
                 ref, t_ref = best_time(lambda: ev(0.0), repeat=2)
                 for tol in ((1e-3,) if quick else (1e-2, 1e-3, 1e-4)):
                     s = c.evaluate(pts, 0.37, tol=tol) if field == "instantaneous" else c.evaluate_mean(pts, tol=tol)
-                    spent["kernel"] = 0.0
-                    _, t = best_time(lambda: ev(tol), repeat=3)
-                    share = 1.0 - spent["kernel"] / 3 / t if t > 0 else float("nan")
+                    # interleaved with the resolved sum (instantaneous; the mean's takes seconds), best
+                    # of 7: the machine is shared, its load changes from second to second
+                    t, share = np.inf, float("nan")
+                    for _ in range(7):
+                        if field == "instantaneous":
+                            t_ref = min(t_ref, best_time(lambda: ev(0.0), repeat=1)[1])
+                        spent["kernel"] = 0.0
+                        _, dt = best_time(lambda: ev(tol), repeat=1)
+                        if dt < t:
+                            t, share = dt, 1.0 - spent["kernel"] / dt
                     err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
                     rel = float(np.max(err / np.linalg.norm(ref.velocity, axis=1)))
                     frac = 1 - s.fidelity["resolved"]
@@ -320,7 +327,8 @@ def bench_levels(quick: bool, emit) -> dict:
                     out[(side, field, tol)] = (t_ref / t, rel, spp)
     finally:
         cm.stokeslet_velocity, cm.stokeslet_velocity_ranges = orig
-    emit("\n(outside kernels: approximate, from the mean of 3 runs against the best; the machine is shared)\n")
+    emit("\n(times: best of 7 runs, the instantaneous field's interleaved with the resolved sum's; outside "
+         "kernels: in the best run; the machine is shared, so both are approximate)\n")
     return out
 
 
