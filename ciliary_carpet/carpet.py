@@ -169,20 +169,36 @@ def _pad(a: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _trig_rows(coef, basis, js, out):  # pragma: no cover - compiled
-    """out[i, p] = sum_k basis[i, k] coef[js[i], k, p]: the trigonometric interpolants of the
-    cilia ``js`` at their phases (coef (N, 2K-1, P), basis (len(js), 2K-1), out (len(js), P)); one
-    pass over the coefficients of ``js`` only, the inner loop contiguous (memory-bound: about 3x
-    faster than numpy's einsum here)."""
+def _trig_rows(coef, ph, js, out):  # pragma: no cover - compiled
+    """out[i, p] = a_0 + sum_{k=1}^{K-1} a_k cos(2 pi k ph_i) + b_k sin(2 pi k ph_i), the
+    trigonometric interpolant of cilium js[i] at its phase ph[i], with coef[j] (2K-1, P) holding
+    a_0..a_{K-1} then b_1..b_{K-1}; out (len(js), P). The basis by the angle-addition recurrence
+    (rounding grows like k eps: below 1e-13 for the K <= 64 used), one pass over the coefficients
+    of ``js`` only, the inner loop contiguous (memory-bound; 3-5x faster than numpy's einsum here)."""
+    K = (coef.shape[1] + 1) // 2
     P = coef.shape[2]
+    cs = np.empty(K)
+    sn = np.empty(K)
     for i in range(js.shape[0]):
         j = js[i]
+        th = 2.0 * np.pi * ph[i]
+        c1 = np.cos(th)
+        s1 = np.sin(th)
+        cs[0] = 1.0
+        sn[0] = 0.0
+        for k in range(1, K):
+            cs[k] = cs[k - 1] * c1 - sn[k - 1] * s1
+            sn[k] = sn[k - 1] * c1 + cs[k - 1] * s1
         for p in range(P):
             out[i, p] = 0.0
-        for k in range(coef.shape[1]):
-            b = basis[i, k]
+        for k in range(K):
+            b = cs[k]
             for p in range(P):
                 out[i, p] += b * coef[j, k, p]
+        for k in range(1, K):
+            b = sn[k]
+            for p in range(P):
+                out[i, p] += b * coef[j, K - 1 + k, p]
 
 
 def _simpson(n: int) -> np.ndarray:
@@ -437,12 +453,10 @@ class Carpet:
 
     def _state_of(self, js: np.ndarray, ph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions and forces per length (len(js), n_s, 2) of cilia ``js`` at phases ``ph``."""
-        c = self._c
-        arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
-        basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)
-        coef = c["coef"]
+        coef = self._c["coef"]
         vals = np.empty((len(js), coef.shape[2] * coef.shape[3]))
-        _trig_rows(coef.reshape(coef.shape[0], coef.shape[1], -1), basis, np.asarray(js, dtype=np.int64), vals)
+        _trig_rows(coef.reshape(coef.shape[0], coef.shape[1], -1), np.ascontiguousarray(ph, dtype=float),
+                   np.asarray(js, dtype=np.int64), vals)
         vals = vals.reshape(len(js), coef.shape[2], coef.shape[3])
         return vals[..., :2] + self.bases[js][:, None, :], vals[..., 2:]
 
@@ -642,9 +656,8 @@ class Carpet:
         tol = self._tol(tol)
         c = self._c
         ph = self.phase_at(t)
-        arg = 2.0 * math.pi * ph[:, None] * c["k_m"][None, :]
-        basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)
-        mom = np.einsum("jk,jkq->jq", basis, c["mom_coef"])
+        mom = np.empty((self.n, c["mom_coef"].shape[2]))
+        _trig_rows(c["mom_coef"], ph, np.arange(self.n), mom)
         F, D, T = mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
 
         def resolved(js):
