@@ -21,7 +21,7 @@ flow changes within a blob size) re-integrate the same interval with smaller ste
 (recursively, at most :data:`MAX_DEPTH` levels), so that one tracer near a filament does not slow
 down all others. For the time-resolved flow the step is also capped at a sixteenth of the beat
 period (``max_step``): the one-step error estimate does not see the error the beat's oscillation
-accumulates, and the cap turns 1.6e-3 L into 3.8e-4 L over 20 beats of a 10 x 10 carpet at
+accumulates, and the cap turns 1.3e-3 L into 3.8e-4 L over 20 beats of a 10 x 10 carpet at
 similar cost (benchmarks/results/bench_pathlines.md; a fixed-step RK4 at the same number of
 evaluations is about as accurate there: the adaptive part buys the substeps near filaments and
 the error control, not speed). Every stage evaluates the flow once for all the tracers it

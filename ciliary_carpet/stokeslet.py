@@ -168,7 +168,15 @@ def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cov
     ux = 0.0
     uy = 0.0
     uz = 0.0
-    for j in range(lo, hi):
+    # sliced views: the loop then runs from 0 with known bounds and vectorises (indexing
+    # with range(lo, hi) keeps numba's negative-index wraparound and is 3-4x slower)
+    sx = sx[lo:hi]
+    sy = sy[lo:hi]
+    sz = sz[lo:hi]
+    fx = fx[lo:hi]
+    fy = fy[lo:hi]
+    fz = fz[lo:hi]
+    for j in range(hi - lo):
         dx = xi - sx[j]
         dy = yi - sy[j]
         dz = zi - sz[j]
@@ -199,7 +207,13 @@ def _acc_wall(xi, yi, zt, sx, sy, sh, fx, fy, fz, lo, hi):  # pragma: no cover -
     ux = 0.0
     uy = 0.0
     uz = 0.0
-    for j in range(lo, hi):
+    sx = sx[lo:hi]
+    sy = sy[lo:hi]
+    sh = sh[lo:hi]
+    fx = fx[lo:hi]
+    fy = fy[lo:hi]
+    fz = fz[lo:hi]
+    for j in range(hi - lo):
         h = sh[j]
         dx = xi - sx[j]
         dy = yi - sy[j]
@@ -240,7 +254,13 @@ def _acc_regwall(xi, yi, zt, sx, sy, sh, fx, fy, fz, e2, lo, hi):  # pragma: no 
     ux = 0.0
     uy = 0.0
     uz = 0.0
-    for j in range(lo, hi):
+    sx = sx[lo:hi]
+    sy = sy[lo:hi]
+    sh = sh[lo:hi]
+    fx = fx[lo:hi]
+    fy = fy[lo:hi]
+    fz = fz[lo:hi]
+    for j in range(hi - lo):
         h = sh[j]
         dx = xi - sx[j]
         dy = yi - sy[j]
