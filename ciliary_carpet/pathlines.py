@@ -165,9 +165,9 @@ class PathLines:
     points[k] (n_k, 3), times[k] (n_k,), velocities[k] (n_k, 3): tracer k at the dense output
     times (every ``dt``) up to where it stopped, and its last point; seed_ids (K,); reason (K,)
     codes into :data:`REASONS`; model: "resolved" or "mean"; stats: work counters (steps,
-    rejected, evaluations, substeps, seconds); status 0 when the run reached its end time (tracers
-    may still have left the domain), 1 when some tracers' step size underflowed; message says what
-    happened and what to change."""
+    rejected, evaluations, substeps, seconds); status ``"success"`` when every tracer reached its
+    end time or left the domain, ``"inaccurate"`` when some tracers' step size underflowed (the
+    words of the other results of the toolkit); message says what happened and what to change."""
 
     points: list
     times: list
@@ -180,7 +180,7 @@ class PathLines:
     dt: float = 0.0
     model: str = "resolved"
     stats: dict = field(default_factory=dict)
-    status: int = 0
+    status: str = "success"
     message: str = ""
 
     @property
@@ -523,10 +523,10 @@ def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: floa
         tms.append(tt)
         vel.append(v)
     reason = run.reason
-    status = int(np.any(reason == UNDERFLOW))
+    status = "inaccurate" if np.any(reason == UNDERFLOW) else "success"
     counts = ", ".join(f"{int(np.sum(reason == k))} {r}" for k, r in enumerate(REASONS) if np.any(reason == k))
     message = f"integrated {K} tracers ({name} flow) to t = {t1:.6g}: {counts}"
-    if status:
+    if status != "success":
         message += ("; the step size underflowed for some tracers: the flow is not resolved there (raise the "
                     "blob size or loosen rtol/atol)")
         logger.warning(message)
