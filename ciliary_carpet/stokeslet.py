@@ -384,7 +384,9 @@ def _direct_serial(code, T, S, F, e2, scale, out):  # pragma: no cover - compile
 def _ranges_serial(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no cover - compiled
     """Serial :func:`_ranges_kernel`. out[i] = scale * sum over k in ptr[i]:ptr[i+1], j in ranges[k, 0]:ranges[k, 1] of
     G(T[:, i], S[:, j]) F[:, j] for the kernel ``code`` (as :func:`_direct`; one loop per code so
-    that each inner sum vectorises)."""
+    that each inner sum vectorises). The body repeats :func:`_ranges_kernel`'s on purpose:
+    moving the per-target loop into a shared compiled helper measured 1.3-2.4x slower (4000
+    targets x 8 ranges of 65 sources: 7.9 ms written out, 10.4-18 ms through the helper)."""
     sx = S[0]
     sy = S[1]
     sz = S[2]
