@@ -392,6 +392,14 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
             kept = (f"; the finished rows are kept in {parts}, and the same request resumes from them"
                     if parts is not None else "")
             raise CycleError(f"{exc}; last good row before it: {last}{kept}", exc.t) from None
+    except BaseException:  # Ctrl-C or a failure: do not wait for the running chunks (their
+        # finished rows are on disk for the resume); stop our own pool's workers now
+        if own is not None and hasattr(own, "shutdown"):
+            procs = list((getattr(own, "_processes", None) or {}).values())  # shutdown() forgets them
+            own.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                proc.terminate()
+        raise
     finally:
         progress.close()
         if own is not None:

@@ -257,6 +257,29 @@ def test_7_real_sigint_during_render(tmp_path):
     assert not (tmp_path / "o").exists() and not [x for x in tmp_path.iterdir() if x.name.startswith(".")]
 
 
+def test_7_sigint_to_a_table_build_stops_its_workers_and_keeps_finished_rows(tmp_path):
+    """SIGINT to ``single-cilium table`` alone (not its group): exit 130 within seconds (the pool's
+    workers are stopped, not waited for), and the same request resumes from the rows on disk."""
+    out = tmp_path / "t.nc"
+    args = [sys.executable, "-m", "single_cilium.cli", "table", "--chi-E", "200", "--eta", "1", "--chi-N",
+            "100:112:25", "--degree", "6", "--n-phase", "32", "--no-error-estimate", "-o", str(out), "--quiet"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True)
+    parts = tmp_path / "t.nc.parts"
+    t = time.time()
+    while time.time() - t < 120 and not (parts.is_dir() and any(parts.glob("row_*.nc"))):
+        time.sleep(0.05)
+    t = time.time()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err, err
+    assert time.time() - t < 10
+    assert not out.exists() and 0 < len(list(parts.glob("row_*.nc"))) < 25
+    done = subprocess.run(args + ["--json"], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["rows"] == 25 and out.exists() and not parts.exists()
+
+
 def test_7_sigint_to_a_batch_stops_its_workers_cleanly(tmp_path):
     """SIGINT to the batch process alone (not its group): the workers are interrupted too, their
     staging folders removed, exit 130 within seconds."""
