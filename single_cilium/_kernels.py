@@ -110,10 +110,10 @@ def stage_residual(Y, Kd, I, w, Kmat, Bmat, eta, chi_E, chi_N, relax):
 # hence the exact derivative of the discrete step map.
 # ---------------------------------------------------------------------------------------------
 @njit(cache=True)
-def _stage_terms(th, v, I, w, eta):
-    """For full nodal ``th`` and ``v`` (theta_t): ``D(th) v`` on the free nodes (n-1,), the drag
-    matrix ``D(th)`` (n-1, n-1) and ``d(D(th) v)/dth`` at fixed ``v`` (n-1, n-1)."""
-    n = th.shape[0]
+def _drag_projections(th, v, I, w, eta):
+    """The pieces of ``D(th) v`` for full nodal ``th`` and ``v`` (theta_t): cos th, sin th, the
+    tangential and normal velocities at the nodes, ``I[:, 1:]``, and the quadrature-weighted drag
+    projected on the free nodes, ``Px``, ``Py`` (so that ``D(th) v = cos th Px + sin th Py``)."""
     c = np.cos(th)
     s = np.sin(th)
     a = I @ (c * v)
@@ -123,8 +123,15 @@ def _stage_terms(th, v, I, w, eta):
     wdx = w * eta * (vpar * s + 2.0 * vperp * c)
     wdy = w * eta * (-vpar * c + 2.0 * vperp * s)
     If = np.ascontiguousarray(I[:, 1:])
-    Px = If.T @ wdx
-    Py = If.T @ wdy
+    return c, s, vpar, vperp, If, If.T @ wdx, If.T @ wdy
+
+
+@njit(cache=True)
+def _stage_terms(th, v, I, w, eta):
+    """For full nodal ``th`` and ``v`` (theta_t): ``D(th) v`` on the free nodes (n-1,), the drag
+    matrix ``D(th)`` (n-1, n-1) and ``d(D(th) v)/dth`` at fixed ``v`` (n-1, n-1)."""
+    n = th.shape[0]
+    c, s, vpar, vperp, If, Px, Py = _drag_projections(th, v, I, w, eta)
     Dv = c[1:] * Px + s[1:] * Py
     # drag matrix: D = eta (Wt^T W Wt + 2 Wn^T W Wn), Wt[q, a] = I[q, a] sin(th_q - th_a)
     Wt = np.empty((n, n - 1))
@@ -209,16 +216,9 @@ def _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N,
 
 @njit(cache=True)
 def _dv_only(th, v, I, w, eta):
-    c = np.cos(th)
-    s = np.sin(th)
-    a = I @ (c * v)
-    b = I @ (s * v)
-    vpar = a * s - b * c
-    vperp = a * c + b * s
-    wdx = w * eta * (vpar * s + 2.0 * vperp * c)
-    wdy = w * eta * (-vpar * c + 2.0 * vperp * s)
-    If = np.ascontiguousarray(I[:, 1:])
-    return c[1:] * (If.T @ wdx) + s[1:] * (If.T @ wdy)
+    """``D(th) v`` on the free nodes alone (no matrices: the cheap path of the stage Newton)."""
+    c, s, _, _, _, Px, Py = _drag_projections(th, v, I, w, eta)
+    return c[1:] * Px + s[1:] * Py
 
 
 @njit(cache=True)
