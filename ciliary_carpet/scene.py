@@ -1,40 +1,33 @@
 """Scene files: a carpet, its field, its target flow and what to output, in TOML.
 
 :func:`load_scene` reads a scene file (``tomllib``) into a frozen, validated :class:`Scene`.
-Every key has a default (the reference table is in ``designs/README.md``; the docstrings of the
-section classes below say the same). Anything the file gets wrong is a :class:`SceneError` whose
-message names the file and the dotted key: unknown keys at any level (with the known ones and a
-close match), wrong types, NaN or inf, out-of-range values, keys that do not apply (e.g.
-``carpet.wave_vector`` without ``phases = "wave"``), and malformed TOML (with tomllib's line and
-column).
+Every key has one home: a field of its section class below, whose metadata holds its default,
+accepted values and meaning (:mod:`ciliary_carpet.schema`; the ``[target]`` section and the
+registry of target kinds are in :mod:`ciliary_carpet.target`). The section docstrings and the
+key reference of ``designs/README.md`` (:func:`reference`, checked by the tests) are made from
+them. Anything the file gets wrong is a :class:`SceneError` whose message names the file and the
+dotted key: unknown keys at any level (with the known ones and a close match), wrong types, NaN
+or inf, out-of-range values, keys that do not apply (e.g. ``carpet.wave_vector`` without
+``phases = "wave"``), and malformed TOML (with tomllib's line and column).
 
 Conventions (MODEL.md, DESIGN.md): lab frame (x, y) in the plane z = 0, lengths in filament
 lengths L. ``field.direction`` is in DEGREES, anticlockwise from +y (the flow model,
 :class:`~ciliary_carpet.carpet.Carpet`, takes radians: use :attr:`FieldSpec.direction_rad`). A
 straight filament pushes fluid along ``d0 = -field direction`` (:attr:`FieldSpec.flow_direction`).
 
-Sections (all optional)::
-
-    name, description, tolerance        top level
-    [field]     chi_E, eta, direction
-    [table]     file   (+ [table.build] n, degree)
-    [carpet]    lattice, shape, spacing, origin, points, chi_N, phases, seed, wave_vector, wall
-    [target]    kind, angle, line, width, centre, file, control, residual, strict,
-                speed_floor, smoothness, sigma, samples, robust
-    [output]    pathlines, seeds, n_seeds, periods, field, field_shape, field_margin,
-                snapshots, frames, preview
-    [units]     length_m, time_s, viscosity_Pa_s
+Sections (all optional): top level (name, description, tolerance), ``[field]``, ``[table]``
+(+ ``[table.build]``), ``[carpet]``, ``[target]``, ``[output]``, ``[units]``.
 
 Values that depend on the thrust table or on the carpet's geometry (the default target angle,
-width and centre) are stored as ``None`` here and resolved by :mod:`ciliary_carpet.target`.
+width and centre) are stored as ``None`` here and resolved by :mod:`ciliary_carpet.target`; the
+objects a scene describes (table, carpet, target) are built by :mod:`ciliary_carpet.assembly`.
 """
 from __future__ import annotations
 
-import difflib
 import logging
 import math
 import tomllib
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from dataclasses import field as _field
 from pathlib import Path
 
@@ -43,192 +36,47 @@ import numpy as np
 from single_cilium.table import TableError, ThrustTable
 
 from . import layout
+from .carpet import BLOB
 from .paths import check_name, check_scene_paths
-from .target import KIND_KEYS, KINDS, applies_to
+from .pathlines import MEAN_MODEL_ERROR
+from .schema import SceneError, key, keys_of, markdown_table, read, reader, section, section_dict, validate, values
+from .target import KINDS, TargetSpec, kinds_table
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["SceneError", "Scene", "FieldSpec", "TableSpec", "TableBuild", "CarpetSpec", "TargetSpec",
-           "OutputSpec", "Units", "load_scene", "scene_from_dict", "LATTICES", "PHASES", "TARGET_KINDS"]
+           "OutputSpec", "Units", "load_scene", "scene_from_dict", "reference", "LATTICES", "PHASES",
+           "TARGET_KINDS"]
 
 LATTICES = ("row", "square", "hexagonal", "points")
 PHASES = ("random", "synchronous", "wave")
 TARGET_KINDS = KINDS
-CONTROLS = ("cells", "cilia")
 SEEDS = ("line", "grid")
-
-
-class SceneError(ValueError):
-    """A scene file that cannot be used; the message names the file and the dotted key."""
-
-
-# ------------------------------------------------------------------------------ value checks
-class _Reader:
-    """Validates one TOML table: ``get`` pops checked values, ``finish`` rejects what is left."""
-
-    def __init__(self, src: str, data, section: str, known: tuple[str, ...]):
-        self.src, self.section, self.known = src, section, known
-        if not isinstance(data, dict):
-            raise SceneError(f"{src}: {self._where()} must be a table ({self._header()}), got {data!r}")
-        unknown = [k for k in data if k not in known]
-        if unknown:
-            k = unknown[0]
-            close = difflib.get_close_matches(k, known, n=1)
-            hint = f"; did you mean '{close[0]}'?" if close else ""
-            where = f"{self._header()} unknown key" if section else "unknown top-level key"
-            raise SceneError(f"{src}: {where} '{k}' (known: {', '.join(known)}){hint}")
-        self.data = dict(data)
-
-    def _where(self) -> str:
-        return self.section or "the scene"
-
-    def _header(self) -> str:
-        return f"[{self.section}]" if self.section else "top level"
-
-    def key(self, k: str) -> str:
-        return f"{self.section}.{k}" if self.section else k
-
-    def has(self, k: str) -> bool:
-        return k in self.data
-
-    def fail(self, k: str, what: str, value) -> SceneError:
-        return SceneError(f"{self.src}: {self.key(k)} must be {what}, got {value!r}")
-
-    # typed getters -----------------------------------------------------------
-    def number(self, k: str, default, *, lo=None, hi=None, lo_open=False, hi_open=False, what=None):
-        if k not in self.data:
-            return default
-        v = self.data[k]
-        desc = what or _describe_range(lo, hi, lo_open, hi_open)
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise self.fail(k, desc, v)
-        x = float(v)
-        if not math.isfinite(x):
-            raise SceneError(f"{self.src}: {self.key(k)} must be a finite number, got {x}")
-        if lo is not None and (x < lo or (lo_open and x == lo)):
-            raise self.fail(k, desc, v)
-        if hi is not None and (x > hi or (hi_open and x == hi)):
-            raise self.fail(k, desc, v)
-        return x
-
-    def integer(self, k: str, default, *, lo=None):
-        if k not in self.data:
-            return default
-        v = self.data[k]
-        if isinstance(v, bool) or not isinstance(v, int) or (lo is not None and v < lo):
-            raise self.fail(k, "an integer" + (f" >= {lo}" if lo is not None else ""), v)
-        return int(v)
-
-    def boolean(self, k: str, default):
-        if k not in self.data:
-            return default
-        v = self.data[k]
-        if not isinstance(v, bool):
-            raise self.fail(k, "true or false", v)
-        return v
-
-    def string(self, k: str, default, choices=None):
-        if k not in self.data:
-            return default
-        v = self.data[k]
-        if not isinstance(v, str) or (choices is not None and v not in choices):
-            what = "one of " + ", ".join(repr(c) for c in choices) if choices else "a string"
-            raise self.fail(k, what, v)
-        return v
-
-    def pair(self, k: str, default, what="two numbers [x, y]"):
-        if k not in self.data:
-            return default
-        return _pair(self.src, self.key(k), self.data[k], what)
-
-    def pairs(self, k: str, default, what="a non-empty list of points [[x, y], ...]"):
-        if k not in self.data:
-            return default
-        return _pairs(self.src, self.key(k), self.data[k], what)
-
-    def table(self, k: str):
-        return self.data.get(k)
-
-
-def _describe_range(lo, hi, lo_open, hi_open) -> str:
-    if lo == 0 and lo_open and hi is None:
-        return "a positive number"
-    if lo == 0 and not lo_open and hi is None:
-        return "a number >= 0"
-    if lo is not None and hi is not None:
-        return f"a number in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-    return "a number"
-
-
-def _finite_number(src: str, key: str, v, what: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise SceneError(f"{src}: {key} must be {what}, got {v!r}")
-    x = float(v)
-    if not math.isfinite(x):
-        raise SceneError(f"{src}: {key} must be {what} (finite), got {x}")
-    return x
-
-
-def _pair(src: str, key: str, v, what: str) -> tuple[float, float]:
-    if not isinstance(v, (list, tuple)) or len(v) != 2:
-        raise SceneError(f"{src}: {key} must be {what}, got {v!r}")
-    return (_finite_number(src, key, v[0], what), _finite_number(src, key, v[1], what))
-
-
-def _pairs(src: str, key: str, v, what: str) -> tuple[tuple[float, float], ...]:
-    if not isinstance(v, (list, tuple)) or len(v) == 0:
-        raise SceneError(f"{src}: {key} must be {what}, got {v!r}")
-    return tuple(_pair(src, f"{key}[{i}]", p, "two numbers [x, y]") for i, p in enumerate(v))
-
-
-def _plain(v):
-    """Tuples to lists, recursively (TOML/JSON-ready)."""
-    if isinstance(v, (tuple, list)):
-        return [_plain(x) for x in v]
-    return v
-
-
-def _section_dict(obj) -> dict:
-    """The dataclass as a dict of its TOML keys, None values left out."""
-    out = {}
-    for f in fields(obj):
-        v = getattr(obj, f.name)
-        if v is not None:
-            out[f.name] = _plain(v)
-    return out
-
-
-def _validate(obj, parse, *args) -> None:
-    """``__post_init__`` of a section: read its TOML form with the same checks as a file (so a
-    section made in code or by ``dataclasses.replace`` is validated too) and store the
-    normalised values (floats, tuples)."""
-    for k, v in parse(f"<{type(obj).__name__}>", obj.to_dict(), *args).items():
-        object.__setattr__(obj, k, v)
+SECTIONS = ("field", "table", "carpet", "target", "output", "units")
 
 
 # ------------------------------------------------------------------------------ sections
+@section
 @dataclass(frozen=True)
 class FieldSpec:
-    """``[field]``: the uniform field every cilium feels.
+    """``[field]``: the uniform field every cilium feels (0: field along +y; straight filaments
+    push the fluid along -y)."""
 
-    chi_E : float, default 200
-        Stimulus ``L kappa_E`` (MODEL.md).
-    eta : float > 0, default 1
-        Drag-to-bending ratio.
-    direction : float, default 0
-        Field direction in DEGREES, anticlockwise from +y (0: field along +y; straight filaments
-        push the fluid along -y).
-    """
+    SECTION = "field"
 
-    chi_E: float = 200.0
-    eta: float = 1.0
-    direction: float = 0.0
+    chi_E: float = key(200.0, "stimulus L kappa_E")
+    eta: float = key(1.0, "drag-to-bending ratio", lo=0, lo_open=True)
+    direction: float = key(0.0, "field direction, anticlockwise from +y", shown="float (degrees)")
 
     def __post_init__(self) -> None:
-        _validate(self, _field_kw)
+        validate(self, self.parse)
+
+    @staticmethod
+    def parse(src: str, data) -> dict:
+        return read(src, FieldSpec, data)[1]
 
     def to_dict(self) -> dict:
-        return _section_dict(self)
+        return section_dict(self)
 
     @property
     def direction_rad(self) -> float:
@@ -247,47 +95,64 @@ class FieldSpec:
         return -self.field_direction
 
 
+
+@section
 @dataclass(frozen=True)
 class TableBuild:
-    """``[table.build]``: how to compute the table when ``table.file`` does not exist.
+    """``[table.build]``: how to compute the table when ``table.file`` does not exist."""
 
-    n : int >= 3, default 41
-        chi_N grid points in [0, cutoff) (the flutter cutoff row is added exactly, plus one
-        no-flutter row at 1.05 x cutoff, as in the shipped table).
-    degree : int >= 2, default 8
-        Polynomial degree of the filament mesh (see single_cilium).
-    """
+    SECTION = "table.build"
 
-    n: int = 41
-    degree: int = 8
+    n: int = key(41, "only when `file` does not exist: compute the table with `build_table` over chi_N in "
+                 "[0, cutoff) with `n` points, plus the flutter-cutoff row and one no-flutter row at 1.05 x "
+                 "cutoff, and write it to `file` (minutes; resumable)", "int", lo=3)
+    degree: int = key(8, "mesh degree of that computation (see single_cilium)", "int", lo=2)
 
     def __post_init__(self) -> None:
-        _validate(self, _build_kw)
+        validate(self, self.parse)
+
+    @staticmethod
+    def parse(src: str, data) -> dict:
+        return read(src, TableBuild, data)[1]
 
     def to_dict(self) -> dict:
-        return _section_dict(self)
+        return section_dict(self)
 
 
 _TABLE_CACHE: dict = {}
 
 
+@section
 @dataclass(frozen=True)
 class TableSpec:
-    """``[table]``: which thrust table the carpet uses.
+    """``[table]``: which thrust table the carpet uses; ``build`` (a :class:`TableBuild`, given by
+    a ``[table.build]`` section): when ``file`` does not exist, the table is computed with
+    :func:`~single_cilium.table.build_table` and written there (minutes). Without it a missing
+    ``file`` is an error."""
 
-    file : str, default "default"
-        "default" = the table shipped with single_cilium (chi_E = 200, eta = 1); otherwise a
-        NetCDF table path, relative to the scene file.
-    build : TableBuild or None
-        Given by a ``[table.build]`` section: when ``file`` does not exist, the table is
-        computed with :func:`~single_cilium.table.build_table` and written there (minutes).
-    """
+    SECTION = "table"
 
-    file: str = "default"
-    build: TableBuild | None = None
+    file: str = key("default", '`"default"`: the table shipped with single_cilium (chi_E = 200, eta = 1); else a '
+                    "NetCDF table path, relative to the scene file. Its (chi_E, eta) must match `[field]` "
+                    "(relative 1e-9)", "str")
+    build: TableBuild | None = key(None, "the `[table.build]` section", "table")
 
     def __post_init__(self) -> None:
-        _validate(self, _table_kw)
+        validate(self, self.parse)
+
+    @staticmethod
+    def parse(src: str, data) -> dict:
+        r, kw = read(src, TableSpec, data)
+        file = kw["file"]
+        if not file.strip():
+            raise r.fail("file", '"default" or a table path', file)
+        kw["build"] = None
+        if r.has("build"):
+            kw["build"] = TableBuild(**TableBuild.parse(src, r.data["build"]))
+            if file == "default":
+                raise SceneError(f'{src}: [table.build] needs table.file to name where the table is written '
+                                 f'(file = "default" is the shipped table)')
+        return kw
 
     def to_dict(self) -> dict:
         d = {"file": self.file}
@@ -365,58 +230,83 @@ class TableSpec:
         build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p)
 
 
+@section
 @dataclass(frozen=True)
 class CarpetSpec:
-    """``[carpet]``: where the cilia stand, their curvature without a target, and their phases.
+    """``[carpet]``: where the cilia stand, their curvature without a target, and their phases
+    (lattices: :mod:`ciliary_carpet.layout`)."""
 
-    lattice : "row" | "square" | "hexagonal" | "points", default "square"
-        See :mod:`ciliary_carpet.layout` (row along +x; hexagonal: odd rows shifted by half a
-        spacing, rows sqrt(3)/2 spacing apart).
-    shape : tuple of int, default (10, 10)
-        (nx, ny) for square/hexagonal; (n,) for row (``shape = n`` or ``[n]`` in the file);
-        () for points.
-    spacing : float > 0, default 2.0
-        Nearest-neighbour distance (L). For "points", the typical spacing (used for control
-        points and pattern widths).
-    origin : (x, y), default (0, 0)
-        The lattice's lower-left base point (not used by "points").
-    points : tuple of (x, y) or None
-        The base points, required iff lattice = "points".
-    chi_N : float, default 0.0
-        Natural curvature of every cilium when the scene has no target (with a target: the
-        design's starting guess for velocity targets). Checked against the table's range when the
-        carpet is built.
-    phases : "random" | "synchronous" | "wave", default "random"
-        Phases at t = 0 (:meth:`initial_phases`).
-    seed : int >= 0, default 0
-        Random seed of "random" phases (ignored by the others).
-    wave_vector : (kx, ky) rad per L, default (0, 0)
-        Metachronal wave of "wave" phases (only with phases = "wave").
-    wall : float > 0 or None
-        Distance of a no-slip wall below the plane (None: free space).
-    blob : float > 0, default 0.02
-        Blob size of the regularised Stokeslets in L: the filament radius (default: aspect ratio
-        25). Less than half the spacing. See :mod:`ciliary_carpet.kernel`.
-    """
+    SECTION = "carpet"
 
-    lattice: str = "square"
-    shape: tuple = (10, 10)
-    spacing: float = 2.0
-    origin: tuple[float, float] = (0.0, 0.0)
-    points: tuple | None = None
-    chi_N: float = 0.0
-    phases: str = "random"
-    seed: int = 0
-    wave_vector: tuple[float, float] = (0.0, 0.0)
-    wall: float | None = None
-    blob: float = 0.02
+    lattice: str = key("square", "row along +x; square; hexagonal (odd rows shifted by half a spacing, rows "
+                       "sqrt(3)/2 spacing apart); explicit points", "str", choices=LATTICES)
+    shape: tuple = key((10, 10), "number of cilia per direction (not with `\"points\"`; a row without it takes "
+                       "the first number)", "custom", shown="`[nx, ny]` ints (row: `n` or `[n]`)")
+    spacing: float = key(2.0, 'nearest-neighbour distance (L); for `"points"` the typical spacing (control points, '
+                         "pattern widths)", lo=0, lo_open=True)
+    origin: tuple[float, float] = key((0.0, 0.0), 'the lattice\'s lower-left base point (not with `"points"`)',
+                                      "pair")
+    points: tuple | None = key(None, 'base points; required iff `lattice = "points"`', "pairs", default_shown="-")
+    chi_N: float = key(0.0, "curvature of every cilium when there is no target (with a target: the design's "
+                       "starting guess for velocity targets); checked against the table's range")
+    phases: str = key("random", "beat phases at t = 0", "str", choices=PHASES)
+    seed: int = key(0, "seed of random phases", "int", lo=0)
+    wave_vector: tuple[float, float] = key(
+        (0.0, 0.0), 'metachronal wave: phase = -(k . x) / 2 pi; only with `phases = "wave"`', "pair",
+        what="two numbers [kx, ky] (rad per L)", shown="`[kx, ky]` (rad per L)")
+    wall: float | None = key(None, "distance of a no-slip wall below the plane (absent: free space)",
+                             lo=0, lo_open=True)
+    blob: float = key(BLOB, "blob size of the regularised Stokeslets in L: the filament radius (the flow stays "
+                      "bounded at the filaments)", lo=0, lo_open=True, what="a positive length in L (the filament "
+                      "radius)", shown="0 < float < spacing / 2")
 
     def __post_init__(self) -> None:
-        _validate(self, _carpet_kw)
+        validate(self, self.parse)
+
+    @staticmethod
+    def parse(src: str, data) -> dict:
+        r = reader(src, CarpetSpec, data)
+        spec = keys_of(CarpetSpec)
+        lattice = r.get("lattice", *spec["lattice"])
+        if lattice == "points":
+            for k in ("shape", "origin"):
+                if r.has(k):
+                    raise SceneError(f"{src}: carpet.{k} does not apply to lattice = \"points\" "
+                                     f"(the base points are carpet.points)")
+            if not r.has("points"):
+                raise SceneError(f"{src}: carpet.points is required with lattice = \"points\" "
+                                 f"(a list of base points [[x, y], ...])")
+        elif r.has("points"):
+            raise SceneError(f"{src}: carpet.points applies only to lattice = \"points\" (here "
+                             f"lattice = \"{lattice}\")")
+        phases = r.get("phases", *spec["phases"])
+        if r.has("wave_vector") and phases != "wave":
+            raise SceneError(f"{src}: carpet.wave_vector applies only to phases = \"wave\" (here phases = \"{phases}\")")
+        kw = values(r, CarpetSpec)
+        default = spec["shape"][1]
+        if lattice == "points":
+            kw["shape"] = ()
+        elif lattice == "row":
+            v = r.data.get("shape", list(default[:1]))
+            if isinstance(v, list) and len(v) == 1:
+                v = v[0]
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise r.fail("shape", "a positive integer n or [n] for lattice = \"row\"", r.data.get("shape"))
+            kw["shape"] = (v,)
+        else:
+            v = r.data.get("shape", list(default))
+            if (not isinstance(v, list) or len(v) != 2
+                    or any(isinstance(x, bool) or not isinstance(x, int) or x < 1 for x in v)):
+                raise r.fail("shape", f"two positive integers [nx, ny] for lattice = \"{lattice}\"", v)
+            kw["shape"] = (int(v[0]), int(v[1]))
+        if kw["blob"] >= 0.5 * kw["spacing"]:
+            raise r.fail("blob", f"less than half the spacing ({0.5 * kw['spacing']:g} L): the blobs of neighbouring "
+                         "filaments would overlap", kw["blob"])
+        return kw
 
     def to_dict(self) -> dict:
         """The section as TOML types (keys that do not apply left out)."""
-        d = _section_dict(self)
+        d = section_dict(self)
         if self.lattice == "points":
             d.pop("shape", None)
             d.pop("origin", None)
@@ -454,157 +344,78 @@ class CarpetSpec:
         return layout.wave_phases(b, self.wave_vector)
 
 
-@dataclass(frozen=True)
-class TargetSpec:
-    """``[target]``: the flow the carpet is designed for (see :mod:`ciliary_carpet.target`).
-
-    kind : "none" | "uniform" | "focus" | "spread" | "shear" | "turn" | "points", default "none"
-        "none": every cilium gets ``carpet.chi_N``; "points": target velocities from ``file``.
-    angle : float (DEGREES) or None
-        The deflection for "uniform" (signed, anticlockwise from d0), the amplitude (> 0) of
-        the patterns. None: 90% of the table's reachable maximum (resolved by the target).
-    line : float, default 0
-        focus/spread/shear: position of the line, along the cross-stream axis from the carpet's
-        centre (L).
-    width : float > 0 or None
-        focus/spread/shear: transition width (L); None = one carpet spacing.
-    centre : (x, y) or None
-        turn: the centre of the turn; None = the carpet's centre.
-    file : str or None
-        points: CSV (columns x, y, u, v) or NetCDF (variables x, y, u, v) of control points and
-        target velocities, relative to the scene file. Required for kind = "points".
-    control : "cells" | "cilia" | tuple of (x, y), default "cells"
-        Where the designed mean flow is compared with the target
-        (:func:`~ciliary_carpet.target.control_points`).
-    strict : bool, default False
-        False: unreachable angle requests are clipped to the reachable range and a design above
-        ``residual`` is returned (the closest flow the cilia make), both with a warning naming
-        where and by how much; True (batch runs): both are errors (the command line exits 3).
-    speed_floor : float in [0, 1), default 0.3
-        Angle targets: each control point must keep at least this fraction of the speed the
-        straight cilia within 5 spacings make there, along the target direction
-        (:func:`~ciliary_carpet.design.floor_reference`).
-    smoothness : float >= 0, default 0
-        Weight of the neighbour-difference regulariser of the layout (fabrication cost).
-    sigma : float >= 0, default 0
-        Relative fabrication error of chi_N: with sigma > 0 the design reports the expected
-        residual and its spread (:func:`~ciliary_carpet.design.tolerance_study`).
-    samples : int >= 1, default 64
-        Samples of that study.
-    robust : bool, default False
-        Design for the expected objective under the error ``sigma`` (a sample average over 16
-        fixed samples) instead of the nominal one; needs sigma > 0.
-    residual : float > 0, default 0.05
-        Acceptance threshold on the overall (rms) residual of the design: radians for angle
-        targets, relative to rms |U| for "points".
-    """
-
-    kind: str = "none"
-    angle: float | None = None
-    line: float = 0.0
-    width: float | None = None
-    centre: tuple[float, float] | None = None
-    file: str | None = None
-    control: str | tuple = "cells"
-    residual: float = 0.05
-    strict: bool = False
-    speed_floor: float = 0.3
-    smoothness: float = 0.0
-    sigma: float = 0.0
-    samples: int = 64
-    robust: bool = False
-
-    def __post_init__(self) -> None:
-        _validate(self, _target_kw)
-
-    def to_dict(self) -> dict:
-        """The section as TOML types (keys that do not apply to the kind left out)."""
-        if self.kind == "none":
-            return {"kind": "none"}
-        d = _section_dict(self)
-        for k, kinds in _TARGET_ONLY.items():
-            if self.kind not in kinds:
-                d.pop(k, None)
-        return d
-
-    @property
-    def angle_rad(self) -> float | None:
-        return None if self.angle is None else math.radians(self.angle)
-
-
+@section
 @dataclass(frozen=True)
 class OutputSpec:
-    """``[output]``: what a render writes.
+    """``[output]``: what a render writes (:func:`ciliary_carpet.render.render`)."""
 
-    pathlines : bool, default True
-        Path lines of tracers (.vtp).
-    seeds : "line" | "grid" | tuple of (x, y), default "line"
-        "line": a line of seeds upstream of the carpet, across the flow; "grid": a grid over
-        the carpet; or explicit points.
-    n_seeds : int >= 1, default 100
-        Number of seeds for "line"/"grid" (not used with explicit seeds).
-    periods : float > 0 or None (default)
-        Path-line duration, in periods of the straight filament; None (key left out): long
-        enough for the tracers to cross the whole carpet at its mean speed (see
-        :func:`ciliary_carpet.render.render`).
-    pathline_model : "auto" | "resolved" | "mean", default "auto"
-        Flow the tracers follow: the time-resolved beat, or the long-time model (the mean flow,
-        :mod:`ciliary_carpet.pathlines`); "auto" takes the mean flow when the scene's tolerance
-        is at least the model's measured error (``pathlines.MEAN_MODEL_ERROR``).
-    samples_per_period : int >= 1, default 16
-        Path-line points per beat period (dense output).
-    ftle : bool, default True
-        The finite-time Lyapunov exponent field (ftle.vti) and the mixing number
-        (:mod:`ciliary_carpet.ftle`).
-    field : bool, default True
-        The mean velocity field (.vti).
-    field_shape : (nx, ny) ints >= 2, default (80, 80)
-        Grid of the velocity field.
-    field_margin : float >= 0, default 5.0
-        How far the field grid extends beyond the carpet (L).
-    snapshots : int >= 0, default 4
-        Instantaneous velocity-field snapshots.
-    frames : int >= 0, default 40
-        Cilia shape frames over one period of the straight filament.
-    preview : bool, default True
-        A preview image.
-    """
+    SECTION = "output"
 
-    pathlines: bool = True
-    seeds: str | tuple = "line"
-    n_seeds: int = 100
-    periods: float | None = None
-    pathline_model: str = "auto"
-    samples_per_period: int = 16
-    ftle: bool = True
-    field: bool = True
-    field_shape: tuple[int, int] = (80, 80)
-    field_margin: float = 5.0
-    snapshots: int = 4
-    frames: int = 40
-    preview: bool = True
+    pathlines: bool = key(True, "path lines of tracers", "bool")
+    seeds: str | tuple = key("line", "where tracers start: a line upstream of the carpet, across the flow; a grid "
+                             "over it; or explicit points", "pairs", choices=SEEDS)
+    n_seeds: int = key(100, "number of seeds (ignored with explicit points)", "int", lo=1)
+    periods: float | None = key(
+        None, "path-line duration in periods of the straight filament (absent: long enough to cross the carpet at "
+        "its median mean speed)", lo=0, lo_open=True)
+    pathline_model: str = key(
+        "auto", 'the flow tracers follow: time-resolved beat, or the long-time mean flow ("auto": the mean flow '
+        f"when `tolerance` >= its measured error, {MEAN_MODEL_ERROR:g})", "str",
+        choices=("auto", "resolved", "mean"))
+    samples_per_period: int = key(16, "path-line points per beat (dense output)", "int", lo=1)
+    ftle: bool = key(True, "the finite-time Lyapunov exponent field (`ftle.vti`) and the mixing number in the "
+                     "summary", "bool")
+    field: bool = key(True, "the mean velocity field", "bool")
+    field_shape: tuple[int, int] = key((80, 80), "grid of the velocity field", "custom",
+                                       shown="`[nx, ny]` ints >= 2")
+    field_margin: float = key(5.0, "how far the field grid extends beyond the carpet (L)", lo=0)
+    snapshots: int = key(4, "instantaneous velocity-field snapshots", "int", lo=0)
+    frames: int = key(40, "cilia shape frames over one period of the straight filament", "int", lo=0)
+    preview: bool = key(True, "a preview image", "bool")
 
     def __post_init__(self) -> None:
-        _validate(self, _output_kw)
+        validate(self, self.parse)
+
+    @staticmethod
+    def parse(src: str, data) -> dict:
+        r, kw = read(src, OutputSpec, data)
+        fs = r.data.get("field_shape", list(keys_of(OutputSpec)["field_shape"][1]))
+        if (not isinstance(fs, list) or len(fs) != 2
+                or any(isinstance(x, bool) or not isinstance(x, int) or x < 2 for x in fs)):
+            raise r.fail("field_shape", "two integers >= 2 [nx, ny]", fs)
+        kw["field_shape"] = (int(fs[0]), int(fs[1]))
+        return kw
 
     def to_dict(self) -> dict:
-        return _section_dict(self)
+        return section_dict(self)
 
 
+@section
 @dataclass(frozen=True)
 class Units:
-    """``[units]`` (all three keys required when the section is given; absent: dimensionless
-    output): filament length [m], relaxation time [s], fluid viscosity [Pa s]."""
+    """``[units]``: absent: dimensionless output; if present, all three keys are required."""
 
-    length_m: float
-    time_s: float
-    viscosity_Pa_s: float
+    SECTION = "units"
+
+    length_m: float = key(doc="filament length L in metres", lo=0, lo_open=True)
+    time_s: float = key(doc="relaxation time tau in seconds", lo=0, lo_open=True)
+    viscosity_Pa_s: float = key(doc="fluid viscosity in Pa s", lo=0, lo_open=True)
 
     def __post_init__(self) -> None:
-        _validate(self, _units_kw)
+        validate(self, self.parse)
+
+    @staticmethod
+    def parse(src: str, data) -> dict:
+        r = reader(src, Units, data)
+        names = tuple(keys_of(Units))
+        missing = [k for k in names if not r.has(k)]
+        if missing:
+            raise SceneError(f"{src}: [units] needs all of {', '.join(names)} (missing: {', '.join(missing)}); "
+                             f"leave the section out for dimensionless output")
+        return values(r, Units)
 
     def to_dict(self) -> dict:
-        return _section_dict(self)
+        return section_dict(self)
 
     def scales(self):
         """The :class:`~ciliary_carpet.carpet.Scales` of these units."""
@@ -613,24 +424,26 @@ class Units:
         return Scales(self.length_m, self.time_s, self.viscosity_Pa_s)
 
 
+@section
 @dataclass(frozen=True)
 class Scene:
-    """A validated scene (see the module docstring and ``designs/README.md``).
+    """A validated scene (see the module docstring and ``designs/README.md``): the top-level keys
+    below, the sections ``field``, ``table``, ``carpet``, ``target``, ``output`` and ``units``
+    (None: dimensionless), and ``source``: the scene file (None for scenes made in memory), for
+    relative paths and messages."""
 
-    name : str (default: the file's stem); description : str; field, table, carpet, target,
-    output : the sections; tolerance : float in (0, 1), default 1e-3, the flow model's error
-    tolerance; units : Units or None; source : the scene file (None for scenes made in memory),
-    for relative paths and messages.
-    """
+    SECTION = ""
 
-    name: str
-    description: str = ""
+    name: str = key(doc="the scene's name (outputs are named after it)", type="str",
+                    default_shown="file name without `.toml`")
+    description: str = key("", "one line for summaries", "str")
     field: FieldSpec = _field(default_factory=FieldSpec)
     table: TableSpec = _field(default_factory=TableSpec)
     carpet: CarpetSpec = _field(default_factory=CarpetSpec)
     target: TargetSpec = _field(default_factory=TargetSpec)
     output: OutputSpec = _field(default_factory=OutputSpec)
-    tolerance: float = 1e-3
+    tolerance: float = key(1e-3, "error tolerance of the flow model (levels of detail), relative to the cilia's "
+                           "far-field magnitudes", lo=0, hi=1, lo_open=True, hi_open=True)
     units: Units | None = None
     source: Path | None = None
 
@@ -718,8 +531,18 @@ class Scene:
         return replace(self, carpet=c, output=o)
 
 
-# which target keys apply to which kinds (others are an error): from the registry in target.py
-_TARGET_ONLY = {k: applies_to(k) for k in sorted({k for keys in KIND_KEYS.values() for k in keys})}
+
+def reference() -> dict[str, str]:
+    """The key reference of ``designs/README.md``: ``{heading: markdown table}``, made from the
+    sections' field metadata and the registry of target kinds (the tests check the README)."""
+    return {"top level": markdown_table(Scene),
+            "`[field]`": markdown_table(FieldSpec),
+            "`[table]` and `[table.build]`": markdown_table(TableSpec, ("build.", TableBuild)),
+            "`[carpet]`": markdown_table(CarpetSpec),
+            "`[target]`": markdown_table(TargetSpec, kinds=True),
+            "Target kinds": kinds_table(),
+            "`[output]`": markdown_table(OutputSpec),
+            "`[units]`": markdown_table(Units)}
 
 
 # ------------------------------------------------------------------------------ parsing
@@ -748,179 +571,29 @@ def scene_from_dict(data: dict, source=None, *, allow_outside: bool = False) -> 
     src = str(source) if source is not None else "<scene>"
     if not isinstance(data, dict):
         raise SceneError(f"{src}: a scene must be a table of keys, got {type(data).__name__}")
-    sections = ("field", "table", "carpet", "target", "output", "units")
-    _Reader(src, data, "", ("name", "description", "tolerance") + sections)  # unknown keys
-    top = _top_kw(src, {k: v for k, v in data.items() if k not in sections},
+    reader(src, Scene, data, extra=SECTIONS)  # unknown keys
+    top = _top_kw(src, {k: v for k, v in data.items() if k not in SECTIONS},
                   source.stem if source is not None else "scene")
     base = source.parent if source is not None else Path.cwd()
     check_scene_paths(src, data, base, allow_outside=allow_outside)
-    sec = {k: data.get(k, {}) for k in sections}
+    sec = {k: data.get(k, {}) for k in SECTIONS}
     return Scene(
         **top,
-        field=FieldSpec(**_field_kw(src, sec["field"])),
-        table=TableSpec(**_table_kw(src, sec["table"])),
-        carpet=CarpetSpec(**_carpet_kw(src, sec["carpet"])),
-        target=TargetSpec(**_target_kw(src, sec["target"], base)),
-        output=OutputSpec(**_output_kw(src, sec["output"])),
-        units=Units(**_units_kw(src, sec["units"])) if "units" in data else None,
+        field=FieldSpec(**FieldSpec.parse(src, sec["field"])),
+        table=TableSpec(**TableSpec.parse(src, sec["table"])),
+        carpet=CarpetSpec(**CarpetSpec.parse(src, sec["carpet"])),
+        target=TargetSpec(**TargetSpec.parse(src, sec["target"], base)),
+        output=OutputSpec(**OutputSpec.parse(src, sec["output"])),
+        units=Units(**Units.parse(src, sec["units"])) if "units" in data else None,
         source=source,
     )
 
 
 def _top_kw(src, data, default_name="scene") -> dict:
-    r = _Reader(src, data, "", ("name", "description", "tolerance"))
-    name = r.string("name", default_name)
+    r, kw = read(src, Scene, data)
+    name = kw["name"] if kw["name"] is not None else default_name
     if not name.strip():
         raise r.fail("name", "a non-empty string", name)
     check_name(src, "name", name)
-    return dict(name=name, description=r.string("description", ""),
-                tolerance=r.number("tolerance", 1e-3, lo=0, hi=1, lo_open=True, hi_open=True))
-
-
-def _field_kw(src, data) -> dict:
-    r = _Reader(src, data, "field", ("chi_E", "eta", "direction"))
-    return dict(chi_E=r.number("chi_E", 200.0), eta=r.number("eta", 1.0, lo=0, lo_open=True),
-                direction=r.number("direction", 0.0))
-
-
-def _build_kw(src, data) -> dict:
-    b = _Reader(src, data, "table.build", ("n", "degree"))
-    return dict(n=b.integer("n", 41, lo=3), degree=b.integer("degree", 8, lo=2))
-
-
-def _table_kw(src, data) -> dict:
-    r = _Reader(src, data, "table", ("file", "build"))
-    file = r.string("file", "default")
-    if not file.strip():
-        raise r.fail("file", '"default" or a table path', file)
-    build = None
-    if r.has("build"):
-        build = TableBuild(**_build_kw(src, r.table("build")))
-        if file == "default":
-            raise SceneError(f'{src}: [table.build] needs table.file to name where the table is written '
-                             f'(file = "default" is the shipped table)')
-    return dict(file=file, build=build)
-
-
-def _carpet_kw(src, data) -> dict:
-    r = _Reader(src, data, "carpet", tuple(f.name for f in fields(CarpetSpec)))
-    lattice = r.string("lattice", "square", LATTICES)
-    spacing = r.number("spacing", 2.0, lo=0, lo_open=True)
-    points = None
-    if lattice == "points":
-        for k in ("shape", "origin"):
-            if r.has(k):
-                raise SceneError(f"{src}: carpet.{k} does not apply to lattice = \"points\" "
-                                 f"(the base points are carpet.points)")
-        if not r.has("points"):
-            raise SceneError(f"{src}: carpet.points is required with lattice = \"points\" "
-                             f"(a list of base points [[x, y], ...])")
-        points = r.pairs("points", None)
-        shape = ()
-    else:
-        if r.has("points"):
-            raise SceneError(f"{src}: carpet.points applies only to lattice = \"points\" (here "
-                             f"lattice = \"{lattice}\")")
-        if lattice == "row":
-            v = r.data.get("shape", [10])
-            if isinstance(v, list) and len(v) == 1:
-                v = v[0]
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise r.fail("shape", "a positive integer n or [n] for lattice = \"row\"", r.data.get("shape"))
-            shape = (v,)
-        else:
-            v = r.data.get("shape", [10, 10])
-            if (not isinstance(v, list) or len(v) != 2
-                    or any(isinstance(x, bool) or not isinstance(x, int) or x < 1 for x in v)):
-                raise r.fail("shape", f"two positive integers [nx, ny] for lattice = \"{lattice}\"", v)
-            shape = (int(v[0]), int(v[1]))
-    phases = r.string("phases", "random", PHASES)
-    if r.has("wave_vector") and phases != "wave":
-        raise SceneError(f"{src}: carpet.wave_vector applies only to phases = \"wave\" (here phases = \"{phases}\")")
-    return dict(
-        lattice=lattice, shape=shape, spacing=spacing, origin=r.pair("origin", (0.0, 0.0)), points=points,
-        chi_N=r.number("chi_N", 0.0), phases=phases, seed=r.integer("seed", 0, lo=0),
-        wave_vector=r.pair("wave_vector", (0.0, 0.0), "two numbers [kx, ky] (rad per L)"),
-        wall=r.number("wall", None, lo=0, lo_open=True), blob=_blob(r, spacing))
-
-
-def _blob(r, spacing) -> float:
-    blob = r.number("blob", 0.02, lo=0, lo_open=True, what="a positive length in L (the filament radius)")
-    if spacing is not None and blob >= 0.5 * spacing:
-        raise r.fail("blob", f"less than half the spacing ({0.5 * spacing:g} L): the blobs of neighbouring "
-                     "filaments would overlap", blob)
-    return blob
-
-
-def _target_kw(src, data, base_dir=None) -> dict:
-    r = _Reader(src, data, "target", tuple(f.name for f in fields(TargetSpec)))
-    kind = r.string("kind", "none", TARGET_KINDS)
-    for k, kinds in _TARGET_ONLY.items():
-        if r.has(k) and kind not in kinds:
-            raise SceneError(f"{src}: target.{k} does not apply to kind = \"{kind}\" (it is used by kind = "
-                             f"{', '.join(repr(x) for x in kinds)})")
-    if kind == "uniform":
-        angle = r.number("angle", None, lo=-180, hi=180, what="a deflection in degrees in [-180, 180]")
-    else:
-        angle = r.number("angle", None, lo=0, hi=180, lo_open=True,
-                         what="an amplitude in degrees in (0, 180]")
-    file = r.string("file", None)
-    if kind == "points":
-        if file is None:
-            raise SceneError(f"{src}: target.file is required with kind = \"points\" (a CSV with columns "
-                             f"x, y, u, v or a NetCDF file with variables x, y, u, v)")
-        if not file.strip():
-            raise r.fail("file", "a file path", file)
-        p = Path(file).expanduser()
-        if base_dir is not None and not (p if p.is_absolute() else base_dir / p).is_file():
-            raise SceneError(f"{src}: target.file '{file}' not found (looked for {(base_dir / p).absolute()})")
-    control = r.data.get("control", "cells")
-    if isinstance(control, str):
-        if control not in CONTROLS:
-            raise r.fail("control", '"cells", "cilia" or a list of points [[x, y], ...]', control)
-    else:
-        control = r.pairs("control", None, '"cells", "cilia" or a list of points [[x, y], ...]')
-    sigma, robust = r.number("sigma", 0.0, lo=0), r.boolean("robust", False)
-    if robust and not sigma > 0:
-        raise r.fail("robust", "false unless target.sigma > 0 (it designs for the fabrication tolerance sigma)",
-                     robust)
-    return dict(
-        kind=kind, angle=angle, line=r.number("line", 0.0), width=r.number("width", None, lo=0, lo_open=True),
-        centre=r.pair("centre", None), file=file, control=control,
-        residual=r.number("residual", 0.05, lo=0, lo_open=True), strict=r.boolean("strict", False),
-        speed_floor=r.number("speed_floor", 0.3, lo=0, hi=1, hi_open=True),
-        smoothness=r.number("smoothness", 0.0, lo=0), sigma=sigma,
-        samples=r.integer("samples", 64, lo=1), robust=robust)
-
-
-def _output_kw(src, data) -> dict:
-    r = _Reader(src, data, "output", tuple(f.name for f in fields(OutputSpec)))
-    seeds = r.data.get("seeds", "line")
-    if isinstance(seeds, str):
-        if seeds not in SEEDS:
-            raise r.fail("seeds", '"line", "grid" or a list of points [[x, y], ...]', seeds)
-    else:
-        seeds = r.pairs("seeds", None, '"line", "grid" or a list of points [[x, y], ...]')
-    fs = r.data.get("field_shape", [80, 80])
-    if (not isinstance(fs, list) or len(fs) != 2
-            or any(isinstance(x, bool) or not isinstance(x, int) or x < 2 for x in fs)):
-        raise r.fail("field_shape", "two integers >= 2 [nx, ny]", fs)
-    return dict(
-        pathlines=r.boolean("pathlines", True), seeds=seeds, n_seeds=r.integer("n_seeds", 100, lo=1),
-        periods=r.number("periods", None, lo=0, lo_open=True),
-        pathline_model=r.string("pathline_model", "auto", ("auto", "resolved", "mean")),
-        samples_per_period=r.integer("samples_per_period", 16, lo=1), ftle=r.boolean("ftle", True),
-        field=r.boolean("field", True),
-        field_shape=(int(fs[0]), int(fs[1])), field_margin=r.number("field_margin", 5.0, lo=0),
-        snapshots=r.integer("snapshots", 4, lo=0), frames=r.integer("frames", 40, lo=0),
-        preview=r.boolean("preview", True))
-
-
-def _units_kw(src, data) -> dict:
-    keys = ("length_m", "time_s", "viscosity_Pa_s")
-    r = _Reader(src, data, "units", keys)
-    missing = [k for k in keys if not r.has(k)]
-    if missing:
-        raise SceneError(f"{src}: [units] needs all of {', '.join(keys)} (missing: {', '.join(missing)}); "
-                         f"leave the section out for dimensionless output")
-    return {k: r.number(k, None, lo=0, lo_open=True) for k in keys}
+    kw["name"] = name
+    return kw

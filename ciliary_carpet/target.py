@@ -11,27 +11,20 @@ along ``d0`` rotated by ``delta``, i.e. ``cos(delta) d0 + sin(delta) cross``: a 
 turns the flow toward +cross. The table's reachable |delta| is
 ``table.thrust_angle_range()`` (about [0, 0.925] rad for chi_E = 200, eta = 1).
 
-Patterns (``A`` the amplitude in rad, ``w`` the width, ``xi = (x - centre) . cross - line`` the
-cross-stream coordinate measured from the line)
---------------------------------------------------------------------------------
-* ``uniform``: delta = A everywhere (A signed).
-* ``focus``: delta = -A tanh(xi / w): on both sides the flow is turned toward the line
-  (xi < 0: delta > 0, toward +cross; xi > 0: toward -cross), straight on the line.
-* ``spread``: delta = +A tanh(xi / w): away from the line on both sides.
-* ``shear``: delta = (A / 2) (1 - tanh(xi / w)): the side xi < 0 (the -cross side: for the
-  field along +y, the -x half, on the left of a plot) flows at A from d0, the side xi > 0
-  straight along d0, with the change over the width w. Two streams side by side whose
-  directions differ by A: a layer of shear in the direction of the flow. (Unlike focus and
-  spread it is not antisymmetric about the line, so the three are distinct.)
-* ``turn``: the flow turns anticlockwise around ``centre``, within what the cilia can do:
-  delta = A (t . cross), t the unit anticlockwise tangent ``rot90(x - centre)/|x - centre|``,
-  i.e. A times the sine of the angle from d0 to the tangent. The cilia cannot push upstream, so
-  the flow is turned fully (+-A) where the tangent is across the stream (upstream and downstream
-  of the centre), not at all where it runs with or against it, and smoothly in between (a
-  clipped tangent would jump from +A to -A behind the centre, which no superposition of
-  Stokeslets can follow). delta = 0 at the centre itself.
-* ``points``: target velocities (lab frame, model units L / tau) at given control points, read
-  from a file (:func:`read_target_points`).
+Kinds
+-----
+:data:`PATTERNS` is the registry of target kinds: each :class:`Pattern` with its formula (``A``
+the amplitude in rad, ``w`` the width, ``xi = (x - centre) . cross - line`` the cross-stream
+coordinate measured from the line), its deflection function and the geometry keys it reads.
+The ``[target]`` section of a scene file is :class:`TargetSpec`, whose fields hold each key's
+default, range and the kinds it applies to (:mod:`ciliary_carpet.schema`); the scene parser, the
+key reference of ``designs/README.md`` and the kinds table there are made from these two (a test
+checks the README). Adding a pattern means adding a :class:`Pattern` here (and a key to
+:class:`TargetSpec` if it needs one). The shear pattern is not antisymmetric about its line
+(unlike focus and spread), so the three are distinct; the turn cannot push upstream, so it turns
+the flow fully (+-A) where the tangent is across the stream and not at all where it runs with or
+against it (a clipped tangent would jump from +A to -A behind the centre, which no superposition
+of Stokeslets can follow).
 
 Control points (:func:`control_points`): "cilia" = every base point moved half a spacing
 downstream (along d0); "cells" = the centres of the lattice cells: the circumcentres of the
@@ -46,46 +39,27 @@ import csv
 import io
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
+
+from .schema import Key, SceneError, key, keys_of, reader, section, section_dict, validate, values
 
 if TYPE_CHECKING:
     from single_cilium.table import ThrustTable
 
-    from .scene import Scene, TargetSpec
+    from .scene import Scene
 
-__all__ = ["TargetError", "UnreachableTargetError", "Target", "Frame", "control_points", "reachable_check",
-           "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS", "KIND_KEYS", "applies_to"]
+__all__ = ["TargetError", "UnreachableTargetError", "Target", "TargetSpec", "Frame", "Pattern", "PATTERNS",
+           "control_points", "reachable_check", "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS",
+           "ANGLE_KINDS", "KIND_KEYS", "applies_to", "kinds_table"]
 
-_DESIGN_KEYS = ("residual", "strict", "smoothness", "sigma", "samples", "robust")
-_ANGLE_KEYS = ("angle", "control", "speed_floor") + _DESIGN_KEYS
-KIND_KEYS: dict[str, tuple[str, ...]] = {
-    "none": (),
-    "uniform": _ANGLE_KEYS,
-    "focus": _ANGLE_KEYS + ("line", "width"),
-    "spread": _ANGLE_KEYS + ("line", "width"),
-    "shear": _ANGLE_KEYS + ("line", "width"),
-    "turn": _ANGLE_KEYS + ("centre",),
-    "points": ("file",) + _DESIGN_KEYS,
-}
-"""The registry of target kinds: each kind with the ``[target]`` keys (besides ``kind``) that
-apply to it. The scene schema (:mod:`ciliary_carpet.scene`: which keys a kind accepts) and the
-key table of ``designs/README.md`` (checked by the tests) derive from it; adding a pattern means
-adding it here and to :meth:`Target.deflection`."""
-KINDS = tuple(KIND_KEYS)
-ANGLE_KINDS = ("uniform", "focus", "spread", "shear", "turn")
 DEFAULT_ANGLE_FRACTION = 0.9
 """Without ``target.angle`` the amplitude is this fraction of the table's reachable maximum."""
 CSV_SUFFIXES = (".csv", ".txt")
 NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".netcdf", ".h5", ".hdf5")
-
-
-def applies_to(key: str) -> tuple[str, ...]:
-    """The target kinds a ``[target]`` key applies to (from :data:`KIND_KEYS`)."""
-    return tuple(k for k, keys in KIND_KEYS.items() if key in keys)
 
 
 class TargetError(ValueError):
@@ -94,6 +68,202 @@ class TargetError(ValueError):
 
 class UnreachableTargetError(TargetError):
     """Deflections outside the table's reachable range: a target the cilia cannot make."""
+
+
+# ------------------------------------------------------------------------------ the kinds
+@dataclass(frozen=True)
+class Pattern:
+    """One target kind of the registry :data:`PATTERNS`.
+
+    name : the value of ``target.kind``.
+    doc : what it asks, with its formula (README kinds table).
+    keys : the ``[target]`` keys of its own geometry (line, width, centre, file); the keys every
+        angle kind or every designed kind takes say so themselves (:class:`TargetSpec`).
+    deflection : ``f(target, points (P, 2), frame) -> delta (P,)`` [rad] for the angle kinds;
+        None for "none" and "points".
+    signed : ``target.angle`` is a signed deflection in [-180, 180] (else an amplitude in (0, 180]).
+    two_sided : the flow turns toward (or away from) a line from both sides: the design's
+        estimate of the reachable amplitude of such a pattern applies
+        (:func:`~ciliary_carpet.design.reachability`).
+    """
+
+    name: str
+    doc: str
+    keys: tuple[str, ...] = ()
+    deflection: Callable | None = None
+    signed: bool = False
+    two_sided: bool = False
+
+
+def _across_line(t: "Target", x: np.ndarray, frame: "Frame") -> np.ndarray:
+    """tanh(xi / w), xi the cross-stream coordinate from the line, w the width (one spacing)."""
+    w = t.width if t.width is not None else frame.spacing
+    xi = frame.cross_coordinate(x) - t.line
+    return np.tanh(xi / w)
+
+
+def _turn(t: "Target", x: np.ndarray, frame: "Frame") -> np.ndarray:
+    c = frame.centre if t.centre is None else np.asarray(t.centre)
+    r = x - c
+    tg = np.column_stack([-r[:, 1], r[:, 0]])  # anticlockwise tangent (unnormalised)
+    n = np.hypot(tg[:, 0], tg[:, 1])
+    return t.amplitude * np.where(n > 0, (tg @ frame.cross) / np.where(n > 0, n, 1.0), 0.0)
+
+
+PATTERNS: tuple[Pattern, ...] = (
+    Pattern("none", "no target: every cilium gets `carpet.chi_N`"),
+    Pattern("uniform", "delta = A everywhere (A signed)",
+            deflection=lambda t, x, fr: np.full(x.shape[0], t.amplitude), signed=True),
+    Pattern("focus", "delta = -A tanh(xi / w): the flow turns toward the line from both sides", ("line", "width"),
+            deflection=lambda t, x, fr: -t.amplitude * _across_line(t, x, fr), two_sided=True),
+    Pattern("spread", "delta = +A tanh(xi / w): away from the line on both sides", ("line", "width"),
+            deflection=lambda t, x, fr: t.amplitude * _across_line(t, x, fr), two_sided=True),
+    Pattern("shear", "delta = (A / 2) (1 - tanh(xi / w)): the -cross side (direction 0: the left, x below the "
+            "line) turned by A, the other side straight: two streams side by side, a layer of shear",
+            ("line", "width"), deflection=lambda t, x, fr: 0.5 * t.amplitude * (1.0 - _across_line(t, x, fr))),
+    Pattern("turn", "delta = A times the sine of the angle from d0 to the anticlockwise tangent around `centre`: "
+            "full (+-A) upstream and downstream of the centre, zero beside it (the cilia cannot push upstream), "
+            "smooth in between; 0 at the centre", ("centre",), deflection=_turn),
+    Pattern("points", "target velocities (lab frame, model units L / tau) at control points read from `file`",
+            ("file",)),
+)
+"""The registry of target kinds."""
+_PATTERN = {p.name: p for p in PATTERNS}
+KINDS = tuple(_PATTERN)
+ANGLE_KINDS = tuple(p.name for p in PATTERNS if p.deflection is not None)
+_DESIGNED = tuple(k for k in KINDS if k != "none")
+
+
+def _uses(name: str) -> tuple[str, ...]:
+    return tuple(p.name for p in PATTERNS if name in p.keys)
+
+
+# ------------------------------------------------------------------------------ the [target] section
+@section
+@dataclass(frozen=True)
+class TargetSpec:
+    """``[target]``: the flow the carpet is designed for, as the scene file gives it (resolved by
+    :meth:`Target.from_spec`; the kinds are :data:`PATTERNS`)."""
+
+    SECTION = "target"
+
+    kind: str = key("none", 'the target kind (table "Target kinds")', "str", choices=KINDS)
+    angle: float | None = key(
+        None, "uniform: the deflection (signed); patterns: the amplitude A (> 0)", "custom",
+        shown="float (degrees)", default_shown=f"{DEFAULT_ANGLE_FRACTION:.0%} of the table's reachable maximum",
+        kinds=ANGLE_KINDS)
+    line: float = key(0.0, "position of the line along the cross-stream axis, from the carpet's centre (L)",
+                      kinds=_uses("line"))
+    width: float | None = key(None, "transition width w (L)", lo=0, lo_open=True, default_shown="one spacing",
+                              kinds=_uses("width"))
+    centre: tuple[float, float] | None = key(None, "the centre of the turn", "pair",
+                                             default_shown="the carpet's centre", kinds=_uses("centre"))
+    file: str | None = key(
+        None, "CSV (header with columns x, y, u, v; `#` comments) or NetCDF (variables x, y, u, v along one "
+        "dimension) of control points and target velocities (lab frame, model units L/tau), relative to the "
+        "scene file; required", "custom", shown="string", default_shown="-", kinds=_uses("file"))
+    control: str | tuple = key(
+        "cells", 'where the designed mean flow is compared with the target: `"cilia"`: each base point moved '
+        'half a spacing downstream; `"cells"`: the cell centres (circumcentres of the Delaunay triangles of the '
+        'base points: square cells\' centres, hexagonal triangles\' centres; a row uses the `"cilia"` rule). '
+        "Control points more than 2 spacings + 1 L from every base, or inside a cilium's swept region, are an "
+        "error", "pairs", choices=("cells", "cilia"), kinds=ANGLE_KINDS)
+    residual: float = key(
+        0.05, 'acceptance threshold on the design\'s rms residual (rad for angle targets, relative to rms target '
+        'speed for `"points"`); the test suite checks it', lo=0, lo_open=True, kinds=_DESIGNED)
+    strict: bool = key(
+        False, "`false`: clip unreachable angles and return the closest flow when the residual is above "
+        "`residual` (with a warning); `true`: both are errors (exit status 3)", "bool", kinds=_DESIGNED)
+    speed_floor: float = key(
+        0.3, "the speed along the target direction each control point keeps, as a fraction of the speed the "
+        "straight cilia within 5 spacings make there (keeps the design from switching cilia off; local, so that "
+        "it means the same on every carpet size)", lo=0, hi=1, hi_open=True, kinds=ANGLE_KINDS)
+    smoothness: float = key(
+        0.0, "weight of the neighbour-difference regulariser (Delaunay neighbours): larger gives layouts with "
+        "fewer distinct curvatures", lo=0, kinds=_DESIGNED)
+    sigma: float = key(
+        0.0, "fabrication tolerance: relative chi_N error of the cilia; > 0 adds the expected residual and its "
+        "spread to the design's summary (sampled on the design model with the full model's defect at the "
+        "design; the sampling error is reported)", lo=0, kinds=_DESIGNED)
+    samples: int = key(64, "samples of the tolerance study", "int", lo=1, kinds=_DESIGNED)
+    robust: bool = key(
+        False, "design for the expected residual under `sigma` instead of the nominal one: the objective is "
+        "averaged over 16 fixed samples of chi_N (1 + sigma eps) (a sample average; its error shows in the "
+        "tolerance study, whose samples are independent of them); needs `sigma` > 0", "bool", kinds=_DESIGNED)
+
+    def __post_init__(self) -> None:
+        validate(self, self.parse)
+
+    @staticmethod
+    def parse(src: str, data, base_dir=None) -> dict:
+        """The keyword arguments of the ``[target]`` table ``data`` (from file ``src``; with
+        ``base_dir``, a "points" file must exist there); SceneError naming the key otherwise."""
+        r = reader(src, TargetSpec, data)
+        spec = keys_of(TargetSpec)
+        kind = r.get("kind", *spec["kind"])
+        for k, (s, _) in spec.items():  # before the values: the clearer message
+            if r.has(k) and s.kinds is not None and kind not in s.kinds:
+                raise SceneError(f"{src}: target.{k} does not apply to kind = \"{kind}\" (it is used by kind = "
+                                 f"{', '.join(repr(x) for x in s.kinds)})")
+        kw = values(r, TargetSpec)
+        if _PATTERN[kind].signed:
+            angle = Key("float", "", lo=-180, hi=180, what="a deflection in degrees in [-180, 180]")
+        else:
+            angle = Key("float", "", lo=0, hi=180, lo_open=True, what="an amplitude in degrees in (0, 180]")
+        kw["angle"] = r.get("angle", angle, None)
+        file = kw["file"] = r.get("file", Key("str", ""), None)
+        if "file" in _PATTERN[kind].keys:
+            if file is None:
+                raise SceneError(f"{src}: target.file is required with kind = \"{kind}\" (a CSV with columns "
+                                 f"x, y, u, v or a NetCDF file with variables x, y, u, v)")
+            if not file.strip():
+                raise r.fail("file", "a file path", file)
+            p = Path(file).expanduser()
+            if base_dir is not None and not (p if p.is_absolute() else base_dir / p).is_file():
+                raise SceneError(f"{src}: target.file '{file}' not found (looked for {(base_dir / p).absolute()})")
+        if kw["robust"] and not kw["sigma"] > 0:
+            raise r.fail("robust", "false unless target.sigma > 0 (it designs for the fabrication tolerance sigma)",
+                         kw["robust"])
+        return kw
+
+    def to_dict(self) -> dict:
+        """The section as TOML types (keys that do not apply to the kind left out)."""
+        if self.kind == "none":
+            return {"kind": "none"}
+        d = section_dict(self)
+        for k, (spec, _) in keys_of(TargetSpec).items():
+            if spec.kinds is not None and self.kind not in spec.kinds:
+                d.pop(k, None)
+        return d
+
+    @property
+    def angle_rad(self) -> float | None:
+        return None if self.angle is None else math.radians(self.angle)
+
+
+KIND_KEYS: dict[str, tuple[str, ...]] = {
+    kind: tuple(k for k, (spec, _) in keys_of(TargetSpec).items() if spec.kinds is not None and kind in spec.kinds)
+    for kind in KINDS}
+"""Each kind with the ``[target]`` keys (besides ``kind``) that apply to it (from :class:`TargetSpec`)."""
+
+
+def applies_to(name: str) -> tuple[str, ...]:
+    """The target kinds the ``[target]`` key ``name`` applies to (every kind for ``kind``; none for
+    an unknown key)."""
+    spec = keys_of(TargetSpec).get(name)
+    if spec is None:
+        return ()
+    return KINDS if spec[0].kinds is None else spec[0].kinds
+
+
+def kinds_table() -> str:
+    """The "Target kinds" table of ``designs/README.md``: each kind, the keys of its own geometry
+    (the others: the kinds column of the key table) and its pattern."""
+    rows = ["| kind | its own keys | pattern |", "|---|---|---|"]
+    for p in PATTERNS:
+        ks = ", ".join(f"`{k}`" for k in p.keys) or "-"
+        rows.append(f'| `"{p.name}"` | {ks} | {p.doc} |')
+    return "\n".join(rows)
 
 
 def _xy(name: str, v, shape=None) -> np.ndarray:
@@ -179,6 +349,11 @@ class Frame:
 
 
 # ------------------------------------------------------------------------------ target
+def _as_in_spec(name: str):
+    """The default of the ``[target]`` key ``name`` (its one home is :class:`TargetSpec`)."""
+    return keys_of(TargetSpec)[name][1]
+
+
 @dataclass(frozen=True, eq=False)
 class Target:
     """A resolved target (from a scene's ``[target]`` by :meth:`from_spec` / :meth:`from_scene`).
@@ -187,17 +362,11 @@ class Target:
     amplitude : float or None
         RADIANS: the deflection (uniform, signed) or the pattern amplitude (> 0); None for
         "none" and "points".
-    line : cross-stream offset of the line from the centre (focus/spread/shear), L.
-    width : transition width (L), or None = ``frame.spacing``.
-    centre : (x, y) of the turn, or None = ``frame.centre``.
-    control : "cells" | "cilia" | tuple of (x, y): see :func:`control_points`.
-    strict : unreachable angles and a residual above ``residual`` are errors (else: clipped /
-        the closest flow, with a warning).
-    speed_floor, smoothness : design settings (:func:`~ciliary_carpet.design.design_layout`).
-    sigma, samples : the fabrication-tolerance study (:func:`~ciliary_carpet.design.tolerance_study`).
-    robust : design for the expected objective under the relative chi_N error ``sigma`` (needs
-        sigma > 0; ``robust_sigma`` of :func:`~ciliary_carpet.design.design_layout`).
-    residual : acceptance threshold on the design's rms residual.
+    line, width, centre, control, residual, strict, speed_floor, smoothness, sigma, samples, robust :
+        as the keys of :class:`TargetSpec` (same defaults): width None = ``frame.spacing``,
+        centre None = ``frame.centre``; ``control`` see :func:`control_points`; the design
+        settings go to :func:`~ciliary_carpet.design.design_layout` (``robust``: its
+        ``robust_sigma``) and :func:`~ciliary_carpet.design.tolerance_study`.
     data_points, data_velocities : (P, 2) arrays for kind "points" (else None); see
         :meth:`velocities`.
     source : the control-point file for kind "points" (for messages).
@@ -205,17 +374,17 @@ class Target:
 
     kind: str
     amplitude: float | None = None
-    line: float = 0.0
-    width: float | None = None
-    centre: tuple | None = None
-    control: object = "cells"
-    residual: float = 0.05
-    strict: bool = False
-    speed_floor: float = 0.3
-    smoothness: float = 0.0
-    sigma: float = 0.0
-    samples: int = 64
-    robust: bool = False
+    line: float = _as_in_spec("line")
+    width: float | None = _as_in_spec("width")
+    centre: tuple | None = _as_in_spec("centre")
+    control: object = _as_in_spec("control")
+    residual: float = _as_in_spec("residual")
+    strict: bool = _as_in_spec("strict")
+    speed_floor: float = _as_in_spec("speed_floor")
+    smoothness: float = _as_in_spec("smoothness")
+    sigma: float = _as_in_spec("sigma")
+    samples: int = _as_in_spec("samples")
+    robust: bool = _as_in_spec("robust")
     data_points: np.ndarray | None = None
     data_velocities: np.ndarray | None = None
     source: str | None = None
@@ -223,10 +392,10 @@ class Target:
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise TargetError(f"target kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
-        if self.kind in ANGLE_KINDS:
+        if self.is_angle:
             if self.amplitude is None or not math.isfinite(self.amplitude):
                 raise TargetError(f"target kind {self.kind!r} needs a finite amplitude (rad), got {self.amplitude!r}")
-            if self.kind != "uniform" and self.amplitude <= 0:
+            if not self.pattern.signed and self.amplitude <= 0:
                 raise TargetError(f"the amplitude of a {self.kind!r} target must be > 0, got {self.amplitude!r}")
             object.__setattr__(self, "amplitude", float(self.amplitude))
         if self.robust and not self.sigma > 0:
@@ -250,11 +419,11 @@ class Target:
 
     # -------------------------------------------------------------------- construction
     @classmethod
-    def from_spec(cls, spec: "TargetSpec", base_dir=None, angle_max: float | None = None) -> "Target":
-        """Resolve a :class:`~ciliary_carpet.scene.TargetSpec`: angle in degrees -> amplitude in
-        radians (default :data:`DEFAULT_ANGLE_FRACTION` x ``angle_max``, the table's reachable
-        maximum in radians, which must then be given), and for kind "points" the control file
-        read from ``base_dir`` (default: the working directory)."""
+    def from_spec(cls, spec: TargetSpec, base_dir=None, angle_max: float | None = None) -> "Target":
+        """Resolve a :class:`TargetSpec`: angle in degrees -> amplitude in radians (default
+        :data:`DEFAULT_ANGLE_FRACTION` x ``angle_max``, the table's reachable maximum in radians,
+        which must then be given), and for kind "points" the control file read from ``base_dir``
+        (default: the working directory); the other keys are taken as they are."""
         amp = None
         if spec.kind in ANGLE_KINDS:
             if spec.angle is not None:
@@ -271,11 +440,8 @@ class Target:
                 p = Path(base_dir if base_dir is not None else Path.cwd()) / p
             pts, vel = read_target_points(p)
             src = str(p)
-        return cls(kind=spec.kind, amplitude=amp, line=spec.line, width=spec.width, centre=spec.centre,
-                   control=spec.control, residual=spec.residual, strict=spec.strict,
-                   speed_floor=spec.speed_floor, smoothness=spec.smoothness, sigma=spec.sigma,
-                   samples=spec.samples, robust=spec.robust, data_points=pts,
-                   data_velocities=vel, source=src)
+        return cls(amplitude=amp, data_points=pts, data_velocities=vel, source=src,
+                   **{k: getattr(spec, k) for k in _FROM_SPEC})
 
     @classmethod
     def from_scene(cls, scene: "Scene", table: "ThrustTable | None" = None) -> "Target":
@@ -289,34 +455,22 @@ class Target:
 
     # -------------------------------------------------------------------- evaluation
     @property
+    def pattern(self) -> Pattern:
+        """This kind's entry of :data:`PATTERNS`."""
+        return _PATTERN[self.kind]
+
+    @property
     def is_angle(self) -> bool:
         """True for deflection targets (uniform and the patterns)."""
-        return self.kind in ANGLE_KINDS
+        return self.pattern.deflection is not None
 
     def deflection(self, points, frame: Frame) -> np.ndarray:
-        """(P,) target deflection delta [rad] at ``points`` (P, 2) for the angle kinds (uniform,
-        focus, spread, shear, turn); see the module docstring for the formulas."""
+        """(P,) target deflection delta [rad] at ``points`` (P, 2) for the angle kinds (the
+        formulas: :data:`PATTERNS`)."""
         if not self.is_angle:
             raise TargetError(f"a {self.kind!r} target has no deflection angles"
                               + (" (use velocities())" if self.kind == "points" else ""))
-        x = _points("points", points)
-        A = self.amplitude
-        if self.kind == "uniform":
-            return np.full(x.shape[0], A)
-        if self.kind == "turn":
-            c = frame.centre if self.centre is None else np.asarray(self.centre)
-            r = x - c
-            t = np.column_stack([-r[:, 1], r[:, 0]])  # anticlockwise tangent (unnormalised)
-            n = np.hypot(t[:, 0], t[:, 1])
-            return A * np.where(n > 0, (t @ frame.cross) / np.where(n > 0, n, 1.0), 0.0)
-        w = self.width if self.width is not None else frame.spacing
-        xi = frame.cross_coordinate(x) - self.line
-        th = np.tanh(xi / w)
-        if self.kind == "focus":
-            return -A * th
-        if self.kind == "spread":
-            return A * th
-        return 0.5 * A * (1.0 - th)  # shear
+        return self.pattern.deflection(self, _points("points", points), frame)
 
     def directions(self, points, frame: Frame) -> np.ndarray:
         """(P, 2) unit target flow directions at ``points`` (d0 rotated by the deflection)."""
@@ -328,6 +482,10 @@ class Target:
         if self.kind != "points":
             raise TargetError(f"a {self.kind!r} target has no target velocities (only kind 'points')")
         return np.array(self.data_points), np.array(self.data_velocities)
+
+
+_FROM_SPEC = tuple(f.name for f in fields(Target) if f.name in keys_of(TargetSpec))
+"""The fields of :class:`Target` that are ``[target]`` keys, taken from the spec as they are."""
 
 
 # ------------------------------------------------------------------------------ control points
