@@ -29,7 +29,7 @@ from single_cilium.table import TableError
 
 from .design import DesignError, design
 from .paths import ALLOW_ENV
-from .render import SUMMARY, RenderError, check_resources, check_table_range, is_complete, owned_files, render
+from .render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
 from .scene import Scene, SceneError, load_scene
 from .target import TargetError, UnreachableTargetError
 from .vtkfiles import OutputError
@@ -67,9 +67,7 @@ def _cmd_design(a) -> int:
         raise RenderError(f"{out} is a folder; the layout is a file (.nc)")
     scene = _scene(a.scene, a.reduced)
     check_resources(scene, max_seconds=a.max_hours * 3600)
-    table = scene.load_table()
-    check_table_range(scene, table)
-    d, carpet = design(scene, table)
+    d, carpet = design(scene)
     if d is None:
         raise SceneError(f"{scene.source_name}: the scene has no [target] to design for")
     write_netcdf(d.to_dataset(carpet), out)

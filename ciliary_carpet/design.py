@@ -85,13 +85,14 @@ from scipy.optimize import minimize
 
 from single_cilium.table import ThrustTable
 
+from .assembly import assemble
 from .carpet import Carpet
 from .stokeslet import Wall, stokeslet_velocity, stokeslet_velocity_ranges
-from .target import Frame, Target, TargetError, control_points, reachable_check
+from .target import Frame, TargetError, control_points, reachable_check
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["design", "design_layout", "carpet_with", "scene_carpet", "Design", "DesignError", "DesignModel",
+__all__ = ["design", "design_layout", "carpet_with", "Design", "DesignError", "DesignModel",
            "ToleranceStudy", "tolerance_study",
            "CycleMoments", "cycle_moments", "angle_objective", "floor_reference", "FLOOR_RADIUS_SPACINGS",
            "Reachability", "reachability", "check_control_points", "NEAR_CUTOFF_FRACTION"]
@@ -855,15 +856,6 @@ def carpet_with(design: Design, carpet: Carpet) -> Carpet:
     return _with_chi(carpet, design.chi_N)
 
 
-def scene_carpet(scene, table: ThrustTable | None = None, chi_N=None) -> Carpet:
-    """The carpet a scene describes (its own chi_N unless ``chi_N`` is given)."""
-    table = table if table is not None else scene.load_table()
-    bases = scene.carpet.bases()
-    return Carpet(bases, scene.carpet.chi_N if chi_N is None else chi_N, table,
-                  scene.carpet.initial_phases(bases), direction=scene.field.direction_rad, wall=scene.carpet.wall,
-                  scales=None if scene.units is None else scene.units.scales(), blob=scene.carpet.blob)
-
-
 def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carpet]:
     """Design the scene's carpet for its target: returns (Design, the designed Carpet), or
     (None, the scene's carpet) when the scene has no target.
@@ -874,12 +866,10 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     a warning naming the worst control points; with ``[target] strict = true`` it is a
     DesignError (exit status 3 of the command line) and unreachable angle requests are a
     TargetError instead of being clipped."""
-    table = table if table is not None else scene.load_table()
-    target = Target.from_scene(scene, table)
+    a = assemble(scene, table)
+    table, target, bases, frame = a.table, a.target, a.bases, a.frame
     if target.kind == "none":
-        return None, scene_carpet(scene, table)
-    bases = scene.carpet.bases()
-    frame = Frame.from_scene(scene, bases)
+        return None, a.carpet()
     strict = target.strict
     kw = dict(tol=scene.tolerance, speed_floor=target.speed_floor, smoothness=target.smoothness,
               spacing=scene.carpet.spacing, robust_sigma=target.sigma if target.robust else 0.0)
@@ -893,26 +883,26 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
         want, bad = reachable_check(target.deflection(centres0, frame), table.thrust_angle_range(), not strict,
                                     what="cilium", points=bases)
         chi0 = np.array([table.chi_N_for_angle(x) for x in want])
-        carpet = scene_carpet(scene, table, chi_N=chi0)
+        carpet = a.carpet(chi0)
         X = control_points(bases, frame, target.control)
         d = design_layout(carpet, X, angles=target.deflection(X, frame), cilium_angles=want, clip=not strict,
                           **kw)
         reach = reachability(d.carpet, X, frame, target.speed_floor, target.line)
         d = _replace(d, reachability=reach.summary(), **({"clipped": tuple(np.nonzero(bad)[0].tolist())}
                                                         if np.any(bad) else {}))
-        if target.kind in ("focus", "spread") and target.amplitude > reach.pattern_max:
+        if target.pattern.two_sided and target.amplitude > reach.pattern_max:
             logger.info("design: the %s amplitude %.1f deg exceeds the estimated reachable %.1f deg of a two-sided "
                         "pattern on this carpet", target.kind, math.degrees(target.amplitude),
                         math.degrees(reach.pattern_max))
     else:
-        carpet = scene_carpet(scene, table)
+        carpet = a.carpet()
         X, U = target.velocities()
         d = design_layout(carpet, X, velocities=U, clip=not strict, **kw)
     if d.residual_rms > target.residual:
         unit = "rad" if d.kind == "angle" else "relative"
         lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
         est = ""
-        if target.kind in ("focus", "spread") and d.reachability is not None:
+        if target.pattern.two_sided and d.reachability is not None:
             est = (f" (estimated reachable amplitude of a two-sided pattern on this carpet: "
                    f"{d.reachability['pattern_max_deg']:.1f} deg, asked {math.degrees(target.amplitude):.1f} deg)")
         msg = (f"{scene.source_name}: the cilia cannot make this target: rms residual {d.residual_rms:.3g} "

@@ -68,6 +68,7 @@ import numpy as np
 from single_cilium._io import non_finite, strict_json, write_netcdf
 from single_cilium.progress import Progress
 
+from .assembly import check_table_range
 from .carpet import Carpet
 from .design import design
 from .ftle import ftle_field
@@ -424,15 +425,6 @@ def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
     return est
 
 
-def check_table_range(scene: Scene, table) -> None:
-    """SceneError naming ``carpet.chi_N`` when it lies outside ``table``'s range."""
-    lo, hi = table.chi_N_range
-    c = scene.carpet.chi_N
-    if not lo <= abs(c) <= hi:
-        raise SceneError(f"{scene.source_name}: carpet.chi_N = {c:g} is outside the thrust table's range "
-                         f"[{lo:g}, {hi:g}] (by mirror symmetry also negative; the top is the flutter cutoff)")
-
-
 # ------------------------------------------------------------------------------ output folder
 _STAGE_TAIL = re.compile(r"(\d+)\.[A-Za-z0-9_]+\.partial\Z")
 
@@ -558,9 +550,8 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     progress = progress if progress is not None else Progress()
     clock = {}
     t0 = _time.perf_counter()
-    table = scene.load_table()
-    check_table_range(scene, table)
-    d, carpet = design(scene, table)
+    d, carpet = design(scene)  # table, range check, target and carpet: assembly.assemble
+    table = carpet.table
     clock["design"] = _time.perf_counter() - t0
     o, tol = scene.output, scene.tolerance
     seeds = check_seeds(carpet, _seeds(scene, carpet)) if o.pathlines else None  # SeedError before any output

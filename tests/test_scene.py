@@ -1,5 +1,7 @@
 """Scene files: parsing, defaults, validation messages, the table spec, reduced scenes."""
 import dataclasses
+import hashlib
+import json
 import math
 from pathlib import Path
 
@@ -334,3 +336,114 @@ def test_robust_needs_a_fabrication_tolerance(tmp_path):
     p.write_text(base + "sigma = 0.1\n")
     s = load_scene(p)
     assert s.target.robust and Target.from_scene(s).robust
+
+
+# ------------------------------------------------------------------------------ one home per default
+RESOLVED = Path(__file__).resolve().parent / "data" / "scene_resolved.json"
+
+
+def _digest(a) -> list:
+    a = np.ascontiguousarray(np.asarray(a, dtype=float))
+    return [list(a.shape), hashlib.sha256(a.tobytes()).hexdigest()[:16]]
+
+
+def resolved_now() -> dict:
+    """What the bundled designs resolve to through the one builder (scene keys with defaults
+    filled, target, frame, carpet, control points and target deflections), and the defaults of
+    an empty scene, of each angle kind and of a Target made in code."""
+    from ciliary_carpet.assembly import assemble
+    from ciliary_carpet.target import ANGLE_KINDS, Target, control_points
+
+    out = {}
+    for path in DESIGN_FILES:
+        s = load_scene(path)
+        a = assemble(s)
+        t, fr, c = a.target, a.frame, a.carpet()
+        d = {"scene": s.to_dict(),
+             "target": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(t).items()
+                        if k not in ("data_points", "data_velocities")},
+             "frame": [fr.centre.tolist(), fr.flow_direction.tolist(), fr.spacing],
+             "carpet": {"bases": _digest(c.bases), "chi_N": _digest(c.chi_N), "phases": _digest(c.phases),
+                        "direction": c.direction, "wall": c.wall, "blob": c.blob, "mu": c.mu,
+                        "scales": None if c.scales is None else list(vars(c.scales).values())}}
+        if t.is_angle:
+            X = control_points(c.bases, fr, t.control)
+            d["control"], d["deflection"] = _digest(X), _digest(t.deflection(X, fr))
+        out[path.stem] = d
+    out["<defaults>"] = {"empty": scene_from_dict({}).to_dict(), "Target": vars(Target("uniform", 0.1))}
+    for k in ANGLE_KINDS:
+        out["<defaults>"][k] = scene_from_dict({"target": {"kind": k}}).to_dict()
+    return json.loads(json.dumps(out))
+
+
+def test_designs_and_defaults_resolve_as_recorded():
+    """Every default, and every bundled design's carpet, target and frame, is what
+    tests/data/scene_resolved.json recorded (made before the defaults got one home each, from
+    the separate parsers and scene_carpet): a changed default, range rule or builder step shows
+    here. After a deliberate change: ``python tests/test_scene.py`` rewrites the record."""
+    want = json.loads(RESOLVED.read_text())
+    got = resolved_now()
+    assert got.keys() == want.keys()
+    for name in want:
+        assert got[name] == want[name], name
+
+
+def test_readme_key_reference_is_the_schema():
+    """designs/README.md's key tables and its table of target kinds are what the sections' field
+    metadata and target.PATTERNS make (scene.reference()); the section docstrings say the same
+    defaults."""
+    text = (DESIGNS / "README.md").read_text()
+    for heading, table in scene_mod.reference().items():
+        assert f"\n### {heading}\n" in text, heading
+        section = text.split(f"\n### {heading}\n", 1)[1].split("\n## ", 1)[0].split("\n### ", 1)[0]
+        lines = section.split("\n")
+        start = next(i for i, ln in enumerate(lines) if ln.startswith("|"))
+        end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+        assert "\n".join(lines[start:end]) == table, (
+            f"designs/README.md, section {heading}: the table should read\n{table}\n(from scene.reference())")
+    assert "spacing : float > 0, default 2.0" in CarpetSpec.__doc__
+    assert "speed_floor : float in [0, 1), default 0.3 (kind = uniform, focus" in TargetSpec.__doc__
+
+
+def test_target_defaults_have_one_home():
+    """A Target made in code takes the [target] defaults of TargetSpec; the carpet's blob default
+    is the flow model's."""
+    from ciliary_carpet.carpet import BLOB
+    from ciliary_carpet.target import Target
+
+    t, spec = Target("focus", 0.2), TargetSpec()
+    shared = [f.name for f in dataclasses.fields(Target) if f.name in {g.name for g in dataclasses.fields(spec)}]
+    assert len(shared) == 12
+    for k in shared[1:]:  # all but kind
+        assert getattr(t, k) == getattr(spec, k), k
+    assert CarpetSpec().blob == BLOB
+
+
+def test_one_builder_from_scene_to_table_carpet_and_target(tmp_path):
+    """assembly.assemble is the path from a scene to its table, carpet and target: design()
+    (and through it render and the command line) builds its carpet there, and a chi_N outside
+    the table is refused there, naming the key."""
+    from ciliary_carpet.assembly import assemble
+    from ciliary_carpet.design import design
+
+    s = scene_from_dict({"carpet": {"shape": [3, 2], "chi_N": 40, "phases": "synchronous"},
+                         "field": {"direction": 30}})
+    a = assemble(s)
+    c = a.carpet()
+    assert a.table is s.load_table() and a.target.kind == "none" and c.table is a.table
+    assert np.array_equal(c.bases, s.carpet.bases()) and np.all(c.chi_N == 40.0)
+    assert c.direction == math.radians(30) and c.blob == s.carpet.blob and c.wall is None
+    assert np.allclose(a.carpet([1, 2, 3, 4, 5, 6]).chi_N, [1, 2, 3, 4, 5, 6])
+    d, c2 = design(s)
+    assert d is None and np.array_equal(c2.bases, c.bases) and np.array_equal(c2.chi_N, c.chi_N)
+    assert np.array_equal(c2.phases, c.phases)
+    bad = scene_from_dict({"carpet": {"chi_N": 500}}, source=tmp_path / "hot.toml")
+    with pytest.raises(SceneError, match=r"hot.toml: carpet.chi_N = 500 is outside the thrust table's range"):
+        assemble(bad)
+    with pytest.raises(SceneError, match="carpet.chi_N = 500"):
+        design(bad)
+
+
+if __name__ == "__main__":
+    RESOLVED.write_text(json.dumps(resolved_now(), indent=1, sort_keys=True) + "\n")
+    print(f"wrote {RESOLVED}")

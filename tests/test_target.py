@@ -256,24 +256,33 @@ def test_design_targets_are_reachable_and_patterns_right():
 
 
 def test_registry_drives_the_schema_and_the_readme():
-    """The kinds and keys of [target] come from target.KIND_KEYS: the scene's TargetSpec has
-    exactly those keys, a key that does not apply to a kind is rejected, and designs/README.md
-    documents every kind and every key."""
-    import re
+    """The kinds of [target] are target.PATTERNS and the keys each takes come from TargetSpec's
+    field metadata: KIND_KEYS covers exactly TargetSpec's keys, a key that does not apply to a
+    kind is rejected naming the kinds it is for, and every angle pattern evaluates through its
+    registry entry (designs/README.md against both: tests/test_scene.py)."""
     from dataclasses import fields
 
     from ciliary_carpet.scene import SceneError, TargetSpec, scene_from_dict
-    from ciliary_carpet.target import KIND_KEYS, KINDS
+    from ciliary_carpet.target import ANGLE_KINDS, KIND_KEYS, KINDS, PATTERNS, applies_to
 
+    assert KINDS == tuple(p.name for p in PATTERNS) and set(KIND_KEYS) == set(KINDS)
     keys = {k for v in KIND_KEYS.values() for k in v}
     assert {f.name for f in fields(TargetSpec)} == keys | {"kind"}
     for kind, ok in KIND_KEYS.items():
         for k in sorted(keys - set(ok)):
-            with pytest.raises(SceneError, match=f"target.{k} does not apply to kind = \"{kind}\""):
+            with pytest.raises(SceneError, match=f"target.{k} does not apply to kind = \"{kind}\" "
+                                                 f"\\(it is used by kind = '{applies_to(k)[0]}'"):
                 scene_from_dict({"target": {"kind": kind, k: 1}})
-    text = (DESIGNS / "README.md").read_text()
-    section = text.split("### `[target]`", 1)[1].split("\n### ", 1)[0]
-    rows = re.findall(r"^\| `([a-z_]+)` \|(.*)$", section, flags=re.M)
-    assert {k for k, _ in rows} == keys | {"kind"}
-    kind_row = dict(rows)["kind"]
-    assert set(re.findall(r'`"([a-z]+)"`', kind_row.split("|")[0])) == set(KINDS)
+    assert applies_to("kind") == KINDS and applies_to("nope") == ()
+    fr = Frame(np.zeros(2), np.array([0.0, -1.0]), 2.0)
+    pts = np.array([[-3.0, 1.0], [0.5, 0.0], [4.0, -2.0]])
+    for p in PATTERNS:
+        assert set(p.keys) <= keys
+        if p.name in ANGLE_KINDS:
+            t = Target(p.name, 0.3)
+            assert t.pattern is p and np.allclose(t.deflection(pts, fr), p.deflection(t, pts, fr))
+            assert np.all(np.abs(t.deflection(pts, fr)) <= 0.3 + 1e-15)
+        else:
+            assert p.deflection is None
+    assert [p.name for p in PATTERNS if p.two_sided] == ["focus", "spread"]
+    assert [p.name for p in PATTERNS if p.signed] == ["uniform"]
