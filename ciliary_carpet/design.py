@@ -866,10 +866,10 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     a warning naming the worst control points; with ``[target] strict = true`` it is a
     DesignError (exit status 3 of the command line) and unreachable angle requests are a
     TargetError instead of being clipped."""
-    a = assemble(scene, table)
-    table, target, bases, frame = a.table, a.target, a.bases, a.frame
+    built = assemble(scene, table)
+    table, target, bases, frame = built.table, built.target, built.bases, built.frame
     if target.kind == "none":
-        return None, a.carpet()
+        return None, built.carpet()
     strict = target.strict
     kw = dict(tol=scene.tolerance, speed_floor=target.speed_floor, smoothness=target.smoothness,
               spacing=scene.carpet.spacing, robust_sigma=target.sigma if target.robust else 0.0)
@@ -883,7 +883,7 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
         want, bad = reachable_check(target.deflection(centres0, frame), table.thrust_angle_range(), not strict,
                                     what="cilium", points=bases)
         chi0 = np.array([table.chi_N_for_angle(x) for x in want])
-        carpet = a.carpet(chi0)
+        carpet = built.carpet(chi0)
         X = control_points(bases, frame, target.control)
         d = design_layout(carpet, X, angles=target.deflection(X, frame), cilium_angles=want, clip=not strict,
                           **kw)
@@ -895,7 +895,7 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
                         "pattern on this carpet", target.kind, math.degrees(target.amplitude),
                         math.degrees(reach.pattern_max))
     else:
-        carpet = a.carpet()
+        carpet = built.carpet()
         X, U = target.velocities()
         d = design_layout(carpet, X, velocities=U, clip=not strict, **kw)
     if d.residual_rms > target.residual:
