@@ -39,7 +39,7 @@ from . import layout
 from .carpet import BLOB
 from .paths import check_name, check_scene_paths
 from .pathlines import MEAN_MODEL_ERROR
-from .schema import SceneError, key, keys_of, markdown_table, read, reader, section, section_dict, validate, values
+from .schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
 from .target import KINDS, TargetSpec, kinds_table
 
 logger = logging.getLogger(__name__)
@@ -58,7 +58,7 @@ SECTIONS = ("field", "table", "carpet", "target", "output", "units")
 # ------------------------------------------------------------------------------ sections
 @section
 @dataclass(frozen=True)
-class FieldSpec:
+class FieldSpec(Section):
     """``[field]``: the uniform field every cilium feels (0: field along +y; straight filaments
     push the fluid along -y)."""
 
@@ -67,16 +67,6 @@ class FieldSpec:
     chi_E: float = key(200.0, "stimulus L kappa_E")
     eta: float = key(1.0, "drag-to-bending ratio", lo=0, lo_open=True)
     direction: float = key(0.0, "field direction, anticlockwise from +y", shown="float (degrees)")
-
-    def __post_init__(self) -> None:
-        validate(self, self.parse)
-
-    @staticmethod
-    def parse(src: str, data) -> dict:
-        return read(src, FieldSpec, data)[1]
-
-    def to_dict(self) -> dict:
-        return section_dict(self)
 
     @property
     def direction_rad(self) -> float:
@@ -98,7 +88,7 @@ class FieldSpec:
 
 @section
 @dataclass(frozen=True)
-class TableBuild:
+class TableBuild(Section):
     """``[table.build]``: how to compute the table when ``table.file`` does not exist."""
 
     SECTION = "table.build"
@@ -108,23 +98,13 @@ class TableBuild:
                  "cutoff, and write it to `file` (minutes; resumable)", "int", lo=3)
     degree: int = key(8, "mesh degree of that computation (see single_cilium)", "int", lo=2)
 
-    def __post_init__(self) -> None:
-        validate(self, self.parse)
-
-    @staticmethod
-    def parse(src: str, data) -> dict:
-        return read(src, TableBuild, data)[1]
-
-    def to_dict(self) -> dict:
-        return section_dict(self)
-
 
 _TABLE_CACHE: dict = {}
 
 
 @section
 @dataclass(frozen=True)
-class TableSpec:
+class TableSpec(Section):
     """``[table]``: which thrust table the carpet uses; ``build`` (a :class:`TableBuild`, given by
     a ``[table.build]`` section): when ``file`` does not exist, the table is computed with
     :func:`~single_cilium.table.build_table` and written there (minutes). Without it a missing
@@ -137,11 +117,8 @@ class TableSpec:
                     "(relative 1e-9)", "str")
     build: TableBuild | None = key(None, "the `[table.build]` section", "table")
 
-    def __post_init__(self) -> None:
-        validate(self, self.parse)
-
-    @staticmethod
-    def parse(src: str, data) -> dict:
+    @classmethod
+    def parse(cls, src: str, data) -> dict:
         r, kw = read(src, TableSpec, data)
         file = kw["file"]
         if not file.strip():
@@ -232,7 +209,7 @@ class TableSpec:
 
 @section
 @dataclass(frozen=True)
-class CarpetSpec:
+class CarpetSpec(Section):
     """``[carpet]``: where the cilia stand, their curvature without a target, and their phases
     (lattices: :mod:`ciliary_carpet.layout`)."""
 
@@ -260,11 +237,8 @@ class CarpetSpec:
                       "bounded at the filaments)", lo=0, lo_open=True, what="a positive length in L (the filament "
                       "radius)", shown="0 < float < spacing / 2")
 
-    def __post_init__(self) -> None:
-        validate(self, self.parse)
-
-    @staticmethod
-    def parse(src: str, data) -> dict:
+    @classmethod
+    def parse(cls, src: str, data) -> dict:
         r = reader(src, CarpetSpec, data)
         spec = keys_of(CarpetSpec)
         lattice = r.get("lattice", *spec["lattice"])
@@ -306,7 +280,7 @@ class CarpetSpec:
 
     def to_dict(self) -> dict:
         """The section as TOML types (keys that do not apply left out)."""
-        d = section_dict(self)
+        d = super().to_dict()
         if self.lattice == "points":
             d.pop("shape", None)
             d.pop("origin", None)
@@ -346,7 +320,7 @@ class CarpetSpec:
 
 @section
 @dataclass(frozen=True)
-class OutputSpec:
+class OutputSpec(Section):
     """``[output]``: what a render writes (:func:`ciliary_carpet.render.render`)."""
 
     SECTION = "output"
@@ -373,11 +347,8 @@ class OutputSpec:
     frames: int = key(40, "cilia shape frames over one period of the straight filament", "int", lo=0)
     preview: bool = key(True, "a preview image", "bool")
 
-    def __post_init__(self) -> None:
-        validate(self, self.parse)
-
-    @staticmethod
-    def parse(src: str, data) -> dict:
+    @classmethod
+    def parse(cls, src: str, data) -> dict:
         r, kw = read(src, OutputSpec, data)
         fs = r.data.get("field_shape", list(keys_of(OutputSpec)["field_shape"][1]))
         if (not isinstance(fs, list) or len(fs) != 2
@@ -386,13 +357,10 @@ class OutputSpec:
         kw["field_shape"] = (int(fs[0]), int(fs[1]))
         return kw
 
-    def to_dict(self) -> dict:
-        return section_dict(self)
-
 
 @section
 @dataclass(frozen=True)
-class Units:
+class Units(Section):
     """``[units]``: absent: dimensionless output; if present, all three keys are required."""
 
     SECTION = "units"
@@ -401,11 +369,8 @@ class Units:
     time_s: float = key(doc="relaxation time tau in seconds", lo=0, lo_open=True)
     viscosity_Pa_s: float = key(doc="fluid viscosity in Pa s", lo=0, lo_open=True)
 
-    def __post_init__(self) -> None:
-        validate(self, self.parse)
-
-    @staticmethod
-    def parse(src: str, data) -> dict:
+    @classmethod
+    def parse(cls, src: str, data) -> dict:
         r = reader(src, Units, data)
         names = tuple(keys_of(Units))
         missing = [k for k in names if not r.has(k)]
@@ -413,9 +378,6 @@ class Units:
             raise SceneError(f"{src}: [units] needs all of {', '.join(names)} (missing: {', '.join(missing)}); "
                              f"leave the section out for dimensionless output")
         return values(r, Units)
-
-    def to_dict(self) -> dict:
-        return section_dict(self)
 
     def scales(self):
         """The :class:`~ciliary_carpet.carpet.Scales` of these units."""

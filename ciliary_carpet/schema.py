@@ -23,7 +23,7 @@ import textwrap
 from dataclasses import MISSING, dataclass, fields
 
 __all__ = ["SceneError", "Key", "key", "keys_of", "reader", "values", "read", "validate", "section", "section_dict",
-           "plain", "markdown_table"]
+           "plain", "markdown_table", "Section"]
 
 TYPES = ("float", "int", "bool", "str", "pair", "pairs", "table", "custom")
 
@@ -229,6 +229,26 @@ def validate(obj, parse, *args) -> None:
     normalised values (floats, tuples)."""
     for k, v in parse(f"<{type(obj).__name__}>", obj.to_dict(), *args).items():
         object.__setattr__(obj, k, v)
+
+
+class Section:
+    """Base of the section dataclasses: validated on construction (:func:`validate`), read from
+    TOML by :meth:`parse` (the plain keys; sections with rules between keys extend it), written
+    back by :meth:`to_dict`. ``SECTION`` is the section's dotted name ("" = top level)."""
+
+    SECTION = ""
+
+    def __post_init__(self) -> None:
+        validate(self, self.parse)
+
+    @classmethod
+    def parse(cls, src: str, data) -> dict:
+        """The keyword arguments of the section from its TOML table ``data`` (file ``src``)."""
+        return read(src, cls, data)[1]
+
+    def to_dict(self) -> dict:
+        """The section as TOML types (None values left out)."""
+        return section_dict(self)
 
 
 def _finite_number(src: str, key: str, v, what: str) -> float:

@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from .schema import Key, SceneError, key, keys_of, reader, section, section_dict, validate, values
+from .schema import Key, SceneError, Section, key, keys_of, reader, section, values
 
 if TYPE_CHECKING:
     from single_cilium.table import ThrustTable
@@ -141,7 +141,7 @@ def _uses(name: str) -> tuple[str, ...]:
 # ------------------------------------------------------------------------------ the [target] section
 @section
 @dataclass(frozen=True)
-class TargetSpec:
+class TargetSpec(Section):
     """``[target]``: the flow the carpet is designed for, as the scene file gives it (resolved by
     :meth:`Target.from_spec`; the kinds are :data:`PATTERNS`)."""
 
@@ -191,11 +191,8 @@ class TargetSpec:
         "averaged over 16 fixed samples of chi_N (1 + sigma eps) (a sample average; its error shows in the "
         "tolerance study, whose samples are independent of them); needs `sigma` > 0", "bool", kinds=_DESIGNED)
 
-    def __post_init__(self) -> None:
-        validate(self, self.parse)
-
-    @staticmethod
-    def parse(src: str, data, base_dir=None) -> dict:
+    @classmethod
+    def parse(cls, src: str, data, base_dir=None) -> dict:
         """The keyword arguments of the ``[target]`` table ``data`` (from file ``src``; with
         ``base_dir``, a "points" file must exist there); SceneError naming the key otherwise."""
         r = reader(src, TargetSpec, data)
@@ -230,7 +227,7 @@ class TargetSpec:
         """The section as TOML types (keys that do not apply to the kind left out)."""
         if self.kind == "none":
             return {"kind": "none"}
-        d = section_dict(self)
+        d = super().to_dict()
         for k, (spec, _) in keys_of(TargetSpec).items():
             if spec.kinds is not None and self.kind not in spec.kinds:
                 d.pop(k, None)
