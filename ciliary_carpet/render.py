@@ -69,7 +69,7 @@ from single_cilium._io import non_finite, strict_json, write_netcdf
 from single_cilium.progress import Progress
 
 from .assembly import check_table_range
-from .carpet import Carpet
+from .carpet import BLOB, Carpet
 from .design import design
 from .ftle import ftle_field
 from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
@@ -163,7 +163,7 @@ def _seeds(scene: Scene, carpet: Carpet) -> np.ndarray:
         A, S = np.meshgrid(a, s)
         seeds = c + A.ravel()[:, None] * d0 + S.ravel()[:, None] * cross
     # never inside a filament: nudge a seed across the flow until it is two blob sizes clear
-    clear = 2.0 * (carpet.blob or 0.02)
+    clear = 2.0 * (carpet.blob or BLOB)
     for _ in range(100):
         bad = carpet.filament_distance(seeds, 0.0) < clear
         if not bad.any():

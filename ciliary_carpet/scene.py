@@ -24,6 +24,7 @@ objects a scene describes (table, carpet, target) are built by :mod:`ciliary_car
 """
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import tomllib
@@ -33,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+import single_cilium.table as _table
 from single_cilium.table import TableError, ThrustTable
 
 from . import layout
@@ -85,7 +87,6 @@ class FieldSpec(Section):
         return -self.field_direction
 
 
-
 @section
 @dataclass(frozen=True)
 class TableBuild(Section):
@@ -96,7 +97,8 @@ class TableBuild(Section):
     n: int = key(41, "only when `file` does not exist: compute the table with `build_table` over chi_N in "
                  "[0, cutoff) with `n` points, plus the flutter-cutoff row and one no-flutter row at 1.05 x "
                  "cutoff, and write it to `file` (minutes; resumable)", "int", lo=3)
-    degree: int = key(8, "mesh degree of that computation (see single_cilium)", "int", lo=2)
+    degree: int = key(inspect.signature(_table.build_table).parameters["degree"].default,  # build_table's own default
+                      "mesh degree of that computation (`single_cilium.table.build_table`)", "int", lo=2)
 
 
 _TABLE_CACHE: dict = {}
@@ -194,7 +196,6 @@ class TableSpec(Section):
 
     def _build(self, scene: "Scene", p: Path) -> None:
         from single_cilium import flutter_cutoff
-        from single_cilium.table import build_table
 
         f, b = scene.field, self.build
         cut = flutter_cutoff(f.chi_E, f.eta, degree=b.degree)
@@ -204,7 +205,7 @@ class TableSpec(Section):
         c = cut.chi_N_cutoff
         grid = np.concatenate([np.linspace(0.0, c, b.n)[:-1], [1.05 * c]])
         logger.info("building the thrust table %s (chi_E = %g, eta = %g, %d rows)", p, f.chi_E, f.eta, grid.size)
-        build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p)
+        _table.build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p)
 
 
 @section
@@ -491,7 +492,6 @@ class Scene:
                     periods=float(periods) if o.periods is None else min(o.periods, float(periods)), snapshots=min(o.snapshots, int(snapshots)),
                     frames=min(o.frames, int(frames)))
         return replace(self, carpet=c, output=o)
-
 
 
 def reference() -> dict[str, str]:
