@@ -161,7 +161,7 @@ class TargetSpec(Section):
     file: str | None = key(
         None, "CSV (header with columns x, y, u, v; `#` comments) or NetCDF (variables x, y, u, v along one "
         "dimension) of control points and target velocities (lab frame, model units L/tau), relative to the "
-        "scene file; required", "custom", shown="string", default_shown="-", kinds=_uses("file"))
+        "scene file; required", "str", default_shown="-", kinds=_uses("file"))
     control: str | tuple = key(
         "cells", 'where the designed mean flow is compared with the target: `"cilia"`: each base point moved '
         'half a spacing downstream; `"cells"`: the cell centres (circumcentres of the Delaunay triangles of the '
@@ -208,7 +208,7 @@ class TargetSpec(Section):
         else:
             angle = Key("float", "", lo=0, hi=180, lo_open=True, what="an amplitude in degrees in (0, 180]")
         kw["angle"] = r.get("angle", angle, None)
-        file = kw["file"] = r.get("file", Key("str", ""), None)
+        file = kw["file"]
         if "file" in _PATTERN[kind].keys:
             if file is None:
                 raise SceneError(f"{src}: target.file is required with kind = \"{kind}\" (a CSV with columns "
