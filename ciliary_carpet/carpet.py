@@ -65,7 +65,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from scipy.spatial import ConvexHull, cKDTree
 
 from single_cilium.equilibrium import equilibrium_shape
@@ -201,6 +201,146 @@ def _trig_rows(coef, ph, js, out):  # pragma: no cover - compiled
                 out[i, p] += b * coef[j, K - 1 + k, p]
 
 
+@njit(cache=True, parallel=True)
+def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coef, mom_coef, centre, radius,
+                F, D, T, Q):  # pragma: no cover - compiled
+    """Per cilium j (parallel over j) of one chunk: rotate its cycle samples x, y, fx, fy
+    (n, n_p, n_s) by ``rot`` into the lab frame, then
+
+    * coef[j] (2K-1, n_s, 4): the trigonometric interpolant's coefficients in phase,
+      a_k = mk_k / n_p sum_p v_p cos(2 pi k p / n_p), b_k = mk_k / n_p sum_p v_p sin(...)
+      (``cos_p``, ``sin_p`` (n_p, K) hold the cosines and sines; v = x, y, fx, fy);
+    * mom_coef[j] (2Km-1, 14): the coefficients (cos k = 0..Km-1, then sin k = 1..Km-1) of
+      F (2), D (4) and T (8) of the interpolant about c_j = base + mean of the shape (its k = 0
+      term), sampled at n_m = 2 Km phases (``cos_m``, ``sin_m`` (n_m, Km)): products of up
+      to three functions of K harmonics hold 3 (K - 1) + 1 <= Km, so the samples alias nothing;
+    * from the raw samples: centre[j] (the centroid of the swept samples, plus the base),
+      radius[j], and per table phase F[j] (n_p, 2), D[j] (n_p, 2, 2), T[j] (n_p, 2, 2, 2) and
+      Q[j] (n_p,) = sum_s w_s |h|^3 |f| about the centroid (Simpson weights ``w``)."""
+    n, n_p, n_s = x.shape
+    K = cos_p.shape[1]
+    n_m, Km = cos_m.shape
+    R = 4 * n_s
+    for j in prange(n):
+        v = np.empty((n_p, R))  # (phase, (s, q)) flattened: the inner loops run over R contiguous numbers
+        for p in range(n_p):
+            for s in range(n_s):
+                a = x[j, p, s]
+                b = y[j, p, s]
+                v[p, 4 * s] = rot[0, 0] * a + rot[0, 1] * b
+                v[p, 4 * s + 1] = rot[1, 0] * a + rot[1, 1] * b
+                a = fx[j, p, s]
+                b = fy[j, p, s]
+                v[p, 4 * s + 2] = rot[0, 0] * a + rot[0, 1] * b
+                v[p, 4 * s + 3] = rot[1, 0] * a + rot[1, 1] * b
+        # trigonometric coefficients in phase
+        cf = np.zeros((2 * K - 1, R))
+        for p in range(n_p):
+            for k in range(K):
+                c = mk[k] * cos_p[p, k] / n_p
+                for r in range(R):
+                    cf[k, r] += c * v[p, r]
+            for k in range(1, K):
+                c = mk[k] * sin_p[p, k] / n_p
+                for r in range(R):
+                    cf[K - 1 + k, r] += c * v[p, r]
+        for k in range(2 * K - 1):
+            for s in range(n_s):
+                for q in range(4):
+                    coef[j, k, s, q] = cf[k, 4 * s + q]
+        # raw moments about the centroid of the swept samples
+        cx = 0.0
+        cy = 0.0
+        for p in range(n_p):
+            for s in range(n_s):
+                cx += v[p, 4 * s + 0]
+                cy += v[p, 4 * s + 1]
+        cx /= n_p * n_s
+        cy /= n_p * n_s
+        centre[j, 0] = cx + bases[j, 0]
+        centre[j, 1] = cy + bases[j, 1]
+        rmax = 0.0
+        for p in range(n_p):
+            for a in range(2):
+                F[j, p, a] = 0.0
+                for b in range(2):
+                    D[j, p, a, b] = 0.0
+                    for c3 in range(2):
+                        T[j, p, a, b, c3] = 0.0
+            Q[j, p] = 0.0
+            for s in range(n_s):
+                h0 = v[p, 4 * s + 0] - cx
+                h1 = v[p, 4 * s + 1] - cy
+                r = math.sqrt(h0 * h0 + h1 * h1)
+                rmax = max(rmax, r)
+                g0 = v[p, 4 * s + 2] * w[s]
+                g1 = v[p, 4 * s + 3] * w[s]
+                F[j, p, 0] += g0
+                F[j, p, 1] += g1
+                D[j, p, 0, 0] += h0 * g0
+                D[j, p, 0, 1] += h0 * g1
+                D[j, p, 1, 0] += h1 * g0
+                D[j, p, 1, 1] += h1 * g1
+                T[j, p, 0, 0, 0] += h0 * h0 * g0
+                T[j, p, 0, 0, 1] += h0 * h0 * g1
+                T[j, p, 0, 1, 0] += h0 * h1 * g0
+                T[j, p, 0, 1, 1] += h0 * h1 * g1
+                T[j, p, 1, 0, 0] += h1 * h0 * g0
+                T[j, p, 1, 0, 1] += h1 * h0 * g1
+                T[j, p, 1, 1, 0] += h1 * h1 * g0
+                T[j, p, 1, 1, 1] += h1 * h1 * g1
+                Q[j, p] += r * r * r * math.sqrt(v[p, 4 * s + 2] ** 2 + v[p, 4 * s + 3] ** 2) * w[s]
+        radius[j] = rmax
+        # moments of the interpolant on the oversampled phase grid, then their coefficients
+        mx = 0.0
+        my = 0.0
+        for s in range(n_s):
+            mx += cf[0, 4 * s]
+            my += cf[0, 4 * s + 1]
+        mx /= n_s
+        my /= n_s
+        vm = np.empty(R)
+        mom = np.empty(14)
+        mc = np.zeros((2 * Km - 1, 14))
+        for pm in range(n_m):
+            for r in range(R):
+                vm[r] = cf[0, r]
+            for k in range(1, K):
+                c = cos_m[pm, k]
+                sn = sin_m[pm, k]
+                for r in range(R):
+                    vm[r] += c * cf[k, r] + sn * cf[K - 1 + k, r]
+            for q in range(14):
+                mom[q] = 0.0
+            for s in range(n_s):
+                h0 = vm[4 * s] - mx
+                h1 = vm[4 * s + 1] - my
+                g0 = vm[4 * s + 2] * w[s]
+                g1 = vm[4 * s + 3] * w[s]
+                mom[0] += g0
+                mom[1] += g1
+                mom[2] += h0 * g0
+                mom[3] += h0 * g1
+                mom[4] += h1 * g0
+                mom[5] += h1 * g1
+                mom[6] += h0 * h0 * g0
+                mom[7] += h0 * h0 * g1
+                mom[8] += h0 * h1 * g0
+                mom[9] += h0 * h1 * g1
+                mom[10] += h1 * h0 * g0
+                mom[11] += h1 * h0 * g1
+                mom[12] += h1 * h1 * g0
+                mom[13] += h1 * h1 * g1
+            for k in range(Km):
+                c = (1.0 if k == 0 else 2.0) * cos_m[pm, k] / n_m
+                for q in range(14):
+                    mc[k, q] += c * mom[q]
+            for k in range(1, Km):
+                c = 2.0 * sin_m[pm, k] / n_m
+                for q in range(14):
+                    mc[Km - 1 + k, q] += c * mom[q]
+        mom_coef[j] = mc
+
 def _simpson(n: int) -> np.ndarray:
     if n < 3 or n % 2 == 0:
         raise ValueError(f"the table's s grid must have an odd number (>= 3) of points, got {n}")
@@ -300,83 +440,44 @@ class Carpet:
         w = _simpson(n_s)
         rot = self.rotation
         K = _modes(t)
+        Km = 3 * (K - 1) + 1  # the moments are products of up to three K-band functions
+        n_m = 2 * Km
+        arg = 2.0 * math.pi * np.arange(n_p)[:, None] * np.arange(K)[None, :] / n_p
+        arg_m = 2.0 * math.pi * np.arange(n_m)[:, None] * np.arange(Km)[None, :] / n_m
+        mk = np.full(K, 2.0)
+        mk[0] = 1.0
+        if n_p % 2 == 0 and K - 1 == n_p // 2:
+            mk[-1] = 1.0
         fl = np.zeros(n, bool)
         coef = np.empty((n, 2 * K - 1, n_s, 4))
-        centre, radius = np.empty((n, 2)), np.empty(n)
-        F, D, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p))
-        n_m = 2 * n_p  # moments are products of up to three K-band functions: sampled without aliasing
-        Km = n_m // 2
         mom_coef = np.empty((n, 2 * Km - 1, 14))
-        ph_m = np.arange(n_m) / n_m
-        arg_m = 2.0 * math.pi * ph_m[:, None] * np.arange(K)[None, :]
-        basis_m = np.concatenate([np.cos(arg_m), np.sin(arg_m[:, 1:])], axis=1)
-        mm = np.full(Km, 2.0)
-        mm[0] = mm[-1] = 1.0
-        T2 = np.empty((n, n_p, 2, 2, 2))
-        hulls = []
-        m = np.full(K, 2.0)
-        m[0] = 1.0
-        if n_p % 2 == 0 and K - 1 == n_p // 2:
-            m[-1] = 1.0
-        for lo in range(0, n, 256):  # in chunks: the full cycle data of a large carpet would not fit
-            sl = slice(lo, min(n, lo + 256))
+        centre, radius = np.empty((n, 2)), np.empty(n)
+        F, D, T2, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p, 2, 2, 2)), np.empty((n, n_p))
+        for lo in range(0, n, 128):  # in chunks: the full cycle data of a large carpet would not fit
+            sl = slice(lo, min(n, lo + 128))
             cyc = t.cycles(self.chi_N[sl])  # raises TableError for chi_N outside the table
             fl[sl] = cyc["flutter"]
-            xy = np.stack([cyc["x"], cyc["y"]], axis=-1)
-            f = np.stack([cyc["fx"], cyc["fy"]], axis=-1)
             for i in np.nonzero(~cyc["flutter"])[0]:  # still filaments: equilibrium shape, no force
                 x, y = equilibrium_shape(CiliumParams(t.chi_E, t.eta, float(self.chi_N[lo + i])), s)
-                xy[i] = np.stack([x, y], axis=-1)[None]
-            xy = xy @ rot.T
-            f = f @ rot.T
-            # trigonometric interpolation in phase: cos terms k = 0..K-1, then sin terms k = 1..K-1
-            spec = np.fft.rfft(np.concatenate([xy, f], axis=-1), axis=1)[:, :K] / n_p * m[None, :, None, None]
-            coef[sl] = np.concatenate([spec.real, -spec.imag[:, 1:]], axis=1)
-            # F, D, T on the oversampled phase grid, then their trigonometric coefficients
-            vm = np.einsum("pk,jksq->jpsq", basis_m, coef[sl], optimize=True)
-            relm = vm[..., :2] + self.bases[sl][:, None, None, :]
-            cen_m = relm.reshape(relm.shape[0], -1, 2).mean(axis=1)
-            relm = relm - cen_m[:, None, None, :]
-            fwm = vm[..., 2:] * w[None, None, :, None]
-            Fm = fwm.sum(axis=2)
-            Dm = np.einsum("jpsa,jpsb->jpab", relm, fwm)
-            Tm = np.einsum("jpsa,jpsb,jpsc->jpabc", relm, relm, fwm, optimize=True)
-            allm = np.concatenate([Fm, Dm.reshape(*Dm.shape[:2], 4), Tm.reshape(*Tm.shape[:2], 8)], axis=-1)
-            sm = np.fft.rfft(allm, axis=1)[:, :Km] / n_m * mm[None, :, None]
-            mom_coef[sl] = np.concatenate([sm.real, -sm.imag[:, 1:]], axis=1)
-            cen = xy.reshape(xy.shape[0], -1, 2).mean(axis=1)
-            rel = xy - cen[:, None, None, :]
-            dist = np.sqrt((rel ** 2).sum(-1))
-            centre[sl] = cen + self.bases[sl]
-            radius[sl] = dist.reshape(xy.shape[0], -1).max(axis=1)
-            fw = f * w[None, None, :, None]
-            F[sl] = fw.sum(axis=2)
-            D[sl] = np.einsum("jpsa,jpsb->jpab", rel, fw)
-            T2[sl] = np.einsum("jpsa,jpsb,jpsc->jpabc", rel, rel, fw, optimize=True)
-            Q[sl] = (dist ** 3 * np.sqrt((f ** 2).sum(-1)) * w).sum(axis=2)
-            for i in range(xy.shape[0]):
-                try:
-                    hulls.append(ConvexHull(xy[i].reshape(-1, 2) + self.bases[lo + i]).equations)
-                except Exception:  # degenerate (a straight still filament): its bounding disc is used
-                    hulls.append(None)
+                cyc["x"][i], cyc["y"][i] = x[None], y[None]
+            _cycle_data(cyc["x"], cyc["y"], cyc["fx"], cyc["fy"], rot, self.bases[sl], w, np.cos(arg), np.sin(arg),
+                        mk, np.cos(arg_m), np.sin(arg_m), coef[sl], mom_coef[sl], centre[sl], radius[sl], F[sl], D[sl],
+                        T2[sl], Q[sl])
         period = np.full(n, np.nan)
         if np.any(fl):
             period[fl] = t.scalar("period", self.chi_N[fl])
         return dict(flutter=fl, n_s=n_s, n_phase=n_p, s=s, w=w, coef=coef, k=np.arange(K),
                     period=period, rate=np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0),
                     centre=centre, radius=radius, F=F, D=D, Q=Q, F_rms=np.sqrt((F ** 2).sum(-1).mean(axis=1)),
-                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls, radii={},
+                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls={}, radii={},
                     T=T2, T_mean=T2.mean(axis=1), mom_coef=mom_coef, k_m=np.arange(Km),
                     Q_max=Q.max(axis=1))
 
     def _warn_overlaps(self) -> None:
         c = self._c
-        tree = cKDTree(self.bases)
-        bad = []
-        for j in range(self.n):
-            for i in tree.query_ball_point(c["centre"][j], c["radius"][j]):
-                if i != j and self.in_swept_region(self.bases[i][None], j)[0]:
-                    bad.append((i, j))
+        near = cKDTree(self.bases).query_ball_point(c["centre"], c["radius"])
+        bad = [(i, j) for j in range(self.n) for i in near[j]
+               if i != j and self.in_swept_region(self.bases[i][None], j)[0]]
         if bad:
             warnings.warn(f"{len(bad)} cilium base(s) lie inside another cilium's swept region, e.g. base "
                           f"{bad[0][0]} in cilium {bad[0][1]}'s: the model ignores contact and hydrodynamic "
@@ -475,7 +576,13 @@ class Carpet:
         """Whether points (M, 2) lie in the convex hull of cilium j's swept region grown by
         ``margin`` (conservative: the hull covers the region)."""
         p = np.asarray(points, dtype=float)[:, :2]
-        eq = self._c["hulls"][j]
+        hulls = self._c["hulls"]
+        if j not in hulls:  # built when first asked for: most cilia never are
+            try:
+                hulls[j] = ConvexHull(self.cycle_samples([j])[0].reshape(-1, 2)).equations
+            except Exception:  # degenerate (a straight still filament): its bounding disc is used
+                hulls[j] = None
+        eq = hulls[j]
         if eq is None:
             d = np.linalg.norm(p - self._c["centre"][j], axis=1)
             return d <= self._c["radius"][j] + margin
