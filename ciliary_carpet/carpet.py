@@ -81,9 +81,9 @@ __all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C
            "LOD_SLACK"]
 
 LEVELS = ("mean", "point", "resolved")
-_MEAN_CACHE_BYTES = 256 * 1024 ** 2
-"""Largest memory the resolved sources of the mean flow (every cilium's phase samples) may take
-when kept between evaluations (about 1900 cilia with the shipped table)."""
+_CHUNK_SOURCES = 1 << 19
+"""The resolved near-field sources of a flow evaluation are made and summed in chunks of cilia
+of at most this many sources (3 MB per coordinate array): :meth:`Carpet._sum`."""
 _UNIT = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2), math.sin(2 * math.pi * m / 5 + math.pi / 2)]
                                  for m in range(5)])
 """Carrier positions of the cheap levels for unit delta: the centre and a regular pentagon."""
@@ -340,6 +340,76 @@ def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coe
                 for q in range(14):
                     mc[Km - 1 + k, q] += c * mom[q]
         mom_coef[j] = mc
+
+@njit(cache=True, parallel=True)
+def _lod_bound(targets, centre, radius, q, active, near_ptr, near_j, out):  # pragma: no cover - compiled
+    """out[i] = sum_j q_j / (R_ij - a_j)^4 over the active cilia j not listed for point i in
+    ``near_j[near_ptr[i]:near_ptr[i + 1]]`` (ascending), R_ij the distance of targets[i] (M, 3)
+    from the force centre c_j (in the plane z = 0): the levels of detail's Taylor bound."""
+    n = centre.shape[0]
+    for i in prange(targets.shape[0]):
+        x = targets[i, 0]
+        y = targets[i, 1]
+        z2 = targets[i, 2] * targets[i, 2]
+        k = near_ptr[i]
+        end = near_ptr[i + 1]
+        acc = 0.0
+        for j in range(n):
+            if k < end and near_j[k] == j:
+                k += 1
+                continue
+            if active[j]:
+                dx = x - centre[j, 0]
+                dy = y - centre[j, 1]
+                d = math.sqrt(dx * dx + dy * dy + z2) - radius[j]
+                acc += q[j] / (d * d * d * d)
+        out[i] = acc
+
+
+@njit(cache=True, parallel=True)
+def _blocks(coef, basis, wgt, bases, jc, cpos, cfrc, src, frc):  # pragma: no cover - compiled
+    """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
+    ``frc``, (len(jc) * blk, 3), z = 0) holds the resolved sources of cilium j = jc[i] -- its
+    trigonometric interpolant (coef (N, 2K-1, n_s, 4)) at the P phases whose basis rows are
+    ``basis[i]`` (len(jc), P, 2K-1), positions plus the
+    base, forces times ``wgt`` (n_s,) -- then its n_car carriers ``cpos[j]`` with the negated
+    forces ``-cfrc[j]`` (n_car = cpos.shape[1], 0 for none)."""
+    n_s = coef.shape[2]
+    nk = coef.shape[1]
+    P = basis.shape[1]
+    n_car = cpos.shape[1]
+    blk = P * n_s + n_car
+    R = 4 * n_s
+    for i in prange(jc.shape[0]):
+        j = jc[i]
+        o = i * blk
+        cj = coef[j].reshape(nk, R)  # (k, (s, q)): the inner loop runs over R contiguous numbers
+        v = np.empty(R)
+        for p in range(P):
+            e = basis[i, p, 0]
+            for r in range(R):
+                v[r] = e * cj[0, r]
+            for k in range(1, nk):
+                e = basis[i, p, k]
+                for r in range(R):
+                    v[r] += e * cj[k, r]
+            for s in range(n_s):
+                r = o + p * n_s + s
+                src[r, 0] = v[4 * s] + bases[j, 0]
+                src[r, 1] = v[4 * s + 1] + bases[j, 1]
+                src[r, 2] = 0.0
+                frc[r, 0] = v[4 * s + 2] * wgt[s]
+                frc[r, 1] = v[4 * s + 3] * wgt[s]
+                frc[r, 2] = 0.0
+        for m in range(n_car):
+            r = o + P * n_s + m
+            src[r, 0] = cpos[j, m, 0]
+            src[r, 1] = cpos[j, m, 1]
+            src[r, 2] = 0.0
+            frc[r, 0] = -cfrc[j, m, 0]
+            frc[r, 1] = -cfrc[j, m, 1]
+            frc[r, 2] = 0.0
+
 
 def _simpson(n: int) -> np.ndarray:
     if n < 3 or n % 2 == 0:
@@ -647,35 +717,60 @@ class Carpet:
             cache[key] = np.where((S > 0) | (Qt > 0), R, -1.0)
         return cache[key]
 
-    def _sum(self, targets: np.ndarray, resolved, F: np.ndarray, D: np.ndarray, T: np.ndarray, Q: np.ndarray,
-             S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
+    def _sum(self, targets: np.ndarray, ph: np.ndarray | None, F: np.ndarray, D: np.ndarray, T: np.ndarray,
+             Q: np.ndarray, S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
         """Cheap carriers everywhere (one dense sum), plus resolved-minus-cheap corrections on the
-        near pairs (one sparse sum). ``resolved(js)`` gives the resolved sources of cilia ``js``:
-        positions and weighted forces, (len(js), n_src, 2) each."""
+        near pairs (one sparse sum). The resolved sources of a cilium: its line distribution at
+        its phase ``ph[j]`` ((N,): the instantaneous flow), or at every phase sample of the table
+        with weight 1 / n_phase (``ph=None``: the mean flow)."""
         c = self._c
         n = self.n
         active = S > 0
         cpos, cf, q_rep = self._carriers(F, D, T)
+        nk = c["coef"].shape[1]
+        K = (nk + 1) // 2
+
+        def basis(phases):
+            arg = 2.0 * math.pi * np.asarray(phases)[..., None] * np.arange(K)
+            return np.ascontiguousarray(np.concatenate([np.cos(arg), np.sin(arg[..., 1:])], axis=-1))
+
+        if ph is None:
+            b_all = basis(np.arange(c["n_phase"]) / c["n_phase"])[None]
+            wgt = c["w"] / c["n_phase"]
+        else:
+            wgt = c["w"]
+        no_car = np.zeros((n, 0, 2))
+
+        def blocks(jc, carriers: bool):
+            """AoS sources and forces (len(jc) * blk, 3) of cilia jc (see :func:`_blocks`), and blk."""
+            bs = np.ascontiguousarray(np.broadcast_to(b_all, (len(jc),) + b_all.shape[1:])) if ph is None \
+                else basis(ph[jc])[:, None, :]
+            cp, cq = (cpos, cf) if carriers else (no_car, no_car)
+            blk = bs.shape[1] * c["n_s"] + cp.shape[1]
+            out_s, out_f = np.empty((len(jc) * blk, 3)), np.empty((len(jc) * blk, 3))
+            _blocks(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), cp, cq, out_s, out_f)
+            return out_s, out_f, blk
+
+        n_res_src = (c["n_phase"] if ph is None else 1) * c["n_s"]
         m = targets.shape[0]
         kernel = self.kernel
         rstar = self._near_radii(tol, cheap_level)
-        if tol == 0:  # the resolved sum itself: one dense sum over every source
+        if tol == 0:  # the resolved sum itself: every source of every active cilium, in chunks
             js = np.nonzero(active)[0]
             u = np.zeros((m, 3))
-            n_src = 0
-            if js.size:
-                rpos, rf = resolved(js)
-                n_src = rpos.shape[1]
-                u = stokeslet_velocity(targets, _pad(rpos.reshape(-1, 2)), _pad(rf.reshape(-1, 2)), self.mu,
-                                       kernel=kernel, backend=self.backend)
+            per = max(1, _CHUNK_SOURCES // n_res_src)
+            for lo in range(0, js.size, per):
+                bsrc, bfrc, _ = blocks(js[lo:lo + per], False)
+                u += stokeslet_velocity(targets, bsrc, bfrc, self.mu, kernel=kernel, backend=self.backend)
             return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": m * js.size},
-                              tol=tol, work=dict(sources=m * js.size * n_src, ranges=0))
+                              tol=tol, work=dict(sources=m * js.size * n_res_src, ranges=0))
         u = np.zeros((m, 3))
         work = dict(sources=0, ranges=0)
         # near pairs, from a tree over the targets
         cand = np.nonzero(rstar > 0)[0]
         n_near = 0
-        if cand.size:
+        pi = pj = np.zeros(0, np.int64)
+        if cand.size and m:
             r = np.minimum(rstar[cand], 1e300)
             sdm = cKDTree(_pad(c["centre"][cand])).sparse_distance_matrix(cKDTree(targets), float(r.max()),
                                                                          output_type="ndarray")
@@ -686,52 +781,70 @@ class Carpet:
         if not np.any(active) and not n_near:
             return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": 0}, tol=tol,
                               work=work)
-        # One sparse sum (one parallel region per evaluation: on a loaded machine each costs a time
-        # slice): every point sums the carriers of every active cilium (the first block), then per
-        # near cilium one contiguous block, its resolved sources and its negated carriers (long
-        # ranges vectorise in the kernel).
+        # The carriers of every active cilium for every point, then per near pair one contiguous
+        # block: the cilium's resolved sources and its negated carriers (long ranges vectorise in
+        # the kernel). The blocks are made and summed in chunks of cilia of at most
+        # _CHUNK_SOURCES sources (the resolved mean flow has 4160 per cilium: a whole carpet's
+        # would take hundreds of MB, and fresh memory costs more than the sum); the first
+        # chunk carries the carriers' block too, so that an instantaneous flow (65 sources per
+        # cilium: one chunk) is one sparse sum, one parallel region per evaluation.
         n0 = 6 * int(active.sum())
-        src = [_pad(cpos[active].reshape(-1, 2))]
-        frc = [_pad(cf[active].reshape(-1, 2))]
-        cnt = np.zeros(m, dtype=np.int64)
+        carr_src = _pad(cpos[active].reshape(-1, 2))
+        carr_frc = _pad(cf[active].reshape(-1, 2))
+        js = np.zeros(0, np.int64)
+        per, blk, n_chunks = 1, 0, 1
         if n_near:
-            # grouped by target (CSR; the order within is free): a counting sort, O(pairs)
-            order = np.argsort(pi.astype(np.uint16) if m <= 65536 else pi, kind="stable")
-            pi, pj = pi[order], pj[order]
             used = np.bincount(pj, minlength=n) > 0
             js = np.nonzero(used)[0]
             local = (np.cumsum(used) - 1)[pj]
-            rpos, rf = resolved(js)
-            blk = rpos.shape[1] + _UNIT.shape[0]
-            src.append(_pad(np.concatenate([rpos, cpos[js]], axis=1).reshape(-1, 2)))
-            frc.append(_pad(np.concatenate([rf, -cf[js]], axis=1).reshape(-1, 2)))
-            cnt = np.bincount(pi, minlength=m)
-        ptr = np.concatenate([[0], np.cumsum(cnt + 1)]).astype(np.int64)
-        ranges = np.empty((m + n_near, 2), dtype=np.int64)
-        ranges[ptr[:-1]] = (0, n0)
-        if n_near:
-            first = np.concatenate([[0], np.cumsum(cnt)[:-1]])  # the first near pair of each point
-            at = ptr[pi] + 1 + np.arange(n_near) - first[pi]
-            ranges[at, 0] = n0 + local * blk
-            ranges[at, 1] = n0 + (local + 1) * blk
-        u += stokeslet_velocity_ranges(targets, np.concatenate(src), np.concatenate(frc), ptr, ranges, self.mu,
-                                       kernel=kernel, backend=self.backend)
-        work["sources"] = m * n0 + (n_near * blk if n_near else 0)
+            blk = n_res_src + _UNIT.shape[0]
+            per = max(1, _CHUNK_SOURCES // blk)
+            chunk = local // per
+            n_chunks = int(chunk.max()) + 1
+            order = np.lexsort((pj, pi, chunk))  # by chunk, then target, then cilium
+            pi, pj, local, chunk = pi[order], pj[order], local[order], chunk[order]
+            cut = np.searchsorted(chunk, np.arange(n_chunks + 1))
+        for k in range(n_chunks):
+            if n_near:
+                sl = slice(cut[k], cut[k + 1])
+                jc = js[k * per:(k + 1) * per]
+                bsrc, bfrc, _ = blocks(jc, True)
+                ti, tl = pi[sl], local[sl] - k * per
+            else:
+                bsrc = bfrc = np.zeros((0, 3))
+                ti = tl = np.zeros(0, np.int64)
+            if k == 0:  # every point: the carriers, then its near blocks of this chunk
+                pts = np.arange(m)
+                cnt = np.bincount(ti, minlength=m)
+                ptr = np.concatenate([[0], np.cumsum(cnt + 1)]).astype(np.int64)
+                ranges = np.empty((m + ti.size, 2), dtype=np.int64)
+                ranges[ptr[:-1]] = (0, n0)
+                off, first_slot = n0, ptr[:-1] + 1
+                src, frc = np.concatenate([carr_src, bsrc]), np.concatenate([carr_frc, bfrc])
+            else:  # only the points with near pairs in this chunk
+                pts, inv, cnt = np.unique(ti, return_inverse=True, return_counts=True)
+                ptr = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
+                ranges = np.empty((ti.size, 2), dtype=np.int64)
+                off, first_slot, ti = 0, ptr[:-1], inv
+                src, frc = bsrc, bfrc
+            if ti.size:
+                start = np.concatenate([[0], np.cumsum(cnt)[:-1]])  # the first pair of each point
+                at = first_slot[ti] + np.arange(ti.size) - start[ti]
+                ranges[at, 0] = off + tl * blk
+                ranges[at, 1] = off + (tl + 1) * blk
+            if ranges.shape[0] and src.shape[0]:
+                u[pts] += stokeslet_velocity_ranges(targets[pts], src, frc, ptr, ranges, self.mu, kernel=kernel,
+                                                    backend=self.backend)
+        work["sources"] = m * n0 + n_near * blk
         work["ranges"] = m + n_near
         bound = np.zeros(m)
         if error and np.any(active):
-            C3 = kernel.c3
-            cen = _pad(c["centre"])
-            near = np.zeros((m, n), bool)
-            if n_near:
-                near[pi, pj] = True
-            step = max(1, int(2e6 // n))
-            for lo in range(0, m, step):
-                hi = min(m, lo + step)
-                R = np.linalg.norm(targets[lo:hi, None, :] - cen[None], axis=-1)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    b = C3 * (Q + q_rep)[None] / (6.0 * (R - c["radius"][None]) ** 4)
-                bound[lo:hi] = np.where(near[lo:hi] | ~active[None], 0.0, b).sum(axis=1) / (8 * math.pi * self.mu)
+            # per point, over the active cilia not summed resolved (near pairs listed by point)
+            o = np.lexsort((pj, pi))
+            near_ptr = np.concatenate([[0], np.cumsum(np.bincount(pi, minlength=m))]).astype(np.int64)
+            _lod_bound(targets, c["centre"], c["radius"], kernel.c3 * (Q + q_rep) / 6.0, active, near_ptr,
+                       np.ascontiguousarray(pj[o]), bound)
+            bound /= 8 * math.pi * self.mu
         n_pairs = m * int(active.sum())
         n_res = int(np.sum(active[pj])) if n_near else 0
         pairs = {cheap_level: n_pairs - n_res, "resolved": n_res}
@@ -767,11 +880,7 @@ class Carpet:
         _trig_rows(c["mom_coef"], ph, np.arange(self.n), mom)
         F, D, T = mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
 
-        def resolved(js):
-            pos, f = self._state_of(js, ph[js])
-            return pos, f * c["w"][None, :, None]
-
-        return self._sum(x, resolved, F, D, T, c["Q_max"], c["F_rms"] * c["flutter"], tol, error, "point")
+        return self._sum(x, ph, F, D, T, c["Q_max"], c["F_rms"] * c["flutter"], tol, error, "point")
 
     def velocity(self, points, t: float, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) fluid velocity at ``points`` at time ``t`` (see :meth:`evaluate`)."""
@@ -784,19 +893,8 @@ class Carpet:
         tol = self._tol(tol)
         c = self._c
 
-        def resolved(js):
-            if "mean_sources" in c:
-                pos, fw = c["mean_sources"]
-                return pos[js], fw[js]
-            pos, f = self.cycle_samples(js)
-            fw = f * (c["w"] / c["n_phase"])[None, None, :, None]
-            return pos.reshape(len(js), -1, 2), fw.reshape(len(js), -1, 2)
-
-        if "mean_sources" not in c and self.n * c["n_phase"] * c["n_s"] * 32 <= _MEAN_CACHE_BYTES:
-            c["mean_sources"] = resolved(np.arange(self.n))  # static: computed once per carpet
-
         S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
-        return self._sum(x, resolved, c["F_mean"], c["D_mean"], c["T_mean"], c["Q_mean"], S, tol, error, "mean")
+        return self._sum(x, None, c["F_mean"], c["D_mean"], c["T_mean"], c["Q_mean"], S, tol, error, "mean")
 
     def mean_velocity(self, points, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) time-averaged fluid velocity (see :meth:`evaluate_mean`)."""
