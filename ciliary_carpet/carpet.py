@@ -622,15 +622,6 @@ class Carpet:
         vals = np.einsum("jk,jksq->jsq", basis, c["coef"], optimize=True)
         return vals[..., :2] + self.bases[:, None, :], vals[..., 2:], ph
 
-    def _state_of(self, js: np.ndarray, ph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions and forces per length (len(js), n_s, 2) of cilia ``js`` at phases ``ph``."""
-        coef = self._c["coef"]
-        vals = np.empty((len(js), coef.shape[2] * coef.shape[3]))
-        _trig_rows(coef.reshape(coef.shape[0], coef.shape[1], -1), np.ascontiguousarray(ph, dtype=float),
-                   np.asarray(js, dtype=np.int64), vals)
-        vals = vals.reshape(len(js), coef.shape[2], coef.shape[3])
-        return vals[..., :2] + self.bases[js][:, None, :], vals[..., 2:]
-
     def cycle_samples(self, js) -> tuple[np.ndarray, np.ndarray]:
         """Positions and forces per length of cilia ``js`` at the table's phase samples:
         (len(js), n_phase, n_s, 2) each, lab frame."""
