@@ -411,6 +411,12 @@ def _blocks(coef, basis, wgt, bases, jc, cpos, cfrc, src, frc):  # pragma: no co
             frc[r, 2] = 0.0
 
 
+_blocks_serial = njit(cache=True)(_blocks.py_func)
+"""Serial :func:`_blocks` (few sources: a parallel region costs more than it saves)."""
+_PARALLEL_SOURCES = 50_000
+"""Source blocks of at least this many sources are made in parallel."""
+
+
 def _simpson(n: int) -> np.ndarray:
     if n < 3 or n % 2 == 0:
         raise ValueError(f"the table's s grid must have an odd number (>= 3) of points, got {n}")
@@ -739,7 +745,8 @@ class Carpet:
             cp, cq = (cpos, cf) if carriers else (no_car, no_car)
             blk = bs.shape[1] * c["n_s"] + cp.shape[1]
             out_s, out_f = np.empty((len(jc) * blk, 3)), np.empty((len(jc) * blk, 3))
-            _blocks(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), cp, cq, out_s, out_f)
+            f = _blocks if out_s.shape[0] >= _PARALLEL_SOURCES else _blocks_serial
+            f(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), cp, cq, out_s, out_f)
             return out_s, out_f, blk
 
         n_res_src = (c["n_phase"] if ph is None else 1) * c["n_s"]
