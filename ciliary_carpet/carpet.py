@@ -65,7 +65,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from scipy.spatial import ConvexHull, cKDTree
 
 from single_cilium.equilibrium import equilibrium_shape
@@ -81,9 +81,9 @@ __all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C
            "LOD_SLACK"]
 
 LEVELS = ("mean", "point", "resolved")
-_MEAN_CACHE_BYTES = 256 * 1024 ** 2
-"""Largest memory the resolved sources of the mean flow (every cilium's phase samples) may take
-when kept between evaluations (about 1900 cilia with the shipped table)."""
+_CHUNK_SOURCES = 1 << 19
+"""The resolved near-field sources of a flow evaluation are made and summed in chunks of cilia
+of at most this many sources (3 MB per coordinate array): :meth:`Carpet._sum`."""
 _UNIT = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2), math.sin(2 * math.pi * m / 5 + math.pi / 2)]
                                  for m in range(5)])
 """Carrier positions of the cheap levels for unit delta: the centre and a regular pentagon."""
@@ -201,6 +201,222 @@ def _trig_rows(coef, ph, js, out):  # pragma: no cover - compiled
                 out[i, p] += b * coef[j, K - 1 + k, p]
 
 
+@njit(cache=True, parallel=True)
+def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coef, mom_coef, centre, radius,
+                F, D, T, Q):  # pragma: no cover - compiled
+    """Per cilium j (parallel over j) of one chunk: rotate its cycle samples x, y, fx, fy
+    (n, n_p, n_s) by ``rot`` into the lab frame, then
+
+    * coef[j] (2K-1, n_s, 4): the trigonometric interpolant's coefficients in phase,
+      a_k = mk_k / n_p sum_p v_p cos(2 pi k p / n_p), b_k = mk_k / n_p sum_p v_p sin(...)
+      (``cos_p``, ``sin_p`` (n_p, K) hold the cosines and sines; v = x, y, fx, fy);
+    * mom_coef[j] (2Km-1, 14): the coefficients (cos k = 0..Km-1, then sin k = 1..Km-1) of
+      F (2), D (4) and T (8) of the interpolant about c_j = base + mean of the shape (its k = 0
+      term), sampled at n_m = 2 Km phases (``cos_m``, ``sin_m`` (n_m, Km)): products of up
+      to three functions of K harmonics hold 3 (K - 1) + 1 <= Km, so the samples alias nothing;
+    * from the raw samples: centre[j] (the centroid of the swept samples, plus the base),
+      radius[j], and per table phase F[j] (n_p, 2), D[j] (n_p, 2, 2), T[j] (n_p, 2, 2, 2) and
+      Q[j] (n_p,) = sum_s w_s |h|^3 |f| about the centroid (Simpson weights ``w``)."""
+    n, n_p, n_s = x.shape
+    K = cos_p.shape[1]
+    n_m, Km = cos_m.shape
+    R = 4 * n_s
+    for j in prange(n):
+        v = np.empty((n_p, R))  # (phase, (s, q)) flattened: the inner loops run over R contiguous numbers
+        for p in range(n_p):
+            for s in range(n_s):
+                a = x[j, p, s]
+                b = y[j, p, s]
+                v[p, 4 * s] = rot[0, 0] * a + rot[0, 1] * b
+                v[p, 4 * s + 1] = rot[1, 0] * a + rot[1, 1] * b
+                a = fx[j, p, s]
+                b = fy[j, p, s]
+                v[p, 4 * s + 2] = rot[0, 0] * a + rot[0, 1] * b
+                v[p, 4 * s + 3] = rot[1, 0] * a + rot[1, 1] * b
+        # trigonometric coefficients in phase
+        cf = np.zeros((2 * K - 1, R))
+        for p in range(n_p):
+            for k in range(K):
+                c = mk[k] * cos_p[p, k] / n_p
+                for r in range(R):
+                    cf[k, r] += c * v[p, r]
+            for k in range(1, K):
+                c = mk[k] * sin_p[p, k] / n_p
+                for r in range(R):
+                    cf[K - 1 + k, r] += c * v[p, r]
+        for k in range(2 * K - 1):
+            for s in range(n_s):
+                for q in range(4):
+                    coef[j, k, s, q] = cf[k, 4 * s + q]
+        # raw moments about the centroid of the swept samples
+        cx = 0.0
+        cy = 0.0
+        for p in range(n_p):
+            for s in range(n_s):
+                cx += v[p, 4 * s + 0]
+                cy += v[p, 4 * s + 1]
+        cx /= n_p * n_s
+        cy /= n_p * n_s
+        centre[j, 0] = cx + bases[j, 0]
+        centre[j, 1] = cy + bases[j, 1]
+        rmax = 0.0
+        for p in range(n_p):
+            for a in range(2):
+                F[j, p, a] = 0.0
+                for b in range(2):
+                    D[j, p, a, b] = 0.0
+                    for c3 in range(2):
+                        T[j, p, a, b, c3] = 0.0
+            Q[j, p] = 0.0
+            for s in range(n_s):
+                h0 = v[p, 4 * s + 0] - cx
+                h1 = v[p, 4 * s + 1] - cy
+                r = math.sqrt(h0 * h0 + h1 * h1)
+                rmax = max(rmax, r)
+                g0 = v[p, 4 * s + 2] * w[s]
+                g1 = v[p, 4 * s + 3] * w[s]
+                F[j, p, 0] += g0
+                F[j, p, 1] += g1
+                D[j, p, 0, 0] += h0 * g0
+                D[j, p, 0, 1] += h0 * g1
+                D[j, p, 1, 0] += h1 * g0
+                D[j, p, 1, 1] += h1 * g1
+                T[j, p, 0, 0, 0] += h0 * h0 * g0
+                T[j, p, 0, 0, 1] += h0 * h0 * g1
+                T[j, p, 0, 1, 0] += h0 * h1 * g0
+                T[j, p, 0, 1, 1] += h0 * h1 * g1
+                T[j, p, 1, 0, 0] += h1 * h0 * g0
+                T[j, p, 1, 0, 1] += h1 * h0 * g1
+                T[j, p, 1, 1, 0] += h1 * h1 * g0
+                T[j, p, 1, 1, 1] += h1 * h1 * g1
+                Q[j, p] += r * r * r * math.sqrt(v[p, 4 * s + 2] ** 2 + v[p, 4 * s + 3] ** 2) * w[s]
+        radius[j] = rmax
+        # moments of the interpolant on the oversampled phase grid, then their coefficients
+        mx = 0.0
+        my = 0.0
+        for s in range(n_s):
+            mx += cf[0, 4 * s]
+            my += cf[0, 4 * s + 1]
+        mx /= n_s
+        my /= n_s
+        vm = np.empty(R)
+        mom = np.empty(14)
+        mc = np.zeros((2 * Km - 1, 14))
+        for pm in range(n_m):
+            for r in range(R):
+                vm[r] = cf[0, r]
+            for k in range(1, K):
+                c = cos_m[pm, k]
+                sn = sin_m[pm, k]
+                for r in range(R):
+                    vm[r] += c * cf[k, r] + sn * cf[K - 1 + k, r]
+            for q in range(14):
+                mom[q] = 0.0
+            for s in range(n_s):
+                h0 = vm[4 * s] - mx
+                h1 = vm[4 * s + 1] - my
+                g0 = vm[4 * s + 2] * w[s]
+                g1 = vm[4 * s + 3] * w[s]
+                mom[0] += g0
+                mom[1] += g1
+                mom[2] += h0 * g0
+                mom[3] += h0 * g1
+                mom[4] += h1 * g0
+                mom[5] += h1 * g1
+                mom[6] += h0 * h0 * g0
+                mom[7] += h0 * h0 * g1
+                mom[8] += h0 * h1 * g0
+                mom[9] += h0 * h1 * g1
+                mom[10] += h1 * h0 * g0
+                mom[11] += h1 * h0 * g1
+                mom[12] += h1 * h1 * g0
+                mom[13] += h1 * h1 * g1
+            for k in range(Km):
+                c = (1.0 if k == 0 else 2.0) * cos_m[pm, k] / n_m
+                for q in range(14):
+                    mc[k, q] += c * mom[q]
+            for k in range(1, Km):
+                c = 2.0 * sin_m[pm, k] / n_m
+                for q in range(14):
+                    mc[Km - 1 + k, q] += c * mom[q]
+        mom_coef[j] = mc
+
+@njit(cache=True, parallel=True)
+def _lod_bound(targets, centre, radius, q, active, near_ptr, near_j, out):  # pragma: no cover - compiled
+    """out[i] = sum_j q_j / (R_ij - a_j)^4 over the active cilia j not listed for point i in
+    ``near_j[near_ptr[i]:near_ptr[i + 1]]`` (ascending), R_ij the distance of targets[i] (M, 3)
+    from the force centre c_j (in the plane z = 0): the levels of detail's Taylor bound."""
+    n = centre.shape[0]
+    for i in prange(targets.shape[0]):
+        x = targets[i, 0]
+        y = targets[i, 1]
+        z2 = targets[i, 2] * targets[i, 2]
+        k = near_ptr[i]
+        end = near_ptr[i + 1]
+        acc = 0.0
+        for j in range(n):
+            if k < end and near_j[k] == j:
+                k += 1
+                continue
+            if active[j]:
+                dx = x - centre[j, 0]
+                dy = y - centre[j, 1]
+                d = math.sqrt(dx * dx + dy * dy + z2) - radius[j]
+                acc += q[j] / (d * d * d * d)
+        out[i] = acc
+
+
+@njit(cache=True, parallel=True)
+def _blocks(coef, basis, wgt, bases, jc, cpos, cfrc, src, frc):  # pragma: no cover - compiled
+    """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
+    ``frc``, (len(jc) * blk, 3), z = 0) holds the resolved sources of cilium j = jc[i] -- its
+    trigonometric interpolant (coef (N, 2K-1, n_s, 4)) at the P phases whose basis rows are
+    ``basis[i]`` (len(jc), P, 2K-1), positions plus the
+    base, forces times ``wgt`` (n_s,) -- then its n_car carriers ``cpos[j]`` with the negated
+    forces ``-cfrc[j]`` (n_car = cpos.shape[1], 0 for none)."""
+    n_s = coef.shape[2]
+    nk = coef.shape[1]
+    P = basis.shape[1]
+    n_car = cpos.shape[1]
+    blk = P * n_s + n_car
+    R = 4 * n_s
+    for i in prange(jc.shape[0]):
+        j = jc[i]
+        o = i * blk
+        cj = coef[j].reshape(nk, R)  # (k, (s, q)): the inner loop runs over R contiguous numbers
+        v = np.empty(R)
+        for p in range(P):
+            e = basis[i, p, 0]
+            for r in range(R):
+                v[r] = e * cj[0, r]
+            for k in range(1, nk):
+                e = basis[i, p, k]
+                for r in range(R):
+                    v[r] += e * cj[k, r]
+            for s in range(n_s):
+                r = o + p * n_s + s
+                src[r, 0] = v[4 * s] + bases[j, 0]
+                src[r, 1] = v[4 * s + 1] + bases[j, 1]
+                src[r, 2] = 0.0
+                frc[r, 0] = v[4 * s + 2] * wgt[s]
+                frc[r, 1] = v[4 * s + 3] * wgt[s]
+                frc[r, 2] = 0.0
+        for m in range(n_car):
+            r = o + P * n_s + m
+            src[r, 0] = cpos[j, m, 0]
+            src[r, 1] = cpos[j, m, 1]
+            src[r, 2] = 0.0
+            frc[r, 0] = -cfrc[j, m, 0]
+            frc[r, 1] = -cfrc[j, m, 1]
+            frc[r, 2] = 0.0
+
+
+_blocks_serial = njit(cache=True)(_blocks.py_func)
+"""Serial :func:`_blocks` (few sources: a parallel region costs more than it saves)."""
+_PARALLEL_SOURCES = 50_000
+"""Source blocks of at least this many sources are made in parallel."""
+
+
 def _simpson(n: int) -> np.ndarray:
     if n < 3 or n % 2 == 0:
         raise ValueError(f"the table's s grid must have an odd number (>= 3) of points, got {n}")
@@ -300,83 +516,44 @@ class Carpet:
         w = _simpson(n_s)
         rot = self.rotation
         K = _modes(t)
+        Km = 3 * (K - 1) + 1  # the moments are products of up to three K-band functions
+        n_m = 2 * Km
+        arg = 2.0 * math.pi * np.arange(n_p)[:, None] * np.arange(K)[None, :] / n_p
+        arg_m = 2.0 * math.pi * np.arange(n_m)[:, None] * np.arange(Km)[None, :] / n_m
+        mk = np.full(K, 2.0)
+        mk[0] = 1.0
+        if n_p % 2 == 0 and K - 1 == n_p // 2:
+            mk[-1] = 1.0
         fl = np.zeros(n, bool)
         coef = np.empty((n, 2 * K - 1, n_s, 4))
-        centre, radius = np.empty((n, 2)), np.empty(n)
-        F, D, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p))
-        n_m = 2 * n_p  # moments are products of up to three K-band functions: sampled without aliasing
-        Km = n_m // 2
         mom_coef = np.empty((n, 2 * Km - 1, 14))
-        ph_m = np.arange(n_m) / n_m
-        arg_m = 2.0 * math.pi * ph_m[:, None] * np.arange(K)[None, :]
-        basis_m = np.concatenate([np.cos(arg_m), np.sin(arg_m[:, 1:])], axis=1)
-        mm = np.full(Km, 2.0)
-        mm[0] = mm[-1] = 1.0
-        T2 = np.empty((n, n_p, 2, 2, 2))
-        hulls = []
-        m = np.full(K, 2.0)
-        m[0] = 1.0
-        if n_p % 2 == 0 and K - 1 == n_p // 2:
-            m[-1] = 1.0
-        for lo in range(0, n, 256):  # in chunks: the full cycle data of a large carpet would not fit
-            sl = slice(lo, min(n, lo + 256))
+        centre, radius = np.empty((n, 2)), np.empty(n)
+        F, D, T2, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p, 2, 2, 2)), np.empty((n, n_p))
+        for lo in range(0, n, 128):  # in chunks: the full cycle data of a large carpet would not fit
+            sl = slice(lo, min(n, lo + 128))
             cyc = t.cycles(self.chi_N[sl])  # raises TableError for chi_N outside the table
             fl[sl] = cyc["flutter"]
-            xy = np.stack([cyc["x"], cyc["y"]], axis=-1)
-            f = np.stack([cyc["fx"], cyc["fy"]], axis=-1)
             for i in np.nonzero(~cyc["flutter"])[0]:  # still filaments: equilibrium shape, no force
                 x, y = equilibrium_shape(CiliumParams(t.chi_E, t.eta, float(self.chi_N[lo + i])), s)
-                xy[i] = np.stack([x, y], axis=-1)[None]
-            xy = xy @ rot.T
-            f = f @ rot.T
-            # trigonometric interpolation in phase: cos terms k = 0..K-1, then sin terms k = 1..K-1
-            spec = np.fft.rfft(np.concatenate([xy, f], axis=-1), axis=1)[:, :K] / n_p * m[None, :, None, None]
-            coef[sl] = np.concatenate([spec.real, -spec.imag[:, 1:]], axis=1)
-            # F, D, T on the oversampled phase grid, then their trigonometric coefficients
-            vm = np.einsum("pk,jksq->jpsq", basis_m, coef[sl], optimize=True)
-            relm = vm[..., :2] + self.bases[sl][:, None, None, :]
-            cen_m = relm.reshape(relm.shape[0], -1, 2).mean(axis=1)
-            relm = relm - cen_m[:, None, None, :]
-            fwm = vm[..., 2:] * w[None, None, :, None]
-            Fm = fwm.sum(axis=2)
-            Dm = np.einsum("jpsa,jpsb->jpab", relm, fwm)
-            Tm = np.einsum("jpsa,jpsb,jpsc->jpabc", relm, relm, fwm, optimize=True)
-            allm = np.concatenate([Fm, Dm.reshape(*Dm.shape[:2], 4), Tm.reshape(*Tm.shape[:2], 8)], axis=-1)
-            sm = np.fft.rfft(allm, axis=1)[:, :Km] / n_m * mm[None, :, None]
-            mom_coef[sl] = np.concatenate([sm.real, -sm.imag[:, 1:]], axis=1)
-            cen = xy.reshape(xy.shape[0], -1, 2).mean(axis=1)
-            rel = xy - cen[:, None, None, :]
-            dist = np.sqrt((rel ** 2).sum(-1))
-            centre[sl] = cen + self.bases[sl]
-            radius[sl] = dist.reshape(xy.shape[0], -1).max(axis=1)
-            fw = f * w[None, None, :, None]
-            F[sl] = fw.sum(axis=2)
-            D[sl] = np.einsum("jpsa,jpsb->jpab", rel, fw)
-            T2[sl] = np.einsum("jpsa,jpsb,jpsc->jpabc", rel, rel, fw, optimize=True)
-            Q[sl] = (dist ** 3 * np.sqrt((f ** 2).sum(-1)) * w).sum(axis=2)
-            for i in range(xy.shape[0]):
-                try:
-                    hulls.append(ConvexHull(xy[i].reshape(-1, 2) + self.bases[lo + i]).equations)
-                except Exception:  # degenerate (a straight still filament): its bounding disc is used
-                    hulls.append(None)
+                cyc["x"][i], cyc["y"][i] = x[None], y[None]
+            _cycle_data(cyc["x"], cyc["y"], cyc["fx"], cyc["fy"], rot, self.bases[sl], w, np.cos(arg), np.sin(arg),
+                        mk, np.cos(arg_m), np.sin(arg_m), coef[sl], mom_coef[sl], centre[sl], radius[sl], F[sl], D[sl],
+                        T2[sl], Q[sl])
         period = np.full(n, np.nan)
         if np.any(fl):
             period[fl] = t.scalar("period", self.chi_N[fl])
         return dict(flutter=fl, n_s=n_s, n_phase=n_p, s=s, w=w, coef=coef, k=np.arange(K),
                     period=period, rate=np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0),
                     centre=centre, radius=radius, F=F, D=D, Q=Q, F_rms=np.sqrt((F ** 2).sum(-1).mean(axis=1)),
-                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls=hulls, radii={},
+                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls={}, radii={},
                     T=T2, T_mean=T2.mean(axis=1), mom_coef=mom_coef, k_m=np.arange(Km),
                     Q_max=Q.max(axis=1))
 
     def _warn_overlaps(self) -> None:
         c = self._c
-        tree = cKDTree(self.bases)
-        bad = []
-        for j in range(self.n):
-            for i in tree.query_ball_point(c["centre"][j], c["radius"][j]):
-                if i != j and self.in_swept_region(self.bases[i][None], j)[0]:
-                    bad.append((i, j))
+        near = cKDTree(self.bases).query_ball_point(c["centre"], c["radius"])
+        bad = [(i, j) for j in range(self.n) for i in near[j]
+               if i != j and self.in_swept_region(self.bases[i][None], j)[0]]
         if bad:
             warnings.warn(f"{len(bad)} cilium base(s) lie inside another cilium's swept region, e.g. base "
                           f"{bad[0][0]} in cilium {bad[0][1]}'s: the model ignores contact and hydrodynamic "
@@ -451,15 +628,6 @@ class Carpet:
         vals = np.einsum("jk,jksq->jsq", basis, c["coef"], optimize=True)
         return vals[..., :2] + self.bases[:, None, :], vals[..., 2:], ph
 
-    def _state_of(self, js: np.ndarray, ph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions and forces per length (len(js), n_s, 2) of cilia ``js`` at phases ``ph``."""
-        coef = self._c["coef"]
-        vals = np.empty((len(js), coef.shape[2] * coef.shape[3]))
-        _trig_rows(coef.reshape(coef.shape[0], coef.shape[1], -1), np.ascontiguousarray(ph, dtype=float),
-                   np.asarray(js, dtype=np.int64), vals)
-        vals = vals.reshape(len(js), coef.shape[2], coef.shape[3])
-        return vals[..., :2] + self.bases[js][:, None, :], vals[..., 2:]
-
     def cycle_samples(self, js) -> tuple[np.ndarray, np.ndarray]:
         """Positions and forces per length of cilia ``js`` at the table's phase samples:
         (len(js), n_phase, n_s, 2) each, lab frame."""
@@ -475,7 +643,13 @@ class Carpet:
         """Whether points (M, 2) lie in the convex hull of cilium j's swept region grown by
         ``margin`` (conservative: the hull covers the region)."""
         p = np.asarray(points, dtype=float)[:, :2]
-        eq = self._c["hulls"][j]
+        hulls = self._c["hulls"]
+        if j not in hulls:  # built when first asked for: most cilia never are
+            try:
+                hulls[j] = ConvexHull(self.cycle_samples([j])[0].reshape(-1, 2)).equations
+            except Exception:  # degenerate (a straight still filament): its bounding disc is used
+                hulls[j] = None
+        eq = hulls[j]
         if eq is None:
             d = np.linalg.norm(p - self._c["centre"][j], axis=1)
             return d <= self._c["radius"][j] + margin
@@ -540,35 +714,61 @@ class Carpet:
             cache[key] = np.where((S > 0) | (Qt > 0), R, -1.0)
         return cache[key]
 
-    def _sum(self, targets: np.ndarray, resolved, F: np.ndarray, D: np.ndarray, T: np.ndarray, Q: np.ndarray,
-             S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
+    def _sum(self, targets: np.ndarray, ph: np.ndarray | None, F: np.ndarray, D: np.ndarray, T: np.ndarray,
+             Q: np.ndarray, S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
         """Cheap carriers everywhere (one dense sum), plus resolved-minus-cheap corrections on the
-        near pairs (one sparse sum). ``resolved(js)`` gives the resolved sources of cilia ``js``:
-        positions and weighted forces, (len(js), n_src, 2) each."""
+        near pairs (one sparse sum). The resolved sources of a cilium: its line distribution at
+        its phase ``ph[j]`` ((N,): the instantaneous flow), or at every phase sample of the table
+        with weight 1 / n_phase (``ph=None``: the mean flow)."""
         c = self._c
         n = self.n
         active = S > 0
         cpos, cf, q_rep = self._carriers(F, D, T)
+        nk = c["coef"].shape[1]
+        K = (nk + 1) // 2
+
+        def basis(phases):
+            arg = 2.0 * math.pi * np.asarray(phases)[..., None] * np.arange(K)
+            return np.ascontiguousarray(np.concatenate([np.cos(arg), np.sin(arg[..., 1:])], axis=-1))
+
+        if ph is None:
+            b_all = basis(np.arange(c["n_phase"]) / c["n_phase"])[None]
+            wgt = c["w"] / c["n_phase"]
+        else:
+            wgt = c["w"]
+        no_car = np.zeros((n, 0, 2))
+
+        def blocks(jc, carriers: bool):
+            """AoS sources and forces (len(jc) * blk, 3) of cilia jc (see :func:`_blocks`), and blk."""
+            bs = np.ascontiguousarray(np.broadcast_to(b_all, (len(jc),) + b_all.shape[1:])) if ph is None \
+                else basis(ph[jc])[:, None, :]
+            cp, cq = (cpos, cf) if carriers else (no_car, no_car)
+            blk = bs.shape[1] * c["n_s"] + cp.shape[1]
+            out_s, out_f = np.empty((len(jc) * blk, 3)), np.empty((len(jc) * blk, 3))
+            f = _blocks if out_s.shape[0] >= _PARALLEL_SOURCES else _blocks_serial
+            f(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), cp, cq, out_s, out_f)
+            return out_s, out_f, blk
+
+        n_res_src = (c["n_phase"] if ph is None else 1) * c["n_s"]
         m = targets.shape[0]
         kernel = self.kernel
         rstar = self._near_radii(tol, cheap_level)
-        if tol == 0:  # the resolved sum itself: one dense sum over every source
+        if tol == 0:  # the resolved sum itself: every source of every active cilium, in chunks
             js = np.nonzero(active)[0]
             u = np.zeros((m, 3))
-            n_src = 0
-            if js.size:
-                rpos, rf = resolved(js)
-                n_src = rpos.shape[1]
-                u = stokeslet_velocity(targets, _pad(rpos.reshape(-1, 2)), _pad(rf.reshape(-1, 2)), self.mu,
-                                       kernel=kernel, backend=self.backend)
+            per = max(1, _CHUNK_SOURCES // n_res_src)
+            for lo in range(0, js.size, per):
+                bsrc, bfrc, _ = blocks(js[lo:lo + per], False)
+                u += stokeslet_velocity(targets, bsrc, bfrc, self.mu, kernel=kernel, backend=self.backend)
             return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": m * js.size},
-                              tol=tol, work=dict(sources=m * js.size * n_src, ranges=0))
+                              tol=tol, work=dict(sources=m * js.size * n_res_src, ranges=0))
         u = np.zeros((m, 3))
         work = dict(sources=0, ranges=0)
         # near pairs, from a tree over the targets
         cand = np.nonzero(rstar > 0)[0]
         n_near = 0
-        if cand.size:
+        pi = pj = np.zeros(0, np.int64)
+        if cand.size and m:
             r = np.minimum(rstar[cand], 1e300)
             sdm = cKDTree(_pad(c["centre"][cand])).sparse_distance_matrix(cKDTree(targets), float(r.max()),
                                                                          output_type="ndarray")
@@ -579,52 +779,70 @@ class Carpet:
         if not np.any(active) and not n_near:
             return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": 0}, tol=tol,
                               work=work)
-        # One sparse sum (one parallel region per evaluation: on a loaded machine each costs a time
-        # slice): every point sums the carriers of every active cilium (the first block), then per
-        # near cilium one contiguous block, its resolved sources and its negated carriers (long
-        # ranges vectorise in the kernel).
+        # The carriers of every active cilium for every point, then per near pair one contiguous
+        # block: the cilium's resolved sources and its negated carriers (long ranges vectorise in
+        # the kernel). The blocks are made and summed in chunks of cilia of at most
+        # _CHUNK_SOURCES sources (the resolved mean flow has 4160 per cilium: a whole carpet's
+        # would take hundreds of MB, and fresh memory costs more than the sum); the first
+        # chunk carries the carriers' block too, so that an instantaneous flow (65 sources per
+        # cilium: one chunk) is one sparse sum, one parallel region per evaluation.
         n0 = 6 * int(active.sum())
-        src = [_pad(cpos[active].reshape(-1, 2))]
-        frc = [_pad(cf[active].reshape(-1, 2))]
-        cnt = np.zeros(m, dtype=np.int64)
+        carr_src = _pad(cpos[active].reshape(-1, 2))
+        carr_frc = _pad(cf[active].reshape(-1, 2))
+        js = np.zeros(0, np.int64)
+        per, blk, n_chunks = 1, 0, 1
         if n_near:
-            # grouped by target (CSR; the order within is free): a counting sort, O(pairs)
-            order = np.argsort(pi.astype(np.uint16) if m <= 65536 else pi, kind="stable")
-            pi, pj = pi[order], pj[order]
             used = np.bincount(pj, minlength=n) > 0
             js = np.nonzero(used)[0]
             local = (np.cumsum(used) - 1)[pj]
-            rpos, rf = resolved(js)
-            blk = rpos.shape[1] + _UNIT.shape[0]
-            src.append(_pad(np.concatenate([rpos, cpos[js]], axis=1).reshape(-1, 2)))
-            frc.append(_pad(np.concatenate([rf, -cf[js]], axis=1).reshape(-1, 2)))
-            cnt = np.bincount(pi, minlength=m)
-        ptr = np.concatenate([[0], np.cumsum(cnt + 1)]).astype(np.int64)
-        ranges = np.empty((m + n_near, 2), dtype=np.int64)
-        ranges[ptr[:-1]] = (0, n0)
-        if n_near:
-            first = np.concatenate([[0], np.cumsum(cnt)[:-1]])  # the first near pair of each point
-            at = ptr[pi] + 1 + np.arange(n_near) - first[pi]
-            ranges[at, 0] = n0 + local * blk
-            ranges[at, 1] = n0 + (local + 1) * blk
-        u += stokeslet_velocity_ranges(targets, np.concatenate(src), np.concatenate(frc), ptr, ranges, self.mu,
-                                       kernel=kernel, backend=self.backend)
-        work["sources"] = m * n0 + (n_near * blk if n_near else 0)
+            blk = n_res_src + _UNIT.shape[0]
+            per = max(1, _CHUNK_SOURCES // blk)
+            chunk = local // per
+            n_chunks = int(chunk.max()) + 1
+            order = np.lexsort((pj, pi, chunk))  # by chunk, then target, then cilium
+            pi, pj, local, chunk = pi[order], pj[order], local[order], chunk[order]
+            cut = np.searchsorted(chunk, np.arange(n_chunks + 1))
+        for k in range(n_chunks):
+            if n_near:
+                sl = slice(cut[k], cut[k + 1])
+                jc = js[k * per:(k + 1) * per]
+                bsrc, bfrc, _ = blocks(jc, True)
+                ti, tl = pi[sl], local[sl] - k * per
+            else:
+                bsrc = bfrc = np.zeros((0, 3))
+                ti = tl = np.zeros(0, np.int64)
+            if k == 0:  # every point: the carriers, then its near blocks of this chunk
+                pts = np.arange(m)
+                cnt = np.bincount(ti, minlength=m)
+                ptr = np.concatenate([[0], np.cumsum(cnt + 1)]).astype(np.int64)
+                ranges = np.empty((m + ti.size, 2), dtype=np.int64)
+                ranges[ptr[:-1]] = (0, n0)
+                off, first_slot = n0, ptr[:-1] + 1
+                src, frc = np.concatenate([carr_src, bsrc]), np.concatenate([carr_frc, bfrc])
+            else:  # only the points with near pairs in this chunk
+                pts, inv, cnt = np.unique(ti, return_inverse=True, return_counts=True)
+                ptr = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
+                ranges = np.empty((ti.size, 2), dtype=np.int64)
+                off, first_slot, ti = 0, ptr[:-1], inv
+                src, frc = bsrc, bfrc
+            if ti.size:
+                start = np.concatenate([[0], np.cumsum(cnt)[:-1]])  # the first pair of each point
+                at = first_slot[ti] + np.arange(ti.size) - start[ti]
+                ranges[at, 0] = off + tl * blk
+                ranges[at, 1] = off + (tl + 1) * blk
+            if ranges.shape[0] and src.shape[0]:
+                u[pts] += stokeslet_velocity_ranges(targets[pts], src, frc, ptr, ranges, self.mu, kernel=kernel,
+                                                    backend=self.backend)
+        work["sources"] = m * n0 + n_near * blk
         work["ranges"] = m + n_near
         bound = np.zeros(m)
         if error and np.any(active):
-            C3 = kernel.c3
-            cen = _pad(c["centre"])
-            near = np.zeros((m, n), bool)
-            if n_near:
-                near[pi, pj] = True
-            step = max(1, int(2e6 // n))
-            for lo in range(0, m, step):
-                hi = min(m, lo + step)
-                R = np.linalg.norm(targets[lo:hi, None, :] - cen[None], axis=-1)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    b = C3 * (Q + q_rep)[None] / (6.0 * (R - c["radius"][None]) ** 4)
-                bound[lo:hi] = np.where(near[lo:hi] | ~active[None], 0.0, b).sum(axis=1) / (8 * math.pi * self.mu)
+            # per point, over the active cilia not summed resolved (near pairs listed by point)
+            o = np.lexsort((pj, pi))
+            near_ptr = np.concatenate([[0], np.cumsum(np.bincount(pi, minlength=m))]).astype(np.int64)
+            _lod_bound(targets, c["centre"], c["radius"], kernel.c3 * (Q + q_rep) / 6.0, active, near_ptr,
+                       np.ascontiguousarray(pj[o]), bound)
+            bound /= 8 * math.pi * self.mu
         n_pairs = m * int(active.sum())
         n_res = int(np.sum(active[pj])) if n_near else 0
         pairs = {cheap_level: n_pairs - n_res, "resolved": n_res}
@@ -660,11 +878,7 @@ class Carpet:
         _trig_rows(c["mom_coef"], ph, np.arange(self.n), mom)
         F, D, T = mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
 
-        def resolved(js):
-            pos, f = self._state_of(js, ph[js])
-            return pos, f * c["w"][None, :, None]
-
-        return self._sum(x, resolved, F, D, T, c["Q_max"], c["F_rms"] * c["flutter"], tol, error, "point")
+        return self._sum(x, ph, F, D, T, c["Q_max"], c["F_rms"] * c["flutter"], tol, error, "point")
 
     def velocity(self, points, t: float, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) fluid velocity at ``points`` at time ``t`` (see :meth:`evaluate`)."""
@@ -677,19 +891,8 @@ class Carpet:
         tol = self._tol(tol)
         c = self._c
 
-        def resolved(js):
-            if "mean_sources" in c:
-                pos, fw = c["mean_sources"]
-                return pos[js], fw[js]
-            pos, f = self.cycle_samples(js)
-            fw = f * (c["w"] / c["n_phase"])[None, None, :, None]
-            return pos.reshape(len(js), -1, 2), fw.reshape(len(js), -1, 2)
-
-        if "mean_sources" not in c and self.n * c["n_phase"] * c["n_s"] * 32 <= _MEAN_CACHE_BYTES:
-            c["mean_sources"] = resolved(np.arange(self.n))  # static: computed once per carpet
-
         S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
-        return self._sum(x, resolved, c["F_mean"], c["D_mean"], c["T_mean"], c["Q_mean"], S, tol, error, "mean")
+        return self._sum(x, None, c["F_mean"], c["D_mean"], c["T_mean"], c["Q_mean"], S, tol, error, "mean")
 
     def mean_velocity(self, points, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) time-averaged fluid velocity (see :meth:`evaluate_mean`)."""
