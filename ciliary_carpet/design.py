@@ -89,7 +89,7 @@ from .assembly import assemble
 from .carpet import Carpet
 from .kernel import make_kernel
 from .stokeslet import Wall, stokeslet_velocity, stokeslet_velocity_ranges
-from .target import Frame, TargetError, control_points, reachable_check
+from .target import Frame, TargetError, _as_in_spec, control_points, reachable_check
 from .treecode import Treecode
 
 logger = logging.getLogger(__name__)
@@ -518,7 +518,7 @@ def angle_objective(u, target, floor, weight: float = 1.0) -> tuple[float, np.nd
 
 # ------------------------------------------------------------------------------ design
 def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cilium_angles=None, clip: bool = False,
-                  tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = 0.3,
+                  tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = _as_in_spec("speed_floor"),
                   floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
                   outer: int = 2, ftol: float = 1e-6, maxiter: int = 500,
                   spacing: float | None = None, floor_radius: float | None = None,
@@ -835,7 +835,8 @@ class ToleranceStudy:
                 "method": "sampled; design model + the full model's defect at the design"}
 
 
-def tolerance_study(carpet: Carpet, d: Design, sigma: float, samples: int = 64, seed: int = 0) -> ToleranceStudy:
+def tolerance_study(carpet: Carpet, d: Design, sigma: float, samples: int = _as_in_spec("samples"),
+                    seed: int = 0) -> ToleranceStudy:
     """The expected residual of design ``d`` on ``carpet`` (its designed carpet) and its spread
     under a relative chi_N error ``sigma`` (see :class:`ToleranceStudy`)."""
     sg = float(sigma)
