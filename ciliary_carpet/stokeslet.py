@@ -161,10 +161,113 @@ def _validate(targets: Any, sources: Any, forces: Any, mu: Any, wall: Any
 
 
 # --------------------------------------------------------------------------- numba kernels
+# The per-pair formulas are written once, below, as scalar functions of one (target, source) pair:
+# the CPU loops (_acc_*) inline them, and ciliary_carpet.cuda compiles the same Python source
+# (``.py_func``) into CUDA device functions. Their constants are module globals, not literals, so
+# that the CUDA evaluator can compile an fp32 copy with fp32 constants (a float literal would
+# promote every fp32 operation it touches to fp64 under numba's typing).
+_ZERO = 0.0
+_ONE = 1.0
+_TWO = 2.0
+_THREE = 3.0
+_FOUR = 4.0
+_SIX = 6.0
+PAIR_CONSTANTS = ("_ZERO", "_ONE", "_TWO", "_THREE", "_FOUR", "_SIX")
+"""Names of the constants of the pair functions (retyped by the fp32 CUDA kernels)."""
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _pair_free(xi, yi, zi, sx, sy, sz, a, b, c, e2):  # pragma: no cover - compiled
+    """``G^eps(x - xi) f`` of one pair (no 1/(8 pi mu)), ``e2 = eps^2``:
+    ``(f (r^2 + 2 e2) + R (R.f)) / (r^2 + e2)^{3/2}``; the singular Stokeslet for ``e2 = 0``, its
+    coincident pair (``R = 0``) counting as zero."""
+    dx = xi - sx
+    dy = yi - sy
+    dz = zi - sz
+    r2 = dx * dx + dy * dy + dz * dz
+    q2 = r2 + e2
+    ir = _ONE / math.sqrt(q2) if q2 > _ZERO else _ZERO
+    ir3 = ir * ir * ir
+    rf = (dx * a + dy * b + dz * c) * ir3
+    iso = (r2 + _TWO * e2) * ir3
+    return a * iso + dx * rf, b * iso + dy * rf, c * iso + dz * rf
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _pair_wall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - compiled
+    """``G^B(x, xi) f`` of one pair, wall at z = 0 (``zt`` the target's height, ``h`` the
+    source's; ``e2`` unused, for a common signature; no 1/(8 pi mu)).
+
+    With ``R = x - xi``, ``R* = x - xi*``, ``g = M f = (f_x, f_y, -f_z)`` the Blake doublet
+    terms reduce (``R*_z - h = zt``) to
+    ``2 h [-zt g / r*^3 + R* (3 zt (R*.g) / r*^5 - g_z / r*^3) + e_z (R*.g) / r*^3]``.
+    """
+    dx = xi - sx
+    dy = yi - sy
+    dz = zt - h
+    ez = zt + h
+    p2 = dx * dx + dy * dy
+    r2 = p2 + dz * dz
+    ir = _ONE / math.sqrt(r2) if r2 > _ZERO else _ZERO
+    ir3 = ir * ir * ir
+    iq = _ONE / math.sqrt(p2 + ez * ez)
+    iq2 = iq * iq
+    iq3 = iq * iq2
+    pf = dx * a + dy * b
+    rf = (pf + dz * c) * ir3          # (R . f) / r^3
+    qf = pf + ez * c                  # R* . f
+    qg = pf - ez * c                  # R* . g
+    h2 = _TWO * h * iq3
+    d = h2 * zt
+    cf = ir - iq
+    cq = h2 * (c + _THREE * zt * qg * iq2) - qf * iq3
+    cxy = rf + cq
+    return ((cf - d) * a + cxy * dx, (cf - d) * b + cxy * dy,
+            (cf + d) * c + rf * dz + cq * ez + h2 * qg)
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _pair_regwall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - compiled
+    """The regularised Blake tensor (:func:`ciliary_carpet.kernel.regularised_blake_tensor`)
+    times ``f`` for one pair, wall at z = 0, ``e2 = eps^2`` (no 1/(8 pi mu)).
+
+    With ``r = x - xi``, ``R = x - xi*``, ``g = (f_x, f_y, -f_z)`` the tensor's terms collect to
+    ``G^eps(r) f + a_f f + a_g g + a_R R + a_z e_z`` (coefficients below)."""
+    dx = xi - sx
+    dy = yi - sy
+    dz = zt - h
+    ez = zt + h
+    p2 = dx * dx + dy * dy
+    r2 = p2 + dz * dz
+    R2 = p2 + ez * ez
+    ir = _ONE / math.sqrt(r2 + e2)
+    ir3 = ir * ir * ir
+    iq = _ONE / math.sqrt(R2 + e2)
+    iq3 = iq * iq * iq
+    iq5 = iq3 * iq * iq
+    pf = dx * a + dy * b
+    rf = (pf + dz * c) * ir3
+    Rf = pf + ez * c
+    Rg = pf - ez * c
+    iso = (r2 + _TWO * e2) * ir3
+    hh = h * h
+    cf = -(R2 + _TWO * e2) * iq3 + _SIX * h * e2 * iq5 * ez
+    cg = (_TWO * hh - _TWO * h * ez) * iq3 - _SIX * hh * e2 * iq5
+    cR = -Rf * iq3 + (_SIX * h * ez - _SIX * hh) * Rg * iq5 + _TWO * h * c * iq3
+    cz = _TWO * h * Rg * (R2 + _FOUR * e2) * iq5 - _SIX * h * e2 * iq5 * Rf
+    return (a * (iso + cf) + dx * (rf + cR) + cg * a,
+            b * (iso + cf) + dy * (rf + cR) + cg * b,
+            c * (iso + cf) + dz * rf + ez * cR - cg * c + cz)
+
+
+PAIRS = {0: _pair_free, 1: _pair_wall, 2: _pair_regwall}
+"""The pair function of each :attr:`Kernel.code <ciliary_carpet.kernel.Kernel.code>`."""
+
+
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
-    """Sum of ``G^eps(x - xi_j) f_j`` for ``j`` in ``[lo, hi)`` (no 1/(8 pi mu)), ``e2 = eps^2``:
-    ``(f (r^2 + 2 e2) + R (R.f)) / (r^2 + e2)^{3/2}``; the singular Stokeslet for ``e2 = 0``."""
+    """Sum of :func:`_pair_free` over the sources ``[lo, hi)`` of one target (one loop per
+    kernel, so that each vectorises)."""
     ux = 0.0
     uy = 0.0
     uz = 0.0
@@ -177,119 +280,50 @@ def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cov
     fy = fy[lo:hi]
     fz = fz[lo:hi]
     for j in range(hi - lo):
-        dx = xi - sx[j]
-        dy = yi - sy[j]
-        dz = zi - sz[j]
-        r2 = dx * dx + dy * dy + dz * dz
-        q2 = r2 + e2
-        ir = 1.0 / np.sqrt(q2) if q2 > 0.0 else 0.0
-        ir3 = ir * ir * ir
-        a = fx[j]
-        b = fy[j]
-        c = fz[j]
-        rf = (dx * a + dy * b + dz * c) * ir3
-        iso = (r2 + 2.0 * e2) * ir3
-        ux += a * iso + dx * rf
-        uy += b * iso + dy * rf
-        uz += c * iso + dz * rf
+        a, b, c = _pair_free(xi, yi, zi, sx[j], sy[j], sz[j], fx[j], fy[j], fz[j], e2)
+        ux += a
+        uy += b
+        uz += c
     return ux, uy, uz
 
 
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
-def _acc_wall(xi, yi, zt, sx, sy, sh, fx, fy, fz, lo, hi):  # pragma: no cover - compiled
-    """Sum of ``G^B(x, xi_j) f_j`` for ``j`` in ``[lo, hi)``, wall at z = 0 (heights ``zt`` of
-    the target, ``sh`` of the sources; no 1/(8 pi mu)).
-
-    With ``R = x - xi``, ``R* = x - xi*``, ``g = M f = (f_x, f_y, -f_z)`` the Blake doublet
-    terms reduce (``R*_z - h = zt``) to
-    ``2 h [-zt g / r*^3 + R* (3 zt (R*.g) / r*^5 - g_z / r*^3) + e_z (R*.g) / r*^3]``.
-    """
+def _acc_wall(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
+    """Sum of :func:`_pair_wall` over the sources ``[lo, hi)`` of one target."""
     ux = 0.0
     uy = 0.0
     uz = 0.0
     sx = sx[lo:hi]
     sy = sy[lo:hi]
-    sh = sh[lo:hi]
+    sz = sz[lo:hi]
     fx = fx[lo:hi]
     fy = fy[lo:hi]
     fz = fz[lo:hi]
     for j in range(hi - lo):
-        h = sh[j]
-        dx = xi - sx[j]
-        dy = yi - sy[j]
-        dz = zt - h
-        ez = zt + h
-        p2 = dx * dx + dy * dy
-        r2 = p2 + dz * dz
-        ir = 1.0 / np.sqrt(r2) if r2 > 0.0 else 0.0
-        ir3 = ir * ir * ir
-        iq = 1.0 / np.sqrt(p2 + ez * ez)
-        iq2 = iq * iq
-        iq3 = iq * iq2
-        a = fx[j]
-        b = fy[j]
-        c = fz[j]
-        pf = dx * a + dy * b
-        rf = (pf + dz * c) * ir3          # (R . f) / r^3
-        qf = pf + ez * c                  # R* . f
-        qg = pf - ez * c                  # R* . g
-        h2 = 2.0 * h * iq3
-        d = h2 * zt
-        cf = ir - iq
-        cq = h2 * (c + 3.0 * zt * qg * iq2) - qf * iq3
-        cxy = rf + cq
-        ux += (cf - d) * a + cxy * dx
-        uy += (cf - d) * b + cxy * dy
-        uz += (cf + d) * c + rf * dz + cq * ez + h2 * qg
+        a, b, c = _pair_wall(xi, yi, zi, sx[j], sy[j], sz[j], fx[j], fy[j], fz[j], e2)
+        ux += a
+        uy += b
+        uz += c
     return ux, uy, uz
 
 
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
-def _acc_regwall(xi, yi, zt, sx, sy, sh, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
-    """Sum of the regularised Blake tensor (:func:`ciliary_carpet.kernel.regularised_blake_tensor`)
-    times ``f_j`` for ``j`` in ``[lo, hi)``, wall at z = 0, ``e2 = eps^2`` (no 1/(8 pi mu)).
-
-    With ``r = x - xi``, ``R = x - xi*``, ``g = (f_x, f_y, -f_z)`` the tensor's terms collect to
-    ``G^eps(r) f + a_f f + a_g g + a_R R + a_z e_z`` (coefficients below)."""
+def _acc_regwall(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
+    """Sum of :func:`_pair_regwall` over the sources ``[lo, hi)`` of one target."""
     ux = 0.0
     uy = 0.0
     uz = 0.0
     sx = sx[lo:hi]
     sy = sy[lo:hi]
-    sh = sh[lo:hi]
+    sz = sz[lo:hi]
     fx = fx[lo:hi]
     fy = fy[lo:hi]
     fz = fz[lo:hi]
     for j in range(hi - lo):
-        h = sh[j]
-        dx = xi - sx[j]
-        dy = yi - sy[j]
-        dz = zt - h
-        ez = zt + h
-        p2 = dx * dx + dy * dy
-        r2 = p2 + dz * dz
-        R2 = p2 + ez * ez
-        ir = 1.0 / np.sqrt(r2 + e2)
-        ir3 = ir * ir * ir
-        iq = 1.0 / np.sqrt(R2 + e2)
-        iq3 = iq * iq * iq
-        iq5 = iq3 * iq * iq
-        a = fx[j]
-        b = fy[j]
-        c = fz[j]
-        pf = dx * a + dy * b
-        rf = (pf + dz * c) * ir3
-        Rf = pf + ez * c
-        Rg = pf - ez * c
-        iso = (r2 + 2.0 * e2) * ir3
-        hh = h * h
-        cf = -(R2 + 2.0 * e2) * iq3 + 6.0 * h * e2 * iq5 * ez
-        cg = (2.0 * hh - 2.0 * h * ez) * iq3 - 6.0 * hh * e2 * iq5
-        cR = -Rf * iq3 + (6.0 * h * ez - 6.0 * hh) * Rg * iq5 + 2.0 * h * c * iq3
-        cz = 2.0 * h * Rg * (R2 + 4.0 * e2) * iq5 - 6.0 * h * e2 * iq5 * Rf
-        ux += a * (iso + cf) + dx * (rf + cR) + cg * a
-        uy += b * (iso + cf) + dy * (rf + cR) + cg * b
-        uz += c * (iso + cf) + dz * rf + ez * cR - cg * c + cz
+        a, b, c = _pair_regwall(xi, yi, zi, sx[j], sy[j], sz[j], fx[j], fy[j], fz[j], e2)
+        ux += a
+        uy += b
+        uz += c
     return ux, uy, uz
 
 
@@ -299,7 +333,7 @@ def _acc(code, x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover
     if code == 0:
         return _acc_free(x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi)
     if code == 1:
-        return _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, lo, hi)
+        return _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi)
     return _acc_regwall(x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi)
 
 
@@ -347,7 +381,7 @@ def _ranges_kernel(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no co
                 uz += c
         elif code == 1:
             for k in range(ptr[i], ptr[i + 1]):
-                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, ranges[k, 0], ranges[k, 1])
+                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
                 ux += a
                 uy += b
                 uz += c
@@ -408,7 +442,7 @@ def _ranges_serial(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no co
                 uz += c
         elif code == 1:
             for k in range(ptr[i], ptr[i + 1]):
-                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, ranges[k, 0], ranges[k, 1])
+                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
                 ux += a
                 uy += b
                 uz += c
