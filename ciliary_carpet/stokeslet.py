@@ -165,7 +165,8 @@ def _validate(targets: Any, sources: Any, forces: Any, mu: Any, wall: Any
 # the CPU loops (_acc_*) inline them, and ciliary_carpet.cuda compiles the same Python source
 # (``.py_func``) into CUDA device functions. Their constants are module globals, not literals, so
 # that the CUDA evaluator can compile an fp32 copy with fp32 constants (a float literal would
-# promote every fp32 operation it touches to fp64 under numba's typing).
+# promote every fp32 operation it touches to fp64 under numba's typing), and their one special
+# function is the global _rsqrt, which the GPU copies bind to the hardware's reciprocal square root.
 _ZERO = 0.0
 _ONE = 1.0
 _TWO = 2.0
@@ -174,6 +175,12 @@ _FOUR = 4.0
 _SIX = 6.0
 PAIR_CONSTANTS = ("_ZERO", "_ONE", "_TWO", "_THREE", "_FOUR", "_SIX")
 """Names of the constants of the pair functions (retyped by the fp32 CUDA kernels)."""
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _rsqrt(x):  # pragma: no cover - compiled
+    """``1 / sqrt(x)``, correctly rounded sqrt and division (the CPU's; not ``afn``)."""
+    return _ONE / math.sqrt(x)
 
 
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
@@ -186,7 +193,7 @@ def _pair_free(xi, yi, zi, sx, sy, sz, a, b, c, e2):  # pragma: no cover - compi
     dz = zi - sz
     r2 = dx * dx + dy * dy + dz * dz
     q2 = r2 + e2
-    ir = _ONE / math.sqrt(q2) if q2 > _ZERO else _ZERO
+    ir = _rsqrt(q2) if q2 > _ZERO else _ZERO
     ir3 = ir * ir * ir
     rf = (dx * a + dy * b + dz * c) * ir3
     iso = (r2 + _TWO * e2) * ir3
@@ -208,9 +215,9 @@ def _pair_wall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - compil
     ez = zt + h
     p2 = dx * dx + dy * dy
     r2 = p2 + dz * dz
-    ir = _ONE / math.sqrt(r2) if r2 > _ZERO else _ZERO
+    ir = _rsqrt(r2) if r2 > _ZERO else _ZERO
     ir3 = ir * ir * ir
-    iq = _ONE / math.sqrt(p2 + ez * ez)
+    iq = _rsqrt(p2 + ez * ez)
     iq2 = iq * iq
     iq3 = iq * iq2
     pf = dx * a + dy * b
@@ -240,9 +247,9 @@ def _pair_regwall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - com
     p2 = dx * dx + dy * dy
     r2 = p2 + dz * dz
     R2 = p2 + ez * ez
-    ir = _ONE / math.sqrt(r2 + e2)
+    ir = _rsqrt(r2 + e2)
     ir3 = ir * ir * ir
-    iq = _ONE / math.sqrt(R2 + e2)
+    iq = _rsqrt(R2 + e2)
     iq3 = iq * iq * iq
     iq5 = iq3 * iq * iq
     pf = dx * a + dy * b
