@@ -379,6 +379,14 @@ class Cuda(Backend):
         object.__setattr__(self, "targets_per_thread", int(p))
         _require()
 
+    def describe(self) -> str:
+        try:
+            name = cuda.get_current_device().name
+            name = name.decode() if isinstance(name, bytes) else str(name)
+        except Exception:  # noqa: BLE001 -- only for the label
+            name = "GPU"
+        return f"cuda ({self.precision}, {name})"
+
     @property
     def _dtype(self):
         return np.float64 if self.precision == "fp64" else np.float32

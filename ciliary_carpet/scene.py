@@ -15,7 +15,7 @@ straight filament pushes fluid along ``d0 = -field direction`` (:attr:`FieldSpec
 
 Sections (all optional)::
 
-    name, description, tolerance        top level
+    name, description, tolerance, backend   top level
     [field]     chi_E, eta, direction
     [table]     file   (+ [table.build] n, degree)
     [carpet]    lattice, shape, spacing, origin, points, chi_N, phases, seed, wave_vector, wall
@@ -44,6 +44,7 @@ from single_cilium.table import TableError, ThrustTable
 
 from . import layout
 from .paths import check_name, check_scene_paths
+from .stokeslet import BACKENDS
 from .target import KIND_KEYS, KINDS, applies_to
 
 logger = logging.getLogger(__name__)
@@ -619,8 +620,10 @@ class Scene:
 
     name : str (default: the file's stem); description : str; field, table, carpet, target,
     output : the sections; tolerance : float in (0, 1), default 1e-3, the flow model's error
-    tolerance; units : Units or None; source : the scene file (None for scenes made in memory),
-    for relative paths and messages.
+    tolerance; backend : one of :data:`~ciliary_carpet.stokeslet.BACKENDS`, default "auto", the
+    evaluator of the flow sums (``"cuda"``: the GPU; checked when a render starts, not when the
+    file is read, so that a scene for a GPU machine loads anywhere); units : Units or None;
+    source : the scene file (None for scenes made in memory), for relative paths and messages.
     """
 
     name: str
@@ -633,9 +636,11 @@ class Scene:
     tolerance: float = 1e-3
     units: Units | None = None
     source: Path | None = None
+    backend: str = "auto"
 
     def __post_init__(self) -> None:
-        kw = _top_kw("<Scene>", {"name": self.name, "description": self.description, "tolerance": self.tolerance})
+        kw = _top_kw("<Scene>", {"name": self.name, "description": self.description, "tolerance": self.tolerance,
+                                 "backend": self.backend})
         for k, v in kw.items():
             object.__setattr__(self, k, v)
         for k, cls in (("field", FieldSpec), ("table", TableSpec), ("carpet", CarpetSpec), ("target", TargetSpec),
@@ -663,7 +668,7 @@ class Scene:
         """The resolved scene, defaults filled in, as plain TOML/JSON types (keys that are None,
         i.e. decided later or absent, are left out; ``source`` is not a scene key and is not
         included). ``scene_from_dict(s.to_dict(), s.source)`` gives ``s`` back."""
-        d = {"name": self.name, "description": self.description, "tolerance": self.tolerance,
+        d = {"name": self.name, "description": self.description, "tolerance": self.tolerance, "backend": self.backend,
              "field": self.field.to_dict(), "table": self.table.to_dict(), "carpet": self.carpet.to_dict(),
              "target": self.target.to_dict(), "output": self.output.to_dict()}
         if self.units is not None:
@@ -749,7 +754,7 @@ def scene_from_dict(data: dict, source=None, *, allow_outside: bool = False) -> 
     if not isinstance(data, dict):
         raise SceneError(f"{src}: a scene must be a table of keys, got {type(data).__name__}")
     sections = ("field", "table", "carpet", "target", "output", "units")
-    _Reader(src, data, "", ("name", "description", "tolerance") + sections)  # unknown keys
+    _Reader(src, data, "", _TOP_KEYS + sections)  # unknown keys
     top = _top_kw(src, {k: v for k, v in data.items() if k not in sections},
                   source.stem if source is not None else "scene")
     base = source.parent if source is not None else Path.cwd()
@@ -767,14 +772,18 @@ def scene_from_dict(data: dict, source=None, *, allow_outside: bool = False) -> 
     )
 
 
+_TOP_KEYS = ("name", "description", "tolerance", "backend")
+
+
 def _top_kw(src, data, default_name="scene") -> dict:
-    r = _Reader(src, data, "", ("name", "description", "tolerance"))
+    r = _Reader(src, data, "", _TOP_KEYS)
     name = r.string("name", default_name)
     if not name.strip():
         raise r.fail("name", "a non-empty string", name)
     check_name(src, "name", name)
     return dict(name=name, description=r.string("description", ""),
-                tolerance=r.number("tolerance", 1e-3, lo=0, hi=1, lo_open=True, hi_open=True))
+                tolerance=r.number("tolerance", 1e-3, lo=0, hi=1, lo_open=True, hi_open=True),
+                backend=r.string("backend", "auto", BACKENDS))
 
 
 def _field_kw(src, data) -> dict:

@@ -40,7 +40,10 @@ Conventions shared by every function here:
 Evaluation strategies (:class:`Backend`): :class:`Direct`, the O(MN) sum compiled with numba
 (parallel over targets, vectorised over sources; free space and wall); :class:`FMM`, the Stokes
 fast multipole method of ``fmm3dpy`` (free space only; optional dependency
-``pip install cilia-flow[fmm]``); :class:`Auto` (the default), which picks one of the two.
+``pip install cilia-flow[fmm]``); :class:`~ciliary_carpet.cuda.Cuda`, both sums on an NVIDIA GPU
+(optional dependency ``pip install cilia-flow[gpu]``); :class:`Auto` (the default), which picks
+the GPU when one is usable, else one of the first two. :func:`backend_named` maps the names a
+scene or the command line gives (:data:`BACKENDS`) to these objects.
 :func:`stokeslet_velocity_ranges` sums, per target, over a sparse list of source index ranges
 (near-field corrections); :func:`stokeslet_velocity_numpy` is the slow plain-numpy reference.
 
@@ -75,6 +78,10 @@ __all__ = [
     "Direct",
     "FMM",
     "Auto",
+    "Cuda",
+    "CudaUnavailableError",
+    "BACKENDS",
+    "backend_named",
     "stokeslet_velocity",
     "stokeslet_velocity_numpy",
     "stokeslet_velocity_ranges",
@@ -499,6 +506,10 @@ class Backend:
         near-field sums are always evaluated directly, by :class:`Direct`)."""
         return Direct().ranged(kernel, targets, sources, forces, ptr, ranges, mu)
 
+    def describe(self) -> str:
+        """One line naming the evaluator (for summaries)."""
+        return type(self).__name__.lower()
+
 
 def _shift(kernel: Kernel) -> float:
     return 0.0 if kernel.wall is None else kernel.wall.z
@@ -523,6 +534,9 @@ class Direct(Backend):
         f = _direct if targets.shape[0] * sources.shape[0] >= SERIAL_PAIRS else _direct_serial
         f(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), kernel.eps ** 2, _INV_8PI / mu, out)
         return out
+
+    def describe(self) -> str:
+        return f"direct (numba, CPU, {numba.get_num_threads()} threads)"
 
     def ranged(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
                ptr: np.ndarray, ranges: np.ndarray, mu: float) -> np.ndarray:
@@ -608,13 +622,27 @@ class FMM(Backend):
         u = np.asarray(res.pottarg, dtype=np.float64).reshape(3, m).T
         return np.ascontiguousarray(u) / mu
 
+    def describe(self) -> str:
+        return f"fmm (fmm3dpy, eps {self.eps:g})"
+
+
+def _gpu() -> Backend | None:
+    """:class:`~ciliary_carpet.cuda.Cuda` () when a GPU can run it here, else None."""
+    from .cuda import Cuda, cuda_available
+
+    return Cuda() if cuda_available() else None
+
 
 @dataclass(frozen=True)
 class Auto(Backend):
-    """:class:`Direct` or :class:`FMM`, whichever is expected to be faster.
+    """The GPU when one is usable, else :class:`Direct` or :class:`FMM`, whichever is expected
+    to be faster.
 
-    :class:`Direct` when ``M * N < threshold``, or the kernel is not the singular free-space
-    Stokeslet, or fmm3dpy is not installed; :class:`FMM` (precision ``eps``) otherwise.
+    :class:`~ciliary_carpet.cuda.Cuda` (fp64) for every sum, dense and ranged, when
+    :func:`ciliary_carpet.cuda.cuda_available` (numba-cuda, an NVIDIA driver and GPU). Otherwise,
+    for the dense sum, :class:`Direct` when ``M * N < threshold``, or the kernel is not the
+    singular free-space Stokeslet, or fmm3dpy is not installed; :class:`FMM` (precision ``eps``)
+    otherwise; ranged sums run :class:`Direct`.
 
     Parameters
     ----------
@@ -635,6 +663,9 @@ class Auto(Backend):
     def choose(self, m: int, n: int, kernel: Kernel | Wall | None = None) -> Backend:
         """The backend used for ``m`` targets, ``n`` sources and ``kernel`` (a Wall or None
         stand for the singular kernels with and without wall)."""
+        gpu = _gpu()
+        if gpu is not None:
+            return gpu
         if not isinstance(kernel, Kernel):
             kernel = make_kernel(kernel)
         if (not isinstance(kernel, Stokeslet) or float(m) * float(n) < self.threshold
@@ -647,6 +678,49 @@ class Auto(Backend):
         b = self.choose(targets.shape[0], sources.shape[0], kernel)
         logger.debug("Auto: %s for M=%d, N=%d, %s", type(b).__name__, targets.shape[0], sources.shape[0], kernel)
         return b.dense(kernel, targets, sources, forces, mu)
+
+    def ranged(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
+               ptr: np.ndarray, ranges: np.ndarray, mu: float) -> np.ndarray:
+        b = _gpu() or Direct()
+        return b.ranged(kernel, targets, sources, forces, ptr, ranges, mu)
+
+    def describe(self) -> str:
+        gpu = _gpu()
+        if gpu is not None:
+            return f"auto: {gpu.describe()}"
+        fmm = f"FMM above {self.threshold:.3g} pairs" if _fmm_available() else "no FMM (fmm3dpy not installed)"
+        return f"auto: {Direct().describe()}; {fmm}"
+
+
+BACKENDS = ("auto", "direct", "fmm", "cuda", "cuda-fp32", "cuda-fp32-acc64")
+"""Backend names of scenes and the command line (:func:`backend_named`)."""
+
+
+def backend_named(name: str) -> Backend:
+    """The evaluator called ``name`` (:data:`BACKENDS`): ``"auto"`` :class:`Auto`, ``"direct"``
+    :class:`Direct`, ``"fmm"`` :class:`FMM`, ``"cuda"`` :class:`~ciliary_carpet.cuda.Cuda` in fp64,
+    ``"cuda-fp32"`` / ``"cuda-fp32-acc64"`` the same in fp32 / fp32 summed in fp64 (error bound:
+    :mod:`ciliary_carpet.cuda`).
+
+    Raises
+    ------
+    ValueError
+        For an unknown name (the message lists the known ones).
+    ciliary_carpet.cuda.CudaUnavailableError
+        For a ``cuda`` name where no GPU can run it (the message names what is missing), before
+        any work.
+    """
+    if name == "auto":
+        return Auto()
+    if name == "direct":
+        return Direct()
+    if name == "fmm":
+        return FMM()
+    if name in ("cuda", "cuda-fp32", "cuda-fp32-acc64"):
+        from .cuda import Cuda
+
+        return Cuda("fp64" if name == "cuda" else name[len("cuda-"):])
+    raise ValueError(f"unknown backend {name!r} (known: {', '.join(BACKENDS)})")
 
 
 # --------------------------------------------------------------------------- public functions
@@ -860,3 +934,7 @@ def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float 
             u = np.einsum("mnij,nj->mi", G, f)
         out[lo:lo + step] = u / (8.0 * math.pi * m)
     return out
+
+
+# the GPU evaluator, re-exported beside the others (imported last: it builds on this module)
+from .cuda import Cuda, CudaUnavailableError  # noqa: E402
