@@ -936,5 +936,11 @@ def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float 
     return out
 
 
-# the GPU evaluator, re-exported beside the others (imported last: it builds on this module)
-from .cuda import Cuda, CudaUnavailableError  # noqa: E402
+def __getattr__(name: str):
+    """The GPU evaluator, re-exported beside the others (``from ciliary_carpet.stokeslet import
+    Cuda``); imported on first use, as :mod:`ciliary_carpet.cuda` builds on this module."""
+    if name in ("Cuda", "CudaUnavailableError"):
+        from . import cuda
+
+        return getattr(cuda, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
