@@ -812,7 +812,7 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
         ``0 <= ranges[k, 0] <= ranges[k, 1] <= N``.
     mu : float, default 1
     wall : Wall, optional
-    backend : Backend, optional (default :class:`Direct`)
+    backend : Backend, optional (default :class:`Auto`: the GPU when usable, else :class:`Direct`)
     kernel : Kernel, optional
 
     Returns
@@ -848,7 +848,7 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
         raise ValueError(f"ranges must satisfy 0 <= ranges[k, 0] <= ranges[k, 1] <= N = {N}")
     if M == 0 or N == 0 or K == 0:
         return np.zeros((M, 3))
-    backend = Direct() if backend is None else backend
+    backend = Auto() if backend is None else backend
     return backend.ranged(k, t, s, f, p, r, m)
 
 
