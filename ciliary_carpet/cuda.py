@@ -46,9 +46,16 @@ with ``C`` = :data:`FP32_PAIR_CONSTANT` (rounding of the inputs, whose relative 
 ``x - xi`` is ``u L / rho``, and of the pair's arithmetic) and ``a = 1`` for ``"fp32"`` (the
 recursive-summation bound ``n u sum |t_j|``, ``|t_j| <= |f_j| / rho_ij`` up to the pair's
 constant), ``a = 2^-29`` for ``"fp32-acc64"`` (fp64 sums). :func:`fp32_error_bound` evaluates it;
-tests/test_cuda.py checks it on every kernel. In practice the error is far below the bound: on
-random points in the unit cube the measured relative errors of the plain fp32 sum are 2e-5 to
-8e-4 (issue 15, 2e4 to 1e6 points).
+tests/test_cuda.py checks it on every kernel. In practice the error is far below the bound (the
+summation term is a worst case): under the simulator, 70 targets and 75 sources in a
+2 x 2 x 1.7 box give ``max |error| / max |u|`` of 1e-7 to 8e-7 and ``|error| / (u B_i)`` below
+0.6; benchmarks/bench_gpu.py measures it at large N on a GPU.
+
+On a GPU the reciprocal square root of the pair formulas is libdevice's (``rsqrt``: 1 ulp in
+fp64; ``rsqrtf``, with fast math in fp32: ``rsqrt.approx``, relative error below 2^-22.9), not
+the CPU's correctly rounded ``1 / sqrt``: fp64 results then differ from
+:class:`~ciliary_carpet.stokeslet.Direct` by a few ulps per pair, far inside 1e-12 (the simulator,
+which has no libdevice, uses ``1 / sqrt``).
 
 The kernels run on a GPU when numba's CUDA target finds one, and under numba's CUDA simulator
 (``NUMBA_ENABLE_CUDASIM=1``, set before numba is imported), which is how CI tests them. Without

@@ -126,6 +126,59 @@ def test_parameters_are_validated():
         backend_named("gpu")
 
 
+def _ptx_compiler():
+    """numba-cuda's ``compile_ptx`` when it and NVVM are installed (``pip install cilia-flow[gpu]``),
+    else None; no GPU is needed to compile."""
+    if SIM:
+        return None
+    try:
+        import numba_cuda  # noqa: F401 -- the NVIDIA package, not numba's built-in target
+        from numba.cuda.cudadrv import nvvm
+        from numba import cuda
+    except ImportError:
+        return None
+    return cuda if nvvm.is_available() else None
+
+
+@pytest.mark.skipif(_ptx_compiler() is None, reason="needs numba-cuda and NVVM: pip install cilia-flow[gpu]")
+@pytest.mark.parametrize("precision", ["fp64", "fp32", "fp32-acc64"])
+def test_kernels_compile_for_the_gpu(precision, monkeypatch):
+    """Every kernel compiles to sm_90 (H100) PTX without a GPU; the pairs stay in registers (no
+    local memory), use one hardware reciprocal square root per distance, and in fp32 no fp64
+    arithmetic but the final scaling (and the fp64 sums of fp32-acc64)."""
+    import re
+
+    import numba.cuda.dispatcher as disp
+    from numba import types as nt
+
+    cuda = _ptx_compiler()
+
+    class Sm90:
+        compute_capability = (9, 0)
+
+    monkeypatch.setattr(disp, "get_current_device", lambda: Sm90())  # device functions: sm_90
+    monkeypatch.setattr(cc, "cuda", cuda)
+    monkeypatch.setattr(cc, "_require", lambda: cuda)
+    ft = nt.float64 if precision == "fp64" else nt.float32
+    a2, o2 = nt.Array(ft, 2, "C"), nt.Array(nt.float64, 2, "C")
+    for code in (0, 1, 2):
+        d = cc._dense_kernel.__wrapped__(code, precision, 128, 2)
+        r = cc._ranged_kernel.__wrapped__(code, precision, 128)
+        for fn, sig, n_out in ((d, (a2, a2, a2, ft, nt.float64, o2), 6),
+                               (r, (a2, a2, a2, nt.Array(nt.int64, 1, "C"), nt.Array(nt.int64, 2, "C"), ft,
+                                    nt.float64, o2), 3)):
+            ptx, _ = cuda.compile_ptx(fn.py_func, sig, cc=(9, 0), fastmath=precision != "fp64")
+            assert ".local" not in ptx
+            ops = re.findall(r"^\s+((?:add|sub|mul|fma|div|rcp|sqrt|rsqrt)\S*)", ptx, re.M)
+            assert not [o for o in ops if o.startswith(("div", "rcp", "sqrt"))]
+            assert any(o.startswith("rsqrt.approx") for o in ops)
+            f64 = [o for o in ops if o.endswith(".f64") and not o.startswith("rsqrt")]
+            if precision == "fp32":
+                assert len(f64) <= n_out, f64  # out = scale * u only
+            elif precision == "fp64":
+                assert not [o for o in ops if o.endswith(".f32")]
+
+
 def test_simulator_suite():
     """The simulator tests of this file, in a child process (module docstring)."""
     if SIM:
