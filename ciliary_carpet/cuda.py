@@ -22,8 +22,10 @@ Kernels
   sources and forces through shared memory in tiles of ``threads`` sources (one load per thread),
   and every thread sums each tile into its targets (register tiling: one shared-memory read of a
   source serves all of a thread's targets).
-* ranged: one warp per target; its 32 lanes stride through the target's source ranges (coalesced
-  reads of consecutive sources) and their partial sums are reduced in shared memory.
+* ranged: one warp per target; its 32 lanes stride through the concatenation of the target's
+  source ranges (each lane carries on, in the next range, where the lane before it stopped, so
+  that short ranges keep every lane busy; reads of consecutive sources coalesce) and their
+  partial sums are reduced in shared memory.
 
 Precision (:data:`PRECISIONS`)
 ------------------------------
@@ -293,12 +295,16 @@ def _ranged_kernel(code: int, precision: str, threads: int):
             x = T[0, i]
             y = T[1, i]
             z = T[2, i]
+            off = 0  # pairs of the earlier ranges, mod 32: the lanes carry on where they stopped
             for k in range(ptr[i], ptr[i + 1]):
-                for j in range(ranges[k, 0] + lane, ranges[k, 1], _WARP):
+                lo = ranges[k, 0]
+                hi = ranges[k, 1]
+                for j in range(lo + (lane - off + _WARP) % _WARP, hi, _WARP):
                     a, b, c = pair(x, y, z, S[0, j], S[1, j], S[2, j], F[0, j], F[1, j], F[2, j], e2)
                     ux += a
                     uy += b
                     uz += c
+                off = (off + hi - lo) % _WARP
         red = cuda.shared.array((3, TPB), at)
         red[0, tid] = ux
         red[1, tid] = uy
