@@ -18,6 +18,7 @@ from single_cilium.table import ThrustTable
 
 from .carpet import Carpet
 from .schema import SceneError
+from .stokeslet import backend_named
 from .target import Frame, Target
 
 if TYPE_CHECKING:
@@ -52,12 +53,13 @@ class Assembly:
 
     def carpet(self, chi_N=None) -> Carpet:
         """The scene's carpet with curvatures ``chi_N`` (scalar or (N,); default the scene's
-        ``carpet.chi_N``): its base points, initial phases, field direction, wall, units and
-        blob size."""
+        ``carpet.chi_N``): its base points, initial phases, field direction, wall, units, blob
+        size and the evaluator of its sums (the scene's ``backend``)."""
         s = self.scene
         return Carpet(self.bases, s.carpet.chi_N if chi_N is None else chi_N, self.table,
                       s.carpet.initial_phases(self.bases), direction=s.field.direction_rad, wall=s.carpet.wall,
-                      scales=None if s.units is None else s.units.scales(), blob=s.carpet.blob)
+                      scales=None if s.units is None else s.units.scales(), blob=s.carpet.blob,
+                      backend=backend_named(s.backend))
 
 
 def assemble(scene: "Scene", table: ThrustTable | None = None) -> Assembly:

@@ -6,7 +6,8 @@
 
 Options before the command: ``--debug`` (show the traceback of a failure), ``--allow-outside-paths``
 (let scene files name table and target files outside their own folder), ``--max-hours H`` (the time
-a scene may need, default 24), ``-v`` (log progress).
+a scene may need, default 24), ``--backend NAME`` (the evaluator of the flow sums, overriding the scenes'
+``backend``: auto, direct, fmm, cuda, cuda-fp32, cuda-fp32-acc64), ``-v`` (log progress).
 
 Exit status: 0 success; 1 some scenes of a batch failed (each with its reason), or an internal
 error; 2 bad input (scene, table, target file, output folder, resources: the message names the file,
@@ -21,6 +22,7 @@ import signal
 import sys
 import time as _time
 from concurrent.futures import Executor
+from dataclasses import replace
 from pathlib import Path
 
 from single_cilium._io import strict_json, write_netcdf
@@ -31,22 +33,26 @@ from .design import DesignError, design
 from .paths import ALLOW_ENV
 from .render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
 from .scene import Scene, SceneError, load_scene
+from .stokeslet import BACKENDS, CudaUnavailableError, backend_named
 from .target import TargetError, UnreachableTargetError
 from .vtkfiles import OutputError
 
 logger = logging.getLogger(__name__)
 
-BAD_INPUT = (SceneError, TargetError, TableError, RenderError, OutputError, OSError, MemoryError, ValueError)
+BAD_INPUT = (SceneError, TargetError, TableError, RenderError, OutputError, OSError, MemoryError, ValueError,
+             CudaUnavailableError)
 CANNOT_MAKE = (DesignError, UnreachableTargetError)
 
 
-def _scene(path: str, reduced: bool) -> Scene:
+def _scene(path: str, reduced: bool, backend: str | None = None) -> Scene:
     s = load_scene(path, allow_outside=os.environ.get(ALLOW_ENV, "") == "1")
+    if backend is not None:  # --backend overrides the scene's
+        s = replace(s, backend=backend)
     return s.reduced() if reduced else s
 
 
 def _cmd_render(a) -> int:
-    scene = _scene(a.scene, a.reduced)
+    scene = _scene(a.scene, a.reduced, a.backend)
     res = render(scene, a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5),
                  max_seconds=a.max_hours * 3600)
     s = res.summary
@@ -65,8 +71,9 @@ def _cmd_design(a) -> int:
         raise RenderError(f"{out} exists; it is kept: pass --overwrite to replace it")
     if out.is_dir():
         raise RenderError(f"{out} is a folder; the layout is a file (.nc)")
-    scene = _scene(a.scene, a.reduced)
+    scene = _scene(a.scene, a.reduced, a.backend)
     check_resources(scene, max_seconds=a.max_hours * 3600)
+    backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError before any work
     d, carpet = design(scene)
     if d is None:
         raise SceneError(f"{scene.source_name}: the scene has no [target] to design for")
@@ -76,12 +83,13 @@ def _cmd_design(a) -> int:
     return 0
 
 
-def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool, max_seconds: float = 86400.0) -> dict:
+def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool, max_seconds: float = 86400.0,
+                backend: str | None = None) -> dict:
     """One batch task (runs in a worker): never raises (but Ctrl-C), returns a record."""
     clock = _time.perf_counter()
     rec = {"scene": scene_path}
     try:
-        scene = _scene(scene_path, reduced)
+        scene = _scene(scene_path, reduced, backend)
         out = Path(out_root) / scene.name
         rec["out_dir"] = str(out)
         table = scene.table.path(scene)
@@ -216,7 +224,7 @@ def _stop(procs, grace: float) -> None:
 
 def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None, jobs: int = 2,
           overwrite: bool = False, reduced: bool = False, progress: bool = True,
-          max_seconds: float = 86400.0) -> list[dict]:
+          max_seconds: float = 86400.0, backend: str | None = None) -> list[dict]:
     """Render many scene files into ``out_root/NAME``.
 
     Default: each scene in a fresh worker process, ``jobs`` at a time, so that a worker that
@@ -227,13 +235,16 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     is skipped; one interrupted while replacing an older render is rendered again; one with
     older results is kept unless ``overwrite``, and reported as failed; a folder holding files
     ciliary-carpet did not write is never changed (:func:`~ciliary_carpet.render.render`).
+    ``backend`` (a name of :data:`~ciliary_carpet.stokeslet.BACKENDS`) overrides the scenes'.
     Returns one record per scene (status done / skipped / failed, message with the reason,
     seconds)."""
     from tqdm.auto import tqdm
 
     scenes = [str(s) for s in scenes]
     _check_names(scenes)
-    tasks = [(s, str(out_root), overwrite, reduced, max_seconds) for s in scenes]
+    if backend is not None:
+        backend_named(backend)  # backend "cuda" without a GPU: CudaUnavailableError before any work
+    tasks = [(s, str(out_root), overwrite, reduced, max_seconds, backend) for s in scenes]
     recs: list = []
     bar = tqdm(total=len(tasks), desc="scenes", disable=not progress)
 
@@ -267,7 +278,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
 
 def _cmd_batch(a) -> int:
     recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, overwrite=a.overwrite, reduced=a.reduced,
-                 max_seconds=a.max_hours * 3600)
+                 max_seconds=a.max_hours * 3600, backend=a.backend)
     n = {k: sum(r["status"] == k for r in recs) for k in ("done", "skipped", "failed")}
     if a.json:
         print(strict_json({"scenes": recs, "done": n["done"], "skipped": n["skipped"], "failed": n["failed"]}))
@@ -298,6 +309,9 @@ def main(argv=None) -> int:
                     help="let scene files name table/target files outside their own folder (trusted scenes only)")
     ap.add_argument("--max-hours", type=float, default=24.0,
                     help="refuse scenes estimated to need longer than this (default 24)")
+    ap.add_argument("--backend", choices=BACKENDS, default=None,
+                    help="evaluator of the flow sums, overriding the scenes' backend (cuda: an NVIDIA GPU, "
+                         "pip install 'cilia-flow[gpu]')")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("render", help="design (if the scene has a target), run the flow, write VTK/PNG/summary")
     r.add_argument("scene")

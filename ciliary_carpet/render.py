@@ -74,6 +74,7 @@ from .design import design
 from .ftle import ftle_field
 from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
 from .scene import Scene, SceneError
+from .stokeslet import Auto, backend_named
 from .vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
 
 logger = logging.getLogger(__name__)
@@ -547,6 +548,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     _clean_stale_stages(out_dir)
     owned = _check_out_dir(out_dir, overwrite)
     check_resources(scene, max_seconds=max_seconds)
+    backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError here, before any work
     progress = progress if progress is not None else Progress()
     clock = {}
     t0 = _time.perf_counter()
@@ -567,7 +569,8 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     except OSError as exc:
         raise RenderError(f"cannot write '{out_dir}': {exc.strerror or exc}") from None
     summary = {"scene": scene.name, "source": scene.source_name, "n_cilia": carpet.n, "tolerance": tol,
-               "units": "SI" if sc is not None else "L, tau", "T0": T0 * T}
+               "units": "SI" if sc is not None else "L, tau", "T0": T0 * T,
+               "backend": (carpet.backend if carpet.backend is not None else Auto()).describe()}
     steps = 1 + bool(o.field) + (o.snapshots > 0) + (o.frames > 0) + bool(o.pathlines) + bool(o.ftle) + bool(o.preview) + 1
     progress.start(steps, f"render {scene.name}")
     done = 0
@@ -707,7 +710,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
 
 def _markdown(s: dict) -> str:
     lines = [f"# {s['scene']}", "", f"- source: `{s['source']}`", f"- cilia: {s['n_cilia']}",
-             f"- flow tolerance: {s['tolerance']:g}", f"- units: {s['units']}"]
+             f"- flow tolerance: {s['tolerance']:g}", f"- units: {s['units']}", f"- flow sums: {s['backend']}"]
     if "design" in s:
         dd = s["design"]
         lines.append(f"- design ({dd['kind']} target, {dd['control_points']} control points): rms residual "

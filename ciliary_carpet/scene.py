@@ -15,7 +15,7 @@ lengths L. ``field.direction`` is in DEGREES, anticlockwise from +y (the flow mo
 :class:`~ciliary_carpet.carpet.Carpet`, takes radians: use :attr:`FieldSpec.direction_rad`). A
 straight filament pushes fluid along ``d0 = -field direction`` (:attr:`FieldSpec.flow_direction`).
 
-Sections (all optional): top level (name, description, tolerance), ``[field]``, ``[table]``
+Sections (all optional): top level (name, description, tolerance, backend), ``[field]``, ``[table]``
 (+ ``[table.build]``), ``[carpet]``, ``[target]``, ``[output]``, ``[units]``.
 
 Values that depend on the thrust table or on the carpet's geometry (the default target angle,
@@ -42,6 +42,7 @@ from .carpet import BLOB
 from .paths import check_name, check_scene_paths
 from .pathlines import MEAN_MODEL_ERROR
 from .schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
+from .stokeslet import BACKENDS
 from .target import KINDS, TargetSpec, kinds_table
 
 logger = logging.getLogger(__name__)
@@ -407,11 +408,16 @@ class Scene:
     output: OutputSpec = _field(default_factory=OutputSpec)
     tolerance: float = key(1e-3, "error tolerance of the flow model (levels of detail), relative to the cilia's "
                            "far-field magnitudes", lo=0, hi=1, lo_open=True, hi_open=True)
+    backend: str = key("auto", "evaluator of the flow sums: `\"auto\"` the GPU when one is usable, else the CPU; "
+                       "`\"cuda\"` an NVIDIA GPU (`pip install cilia-flow[gpu]`; fp64, or fp32 within the bound of "
+                       "`ciliary_carpet.cuda`), checked when a render starts; `--backend` on the command line "
+                       "overrides it", "str", choices=BACKENDS)
     units: Units | None = None
     source: Path | None = None
 
     def __post_init__(self) -> None:
-        kw = _top_kw("<Scene>", {"name": self.name, "description": self.description, "tolerance": self.tolerance})
+        kw = _top_kw("<Scene>", {"name": self.name, "description": self.description, "tolerance": self.tolerance,
+                                 "backend": self.backend})
         for k, v in kw.items():
             object.__setattr__(self, k, v)
         for k, cls in (("field", FieldSpec), ("table", TableSpec), ("carpet", CarpetSpec), ("target", TargetSpec),
@@ -439,7 +445,7 @@ class Scene:
         """The resolved scene, defaults filled in, as plain TOML/JSON types (keys that are None,
         i.e. decided later or absent, are left out; ``source`` is not a scene key and is not
         included). ``scene_from_dict(s.to_dict(), s.source)`` gives ``s`` back."""
-        d = {"name": self.name, "description": self.description, "tolerance": self.tolerance,
+        d = {"name": self.name, "description": self.description, "tolerance": self.tolerance, "backend": self.backend,
              "field": self.field.to_dict(), "table": self.table.to_dict(), "carpet": self.carpet.to_dict(),
              "target": self.target.to_dict(), "output": self.output.to_dict()}
         if self.units is not None:

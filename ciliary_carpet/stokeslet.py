@@ -40,7 +40,10 @@ Conventions shared by every function here:
 Evaluation strategies (:class:`Backend`): :class:`Direct`, the O(MN) sum compiled with numba
 (parallel over targets, vectorised over sources; free space and wall); :class:`FMM`, the Stokes
 fast multipole method of ``fmm3dpy`` (free space only; optional dependency
-``pip install cilia-flow[fmm]``); :class:`Auto` (the default), which picks one of the two.
+``pip install cilia-flow[fmm]``); :class:`~ciliary_carpet.cuda.Cuda`, both sums on an NVIDIA GPU
+(optional dependency ``pip install cilia-flow[gpu]``); :class:`Auto` (the default), which picks
+the GPU when one is usable, else one of the first two. :func:`backend_named` maps the names a
+scene or the command line gives (:data:`BACKENDS`) to these objects.
 :func:`stokeslet_velocity_ranges` sums, per target, over a sparse list of source index ranges
 (near-field corrections); :func:`stokeslet_velocity_numpy` is the slow plain-numpy reference.
 
@@ -75,6 +78,10 @@ __all__ = [
     "Direct",
     "FMM",
     "Auto",
+    "Cuda",
+    "CudaUnavailableError",
+    "BACKENDS",
+    "backend_named",
     "stokeslet_velocity",
     "stokeslet_velocity_numpy",
     "stokeslet_velocity_ranges",
@@ -161,10 +168,120 @@ def _validate(targets: Any, sources: Any, forces: Any, mu: Any, wall: Any
 
 
 # --------------------------------------------------------------------------- numba kernels
+# The per-pair formulas are written once, below, as scalar functions of one (target, source) pair:
+# the CPU loops (_acc_*) inline them, and ciliary_carpet.cuda compiles the same Python source
+# (``.py_func``) into CUDA device functions. Their constants are module globals, not literals, so
+# that the CUDA evaluator can compile an fp32 copy with fp32 constants (a float literal would
+# promote every fp32 operation it touches to fp64 under numba's typing), and their one special
+# function is the global _rsqrt, which the GPU copies bind to the hardware's reciprocal square root.
+_ZERO = 0.0
+_ONE = 1.0
+_TWO = 2.0
+_THREE = 3.0
+_FOUR = 4.0
+_SIX = 6.0
+PAIR_CONSTANTS = ("_ZERO", "_ONE", "_TWO", "_THREE", "_FOUR", "_SIX")
+"""Names of the constants of the pair functions (retyped by the fp32 CUDA kernels)."""
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _rsqrt(x):  # pragma: no cover - compiled
+    """``1 / sqrt(x)``, correctly rounded sqrt and division (the CPU's; not ``afn``)."""
+    return _ONE / math.sqrt(x)
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _pair_free(xi, yi, zi, sx, sy, sz, a, b, c, e2):  # pragma: no cover - compiled
+    """``G^eps(x - xi) f`` of one pair (no 1/(8 pi mu)), ``e2 = eps^2``:
+    ``(f (r^2 + 2 e2) + R (R.f)) / (r^2 + e2)^{3/2}``; the singular Stokeslet for ``e2 = 0``, its
+    coincident pair (``R = 0``) counting as zero."""
+    dx = xi - sx
+    dy = yi - sy
+    dz = zi - sz
+    r2 = dx * dx + dy * dy + dz * dz
+    q2 = r2 + e2
+    ir = _rsqrt(q2) if q2 > _ZERO else _ZERO
+    ir3 = ir * ir * ir
+    rf = (dx * a + dy * b + dz * c) * ir3
+    iso = (r2 + _TWO * e2) * ir3
+    return a * iso + dx * rf, b * iso + dy * rf, c * iso + dz * rf
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _pair_wall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - compiled
+    """``G^B(x, xi) f`` of one pair, wall at z = 0 (``zt`` the target's height, ``h`` the
+    source's; ``e2`` unused, for a common signature; no 1/(8 pi mu)).
+
+    With ``R = x - xi``, ``R* = x - xi*``, ``g = M f = (f_x, f_y, -f_z)`` the Blake doublet
+    terms reduce (``R*_z - h = zt``) to
+    ``2 h [-zt g / r*^3 + R* (3 zt (R*.g) / r*^5 - g_z / r*^3) + e_z (R*.g) / r*^3]``.
+    """
+    dx = xi - sx
+    dy = yi - sy
+    dz = zt - h
+    ez = zt + h
+    p2 = dx * dx + dy * dy
+    r2 = p2 + dz * dz
+    ir = _rsqrt(r2) if r2 > _ZERO else _ZERO
+    ir3 = ir * ir * ir
+    iq = _rsqrt(p2 + ez * ez)
+    iq2 = iq * iq
+    iq3 = iq * iq2
+    pf = dx * a + dy * b
+    rf = (pf + dz * c) * ir3          # (R . f) / r^3
+    qf = pf + ez * c                  # R* . f
+    qg = pf - ez * c                  # R* . g
+    h2 = _TWO * h * iq3
+    d = h2 * zt
+    cf = ir - iq
+    cq = h2 * (c + _THREE * zt * qg * iq2) - qf * iq3
+    cxy = rf + cq
+    return ((cf - d) * a + cxy * dx, (cf - d) * b + cxy * dy,
+            (cf + d) * c + rf * dz + cq * ez + h2 * qg)
+
+
+@njit(cache=True, fastmath=_FASTMATH, inline="always")
+def _pair_regwall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - compiled
+    """The regularised Blake tensor (:func:`ciliary_carpet.kernel.regularised_blake_tensor`)
+    times ``f`` for one pair, wall at z = 0, ``e2 = eps^2`` (no 1/(8 pi mu)).
+
+    With ``r = x - xi``, ``R = x - xi*``, ``g = (f_x, f_y, -f_z)`` the tensor's terms collect to
+    ``G^eps(r) f + a_f f + a_g g + a_R R + a_z e_z`` (coefficients below)."""
+    dx = xi - sx
+    dy = yi - sy
+    dz = zt - h
+    ez = zt + h
+    p2 = dx * dx + dy * dy
+    r2 = p2 + dz * dz
+    R2 = p2 + ez * ez
+    ir = _rsqrt(r2 + e2)
+    ir3 = ir * ir * ir
+    iq = _rsqrt(R2 + e2)
+    iq3 = iq * iq * iq
+    iq5 = iq3 * iq * iq
+    pf = dx * a + dy * b
+    rf = (pf + dz * c) * ir3
+    Rf = pf + ez * c
+    Rg = pf - ez * c
+    iso = (r2 + _TWO * e2) * ir3
+    hh = h * h
+    cf = -(R2 + _TWO * e2) * iq3 + _SIX * h * e2 * iq5 * ez
+    cg = (_TWO * hh - _TWO * h * ez) * iq3 - _SIX * hh * e2 * iq5
+    cR = -Rf * iq3 + (_SIX * h * ez - _SIX * hh) * Rg * iq5 + _TWO * h * c * iq3
+    cz = _TWO * h * Rg * (R2 + _FOUR * e2) * iq5 - _SIX * h * e2 * iq5 * Rf
+    return (a * (iso + cf) + dx * (rf + cR) + cg * a,
+            b * (iso + cf) + dy * (rf + cR) + cg * b,
+            c * (iso + cf) + dz * rf + ez * cR - cg * c + cz)
+
+
+PAIRS = {0: _pair_free, 1: _pair_wall, 2: _pair_regwall}
+"""The pair function of each :attr:`Kernel.code <ciliary_carpet.kernel.Kernel.code>`."""
+
+
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
-    """Sum of ``G^eps(x - xi_j) f_j`` for ``j`` in ``[lo, hi)`` (no 1/(8 pi mu)), ``e2 = eps^2``:
-    ``(f (r^2 + 2 e2) + R (R.f)) / (r^2 + e2)^{3/2}``; the singular Stokeslet for ``e2 = 0``."""
+    """Sum of :func:`_pair_free` over the sources ``[lo, hi)`` of one target (one loop per
+    kernel, so that each vectorises)."""
     ux = 0.0
     uy = 0.0
     uz = 0.0
@@ -177,119 +294,50 @@ def _acc_free(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cov
     fy = fy[lo:hi]
     fz = fz[lo:hi]
     for j in range(hi - lo):
-        dx = xi - sx[j]
-        dy = yi - sy[j]
-        dz = zi - sz[j]
-        r2 = dx * dx + dy * dy + dz * dz
-        q2 = r2 + e2
-        ir = 1.0 / np.sqrt(q2) if q2 > 0.0 else 0.0
-        ir3 = ir * ir * ir
-        a = fx[j]
-        b = fy[j]
-        c = fz[j]
-        rf = (dx * a + dy * b + dz * c) * ir3
-        iso = (r2 + 2.0 * e2) * ir3
-        ux += a * iso + dx * rf
-        uy += b * iso + dy * rf
-        uz += c * iso + dz * rf
+        a, b, c = _pair_free(xi, yi, zi, sx[j], sy[j], sz[j], fx[j], fy[j], fz[j], e2)
+        ux += a
+        uy += b
+        uz += c
     return ux, uy, uz
 
 
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
-def _acc_wall(xi, yi, zt, sx, sy, sh, fx, fy, fz, lo, hi):  # pragma: no cover - compiled
-    """Sum of ``G^B(x, xi_j) f_j`` for ``j`` in ``[lo, hi)``, wall at z = 0 (heights ``zt`` of
-    the target, ``sh`` of the sources; no 1/(8 pi mu)).
-
-    With ``R = x - xi``, ``R* = x - xi*``, ``g = M f = (f_x, f_y, -f_z)`` the Blake doublet
-    terms reduce (``R*_z - h = zt``) to
-    ``2 h [-zt g / r*^3 + R* (3 zt (R*.g) / r*^5 - g_z / r*^3) + e_z (R*.g) / r*^3]``.
-    """
+def _acc_wall(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
+    """Sum of :func:`_pair_wall` over the sources ``[lo, hi)`` of one target."""
     ux = 0.0
     uy = 0.0
     uz = 0.0
     sx = sx[lo:hi]
     sy = sy[lo:hi]
-    sh = sh[lo:hi]
+    sz = sz[lo:hi]
     fx = fx[lo:hi]
     fy = fy[lo:hi]
     fz = fz[lo:hi]
     for j in range(hi - lo):
-        h = sh[j]
-        dx = xi - sx[j]
-        dy = yi - sy[j]
-        dz = zt - h
-        ez = zt + h
-        p2 = dx * dx + dy * dy
-        r2 = p2 + dz * dz
-        ir = 1.0 / np.sqrt(r2) if r2 > 0.0 else 0.0
-        ir3 = ir * ir * ir
-        iq = 1.0 / np.sqrt(p2 + ez * ez)
-        iq2 = iq * iq
-        iq3 = iq * iq2
-        a = fx[j]
-        b = fy[j]
-        c = fz[j]
-        pf = dx * a + dy * b
-        rf = (pf + dz * c) * ir3          # (R . f) / r^3
-        qf = pf + ez * c                  # R* . f
-        qg = pf - ez * c                  # R* . g
-        h2 = 2.0 * h * iq3
-        d = h2 * zt
-        cf = ir - iq
-        cq = h2 * (c + 3.0 * zt * qg * iq2) - qf * iq3
-        cxy = rf + cq
-        ux += (cf - d) * a + cxy * dx
-        uy += (cf - d) * b + cxy * dy
-        uz += (cf + d) * c + rf * dz + cq * ez + h2 * qg
+        a, b, c = _pair_wall(xi, yi, zi, sx[j], sy[j], sz[j], fx[j], fy[j], fz[j], e2)
+        ux += a
+        uy += b
+        uz += c
     return ux, uy, uz
 
 
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
-def _acc_regwall(xi, yi, zt, sx, sy, sh, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
-    """Sum of the regularised Blake tensor (:func:`ciliary_carpet.kernel.regularised_blake_tensor`)
-    times ``f_j`` for ``j`` in ``[lo, hi)``, wall at z = 0, ``e2 = eps^2`` (no 1/(8 pi mu)).
-
-    With ``r = x - xi``, ``R = x - xi*``, ``g = (f_x, f_y, -f_z)`` the tensor's terms collect to
-    ``G^eps(r) f + a_f f + a_g g + a_R R + a_z e_z`` (coefficients below)."""
+def _acc_regwall(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
+    """Sum of :func:`_pair_regwall` over the sources ``[lo, hi)`` of one target."""
     ux = 0.0
     uy = 0.0
     uz = 0.0
     sx = sx[lo:hi]
     sy = sy[lo:hi]
-    sh = sh[lo:hi]
+    sz = sz[lo:hi]
     fx = fx[lo:hi]
     fy = fy[lo:hi]
     fz = fz[lo:hi]
     for j in range(hi - lo):
-        h = sh[j]
-        dx = xi - sx[j]
-        dy = yi - sy[j]
-        dz = zt - h
-        ez = zt + h
-        p2 = dx * dx + dy * dy
-        r2 = p2 + dz * dz
-        R2 = p2 + ez * ez
-        ir = 1.0 / np.sqrt(r2 + e2)
-        ir3 = ir * ir * ir
-        iq = 1.0 / np.sqrt(R2 + e2)
-        iq3 = iq * iq * iq
-        iq5 = iq3 * iq * iq
-        a = fx[j]
-        b = fy[j]
-        c = fz[j]
-        pf = dx * a + dy * b
-        rf = (pf + dz * c) * ir3
-        Rf = pf + ez * c
-        Rg = pf - ez * c
-        iso = (r2 + 2.0 * e2) * ir3
-        hh = h * h
-        cf = -(R2 + 2.0 * e2) * iq3 + 6.0 * h * e2 * iq5 * ez
-        cg = (2.0 * hh - 2.0 * h * ez) * iq3 - 6.0 * hh * e2 * iq5
-        cR = -Rf * iq3 + (6.0 * h * ez - 6.0 * hh) * Rg * iq5 + 2.0 * h * c * iq3
-        cz = 2.0 * h * Rg * (R2 + 4.0 * e2) * iq5 - 6.0 * h * e2 * iq5 * Rf
-        ux += a * (iso + cf) + dx * (rf + cR) + cg * a
-        uy += b * (iso + cf) + dy * (rf + cR) + cg * b
-        uz += c * (iso + cf) + dz * rf + ez * cR - cg * c + cz
+        a, b, c = _pair_regwall(xi, yi, zi, sx[j], sy[j], sz[j], fx[j], fy[j], fz[j], e2)
+        ux += a
+        uy += b
+        uz += c
     return ux, uy, uz
 
 
@@ -299,7 +347,7 @@ def _acc(code, x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover
     if code == 0:
         return _acc_free(x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi)
     if code == 1:
-        return _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, lo, hi)
+        return _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi)
     return _acc_regwall(x, y, z, sx, sy, sz, fx, fy, fz, e2, lo, hi)
 
 
@@ -347,7 +395,7 @@ def _ranges_kernel(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no co
                 uz += c
         elif code == 1:
             for k in range(ptr[i], ptr[i + 1]):
-                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, ranges[k, 0], ranges[k, 1])
+                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
                 ux += a
                 uy += b
                 uz += c
@@ -408,7 +456,7 @@ def _ranges_serial(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no co
                 uz += c
         elif code == 1:
             for k in range(ptr[i], ptr[i + 1]):
-                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, ranges[k, 0], ranges[k, 1])
+                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
                 ux += a
                 uy += b
                 uz += c
@@ -458,6 +506,10 @@ class Backend:
         near-field sums are always evaluated directly, by :class:`Direct`)."""
         return Direct().ranged(kernel, targets, sources, forces, ptr, ranges, mu)
 
+    def describe(self) -> str:
+        """One line naming the evaluator (for summaries)."""
+        return type(self).__name__.lower()
+
 
 def _shift(kernel: Kernel) -> float:
     return 0.0 if kernel.wall is None else kernel.wall.z
@@ -482,6 +534,9 @@ class Direct(Backend):
         f = _direct if targets.shape[0] * sources.shape[0] >= SERIAL_PAIRS else _direct_serial
         f(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), kernel.eps ** 2, _INV_8PI / mu, out)
         return out
+
+    def describe(self) -> str:
+        return f"direct (numba, CPU, {numba.get_num_threads()} threads)"
 
     def ranged(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
                ptr: np.ndarray, ranges: np.ndarray, mu: float) -> np.ndarray:
@@ -567,13 +622,27 @@ class FMM(Backend):
         u = np.asarray(res.pottarg, dtype=np.float64).reshape(3, m).T
         return np.ascontiguousarray(u) / mu
 
+    def describe(self) -> str:
+        return f"fmm (fmm3dpy, eps {self.eps:g})"
+
+
+def _gpu() -> Backend | None:
+    """:class:`~ciliary_carpet.cuda.Cuda` () when a GPU can run it here, else None."""
+    from .cuda import Cuda, cuda_available
+
+    return Cuda() if cuda_available() else None
+
 
 @dataclass(frozen=True)
 class Auto(Backend):
-    """:class:`Direct` or :class:`FMM`, whichever is expected to be faster.
+    """The GPU when one is usable, else :class:`Direct` or :class:`FMM`, whichever is expected
+    to be faster.
 
-    :class:`Direct` when ``M * N < threshold``, or the kernel is not the singular free-space
-    Stokeslet, or fmm3dpy is not installed; :class:`FMM` (precision ``eps``) otherwise.
+    :class:`~ciliary_carpet.cuda.Cuda` (fp64) for every sum, dense and ranged, when
+    :func:`ciliary_carpet.cuda.cuda_available` (numba-cuda, an NVIDIA driver and GPU). Otherwise,
+    for the dense sum, :class:`Direct` when ``M * N < threshold``, or the kernel is not the
+    singular free-space Stokeslet, or fmm3dpy is not installed; :class:`FMM` (precision ``eps``)
+    otherwise; ranged sums run :class:`Direct`.
 
     Parameters
     ----------
@@ -594,6 +663,9 @@ class Auto(Backend):
     def choose(self, m: int, n: int, kernel: Kernel | Wall | None = None) -> Backend:
         """The backend used for ``m`` targets, ``n`` sources and ``kernel`` (a Wall or None
         stand for the singular kernels with and without wall)."""
+        gpu = _gpu()
+        if gpu is not None:
+            return gpu
         if not isinstance(kernel, Kernel):
             kernel = make_kernel(kernel)
         if (not isinstance(kernel, Stokeslet) or float(m) * float(n) < self.threshold
@@ -606,6 +678,49 @@ class Auto(Backend):
         b = self.choose(targets.shape[0], sources.shape[0], kernel)
         logger.debug("Auto: %s for M=%d, N=%d, %s", type(b).__name__, targets.shape[0], sources.shape[0], kernel)
         return b.dense(kernel, targets, sources, forces, mu)
+
+    def ranged(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
+               ptr: np.ndarray, ranges: np.ndarray, mu: float) -> np.ndarray:
+        b = _gpu() or Direct()
+        return b.ranged(kernel, targets, sources, forces, ptr, ranges, mu)
+
+    def describe(self) -> str:
+        gpu = _gpu()
+        if gpu is not None:
+            return f"auto: {gpu.describe()}"
+        fmm = f"FMM above {self.threshold:.3g} pairs" if _fmm_available() else "no FMM (fmm3dpy not installed)"
+        return f"auto: {Direct().describe()}; {fmm}"
+
+
+BACKENDS = ("auto", "direct", "fmm", "cuda", "cuda-fp32", "cuda-fp32-acc64")
+"""Backend names of scenes and the command line (:func:`backend_named`)."""
+
+
+def backend_named(name: str) -> Backend:
+    """The evaluator called ``name`` (:data:`BACKENDS`): ``"auto"`` :class:`Auto`, ``"direct"``
+    :class:`Direct`, ``"fmm"`` :class:`FMM`, ``"cuda"`` :class:`~ciliary_carpet.cuda.Cuda` in fp64,
+    ``"cuda-fp32"`` / ``"cuda-fp32-acc64"`` the same in fp32 / fp32 summed in fp64 (error bound:
+    :mod:`ciliary_carpet.cuda`).
+
+    Raises
+    ------
+    ValueError
+        For an unknown name (the message lists the known ones).
+    ciliary_carpet.cuda.CudaUnavailableError
+        For a ``cuda`` name where no GPU can run it (the message names what is missing), before
+        any work.
+    """
+    if name == "auto":
+        return Auto()
+    if name == "direct":
+        return Direct()
+    if name == "fmm":
+        return FMM()
+    if name in ("cuda", "cuda-fp32", "cuda-fp32-acc64"):
+        from .cuda import Cuda
+
+        return Cuda("fp64" if name == "cuda" else name[len("cuda-"):])
+    raise ValueError(f"unknown backend {name!r} (known: {', '.join(BACKENDS)})")
 
 
 # --------------------------------------------------------------------------- public functions
@@ -697,7 +812,7 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
         ``0 <= ranges[k, 0] <= ranges[k, 1] <= N``.
     mu : float, default 1
     wall : Wall, optional
-    backend : Backend, optional (default :class:`Direct`)
+    backend : Backend, optional (default :class:`Auto`: the GPU when usable, else :class:`Direct`)
     kernel : Kernel, optional
 
     Returns
@@ -733,7 +848,7 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
         raise ValueError(f"ranges must satisfy 0 <= ranges[k, 0] <= ranges[k, 1] <= N = {N}")
     if M == 0 or N == 0 or K == 0:
         return np.zeros((M, 3))
-    backend = Direct() if backend is None else backend
+    backend = Auto() if backend is None else backend
     return backend.ranged(k, t, s, f, p, r, m)
 
 
@@ -819,3 +934,13 @@ def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float 
             u = np.einsum("mnij,nj->mi", G, f)
         out[lo:lo + step] = u / (8.0 * math.pi * m)
     return out
+
+
+def __getattr__(name: str):
+    """The GPU evaluator, re-exported beside the others (``from ciliary_carpet.stokeslet import
+    Cuda``); imported on first use, as :mod:`ciliary_carpet.cuda` builds on this module."""
+    if name in ("Cuda", "CudaUnavailableError"):
+        from . import cuda
+
+        return getattr(cuda, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
