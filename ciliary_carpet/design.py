@@ -776,33 +776,42 @@ class Reachability:
     flow decays like 1/r, so the flow at a control point one spacing from the line is pushed by
     the column of cilia beside it *and*, the other way, by the columns across the line only two
     or three times as far; the sharper the requested change of angle across the line, the more
-    cross-stream force the columns nearest the line need, and the cilia run out of turn (and,
-    near the flutter cutoff, of thrust) -- the smoothing a lattice of spacing h cannot undo is
-    what is left. The estimate solves the design problem across the line on a strip: the
-    design model of every cilium (module docstring), with the curvature constant along each
-    column (cilia binned by their cross-stream coordinate in bins of h/4), at the control points
-    of the row nearest the carpet's centre (those within h/2 of it along the stream), with the
-    design's own objective (angle term and speed floor); L-BFGS-B on about one variable per
-    column, one solve per width. The Stokeslet sums are done once (a P_row x n_columns x 3
-    carrier matrix: 6 kernel sums per column), so each solve costs microseconds per iteration;
-    measured about 0.05 s on 100 cilia and 0.2 s on 1000 (2 shared cores,
-    benchmarks/results/bench_design.md table 4). The row's rms residual estimates the design's
-    rms; width_min is where it crosses the threshold (linear interpolation between the two
-    scanned widths around the crossing).
+    cross-stream force the columns nearest the line need, until they run out of turn (and, near
+    the flutter cutoff, of thrust): the smoothing a lattice of spacing h cannot undo is what is
+    left. The estimate solves the design problem across the line on a strip: the design model
+    of every cilium (module docstring), with the curvature constant along each column (cilia
+    binned by their cross-stream coordinate in bins of h/4), at the control points of the row
+    nearest the carpet's centre (within h/2 of it along the stream), with the design's own
+    objective (:func:`angle_objective`: angle term and speed floor); L-BFGS-B on one variable per
+    column. The Stokeslet sums are done once (a matrix of P_row x n_columns x 3 carriers: 6
+    kernel sums per column), so an iteration is two small matrix products (under a millisecond;
+    about 100 iterations a solve). The row's
+    rms residual estimates the design's rms; width_min is where it crosses the threshold, found
+    by bisection on :data:`WIDTH_GRID` (the widest and narrowest widths, then halving: about 6
+    solves with the target's own width) and linear interpolation between the two widths around
+    the crossing. Cost measured (benchmarks/results/bench_design.md table 4b, 2 cores shared with
+    other jobs, load average 6-11): 0.14-0.41 s on 100 cilia, 0.33-0.70 s on 240, 0.31-0.86 s on
+    1024, against 1.4-32 s for one full design (6-100x).
 
     Why a strip and not the split layout's profile: the split layout's flow angle reaches 0.76
-    of pattern_max only 3.7 L from the line on 100 cilia, 10.6 L on 1000, which would call
-    widths the designs meet unreachable: the design concentrates the cross-stream force near the
-    line, and so does the strip solve. Why constant along each column: the full design's freedom
-    along the stream fixes the carpet's upstream and downstream edges, not the transition; on
-    the whole carpet (every row) the column solve misses 0.02-0.03 rad more than the design far
-    from the line, on the centre row it follows it. Validated against full designs (focusing,
-    spreading, shear; spacings 2 and 3; widths 0.5 h to 2 h; table 4 of
-    benchmarks/results/bench_design.md): the estimated rms is on the safe side of the design's by
-    0.00-0.02 rad, so width_min errs on the wide side by up to about a quarter of a spacing.
-    Focusing at 20 deg on 10 x 10 cilia, spacing 2: estimated 0.076, 0.062, 0.045, 0.014 rad at
-    widths 0.5, 0.75, 1, 1.5 h, designs 0.066, 0.052, 0.036, 0.014; spacing 3: 0.082, 0.068,
-    0.051, 0.019 against 0.075, 0.061, 0.045, 0.019."""
+    of pattern_max only 3.7 L from the line on 100 cilia, 10.6 L on 1000, which would call widths
+    the designs meet unreachable: the design concentrates the cross-stream force near the line,
+    and so does the strip solve. Why constant along each column: the design's freedom along the
+    stream fixes the carpet's upstream and downstream edges, not the transition; on every row of
+    the carpet the column solve misses 0.02-0.03 rad more than the design far from the line,
+    on the centre row it follows the design. Validated against full designs (table 4b: focusing
+    at 10, 20, 40 deg, spreading at 20, shear at 30; spacings 2 and 3; widths 0.5 h to 2 h (6 h
+    at 40 deg); 100, 240 and 1024 cilia; 32 designs): the estimate never called a width
+    reachable that the design missed, and called 3 unreachable that it met (their estimated rms
+    within 0.006 rad of the threshold). Where the rms lies between 0.03 and 0.08 rad the estimate is above the
+    design's by 0.004-0.016 rad (so width_min errs on the wide side by up to about a quarter
+    spacing); for wide patterns, whose small design residual (below 0.01 rad) sits at the
+    carpet's upstream and downstream edges, which the centre row does not see, it can be below
+    by up to 0.008 rad: not on the safe side for thresholds under about 0.01 rad. Focusing at
+    20 deg, 10 x 10 cilia, spacing 2: estimated 0.076, 0.062, 0.045, 0.014 rad at widths 0.5,
+    0.75, 1, 1.5 h, designs 0.066, 0.052, 0.036, 0.014, width_min 1.85 L; spacing 3: 0.082,
+    0.068, 0.051, 0.019 against 0.075, 0.061, 0.045, 0.019, width_min 3.02 L; 1024 cilia, spacing
+    2: width_min 3.46 L (at 1 and 2 h: 0.070 and 0.040 against 0.063 and 0.035)."""
 
     angle_max: float
     angle_floor: float
