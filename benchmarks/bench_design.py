@@ -28,8 +28,11 @@ Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also write
 3. ``ciliary_carpet.render.render`` of every ``designs/*.toml``: the per-stage seconds of
    ``summary["seconds"]`` and the design's figures.
 4. (``reach``) ``ciliary_carpet.design.reachability``'s estimate of the amplitude a two-sided
-   pattern can hold against focusing designs at amplitudes 20-40 degrees (width 4 L) and widths
-   1-2 L (20 degrees), on 10 x 10 and 20 x 12 cilia.
+   pattern can hold against focusing designs at amplitudes 20-40 degrees (width 4 L), on 10 x 10
+   and 20 x 12 cilia; (4b) its estimate of the narrowest transition width (``width_min``, and the
+   rms residual it expects at a width) against designs at widths 0.5-2 spacings, spacings 2 and
+   3, focusing, spreading and shear, on 100, 240 and (two rows) 1024 cilia, with the cost of the
+   estimate against the design's.
 
 Timing: wall clock, single run, after a warm-up (numba kernels, table). The machine is shared: the
 load average at start and end is printed and inflates every time here; the ratios against the
@@ -325,9 +328,11 @@ def section_velocity(emit, table: ThrustTable, cap: float):
     emit("")
 
 
-def section_reach(emit, table: ThrustTable):
-    """reachability() against designs: focusing at several amplitudes and widths."""
+def section_reach(emit, table: ThrustTable, quick: bool = False):
+    """reachability() against designs: focusing at several amplitudes (4), widths against the
+    narrowest-width estimate at spacings 2 and 3 (4b)."""
     from ciliary_carpet.design import reachability
+    from ciliary_carpet.target import Target
 
     emit("## 4. Reachability estimate against designs")
     emit("")
@@ -339,7 +344,7 @@ def section_reach(emit, table: ThrustTable):
          "amplitude <= pattern_max |")
     emit("|---:|---:|---:|---:|---:|---|---|")
     mom = cycle_moments(table)
-    for nx, ny in ((10, 10), (20, 12)):
+    for nx, ny in ((10, 10),) if quick else ((10, 10), (20, 12)):
         bases = layout.square(nx, ny, SPACING)
         phases = layout.random_phases(nx * ny, 0)
         frame = Frame.from_bases(bases, SPACING, 0.0)
@@ -347,7 +352,7 @@ def section_reach(emit, table: ThrustTable):
         c0 = local_carpet(table, bases, phases, np.zeros(nx * ny))
         pm = math.degrees(reachability(c0, X, frame).pattern_max)
         centres0 = bases + mom(np.zeros(1))["offset"]
-        for amp, w in ((20, 4.0), (25, 4.0), (30, 4.0), (40, 4.0), (20, 1.0), (20, 1.5), (20, 2.0)):
+        for amp, w in ((20, 4.0), (25, 4.0), (30, 4.0), (40, 4.0)):
             def f(p, amp=amp, w=w):
                 return -math.radians(amp) * np.tanh(frame.cross_coordinate(p) / w)
 
@@ -356,6 +361,52 @@ def section_reach(emit, table: ThrustTable):
             d = design_layout(c, X, angles=f(X), cilium_angles=want)
             emit(f"| {nx * ny} | {pm:.1f} | {amp} | {w:g} | {d.residual_rms:.3g} | "
                  f"{'yes' if d.residual_rms <= 0.05 else 'no'} | {'yes' if amp <= pm else 'no'} |")
+    emit("")
+    emit("### 4b. Narrowest transition width against designs")
+    emit("")
+    emit("`reachability(carpet, control, frame, target=Target(kind, amplitude, width=w))`: the estimated rms "
+         "residual at the width w (the design model across the line on the centre row, one curvature per column: "
+         "`width_rms`) and the narrowest width meeting 0.05 rad (`width_min`), against the design's rms residual "
+         "(`design_layout` with its defaults, full model) at that width. Square lattices of spacing h, random phases "
+         "(seed 0), control points \"cells\", field +y, line through the centre. \"estimate s\": the wall time of "
+         "that `reachability` call (width scan included; 2 cores shared with other jobs), \"design s\": the "
+         "design's (the obvious alternative: designing to find out), same process.")
+    emit("")
+    emit("| cilia | h [L] | kind | amplitude [deg] | width [L] | width / h | estimated rms | design rms [rad] | "
+         "design meets 0.05 | width_min [L] | estimate: reachable | estimate s | design s |")
+    emit("|---:|---:|---|---:|---:|---:|---:|---:|---|---:|---|---:|---:|")
+    cases = [((10, 10), 2.0, "focus", 20, (0.5, 0.75, 1.0, 1.5, 2.0)),
+             ((10, 10), 3.0, "focus", 20, (0.5, 0.75, 1.0, 1.5, 2.0)),
+             ((20, 12), 2.0, "focus", 20, (0.5, 0.75, 1.0, 1.5, 2.0)),
+             ((20, 12), 3.0, "focus", 20, (0.5, 0.75, 1.0, 1.5, 2.0)),
+             ((10, 10), 2.0, "spread", 20, (0.5, 1.0, 2.0)),
+             ((10, 10), 2.0, "shear", 30, (0.5, 1.0, 2.0)),
+             ((10, 10), 2.0, "focus", 10, (0.5, 1.0)),
+             ((10, 10), 2.0, "focus", 40, (2.0, 6.0)),
+             ((32, 32), 2.0, "focus", 20, (1.0, 2.0))]
+    if quick:
+        cases = cases[:1]
+    for (nx, ny), h, kind, amp, grid in cases:
+        bases = layout.square(nx, ny, h)
+        phases = layout.random_phases(nx * ny, 0)
+        frame = Frame.from_bases(bases, h, 0.0)
+        X = control_points(bases, frame, "cells")
+        c0 = local_carpet(table, bases, phases, np.zeros(nx * ny))
+        centres0 = bases + mom(np.zeros(1))["offset"]
+        for g in grid:
+            tg = Target(kind=kind, amplitude=math.radians(amp), width=g * h)
+            t0 = time.perf_counter()
+            r = reachability(c0, X, frame, target=tg)
+            t_r = time.perf_counter() - t0
+            want = tg.deflection(centres0, frame)
+            t0 = time.perf_counter()
+            c = local_carpet(table, bases, phases, want)
+            d = design_layout(c, X, angles=tg.deflection(X, frame), cilium_angles=want, spacing=h)
+            t_d = time.perf_counter() - t0
+            wm = "none" if not math.isfinite(r.width_min) else f"{r.width_min:.3g}"
+            emit(f"| {nx * ny} | {h:g} | {kind} | {amp} | {g * h:g} | {g:g} | {r.width_rms:.3g} | "
+                 f"{d.residual_rms:.3g} | {'yes' if d.residual_rms <= 0.05 else 'no'} | {wm} | "
+                 f"{'yes' if r.width_reachable else 'no'} | {t_r:.2f} | {t_d:.1f} |")
     emit("")
 
 
@@ -467,7 +518,7 @@ def main(argv=None):
     t_s1 = time.perf_counter() - t1
     t2 = time.perf_counter()
     if "reach" in run:
-        section_reach(emit, table)
+        section_reach(emit, table, args.quick)
     if "render" in run:
         section_render(emit, args.quick, args.cap)
     t_s2 = time.perf_counter() - t2

@@ -97,7 +97,8 @@ logger = logging.getLogger(__name__)
 __all__ = ["design", "design_layout", "carpet_with", "Design", "DesignError", "DesignModel",
            "ToleranceStudy", "tolerance_study",
            "CycleMoments", "cycle_moments", "angle_objective", "floor_reference", "FLOOR_RADIUS_SPACINGS",
-           "Reachability", "reachability", "check_control_points", "NEAR_CUTOFF_FRACTION", "TREE_PAIRS"]
+           "Reachability", "reachability", "WIDTH_GRID", "check_control_points", "NEAR_CUTOFF_FRACTION",
+           "TREE_PAIRS"]
 
 NEAR_CUTOFF_FRACTION = 0.25
 """A cilium is reported "near the cutoff" when its mean thrust is below this fraction of the
@@ -229,7 +230,8 @@ class Design:
     seconds_model the L-BFGS-B solves on the design model); tolerance: the fabrication-tolerance
     study (``None`` unless asked, see :func:`tolerance_study`); reachability: what the carpet
     can make (:func:`reachability`; angle targets of :func:`design`); carpet: the carpet with the
-    returned layout, on which the residual was measured."""
+    returned layout, on which the residual was measured; threshold: the target's acceptance
+    threshold on residual_rms (``[target] residual``; set by :func:`design`, else None)."""
 
     chi_N: np.ndarray
     control: np.ndarray
@@ -252,6 +254,7 @@ class Design:
     tolerance: dict | None = None
     reachability: dict | None = None
     carpet: Carpet | None = field(default=None, repr=False, compare=False)
+    threshold: float | None = None
 
     def worst(self, k: int = 5) -> list[tuple[int, float, float, float]]:
         """The ``k`` worst control points: (index, x, y, residual)."""
@@ -275,6 +278,9 @@ class Design:
             out["tolerance"] = self.tolerance
         if self.reachability is not None:
             out["reachability"] = self.reachability
+        if self.threshold is not None:
+            out["residual_threshold"] = self.threshold
+            out["met"] = bool(self.residual_rms <= self.threshold)
         return out
 
     def to_dataset(self, carpet: Carpet):
@@ -392,6 +398,15 @@ def _edges(bases: np.ndarray) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ design model
+def _carriers(moments: CycleMoments, rot: np.ndarray, delta, chi, nu: int = 0) -> np.ndarray:
+    """(N, 3, 2) carrier forces f_jm (lab frame; module docstring) of cilia at ``chi`` (N,) with
+    carrier radii ``delta`` (N,), or their chi derivatives (nu = 1)."""
+    m = moments(np.asarray(chi, dtype=float), nu)
+    F = m["F"] @ rot.T
+    D = rot @ m["D"] @ rot.T
+    return F[:, None, :] / 3.0 + (2.0 / (3.0 * np.asarray(delta)))[:, None, None] * (_E @ D)  # (E D)_jkb = e_k . D_j:b
+
+
 class DesignModel:
     """The design model of ``carpet``'s mean flow at ``control`` (P, 2) points, with the carrier
     geometry (force centres c_j and carrier radii delta_j) frozen at the curvatures ``chi_geom``
@@ -417,10 +432,7 @@ class DesignModel:
 
     def carriers(self, chi, nu: int = 0) -> np.ndarray:
         """(N, 3, 2) carrier forces (lab frame) at ``chi``, or their chi derivatives (nu = 1)."""
-        m = self.moments(np.asarray(chi, dtype=float), nu)
-        F = m["F"] @ self.rot.T
-        D = self.rot @ m["D"] @ self.rot.T
-        return F[:, None, :] / 3.0 + (2.0 / (3.0 * self.delta))[:, None, None] * (_E @ D)  # (E D)_jkb = e_k . D_j:b
+        return _carriers(self.moments, self.rot, self.delta, chi, nu)
 
     def velocity(self, chi) -> np.ndarray:
         """(P, 2) mean flow at the control points for curvatures ``chi`` (N,)."""
@@ -743,9 +755,17 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
 
 
 # ------------------------------------------------------------------------------ reachability
+WIDTH_GRID = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)
+"""The transition widths, in lattice spacings, at which :func:`reachability` estimates a
+pattern's residual (the narrowest is a step on the lattice: tanh(4) = 0.9993 one spacing from
+the line)."""
+WIDTH_PATTERNS = ("focus", "spread", "shear")
+"""The target kinds with a transition width (:mod:`ciliary_carpet.target`)."""
+
+
 @dataclass(frozen=True)
 class Reachability:
-    """What a carpet can make under its field, up front (angles in radians).
+    """What a carpet can make under its field, up front (angles in radians, lengths in L).
 
     angle_max: the largest deflection of one cilium's thrust (the table's
     ``thrust_angle_range()``): a uniform target is reachable up to it. angle_floor: the
@@ -762,28 +782,120 @@ class Reachability:
     0.21); on 20 x 12 cilia 26.6 deg, 20 and 25 meet (0.009, 0.023), 30 and 40 miss (0.060,
     0.19).
 
-    Width: the narrowest transition a lattice resolves is not estimated here. Measured
-    (focusing at 20 deg, spacing h = 2, 100 and 240 cilia): width h meets 0.05 rad (0.036),
-    0.75 h is on the threshold (0.052, 0.047), h/2 misses (0.066, 0.057); the kernel's smoothing of the split layout
-    (its flow angle reaches 0.76 of pattern_max only 3.7 L from the line on 100 cilia, 10.6 L
-    on 1000) would call widths the designs meet unreachable, because the design concentrates
-    the cross-stream force near the line."""
+    Width (patterns with a transition width: focus, spread, shear, on a carpet without a wall;
+    ``None`` otherwise).
+    width_min: the narrowest transition width at which the target's pattern (its kind and
+    amplitude) meets its residual threshold on this carpet, estimated; 0 when even a step does
+    (width h/4, h the spacing), ``inf`` when no width up to 8 h does (the amplitude is beyond
+    the carpet: see pattern_max). width: the target's own width; width_rms: the estimated rms
+    residual at it; widths: the scan, ((w, estimated rms), ...) at :data:`WIDTH_GRID` x h;
+    residual: the threshold; seconds: the cost of the width estimate.
+
+    How: what limits a transition is the kernel's smoothing across the line. A cilium's mean
+    flow decays like 1/r, so the flow at a control point one spacing from the line is pushed by
+    the column of cilia beside it *and*, the other way, by the columns across the line only two
+    or three times as far; the sharper the requested change of angle across the line, the more
+    cross-stream force the columns nearest the line need, until they run out of turn (and, near
+    the flutter cutoff, of thrust): the smoothing a lattice of spacing h cannot undo is what is
+    left. The estimate solves the design problem across the line on a strip: the design model
+    of every cilium (module docstring), with the curvature constant along each column (cilia
+    binned by their cross-stream coordinate in bins of h/4), at the control points of the row
+    nearest the carpet's centre (within h/2 of it along the stream), with the design's own
+    objective (:func:`angle_objective`: angle term and speed floor); L-BFGS-B on one variable per
+    column. The Stokeslet sums are done once (a matrix of P_row x n_columns x 3 carriers: 6
+    kernel sums per column), so an iteration is two small matrix products (under a millisecond;
+    60-120 iterations a solve). The row's
+    rms residual estimates the design's rms; width_min is where it crosses the threshold, found
+    by bisection on :data:`WIDTH_GRID` (the widest and narrowest widths, then halving: about 6
+    solves with the target's own width) and linear interpolation between the two widths around
+    the crossing. Cost measured (benchmarks/results/bench_design.md table 4b, 2 cores shared with
+    other jobs, load average 6-11): 0.14-0.41 s on 100 cilia, 0.33-0.70 s on 240, 0.31-0.86 s on
+    1024, against 1.4-32 s for one full design (6-100x); 0.61 s on 10,000 cilia (100 columns;
+    load average 5, the carpet itself 136 s in the same run; not validated against a design).
+
+    Why a strip and not the split layout's profile: the split layout's flow angle reaches 0.76
+    of pattern_max only 3.7 L from the line on 100 cilia, 10.6 L on 1000, which would call widths
+    the designs meet unreachable: the design concentrates the cross-stream force near the line,
+    and so does the strip solve. Why constant along each column: the design's freedom along the
+    stream fixes the carpet's upstream and downstream edges, not the transition; on every row of
+    the carpet the column solve misses 0.02-0.03 rad more than the design far from the line,
+    on the centre row it follows the design. Validated against full designs (table 4b: focusing
+    at 10, 20, 40 deg, spreading at 20, shear at 30; spacings 2 and 3; widths 0.5 h to 2 h (6 h
+    at 40 deg); 100, 240 and 1024 cilia; 32 designs): the estimate never called a width
+    reachable that the design missed, and called 3 unreachable that it met (their estimated rms
+    within 0.006 rad of the threshold). Where the rms lies between 0.03 and 0.08 rad the estimate is above the
+    design's by 0.004-0.016 rad (so width_min errs on the wide side by up to about a quarter
+    spacing); for wide patterns, whose small design residual (below 0.01 rad) sits at the
+    carpet's upstream and downstream edges, which the centre row does not see, it can be below
+    by up to 0.008 rad: not on the safe side for thresholds under about 0.01 rad. Focusing at
+    20 deg, 10 x 10 cilia, spacing 2: estimated 0.076, 0.062, 0.045, 0.014 rad at widths 0.5,
+    0.75, 1, 1.5 h, designs 0.066, 0.052, 0.036, 0.014, width_min 1.85 L; spacing 3: 0.082,
+    0.068, 0.051, 0.019 against 0.075, 0.061, 0.045, 0.019, width_min 3.02 L; 1024 cilia, spacing
+    2: width_min 3.46 L (at 1 and 2 h: 0.070 and 0.040 against 0.063 and 0.035).
+
+    Not above a wall: there the designs miss for another reason (100 cilia, hexagonal, spacing 2,
+    wall 0.5 L below the plane: a *uniform* 20 deg deflection 0.17 rad; focusing at 20 deg,
+    widths 2 and 8 L, 0.16 and 0.09 rad, where the strip estimated 0.077 and 0.047), so a width
+    estimate would be optimistic; width_min is None."""
 
     angle_max: float
     angle_floor: float
     pattern_max: float
     line: float = 0.0
+    width_min: float | None = None
+    width: float | None = None
+    width_rms: float | None = None
+    widths: tuple = ()
+    residual: float | None = None
+    seconds: float = 0.0
+
+    @property
+    def width_reachable(self) -> bool | None:
+        """Whether the target's width is at least the estimated narrowest (None: not estimated)."""
+        if self.width_min is None or self.width is None:
+            return None
+        return self.width >= self.width_min
 
     def summary(self) -> dict:
-        return {"angle_max_deg": math.degrees(self.angle_max), "angle_floor_deg": math.degrees(self.angle_floor),
-                "pattern_max_deg": math.degrees(self.pattern_max), "line": self.line,
-                "method": "pattern_max: design model, split layout at the speed floor (an estimate, not a bound)"}
+        out = {"angle_max_deg": math.degrees(self.angle_max), "angle_floor_deg": math.degrees(self.angle_floor),
+               "pattern_max_deg": math.degrees(self.pattern_max), "line": self.line,
+               "method": "pattern_max: design model, split layout at the speed floor (an estimate, not a bound)",
+               "text": self.describe()}
+        if self.width_min is not None:
+            out.update({"width_min": self.width_min if math.isfinite(self.width_min) else None,
+                        "width": self.width, "width_rms": self.width_rms, "width_reachable": self.width_reachable,
+                        "residual_threshold": self.residual,
+                        "width_scan": [[w, r] for w, r in self.widths], "width_seconds": self.seconds,
+                        "width_method": "design model across the line: curvature constant along each column, "
+                                        "the control points of the centre row (an estimate, on the safe side); "
+                                        "width_min null: no width up to 8 spacings meets the threshold"})
+        return out
+
+    def describe(self) -> str:
+        """One sentence for messages and summaries."""
+        s = (f"one cilium turns its thrust up to {math.degrees(self.angle_max):.1f} deg "
+             f"({math.degrees(self.angle_floor):.1f} at the speed floor); a two-sided pattern holds about "
+             f"{math.degrees(self.pattern_max):.1f} deg")
+        if self.width_min is not None:
+            wm = ("no width up to 8 spacings" if not math.isfinite(self.width_min) else
+                  "any width, a step included" if self.width_min == 0 else f"{self.width_min:.3g} L")
+            s += (f"; narrowest transition at this amplitude: {wm} (asked {self.width:.3g} L, estimated rms "
+                  f"{self.width_rms:.3g} rad against {self.residual:g})")
+        return s
 
 
-def reachability(carpet: Carpet, control, frame: Frame, speed_floor: float = 0.3, line: float = 0.0) -> Reachability:
+def reachability(carpet: Carpet, control, frame: Frame, speed_floor: float | None = None, line: float | None = None,
+                 target: Target | None = None) -> Reachability:
     """The :class:`Reachability` of ``carpet`` at the control points (P, 2) with the pattern's
-    line at cross-stream offset ``line`` of ``frame`` (one design-model evaluation)."""
+    line at cross-stream offset ``line`` of ``frame`` (one design-model evaluation), and with a
+    ``target`` of kind focus, spread or shear the narrowest width at its amplitude and residual
+    threshold (:data:`WIDTH_GRID`: ten small solves). ``speed_floor`` and ``line`` default to the
+    target's (else 0.3 and 0)."""
     X = np.asarray(control, dtype=float)
+    if speed_floor is None:
+        speed_floor = target.speed_floor if target is not None else 0.3
+    if line is None:
+        line = target.line if target is not None else 0.0
     t = carpet.table
     mom = cycle_moments(t)
     grid = np.linspace(0.0, mom.cutoff, 2001)
@@ -798,8 +910,113 @@ def reachability(carpet: Carpet, control, frame: Frame, speed_floor: float = 0.3
     far = xi >= 3.0 * frame.spacing
     if not np.any(far):
         far = xi >= np.median(xi)
-    return Reachability(angle_max=float(t.thrust_angle_range()[1]), angle_floor=abs(a_f),
-                        pattern_max=float(np.median(np.abs(delta[far]))), line=float(line))
+    reach = Reachability(angle_max=float(t.thrust_angle_range()[1]), angle_floor=abs(a_f),
+                         pattern_max=float(np.median(np.abs(delta[far]))), line=float(line))
+    if target is None or target.kind not in WIDTH_PATTERNS:
+        return reach
+    if carpet.wall is not None:
+        logger.info("reachability: the narrowest width is not estimated above a wall (see Reachability)")
+        return reach
+    clock = _time.perf_counter()
+    h = frame.spacing
+    w_t = float(target.width) if target.width is not None else h
+    strip = _Strip(carpet, X, frame, float(speed_floor), mom)
+    ws = [g * h for g in WIDTH_GRID]
+    thr = float(target.residual)
+    scan: dict[float, float] = {}
+
+    def rms(w: float) -> float:
+        if w not in scan:
+            scan[w] = strip.rms(replace(target, width=w))
+        return scan[w]
+
+    # bisection on the grid (the estimate falls as the width grows): the widest, the narrowest,
+    # then halving the bracket; the crossing interpolated linearly between its two ends
+    if rms(ws[-1]) > thr:
+        w_min = math.inf
+    elif rms(ws[0]) <= thr:
+        w_min = 0.0
+    else:
+        lo, hi = 0, len(ws) - 1
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if rms(ws[mid]) <= thr else (mid, hi)
+        r0, r1 = scan[ws[lo]], scan[ws[hi]]
+        w_min = ws[lo] + (r0 - thr) / max(r0 - r1, 1e-300) * (ws[hi] - ws[lo])
+    r_t = rms(w_t)
+    sec = _time.perf_counter() - clock
+    logger.info("reachability: narrowest %s width at %.1f deg: %.3g L (asked %.3g L, estimated rms %.3g); "
+                "%d L-BFGS-B iterations, %.2f s", target.kind, math.degrees(target.amplitude), w_min, w_t, r_t,
+                strip.iterations, sec)
+    return replace(reach, width_min=float(w_min), width=w_t, width_rms=r_t,
+                   widths=tuple((float(w), float(scan[w])) for w in sorted(scan)), residual=thr,
+                   seconds=sec)
+
+
+class _Strip:
+    """The design problem across the line on the carpet's centre row (see :class:`Reachability`):
+    the control points within half a spacing (along the stream) of the row nearest the centre,
+    the cilia binned into columns by their cross-stream coordinate (bins of a quarter spacing),
+    one curvature per column; ``W`` (P_row, n_columns, 3, 2, 2) the flow at each row point of a
+    unit force (lab axes) on carrier m of every cilium of a column (geometry of straight cilia),
+    ``M`` the same as a (2 P_row, 6 n_columns) matrix acting on the flattened carrier forces."""
+
+    def __init__(self, carpet: Carpet, X: np.ndarray, frame: Frame, speed_floor: float, mom: CycleMoments):
+        h = frame.spacing
+        s = np.abs((X - frame.centre) @ frame.flow_direction)
+        self.X = X[s <= s.min() + 0.5 * h * (1 + 1e-9)]
+        self.frame, self.mom, self.table = frame, mom, carpet.table
+        dm = DesignModel(carpet, self.X, np.zeros(carpet.n), moments=mom)
+        cen = dm.pos3[:, :2].reshape(-1, 3, 2).mean(axis=1)
+        _, col = np.unique(np.round(frame.cross_coordinate(cen) / (0.25 * h)), return_inverse=True)
+        col = col.ravel()
+        nc = int(col.max()) + 1
+        self.W = np.zeros((self.X.shape[0], nc, 3, 2, 2))
+        rep = np.zeros(nc, np.int64)
+        with _threads(3 * carpet.n * self.X.shape[0]):
+            for b in range(nc):
+                j = np.nonzero(col == b)[0]
+                rep[b] = j[0]
+                for m in range(3):
+                    for ax in range(2):
+                        f = np.zeros((j.size, 3))
+                        f[:, ax] = 1.0
+                        self.W[:, b, m, :, ax] = stokeslet_velocity(dm.X3, dm.pos3[3 * j + m], f, carpet.mu,
+                                                                    wall=dm.wall, backend=carpet.backend)[:, :2]
+        self.M = self.W.transpose(0, 3, 1, 2, 4).reshape(2 * self.X.shape[0], 6 * nc)  # u = M c (flattened)
+        self.centres = cen[rep]
+        self.delta, self.rot = dm.delta[rep], dm.rot
+        self.floor = speed_floor * floor_reference(carpet, self.X, spacing=h, moments=mom)
+        self.iterations = 0
+
+    def rms(self, target: Target) -> float:
+        """The rms angle residual at the row's points of the best column layout for ``target``:
+        the design's objective (:func:`angle_objective`, its speed floor) by L-BFGS-B in chi / chi_c
+        in [-1, 1] from the columns' local requests, scaled to 1 there so that its tolerance is
+        relative."""
+        T = self.frame.directions(target.deflection(self.X, self.frame))
+        a_max = self.table.thrust_angle_range()[1] * (1.0 - 1e-9)
+        want = np.clip(target.deflection(self.centres, self.frame), -a_max, a_max)
+        cut = self.mom.cutoff
+        z0 = np.array([self.table.chi_N_for_angle(float(a)) for a in want]) / cut
+
+        def flow(z):
+            return (self.M @ _carriers(self.mom, self.rot, self.delta, z * cut).ravel()).reshape(-1, 2)
+
+        scale = 1.0 / max(angle_objective(flow(z0), T, self.floor)[0], 1e-300)
+
+        def fun(z):
+            J, g = angle_objective(flow(z), T, self.floor)
+            dc = _carriers(self.mom, self.rot, self.delta, z * cut, 1).ravel()
+            return scale * J, scale * cut * ((self.M.T @ g.ravel()) * dc).reshape(-1, 6).sum(axis=1)
+
+        with _threads(0):
+            res = minimize(fun, z0, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * z0.size,
+                           options={"ftol": 1e-9, "maxiter": 1000})
+        self.iterations += int(res.nit)
+        u = flow(res.x)
+        r = np.angle((u[:, 0] + 1j * u[:, 1]) * np.conj(T[:, 0] + 1j * T[:, 1]))
+        return float(np.sqrt(np.mean(r ** 2)))
 
 
 # ------------------------------------------------------------------------------ tolerance
@@ -902,15 +1119,19 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
         chi0 = np.array([table.chi_N_for_angle(x) for x in want])
         carpet = built.carpet(chi0)
         X = control_points(bases, frame, target.control)
-        d = design_layout(carpet, X, angles=target.deflection(X, frame), cilium_angles=want, clip=not strict,
-                          **kw)
-        reach = reachability(d.carpet, X, frame, target.speed_floor, target.line)
-        d = _replace(d, reachability=reach.summary(), **({"clipped": tuple(np.nonzero(bad)[0].tolist())}
-                                                        if np.any(bad) else {}))
+        reach = reachability(carpet, X, frame, target=target)  # up front: what this carpet can make
         if target.pattern.two_sided and target.amplitude > reach.pattern_max:
             logger.info("design: the %s amplitude %.1f deg exceeds the estimated reachable %.1f deg of a two-sided "
                         "pattern on this carpet", target.kind, math.degrees(target.amplitude),
                         math.degrees(reach.pattern_max))
+        if reach.width_reachable is False:
+            logger.info("design: the %s width %.3g L is below the estimated narrowest %.3g L at %.1f deg on this "
+                        "carpet (estimated rms %.3g against %g)", target.kind, reach.width, reach.width_min,
+                        math.degrees(target.amplitude), reach.width_rms, target.residual)
+        d = design_layout(carpet, X, angles=target.deflection(X, frame), cilium_angles=want, clip=not strict,
+                          **kw)
+        d = _replace(d, reachability=reach.summary(),
+                     **({"clipped": tuple(np.nonzero(bad)[0].tolist())} if np.any(bad) else {}))
     else:
         carpet = built.carpet()
         X, U = target.velocities()
@@ -918,17 +1139,30 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     if d.residual_rms > target.residual:
         unit = "rad" if d.kind == "angle" else "relative"
         lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
-        est = ""
-        if target.pattern.two_sided and d.reachability is not None:
-            est = (f" (estimated reachable amplitude of a two-sided pattern on this carpet: "
-                   f"{d.reachability['pattern_max_deg']:.1f} deg, asked {math.degrees(target.amplitude):.1f} deg)")
+        est, hint = [], "Lower the target angle, widen the pattern, or move the control points away from the cilia"
+        r = d.reachability
+        if target.pattern.two_sided and r is not None:
+            est.append(f"a two-sided pattern holds about {r['pattern_max_deg']:.1f} deg, asked "
+                       f"{math.degrees(target.amplitude):.1f} deg")
+        if r is not None and "width_min" in r:
+            wm = r["width_min"]
+            est.append(f"narrowest transition at {math.degrees(target.amplitude):.1f} deg: "
+                       + ("none up to 8 spacings" if wm is None else f"{wm:.3g} L") + f", asked {r['width']:.3g} L")
+            if wm is not None and r["width"] < wm:
+                hint = f"Widen the pattern to about {wm:.3g} L or more, lower the target angle, or move the control " \
+                       "points away from the cilia"
+        est_s = f" (estimated on this carpet: {'; '.join(est)})" if est else ""
         msg = (f"{scene.source_name}: the cilia cannot make this target: rms residual {d.residual_rms:.3g} "
-               f"{unit} exceeds [target] residual = {target.residual:g}{est}; worst control points {lst}. "
-               "Lower the target angle, widen the pattern, or move the control points away from the cilia")
+               f"{unit} exceeds [target] residual = {target.residual:g}{est_s}; worst control points {lst}. {hint}")
         if strict:
             raise DesignError(msg)
         warnings.warn(msg + " (strict = false: returning the closest flow the cilia make)", UserWarning,
                       stacklevel=2)
+        d = _replace(d, message=d.message + f"; target NOT met ([target] residual = {target.residual:g}): the "
+                     f"closest flow the cilia make; worst control points {lst}")
+    else:
+        d = _replace(d, message=d.message + f"; target met ([target] residual = {target.residual:g})")
+    d = _replace(d, threshold=float(target.residual))
     if target.sigma > 0:
         d = _replace(d, tolerance=tolerance_study(d.carpet, d, target.sigma, target.samples).summary())
     return d, d.carpet

@@ -718,6 +718,13 @@ def _markdown(s: dict) -> str:
                      f"{dd['residual_max']:.3g}; local layout {dd['local_rms']:.3g}; returned the {dd['returned']} "
                      f"layout; {dd['cilia_near_cutoff']} of {s['n_cilia']} cilia near the flutter cutoff; "
                      f"{dd['work']['iterations']} L-BFGS-B iterations, {dd['work']['checks']} full-model checks")
+        if "met" in dd:
+            worst = ", ".join(f"#{w['index']} at ({w['x']:.3g}, {w['y']:.3g}): {w['residual']:.3g}" for w in dd["worst"])
+            lines.append(f"- target {'met' if dd['met'] else 'NOT met: the closest flow the cilia make'} (rms "
+                         f"{dd['residual_rms']:.3g} against [target] residual = {dd['residual_threshold']:g}); "
+                         f"worst control points {worst}")
+        if "reachability" in dd:
+            lines.append(f"- reachability (estimated up front): {dd['reachability']['text']}")
         if "tolerance" in dd:
             tt = dd["tolerance"]
             lines.append(f"- fabrication tolerance (relative chi_N error sigma = {tt['sigma']:g}, {tt['samples']} "

@@ -180,10 +180,15 @@ def test_unreachable_targets_in_both_modes(tmp_path):
         design(load_scene(_scene(tmp_path, body + "strict = true\n", "strict.toml")))
     # a pattern too sharp for the lattice: the closest flow plus where it misses, or exit 3
     body = '[carpet]\nshape = [4, 4]\n[target]\nkind = "focus"\nangle = 50.0\nwidth = 0.5\nresidual = 0.001\n'
-    with pytest.warns(UserWarning, match="worst control points #"):
+    with pytest.warns(UserWarning, match="worst control points #") as rec:
         d, carpet = design(load_scene(_scene(tmp_path, body, "sharp.toml")))
     assert d.residual_rms > 0.001 and d.objective <= d.local_objective and carpet.n == 16
-    assert "worst" in d.summary() and len(d.summary()["worst"]) == 5
+    s = d.summary()
+    assert "worst" in s and len(s["worst"]) == 5
+    # the verdict, where it misses and what the carpet can make, in the summary and the message
+    assert s["met"] is False and s["residual_threshold"] == 0.001 and "target NOT met" in d.message
+    assert "narrowest transition" in str(rec[0].message) and "narrowest transition" in s["reachability"]["text"]
+    assert s["reachability"]["width"] == 0.5 and s["reachability"]["width_reachable"] is False
     p = _scene(tmp_path, body + "strict = true\n", "sharp_strict.toml")
     with pytest.raises(DesignError, match="cannot make this target"):
         design(load_scene(p))
@@ -350,3 +355,37 @@ def test_reachability_of_a_two_sided_pattern_matches_designs(table):
             cc = Carpet(c.bases, np.array([table.chi_N_for_angle(a) for a in want]), table, c.phases)
         rms[A] = design_layout(cc, X, angles=f(X), cilium_angles=want).residual_rms
     assert rms[20] < 0.05 < rms[40]
+
+
+def test_narrowest_width_estimate_matches_designs(table):
+    """reachability's narrowest transition width (focusing at 20 deg, threshold 0.05 rad): it grows
+    with the spacing; on 10 x 10 cilia of spacing 2 a width it calls reachable (1.5 spacings)
+    meets the threshold in a full design, and one well below it (half a spacing) misses."""
+    from ciliary_carpet.design import reachability
+    from ciliary_carpet.target import Target
+
+    tg = Target(kind="focus", amplitude=math.radians(20), width=1.0)
+    r = {}
+    for h in (2.0, 3.0):
+        b = layout.square(10, 10, h)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            c = Carpet(b, 0.0, table, layout.random_phases(100, 0))
+        fr = Frame.from_bases(b, h, c.direction)
+        r[h] = (c, fr, reachability(c, control_points(b, fr, "cells"), fr, target=tg))
+    w2, w3 = r[2.0][2].width_min, r[3.0][2].width_min
+    assert 0.5 * 2.0 < w2 < 2.0 * 2.0 and w3 > w2  # about a spacing, and wider on the sparser lattice
+    assert r[2.0][2].width_rms > 0.05 and r[2.0][2].width_reachable is False  # 1 L = half a spacing
+    assert reachability(r[2.0][0], _cells(r[2.0][0]), r[2.0][1]).width_min is None  # no target: not estimated
+    c, fr, _ = r[2.0]
+    X = control_points(c.bases, fr, "cells")
+    cen0 = c.bases + cycle_moments(table)(np.zeros(1))["offset"]
+    rms = {}
+    for w in (1.0, 3.0):
+        t = Target(kind="focus", amplitude=math.radians(20), width=w)
+        want = t.deflection(cen0, fr)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            cc = Carpet(c.bases, np.array([table.chi_N_for_angle(a) for a in want]), table, c.phases)
+        rms[w] = design_layout(cc, X, angles=t.deflection(X, fr), cilium_angles=want).residual_rms
+    assert w2 <= 3.0 and rms[3.0] < 0.05 < rms[1.0]
