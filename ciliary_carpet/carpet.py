@@ -417,6 +417,45 @@ _PARALLEL_SOURCES = 50_000
 """Source blocks of at least this many sources are made in parallel."""
 
 
+@njit(cache=True, parallel=True)
+def _near_pairs(targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, cnt, out):  # pragma: no cover - compiled
+    """Near pairs (target i, cilium j) with |targets[i] - (cx_j, cy_j, 0)| <= r_j, the cilia
+    binned on a grid of cells of side h >= max r (origin x0, y0; nx x ny cells; cilia of cell c:
+    order[cell_ptr[c]:cell_ptr[c + 1]]). Pass 1 (``out`` empty): cnt[i] = the number of i's pairs;
+    pass 2 (``out`` of size sum(cnt), cnt turned into offsets cnt[i] = start of i): out holds
+    each target's cilia in ascending order."""
+    fill = out.shape[0] > 0
+    for i in prange(targets.shape[0]):
+        x = targets[i, 0]
+        y = targets[i, 1]
+        z2 = targets[i, 2] * targets[i, 2]
+        ix = int(math.floor((x - x0) / h))
+        iy = int(math.floor((y - y0) / h))
+        k = cnt[i] if fill else 0
+        k0 = k
+        for gx in range(max(ix - 1, 0), min(ix + 2, nx)):
+            for gy in range(max(iy - 1, 0), min(iy + 2, ny)):
+                c = gx * ny + gy
+                for q in range(cell_ptr[c], cell_ptr[c + 1]):
+                    j = order[q]
+                    dx = x - cx[j]
+                    dy = y - cy[j]
+                    if dx * dx + dy * dy + z2 <= r[j] * r[j]:
+                        if fill:
+                            out[k] = j
+                        k += 1
+        if fill:
+            for a in range(k0 + 1, k):  # insertion sort: a handful of cilia per target
+                v = out[a]
+                b = a - 1
+                while b >= k0 and out[b] > v:
+                    out[b + 1] = out[b]
+                    b -= 1
+                out[b + 1] = v
+        else:
+            cnt[i] = k
+
+
 def _simpson(n: int) -> np.ndarray:
     if n < 3 or n % 2 == 0:
         raise ValueError(f"the table's s grid must have an odd number (>= 3) of points, got {n}")
@@ -714,6 +753,31 @@ class Carpet:
             cache[key] = np.where((S > 0) | (Qt > 0), R, -1.0)
         return cache[key]
 
+    def _pairs(self, targets: np.ndarray, js: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Near pairs (point, cilium) with |x - c_j| <= r (cilia ``js``, radii ``r``): two int64
+        arrays sorted by point, then cilium (a grid of cells of side max r, compiled)."""
+        cen = self._c["centre"][js]
+        h = float(min(r.max(), 1e300))
+        lo = cen.min(axis=0) - h
+        span = cen.max(axis=0) + h - lo
+        nx, ny = (int(min(max(1, math.ceil(s / h)), 4096)) for s in span)
+        h = float(max(span[0] / nx, span[1] / ny, h))  # at most 4096 cells a side, each at least r
+        g = np.minimum((np.floor((cen - lo) / h)).astype(np.int64), [nx - 1, ny - 1])
+        cell = g[:, 0] * ny + g[:, 1]
+        order = np.argsort(cell, kind="stable")
+        ptr = np.searchsorted(cell[order], np.arange(nx * ny + 1)).astype(np.int64)
+        cx, cy = np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1])
+        rr = np.ascontiguousarray(np.minimum(r, 1e300))
+        cnt = np.zeros(targets.shape[0], np.int64)
+        args = (targets, cx, cy, rr, order, ptr, float(lo[0]), float(lo[1]), h, nx, ny, cnt)
+        _near_pairs(*args, np.zeros(0, np.int64))
+        total = int(cnt.sum())
+        pi = np.repeat(np.arange(targets.shape[0]), cnt)
+        cnt[:] = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+        out = np.empty(total, np.int64)
+        _near_pairs(*args, out)
+        return pi, js[out]
+
     def _sum(self, targets: np.ndarray, ph: np.ndarray | None, F: np.ndarray, D: np.ndarray, T: np.ndarray,
              Q: np.ndarray, S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
         """Cheap carriers everywhere (one dense sum), plus resolved-minus-cheap corrections on the
@@ -766,17 +830,13 @@ class Carpet:
         u = np.zeros((m, 3))
         work = dict(sources=0, ranges=0)
         # near pairs, from a tree over the targets
-        cand = np.nonzero(rstar > 0)[0]
         n_near = 0
         pi = pj = np.zeros(0, np.int64)
+        cand = np.nonzero(rstar > 0)[0]
         if cand.size and m:
-            r = np.minimum(rstar[cand], 1e300)
-            sdm = cKDTree(_pad(c["centre"][cand])).sparse_distance_matrix(cKDTree(targets), float(r.max()),
-                                                                         output_type="ndarray")
-            keep = sdm["v"] <= r[sdm["i"]]
-            pj = cand[sdm["i"][keep]].astype(np.int64)
-            pi = sdm["j"][keep].astype(np.int64)
+            pi, pj = self._pairs(targets, cand, rstar[cand])
             n_near = pi.size
+        pj_by_point = pj  # sorted by point, then cilium (the bound's order; the sum may regroup them)
         if not np.any(active) and not n_near:
             return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": 0}, tol=tol,
                               work=work)
@@ -800,8 +860,9 @@ class Carpet:
             per = max(1, _CHUNK_SOURCES // blk)
             chunk = local // per
             n_chunks = int(chunk.max()) + 1
-            order = np.lexsort((pj, pi, chunk))  # by chunk, then target, then cilium
-            pi, pj, local, chunk = pi[order], pj[order], local[order], chunk[order]
+            if n_chunks > 1:  # by chunk, then target, then cilium (the pairs come by target, then cilium)
+                order = np.argsort(chunk, kind="stable")
+                pi, pj, local, chunk = pi[order], pj[order], local[order], chunk[order]
             cut = np.searchsorted(chunk, np.arange(n_chunks + 1))
         for k in range(n_chunks):
             if n_near:
@@ -843,10 +904,9 @@ class Carpet:
         bound = np.zeros(m)
         if error and np.any(active):
             # per point, over the active cilia not summed resolved (near pairs listed by point)
-            o = np.lexsort((pj, pi))
             near_ptr = np.concatenate([[0], np.cumsum(np.bincount(pi, minlength=m))]).astype(np.int64)
             _lod_bound(targets, c["centre"], c["radius"], kernel.c3 * (Q + q_rep) / 6.0, active, near_ptr,
-                       np.ascontiguousarray(pj[o]), bound)
+                       pj_by_point, bound)
             bound /= 8 * math.pi * self.mu
         n_pairs = m * int(active.sum())
         n_res = int(np.sum(active[pj])) if n_near else 0

@@ -264,3 +264,19 @@ def test_level_of_detail_calibration_margin(table, wall):
         scale = _scale(c, p, c._c["F_rms"])
         assert np.all(err <= 0.1 * tol * scale)
         assert np.all(s.error_bound <= LOD_SLACK * tol * scale * (1 + 1e-9))
+
+
+def test_near_pair_search_matches_brute_force(carpet):
+    """The compiled grid search of the near pairs finds exactly the pairs within each cilium's
+    radius (3-D distance from its force centre in the plane), sorted by point then cilium, for
+    mixed radii, points above/below the plane and far away, and an unbounded radius."""
+    rng = np.random.default_rng(7)
+    x = np.column_stack([rng.uniform(-8, 28, 700), rng.uniform(-8, 28, 700), rng.uniform(-2, 2, 700)])
+    x = np.vstack([x, [[1e6, -3e5, 0.0]]])
+    js = np.arange(0, carpet.n, 2)
+    for r in (rng.uniform(0.5, 4.0, js.size), np.r_[np.full(js.size - 1, 1.5), np.inf]):
+        pi, pj = carpet._pairs(x, js, r)
+        d = np.linalg.norm(x[:, None, :] - np.c_[carpet.centres[js], np.zeros(js.size)][None], axis=-1)
+        bi, bk = np.nonzero(d <= np.minimum(r, 1e300)[None])
+        assert np.array_equal(pi, bi) and np.array_equal(pj, js[bk])  # np.nonzero: by point, then cilium
+        assert pi.size > 300  # the case is not empty (the unbounded cilium alone pairs with every point)
