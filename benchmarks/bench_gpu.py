@@ -36,16 +36,10 @@ from ciliary_carpet import cuda as cc
 from ciliary_carpet.kernel import Blake, Stokeslet, Wall
 from ciliary_carpet.stokeslet import _INV_8PI, Direct
 
+sys.path.insert(0, str(Path(__file__).parent))
+from bench_flow import best_time as best  # noqa: E402 -- one timing helper for every benchmark
+
 RESULTS = Path(__file__).parent / "results"
-
-
-def best(fn, repeat=3):
-    out, t = None, np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        t = min(t, time.perf_counter() - t0)
-    return out, t
 
 
 def device_lines(cuda) -> list[str]:
