@@ -413,7 +413,7 @@ def _blocks(coef, basis, wgt, bases, jc, cpos, cfrc, src, frc):  # pragma: no co
 
 _blocks_serial = njit(cache=True)(_blocks.py_func)
 """Serial :func:`_blocks` (few sources: a parallel region costs more than it saves)."""
-_PARALLEL_SOURCES = 50_000
+_PARALLEL_SOURCES = 4096
 """Source blocks of at least this many sources are made in parallel."""
 
 
@@ -454,6 +454,69 @@ def _near_pairs(targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, cnt, out
                 out[b + 1] = v
         else:
             cnt[i] = k
+
+
+@njit(cache=True)
+def _carrier_forces(F, D, T, delta, inv, fk, q_rep):  # pragma: no cover - compiled
+    """Forces fk (N, 6, 2) of the six carriers at c_j + delta_j u_m reproducing F (N, 2),
+    D (N, 2, 2) and T (N, 2, 2, 2) of each cilium about c_j (``inv``: the inverse moment matrix
+    :data:`_UNIT_INV`), and their third moments q_rep (N,) = delta^3 sum_m |fk_m|."""
+    b = np.empty((6, 2))
+    for j in range(F.shape[0]):
+        d = delta[j]
+        d2 = d * d
+        for k in range(2):
+            b[0, k] = F[j, k]
+            b[1, k] = D[j, 0, k] / d
+            b[2, k] = D[j, 1, k] / d
+            b[3, k] = T[j, 0, 0, k] / d2
+            b[4, k] = T[j, 0, 1, k] / d2
+            b[5, k] = T[j, 1, 1, k] / d2
+        acc = 0.0
+        for m in range(6):
+            gx = 0.0
+            gy = 0.0
+            for q in range(6):
+                gx += inv[m, q] * b[q, 0]
+                gy += inv[m, q] * b[q, 1]
+            fk[j, m, 0] = gx
+            fk[j, m, 1] = gy
+            acc += math.sqrt(gx * gx + gy * gy)
+        q_rep[j] = d2 * d * acc
+
+
+@njit(cache=True, parallel=True)
+def _near_ranges(near_ptr, near_j, pidx, chunk, slot, k, off, blk, n_car, gaps, ranges):  # pragma: no cover
+    """Source ranges of each target i for chunk ``k`` of the near blocks (CSR by
+    ``near_ptr``/``near_j``: i's near cilia, ascending). With ``gaps`` (chunk 0: ranges
+    ``2 near_ptr[i] + i`` ... ``2 near_ptr[i + 1] + i + 1``) the carriers of every present cilium
+    that is not near i (present cilium p's six at rows 6p ... 6p + 6: the runs between i's near
+    cilia), interleaved with the near cilia's resolved blocks (rows off + slot[j] blk ... + blk);
+    without (ranges near_ptr[i] ... near_ptr[i + 1]) the blocks only. A near cilium of another
+    chunk gets an empty range."""
+    for i in prange(near_ptr.shape[0] - 1):
+        a = near_ptr[i]
+        b = near_ptr[i + 1]
+        r = 2 * a + i if gaps else a
+        prev = 0
+        for q in range(a, b):
+            j = near_j[q]
+            if gaps:
+                p = pidx[j]
+                ranges[r, 0] = 6 * prev
+                ranges[r, 1] = 6 * p
+                r += 1
+                prev = p + 1
+            if chunk[j] == k:
+                ranges[r, 0] = off + slot[j] * blk
+                ranges[r, 1] = off + (slot[j] + 1) * blk
+            else:
+                ranges[r, 0] = 0
+                ranges[r, 1] = 0
+            r += 1
+        if gaps:
+            ranges[r, 0] = 6 * prev
+            ranges[r, 1] = n_car
 
 
 def _simpson(n: int) -> np.ndarray:
@@ -698,16 +761,17 @@ class Carpet:
     def _carriers(self, F: np.ndarray, D: np.ndarray, T: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Six point forces per cilium reproducing F (N, 2), D (N, 2, 2) and T (N, 2, 2, 2) about
-        c_j: positions (N, 6, 2), forces (N, 6, 2) and their third moments Q3_rep (N,)."""
+        c_j: positions (N, 6, 2) (fixed: c_j + delta_j u_m, delta_j = a_j / 2), forces (N, 6, 2)
+        and their third moments Q3_rep (N,)."""
         c = self._c
-        delta = 0.5 * np.maximum(c["radius"], 1e-12)
-        pos = c["centre"][:, None, :] + delta[:, None, None] * _UNIT[None]
-        # moments (1, D_x, D_y, T_xx, T_xy, T_yy) of each force component, scaled to unit delta
-        b = np.stack([F, D[:, 0, :], D[:, 1, :], T[:, 0, 0, :], T[:, 0, 1, :], T[:, 1, 1, :]], axis=1)
-        scale = np.stack([np.ones_like(delta), delta, delta, delta ** 2, delta ** 2, delta ** 2], axis=1)
-        fk = np.einsum("mq,jqk->jmk", _UNIT_INV, b / scale[:, :, None])
-        q_rep = (delta ** 3) * np.sqrt((fk ** 2).sum(-1)).sum(axis=1)
-        return pos, fk, q_rep
+        if "cpos" not in c:
+            delta = 0.5 * np.maximum(c["radius"], 1e-12)
+            c["delta"] = delta
+            c["cpos"] = c["centre"][:, None, :] + delta[:, None, None] * _UNIT[None]
+        fk, q_rep = np.empty((F.shape[0], 6, 2)), np.empty(F.shape[0])
+        _carrier_forces(np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(D, dtype=float),
+                        np.ascontiguousarray(T, dtype=float), c["delta"], _UNIT_INV, fk, q_rep)
+        return c["cpos"], fk, q_rep
 
     def _near_radius(self, Q: np.ndarray, S: np.ndarray, tol: float) -> np.ndarray:
         """Per cilium the distance R* beyond which the cheap level's bound
@@ -753,41 +817,65 @@ class Carpet:
             cache[key] = np.where((S > 0) | (Qt > 0), R, -1.0)
         return cache[key]
 
-    def _pairs(self, targets: np.ndarray, js: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Near pairs (point, cilium) with |x - c_j| <= r (cilia ``js``, radii ``r``): two int64
-        arrays sorted by point, then cilium (a grid of cells of side max r, compiled)."""
+    def _grid(self, js: np.ndarray, r: np.ndarray) -> tuple:
+        """Cilia ``js`` binned on a grid of cells of side at least max ``r`` (for :func:`_near_pairs`)."""
         cen = self._c["centre"][js]
         h = float(min(r.max(), 1e300))
         lo = cen.min(axis=0) - h
         span = cen.max(axis=0) + h - lo
-        nx, ny = (int(min(max(1, math.ceil(s / h)), 4096)) for s in span)
+        nx, ny = (int(min(max(1, math.ceil(v / h)), 4096)) for v in span)
         h = float(max(span[0] / nx, span[1] / ny, h))  # at most 4096 cells a side, each at least r
         g = np.minimum((np.floor((cen - lo) / h)).astype(np.int64), [nx - 1, ny - 1])
         cell = g[:, 0] * ny + g[:, 1]
         order = np.argsort(cell, kind="stable")
         ptr = np.searchsorted(cell[order], np.arange(nx * ny + 1)).astype(np.int64)
         cx, cy = np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1])
-        rr = np.ascontiguousarray(np.minimum(r, 1e300))
+        return cx, cy, np.ascontiguousarray(np.minimum(r, 1e300)), order, ptr, float(lo[0]), float(lo[1]), h, nx, ny
+
+    def _pairs(self, targets: np.ndarray, js: np.ndarray, r: np.ndarray, grid: tuple | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """Near pairs (point i, cilium j) with |x_i - c_j| <= r (cilia ``js``, radii ``r``) as CSR:
+        ``ptr`` (M + 1,) and the cilia (ascending per point), by a compiled search over the cells
+        of :meth:`_grid` (``grid``: its result, when cached)."""
+        grid = self._grid(js, r) if grid is None else grid
         cnt = np.zeros(targets.shape[0], np.int64)
-        args = (targets, cx, cy, rr, order, ptr, float(lo[0]), float(lo[1]), h, nx, ny, cnt)
-        _near_pairs(*args, np.zeros(0, np.int64))
-        total = int(cnt.sum())
-        pi = np.repeat(np.arange(targets.shape[0]), cnt)
-        cnt[:] = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-        out = np.empty(total, np.int64)
-        _near_pairs(*args, out)
-        return pi, js[out]
+        _near_pairs(targets, *grid, cnt, np.zeros(0, np.int64))
+        ptr = np.zeros(targets.shape[0] + 1, np.int64)
+        np.cumsum(cnt, out=ptr[1:])
+        cnt[:] = ptr[:-1]
+        out = np.empty(int(ptr[-1]), np.int64)
+        _near_pairs(targets, *grid, cnt, out)
+        return ptr, js[out]
+
+    def _plan(self, tol: float, level: str, active: np.ndarray) -> dict:
+        """What an evaluation at (tol, level) reuses: the near radii, the cilia that carry carriers
+        (active, or with a finite near radius) and their index among them, the carriers'
+        positions and the grid of the near-pair search; memoised with the radii."""
+        key = ("plan", level, tol)
+        cache = self._c["radii"]
+        if key not in cache:
+            rstar = self._near_radii(tol, level)
+            present = active | (rstar > 0)
+            pj = np.nonzero(present)[0]
+            pidx = np.full(self.n, -1, np.int64)
+            pidx[pj] = np.arange(pj.size)
+            cpos = self._carriers(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2, 2)))[0]
+            cand = np.nonzero(rstar > 0)[0]
+            cache[key] = dict(rstar=rstar, present=present, pidx=pidx, cand=cand,
+                              carr_src=_pad(cpos[present].reshape(-1, 2)),
+                              grid=self._grid(cand, rstar[cand]) if cand.size else None)
+        return cache[key]
 
     def _sum(self, targets: np.ndarray, ph: np.ndarray | None, F: np.ndarray, D: np.ndarray, T: np.ndarray,
              Q: np.ndarray, S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
-        """Cheap carriers everywhere (one dense sum), plus resolved-minus-cheap corrections on the
-        near pairs (one sparse sum). The resolved sources of a cilium: its line distribution at
-        its phase ``ph[j]`` ((N,): the instantaneous flow), or at every phase sample of the table
-        with weight 1 / n_phase (``ph=None``: the mean flow)."""
+        """Per point: the carriers of every cilium summed cheaply at it, and the resolved sources
+        of its near cilia (one ranged sum; see :func:`_near_ranges`). The resolved sources of a
+        cilium: its line distribution at its phase ``ph[j]`` ((N,): the instantaneous flow), or at
+        every phase sample of the table with weight 1 / n_phase (``ph=None``: the mean flow)."""
         c = self._c
         n = self.n
         active = S > 0
-        cpos, cf, q_rep = self._carriers(F, D, T)
+        _, cf, q_rep = self._carriers(F, D, T)
         nk = c["coef"].shape[1]
         K = (nk + 1) // 2
 
@@ -802,114 +890,86 @@ class Carpet:
             wgt = c["w"]
         no_car = np.zeros((n, 0, 2))
 
-        def blocks(jc, carriers: bool):
-            """AoS sources and forces (len(jc) * blk, 3) of cilia jc (see :func:`_blocks`), and blk."""
+        def blocks(jc, out_s, out_f):
+            """The resolved sources and forces of cilia jc into out_s, out_f (len(jc) * blk, 3)
+            (:func:`_blocks`)."""
             bs = np.ascontiguousarray(np.broadcast_to(b_all, (len(jc),) + b_all.shape[1:])) if ph is None \
                 else basis(ph[jc])[:, None, :]
-            cp, cq = (cpos, cf) if carriers else (no_car, no_car)
-            blk = bs.shape[1] * c["n_s"] + cp.shape[1]
-            out_s, out_f = np.empty((len(jc) * blk, 3)), np.empty((len(jc) * blk, 3))
             f = _blocks if out_s.shape[0] >= _PARALLEL_SOURCES else _blocks_serial
-            f(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), cp, cq, out_s, out_f)
-            return out_s, out_f, blk
+            f(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), no_car, no_car, out_s, out_f)
 
         n_res_src = (c["n_phase"] if ph is None else 1) * c["n_s"]
         m = targets.shape[0]
         kernel = self.kernel
         evaluator = self.backend if self.backend is not None else Auto()
-        rstar = self._near_radii(tol, cheap_level)
         if tol == 0:  # the resolved sum itself: every source of every active cilium, in chunks
             js = np.nonzero(active)[0]
             u = np.zeros((m, 3))
             per = max(1, _CHUNK_SOURCES // n_res_src)
             for lo in range(0, js.size, per):
-                bsrc, bfrc, _ = blocks(js[lo:lo + per], False)
+                jc = js[lo:lo + per]
+                bsrc, bfrc = np.empty((len(jc) * n_res_src, 3)), np.empty((len(jc) * n_res_src, 3))
+                blocks(jc, bsrc, bfrc)
                 u += stokeslet_velocity(targets, bsrc, bfrc, self.mu, kernel=kernel, backend=self.backend)
             return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": m * js.size},
                               tol=tol, work=dict(sources=m * js.size * n_res_src, ranges=0))
+        plan = self._plan(tol, cheap_level, active)
+        present = plan["present"]
+        n_car = 6 * int(present.sum())
         u = np.zeros((m, 3))
         work = dict(sources=0, ranges=0)
-        # near pairs, from a tree over the targets
-        n_near = 0
-        pi = pj = np.zeros(0, np.int64)
-        cand = np.nonzero(rstar > 0)[0]
-        if cand.size and m:
-            pi, pj = self._pairs(targets, cand, rstar[cand])
-            n_near = pi.size
-        pj_by_point = pj  # sorted by point, then cilium (the bound's order; the sum may regroup them)
-        if not np.any(active) and not n_near:
+        near_ptr, near_j = np.zeros(m + 1, np.int64), np.zeros(0, np.int64)
+        if plan["cand"].size and m:
+            near_ptr, near_j = self._pairs(targets, plan["cand"], plan["rstar"][plan["cand"]], plan["grid"])
+        n_near = near_j.size
+        if not n_car or not m:
             return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": 0}, tol=tol,
                               work=work)
-        # The carriers of every active cilium for every point, then per near pair one contiguous
-        # block: the cilium's resolved sources and its negated carriers (long ranges vectorise in
-        # the kernel). The blocks are made and summed in chunks of cilia of at most
+        # Per point one list of source ranges: the carriers of the cilia that are not near it (the
+        # runs between its near cilia) and the resolved block of each near cilium (long ranges
+        # vectorise in the kernel). The blocks are made and summed in chunks of cilia of at most
         # _CHUNK_SOURCES sources (the resolved mean flow has 4160 per cilium: a whole carpet's
-        # would take hundreds of MB, and fresh memory costs more than the sum); the first
-        # chunk carries the carriers' block too, so that an instantaneous flow (65 sources per
-        # cilium: one chunk) is one sparse sum, one parallel region per evaluation.
-        n0 = 6 * int(active.sum())
-        carr_src = _pad(cpos[active].reshape(-1, 2))
-        carr_frc = _pad(cf[active].reshape(-1, 2))
-        js = np.zeros(0, np.int64)
-        per, blk, n_chunks = 1, 0, 1
-        if n_near:
-            used = np.bincount(pj, minlength=n) > 0
-            js = np.nonzero(used)[0]
-            local = (np.cumsum(used) - 1)[pj]
-            blk = n_res_src + _UNIT.shape[0]
-            per = max(1, _CHUNK_SOURCES // blk)
-            chunk = local // per
-            n_chunks = int(chunk.max()) + 1
-            if n_chunks > 1:  # by chunk, then target, then cilium (the pairs come by target, then cilium)
-                order = np.argsort(chunk, kind="stable")
-                pi, pj, local, chunk = pi[order], pj[order], local[order], chunk[order]
-            cut = np.searchsorted(chunk, np.arange(n_chunks + 1))
+        # would take hundreds of MB, and fresh memory costs more than the sum); the first chunk
+        # carries the carriers too, so that an instantaneous flow (65 sources per cilium: one
+        # chunk) is one ranged sum, one parallel region.
+        carr_frc = np.zeros((n_car, 3))
+        carr_frc[:, :2] = cf[present].reshape(-1, 2)
+        blk = n_res_src
+        used = np.zeros(n, bool)
+        used[near_j] = True
+        js = np.nonzero(used)[0]
+        per = max(1, _CHUNK_SOURCES // blk)
+        local = np.zeros(n, np.int64)
+        local[js] = np.arange(js.size)
+        slot, chunk = local % per, local // per
+        n_chunks = max(1, -(-js.size // per))
         for k in range(n_chunks):
-            if n_near:
-                sl = slice(cut[k], cut[k + 1])
-                jc = js[k * per:(k + 1) * per]
-                bsrc, bfrc, _ = blocks(jc, True)
-                ti, tl = pi[sl], local[sl] - k * per
+            jc = js[k * per:(k + 1) * per]
+            off = n_car if k == 0 else 0
+            src, frc = np.empty((off + jc.size * blk, 3)), np.empty((off + jc.size * blk, 3))
+            if k == 0:
+                src[:n_car] = plan["carr_src"]
+                frc[:n_car] = carr_frc
+                ptr = 2 * near_ptr + np.arange(m + 1)
             else:
-                bsrc = bfrc = np.zeros((0, 3))
-                ti = tl = np.zeros(0, np.int64)
-            if k == 0:  # every point: the carriers, then its near blocks of this chunk
-                pts = np.arange(m)
-                cnt = np.bincount(ti, minlength=m)
-                ptr = np.concatenate([[0], np.cumsum(cnt + 1)]).astype(np.int64)
-                ranges = np.empty((m + ti.size, 2), dtype=np.int64)
-                ranges[ptr[:-1]] = (0, n0)
-                off, first_slot = n0, ptr[:-1] + 1
-                src, frc = np.concatenate([carr_src, bsrc]), np.concatenate([carr_frc, bfrc])
-            else:  # only the points with near pairs in this chunk
-                pts, inv, cnt = np.unique(ti, return_inverse=True, return_counts=True)
-                ptr = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
-                ranges = np.empty((ti.size, 2), dtype=np.int64)
-                off, first_slot, ti = 0, ptr[:-1], inv
-                src, frc = bsrc, bfrc
-            if ti.size:
-                start = np.concatenate([[0], np.cumsum(cnt)[:-1]])  # the first pair of each point
-                at = first_slot[ti] + np.arange(ti.size) - start[ti]
-                ranges[at, 0] = off + tl * blk
-                ranges[at, 1] = off + (tl + 1) * blk
-            if ranges.shape[0] and src.shape[0]:
-                # the evaluator directly: every array here is made and checked by this method (the
-                # public front door's validation of them cost a fifth of a 100-tracer evaluation)
-                if k == 0:
-                    u += evaluator.ranged(kernel, targets, src, frc, ptr, ranges, self.mu)
-                else:
-                    u[pts] += evaluator.ranged(kernel, targets[pts], src, frc, ptr, ranges, self.mu)
-        work["sources"] = m * n0 + n_near * blk
-        work["ranges"] = m + n_near
+                ptr = near_ptr
+            if jc.size:
+                blocks(jc, src[off:], frc[off:])
+            ranges = np.empty((int(ptr[-1]), 2), np.int64)
+            _near_ranges(near_ptr, near_j, plan["pidx"], chunk, slot, k, off, blk, n_car, k == 0, ranges)
+            # the evaluator directly: every array here is made and checked by this method (the
+            # public front door's validation of them cost a fifth of a 100-tracer evaluation)
+            u += evaluator.ranged(kernel, targets, src, frc, ptr, ranges, self.mu)
+            work["sources"] += int(np.sum(ranges[:, 1] - ranges[:, 0]))
+            work["ranges"] += int(np.count_nonzero(ranges[:, 1] > ranges[:, 0]))
         bound = np.zeros(m)
         if error and np.any(active):
             # per point, over the active cilia not summed resolved (near pairs listed by point)
-            near_ptr = np.concatenate([[0], np.cumsum(np.bincount(pi, minlength=m))]).astype(np.int64)
             _lod_bound(targets, c["centre"], c["radius"], kernel.c3 * (Q + q_rep) / 6.0, active, near_ptr,
-                       pj_by_point, bound)
+                       near_j, bound)
             bound /= 8 * math.pi * self.mu
         n_pairs = m * int(active.sum())
-        n_res = int(np.sum(active[pj])) if n_near else 0
+        n_res = int(np.sum(active[near_j])) if n_near else 0
         pairs = {cheap_level: n_pairs - n_res, "resolved": n_res}
         return FlowSample(velocity=u, error_bound=bound, pairs=pairs, tol=tol, work=work)
 
