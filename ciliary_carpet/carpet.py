@@ -81,6 +81,8 @@ __all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C
            "LOD_SLACK"]
 
 LEVELS = ("mean", "point", "resolved")
+_AUTO = Auto()
+"""The evaluator of a carpet made without ``backend``."""
 _CHUNK_SOURCES = 1 << 19
 """The resolved near-field sources of a flow evaluation are made and summed in chunks of cilia
 of at most this many sources (3 MB per coordinate array): :meth:`Carpet._sum`."""
@@ -168,7 +170,7 @@ def _pad(a: np.ndarray) -> np.ndarray:
     return np.concatenate([a, np.zeros(a.shape[:-1] + (1,))], axis=-1)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _trig_rows(coef, ph, js, out):  # pragma: no cover - compiled
     """out[i, p] = a_0 + sum_{k=1}^{K-1} a_k cos(2 pi k ph_i) + b_k sin(2 pi k ph_i), the
     trigonometric interpolant of cilium js[i] at its phase ph[i], with coef[j] (2K-1, P) holding
@@ -177,18 +179,11 @@ def _trig_rows(coef, ph, js, out):  # pragma: no cover - compiled
     of ``js`` only, the inner loop contiguous (memory-bound; 3-5x faster than numpy's einsum here)."""
     K = (coef.shape[1] + 1) // 2
     P = coef.shape[2]
-    cs = np.empty(K)
-    sn = np.empty(K)
-    for i in range(js.shape[0]):
+    for i in prange(js.shape[0]):
         j = js[i]
-        th = 2.0 * np.pi * ph[i]
-        c1 = np.cos(th)
-        s1 = np.sin(th)
-        cs[0] = 1.0
-        sn[0] = 0.0
-        for k in range(1, K):
-            cs[k] = cs[k - 1] * c1 - sn[k - 1] * s1
-            sn[k] = sn[k - 1] * c1 + cs[k - 1] * s1
+        cs = np.empty(K)
+        sn = np.empty(K)
+        _basis_row(ph[i], cs, sn)
         for p in range(P):
             out[i, p] = 0.0
         for k in range(K):
@@ -199,6 +194,37 @@ def _trig_rows(coef, ph, js, out):  # pragma: no cover - compiled
             b = sn[k]
             for p in range(P):
                 out[i, p] += b * coef[j, K - 1 + k, p]
+
+
+_trig_rows_serial = njit(cache=True)(_trig_rows.py_func)
+"""Serial :func:`_trig_rows` (few cilia: a parallel region costs more than it saves)."""
+
+
+@njit(cache=True, inline="always")
+def _basis_row(ph, cs, sn):  # pragma: no cover - compiled
+    """cs[k] = cos(2 pi k ph), sn[k] = sin(2 pi k ph), k < len(cs), by the angle-addition recurrence."""
+    th = 2.0 * np.pi * ph
+    c1 = np.cos(th)
+    s1 = np.sin(th)
+    cs[0] = 1.0
+    sn[0] = 0.0
+    for k in range(1, cs.shape[0]):
+        cs[k] = cs[k - 1] * c1 - sn[k - 1] * s1
+        sn[k] = sn[k - 1] * c1 + cs[k - 1] * s1
+
+
+@njit(cache=True)
+def _basis(ph, K, out):  # pragma: no cover - compiled
+    """out[i, 0] (len(ph), 1, 2K-1): the trigonometric basis 1, cos(2 pi k ph_i), sin(2 pi k ph_i)
+    (k = 1..K-1) of :func:`_trig_rows` at phase ph[i]."""
+    cs = np.empty(K)
+    sn = np.empty(K)
+    for i in range(ph.shape[0]):
+        _basis_row(ph[i], cs, sn)
+        for k in range(K):
+            out[i, 0, k] = cs[k]
+        for k in range(1, K):
+            out[i, 0, K - 1 + k] = sn[k]
 
 
 @njit(cache=True, parallel=True)
@@ -413,47 +439,61 @@ def _blocks(coef, basis, wgt, bases, jc, cpos, cfrc, src, frc):  # pragma: no co
 
 _blocks_serial = njit(cache=True)(_blocks.py_func)
 """Serial :func:`_blocks` (few sources: a parallel region costs more than it saves)."""
-_PARALLEL_SOURCES = 4096
+_PARALLEL_SOURCES = 50_000
 """Source blocks of at least this many sources are made in parallel."""
 
 
-@njit(cache=True, parallel=True)
-def _near_pairs(targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, cnt, out):  # pragma: no cover - compiled
-    """Near pairs (target i, cilium j) with |targets[i] - (cx_j, cy_j, 0)| <= r_j, the cilia
-    binned on a grid of cells of side h >= max r (origin x0, y0; nx x ny cells; cilia of cell c:
-    order[cell_ptr[c]:cell_ptr[c + 1]]). Pass 1 (``out`` empty): cnt[i] = the number of i's pairs;
-    pass 2 (``out`` of size sum(cnt), cnt turned into offsets cnt[i] = start of i): out holds
-    each target's cilia in ascending order."""
+@njit(cache=True, inline="always")
+def _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, out, k):  # pragma: no cover
+    """The cilia near targets[i] (see :func:`_near_pairs`) written to out[k:] when ``out`` is
+    not empty; returns the end of i's list (k plus their number)."""
     fill = out.shape[0] > 0
-    for i in prange(targets.shape[0]):
-        x = targets[i, 0]
-        y = targets[i, 1]
-        z2 = targets[i, 2] * targets[i, 2]
-        ix = int(math.floor((x - x0) / h))
-        iy = int(math.floor((y - y0) / h))
-        k = cnt[i] if fill else 0
-        k0 = k
-        for gx in range(max(ix - 1, 0), min(ix + 2, nx)):
-            for gy in range(max(iy - 1, 0), min(iy + 2, ny)):
-                c = gx * ny + gy
-                for q in range(cell_ptr[c], cell_ptr[c + 1]):
-                    j = order[q]
-                    dx = x - cx[j]
-                    dy = y - cy[j]
-                    if dx * dx + dy * dy + z2 <= r[j] * r[j]:
-                        if fill:
-                            out[k] = j
-                        k += 1
-        if fill:
-            for a in range(k0 + 1, k):  # insertion sort: a handful of cilia per target
-                v = out[a]
-                b = a - 1
-                while b >= k0 and out[b] > v:
-                    out[b + 1] = out[b]
-                    b -= 1
-                out[b + 1] = v
-        else:
-            cnt[i] = k
+    x = targets[i, 0]
+    y = targets[i, 1]
+    z2 = targets[i, 2] * targets[i, 2]
+    ix = int(math.floor((x - x0) / h))
+    iy = int(math.floor((y - y0) / h))
+    for gx in range(max(ix - reach, 0), min(ix + reach + 1, nx)):
+        for gy in range(max(iy - reach, 0), min(iy + reach + 1, ny)):
+            c = gx * ny + gy
+            for q in range(cell_ptr[c], cell_ptr[c + 1]):
+                j = order[q]
+                dx = x - cx[j]
+                dy = y - cy[j]
+                if dx * dx + dy * dy + z2 <= r[j] * r[j]:
+                    if fill:
+                        out[k] = j
+                    k += 1
+    return k
+
+
+@njit(cache=True, parallel=True)
+def _near_pairs(targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach):  # pragma: no cover - compiled
+    """Near pairs (target i, cilium j) with |targets[i] - (cx_j, cy_j, 0)| <= r_j, the cilia
+    binned on a grid of cells of side h >= max r / reach (origin x0, y0; nx x ny cells; cilia of
+    cell c: order[cell_ptr[c]:cell_ptr[c + 1]]), so that the (2 reach + 1)^2 cells around a
+    target's hold every cilium near it. Returns CSR ``ptr`` (M + 1,) and the cilia ``out``, each
+    target's in ascending order (indices into cx, cy, r). Two passes: count, then fill."""
+    m = targets.shape[0]
+    cnt = np.zeros(m, np.int64)
+    none = np.zeros(0, np.int64)
+    for i in prange(m):
+        cnt[i] = _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, none, 0)
+    ptr = np.zeros(m + 1, np.int64)
+    for i in range(m):
+        ptr[i + 1] = ptr[i] + cnt[i]
+    out = np.empty(ptr[m], np.int64)
+    for i in prange(m):
+        k0 = ptr[i]
+        k = _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, out, k0)
+        for a in range(k0 + 1, k):  # insertion sort: a handful of cilia per target
+            v = out[a]
+            b = a - 1
+            while b >= k0 and out[b] > v:
+                out[b + 1] = out[b]
+                b -= 1
+            out[b + 1] = v
+    return ptr, out
 
 
 @njit(cache=True)
@@ -818,19 +858,22 @@ class Carpet:
         return cache[key]
 
     def _grid(self, js: np.ndarray, r: np.ndarray) -> tuple:
-        """Cilia ``js`` binned on a grid of cells of side at least max ``r`` (for :func:`_near_pairs`)."""
+        """Cilia ``js`` binned on a grid of cells of side at least max ``r`` / 2 (for
+        :func:`_near_pairs`: each target searches the 5 x 5 cells around its own)."""
         cen = self._c["centre"][js]
-        h = float(min(r.max(), 1e300))
+        reach = 2
+        h = float(min(r.max(), 1e300)) / reach
         lo = cen.min(axis=0) - h
         span = cen.max(axis=0) + h - lo
         nx, ny = (int(min(max(1, math.ceil(v / h)), 4096)) for v in span)
-        h = float(max(span[0] / nx, span[1] / ny, h))  # at most 4096 cells a side, each at least r
+        h = float(max(span[0] / nx, span[1] / ny, h))  # at most 4096 cells a side
         g = np.minimum((np.floor((cen - lo) / h)).astype(np.int64), [nx - 1, ny - 1])
         cell = g[:, 0] * ny + g[:, 1]
         order = np.argsort(cell, kind="stable")
         ptr = np.searchsorted(cell[order], np.arange(nx * ny + 1)).astype(np.int64)
         cx, cy = np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1])
-        return cx, cy, np.ascontiguousarray(np.minimum(r, 1e300)), order, ptr, float(lo[0]), float(lo[1]), h, nx, ny
+        return (cx, cy, np.ascontiguousarray(np.minimum(r, 1e300)), order, ptr, float(lo[0]), float(lo[1]), h, nx,
+                ny, reach)
 
     def _pairs(self, targets: np.ndarray, js: np.ndarray, r: np.ndarray, grid: tuple | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -838,13 +881,7 @@ class Carpet:
         ``ptr`` (M + 1,) and the cilia (ascending per point), by a compiled search over the cells
         of :meth:`_grid` (``grid``: its result, when cached)."""
         grid = self._grid(js, r) if grid is None else grid
-        cnt = np.zeros(targets.shape[0], np.int64)
-        _near_pairs(targets, *grid, cnt, np.zeros(0, np.int64))
-        ptr = np.zeros(targets.shape[0] + 1, np.int64)
-        np.cumsum(cnt, out=ptr[1:])
-        cnt[:] = ptr[:-1]
-        out = np.empty(int(ptr[-1]), np.int64)
-        _near_pairs(targets, *grid, cnt, out)
+        ptr, out = _near_pairs(targets, *grid)
         return ptr, js[out]
 
     def _plan(self, tol: float, level: str, active: np.ndarray) -> dict:
@@ -893,15 +930,18 @@ class Carpet:
         def blocks(jc, out_s, out_f):
             """The resolved sources and forces of cilia jc into out_s, out_f (len(jc) * blk, 3)
             (:func:`_blocks`)."""
-            bs = np.ascontiguousarray(np.broadcast_to(b_all, (len(jc),) + b_all.shape[1:])) if ph is None \
-                else basis(ph[jc])[:, None, :]
+            if ph is None:
+                bs = np.ascontiguousarray(np.broadcast_to(b_all, (len(jc),) + b_all.shape[1:]))
+            else:
+                bs = np.empty((len(jc), 1, nk))
+                _basis(ph[jc], K, bs)
             f = _blocks if out_s.shape[0] >= _PARALLEL_SOURCES else _blocks_serial
             f(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), no_car, no_car, out_s, out_f)
 
         n_res_src = (c["n_phase"] if ph is None else 1) * c["n_s"]
         m = targets.shape[0]
         kernel = self.kernel
-        evaluator = self.backend if self.backend is not None else Auto()
+        evaluator = self.backend if self.backend is not None else _AUTO
         if tol == 0:  # the resolved sum itself: every source of every active cilium, in chunks
             js = np.nonzero(active)[0]
             u = np.zeros((m, 3))
@@ -960,8 +1000,9 @@ class Carpet:
             # the evaluator directly: every array here is made and checked by this method (the
             # public front door's validation of them cost a fifth of a 100-tracer evaluation)
             u += evaluator.ranged(kernel, targets, src, frc, ptr, ranges, self.mu)
-            work["sources"] += int(np.sum(ranges[:, 1] - ranges[:, 0]))
-            work["ranges"] += int(np.count_nonzero(ranges[:, 1] > ranges[:, 0]))
+        # every point: the carriers of each present cilium not near it, the block of each near one
+        work["sources"] = m * n_car + n_near * (blk - 6)
+        work["ranges"] = m + n_near
         bound = np.zeros(m)
         if error and np.any(active):
             # per point, over the active cilia not summed resolved (near pairs listed by point)
@@ -1000,7 +1041,7 @@ class Carpet:
         c = self._c
         ph = self.phase_at(t)
         mom = np.empty((self.n, c["mom_coef"].shape[2]))
-        _trig_rows(c["mom_coef"], ph, np.arange(self.n), mom)
+        (_trig_rows if self.n >= 256 else _trig_rows_serial)(c["mom_coef"], ph, np.arange(self.n), mom)
         F, D, T = mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
 
         return self._sum(x, ph, F, D, T, c["Q_max"], c["F_rms"] * c["flutter"], tol, error, "point")
