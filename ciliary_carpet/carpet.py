@@ -393,18 +393,16 @@ def _lod_bound(targets, centre, radius, q, active, near_ptr, near_j, out):  # pr
 
 
 @njit(cache=True, parallel=True)
-def _blocks(coef, basis, wgt, bases, jc, cpos, cfrc, src, frc):  # pragma: no cover - compiled
+def _blocks(coef, basis, wgt, bases, jc, src, frc):  # pragma: no cover - compiled
     """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
-    ``frc``, (len(jc) * blk, 3), z = 0) holds the resolved sources of cilium j = jc[i] -- its
-    trigonometric interpolant (coef (N, 2K-1, n_s, 4)) at the P phases whose basis rows are
-    ``basis[i]`` (len(jc), P, 2K-1), positions plus the
-    base, forces times ``wgt`` (n_s,) -- then its n_car carriers ``cpos[j]`` with the negated
-    forces ``-cfrc[j]`` (n_car = cpos.shape[1], 0 for none)."""
+    ``frc``, (len(jc) * blk, 3), z = 0, blk = P n_s) holds the resolved sources of cilium
+    j = jc[i] -- its trigonometric interpolant (coef (N, 2K-1, n_s, 4)) at the P phases whose
+    basis rows are ``basis[i]`` (len(jc), P, 2K-1), positions plus the base, forces times
+    ``wgt`` (n_s,)."""
     n_s = coef.shape[2]
     nk = coef.shape[1]
     P = basis.shape[1]
-    n_car = cpos.shape[1]
-    blk = P * n_s + n_car
+    blk = P * n_s
     R = 4 * n_s
     for i in prange(jc.shape[0]):
         j = jc[i]
@@ -427,14 +425,6 @@ def _blocks(coef, basis, wgt, bases, jc, cpos, cfrc, src, frc):  # pragma: no co
                 frc[r, 0] = v[4 * s + 2] * wgt[s]
                 frc[r, 1] = v[4 * s + 3] * wgt[s]
                 frc[r, 2] = 0.0
-        for m in range(n_car):
-            r = o + P * n_s + m
-            src[r, 0] = cpos[j, m, 0]
-            src[r, 1] = cpos[j, m, 1]
-            src[r, 2] = 0.0
-            frc[r, 0] = -cfrc[j, m, 0]
-            frc[r, 1] = -cfrc[j, m, 1]
-            frc[r, 2] = 0.0
 
 
 _blocks_serial = njit(cache=True)(_blocks.py_func)
@@ -925,7 +915,6 @@ class Carpet:
             wgt = c["w"] / c["n_phase"]
         else:
             wgt = c["w"]
-        no_car = np.zeros((n, 0, 2))
 
         def blocks(jc, out_s, out_f):
             """The resolved sources and forces of cilia jc into out_s, out_f (len(jc) * blk, 3)
@@ -936,7 +925,7 @@ class Carpet:
                 bs = np.empty((len(jc), 1, nk))
                 _basis(ph[jc], K, bs)
             f = _blocks if out_s.shape[0] >= _PARALLEL_SOURCES else _blocks_serial
-            f(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), no_car, no_car, out_s, out_f)
+            f(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), out_s, out_f)
 
         n_res_src = (c["n_phase"] if ph is None else 1) * c["n_s"]
         m = targets.shape[0]
