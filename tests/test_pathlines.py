@@ -107,8 +107,29 @@ def test_termination_reasons(one):
     assert list(pl.reason) == [UNDERFLOW, END, DOMAIN]
     assert pl.status == "inaccurate" and "underflow" in pl.message
     assert pl.counts() == {REASONS[END]: 1, REASONS[DOMAIN]: 1, REASONS[UNDERFLOW]: 1}
-    assert pl.points[2][-1, 0] > 10  # the exit point ends the line
+    # the exit point ends the line: on the boundary x = 10 at the crossing time t = 5e-15 (u = 1e15),
+    # not a step beyond it
+    assert pl.points[2][-1, 0] == pytest.approx(10.0, abs=1e-10)
+    assert pl.times[2][-1] == pytest.approx(5e-15, rel=1e-6)
     assert pl.times[0][-1] == pytest.approx(0.05, abs=1e-3)
+
+
+def test_exit_point_lies_on_the_boundary_at_the_crossing_time(one):
+    """Uniform flow u = (1, 0.5): a tracer from (0, -2) leaves the box x <= 3 at t = 3 exactly, at
+    (3, -0.5); the exit is found by bisection on the continuous extension, whatever the steps."""
+    class Uniform:
+        def velocity(self, x, t):
+            u = np.zeros_like(x)
+            u[:, 0] = 1.0
+            u[:, 1] = 0.5
+            return u
+
+    for h0 in (0.7, 2.9):
+        pl = pathlines(one, np.array([[0.0, -2.0]]), (0.0, 10.0), model=Uniform(), domain=(-5, 3, -5, 5), h0=h0)
+        assert pl.reason[0] == DOMAIN
+        assert pl.times[0][-1] == pytest.approx(3.0, abs=1e-9)
+        assert np.allclose(pl.points[0][-1], [3.0, -0.5, 0.0], atol=1e-9)
+        assert np.allclose(pl.velocities[0][-1], [1.0, 0.5, 0.0], atol=1e-9)
 
 
 def test_tracers_pass_a_single_filament(one):
