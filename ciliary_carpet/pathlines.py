@@ -390,12 +390,15 @@ class _Run:
         inside the domain at s = 0 and outside at s = 1, first leave it: by bisection on the
         continuous extension to 1e-12 of the step (the crossing lies on the domain's boundary,
         not up to a step beyond it)."""
+        Q = h * np.tensordot(_P.T, k, axes=1)  # (4, J, 3): p(s) = x0 + sum_n Q[n] s^(n+1)
+        lo_b, hi_b = self.dom[0::2], self.dom[1::2]
         lo = np.zeros(x0.shape[0])
         hi = np.ones(x0.shape[0])
         for _ in range(40):
             mid = 0.5 * (lo + hi)
-            p, _ = _dense_at(x0, k, h, mid)
-            out = self._outside(p)
+            s = mid[:, None]
+            p = x0 + s * (Q[0] + s * (Q[1] + s * (Q[2] + s * Q[3])))
+            out = np.any((p < lo_b) | (p > hi_b), axis=1)
             hi = np.where(out, mid, hi)
             lo = np.where(out, lo, mid)
         return hi

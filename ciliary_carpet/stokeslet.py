@@ -626,8 +626,10 @@ class FMM(Backend):
         return f"fmm (fmm3dpy, eps {self.eps:g})"
 
 
+@functools.cache
 def _gpu() -> Backend | None:
-    """:class:`~ciliary_carpet.cuda.Cuda` () when a GPU can run it here, else None."""
+    """:class:`~ciliary_carpet.cuda.Cuda` () when a GPU can run it here, else None (asked once
+    per process: every flow evaluation asks)."""
     from .cuda import Cuda, cuda_available
 
     return Cuda() if cuda_available() else None
