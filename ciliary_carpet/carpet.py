@@ -884,7 +884,7 @@ class Carpet:
             pidx[pj] = np.arange(pj.size)
             cpos = self._carriers(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2, 2)))[0]
             cand = np.nonzero(rstar > 0)[0]
-            cache[key] = dict(rstar=rstar, present=present, pidx=pidx, cand=cand,
+            cache[key] = dict(rstar=rstar, present=present, pidx=pidx, cand=cand, n_car=6 * pj.size,
                               carr_src=_pad(cpos[present].reshape(-1, 2)),
                               grid=self._grid(cand, rstar[cand]) if cand.size else None)
         return cache[key]
@@ -940,7 +940,7 @@ class Carpet:
                               tol=tol, work=dict(sources=m * js.size * n_res_src, ranges=0))
         plan = self._plan(tol, cheap_level, active)
         present = plan["present"]
-        n_car = 6 * int(present.sum())
+        n_car = plan["n_car"]
         u = np.zeros((m, 3))
         work = dict(sources=0, ranges=0)
         near_ptr, near_j = np.zeros(m + 1, np.int64), np.zeros(0, np.int64)
@@ -957,8 +957,6 @@ class Carpet:
         # would take hundreds of MB, and fresh memory costs more than the sum); the first chunk
         # carries the carriers too, so that an instantaneous flow (65 sources per cilium: one
         # chunk) is one ranged sum, one parallel region.
-        carr_frc = np.zeros((n_car, 3))
-        carr_frc[:, :2] = cf[present].reshape(-1, 2)
         blk = n_res_src
         used = np.zeros(n, bool)
         used[near_j] = True
@@ -974,7 +972,8 @@ class Carpet:
             src, frc = np.empty((off + jc.size * blk, 3)), np.empty((off + jc.size * blk, 3))
             if k == 0:
                 src[:n_car] = plan["carr_src"]
-                frc[:n_car] = carr_frc
+                frc[:n_car, :2] = cf[present].reshape(-1, 2)
+                frc[:n_car, 2] = 0.0
                 ptr = 2 * near_ptr + np.arange(m + 1)
             else:
                 ptr = near_ptr
@@ -1031,7 +1030,9 @@ class Carpet:
         _moments_at(c["mom_coef_t"], ph, mom)
         F, D, T = mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
 
-        return self._sum(x, ph, F, D, T, c["Q_max"], c["F_rms"] * c["flutter"], tol, error, "point")
+        if "S_point" not in c:
+            c["S_point"] = c["F_rms"] * c["flutter"]
+        return self._sum(x, ph, F, D, T, c["Q_max"], c["S_point"], tol, error, "point")
 
     def velocity(self, points, t: float, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) fluid velocity at ``points`` at time ``t`` (see :meth:`evaluate`)."""

@@ -76,6 +76,7 @@ _A = [[], [1 / 5], [3 / 40, 9 / 40], [44 / 45, -56 / 15, 32 / 9],
       [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729],
       [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656],
       [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84]]
+_A_ROWS = [np.array(r, dtype=float) for r in _A]
 _B = np.array([35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0])
 _E = _B - np.array([5179 / 57600, 0, 7571 / 16695, 393 / 640, -92097 / 339200, 187 / 2100, 1 / 40])
 # its continuous extension of order 4 (Shampine 1986; the coefficients of scipy's RK45 and
@@ -354,10 +355,11 @@ class _Run:
         xa = self.x[idx]
         k = np.empty((7,) + xa.shape)
         k[0] = self.u[idx]
+        kf = k.reshape(7, -1)  # a view: stage combinations as one small matrix product each
         for i in range(1, 7):
-            k[i] = self.velocity(xa + h * np.tensordot(_A[i], k[:i], axes=1), t + _C[i] * h)
-        x_new = xa + h * np.tensordot(_B[:6], k[:6], axes=1)
-        err = h * np.tensordot(_E, k, axes=1)
+            k[i] = self.velocity(xa + h * (_A_ROWS[i] @ kf[:i]).reshape(xa.shape), t + _C[i] * h)
+        x_new = xa + h * (_B[:6] @ kf[:6]).reshape(xa.shape)
+        err = h * (_E @ kf).reshape(xa.shape)
         scale = self.atol + self.rtol * np.maximum(np.linalg.norm(xa, axis=1), np.linalg.norm(x_new, axis=1))
         return x_new, k, np.linalg.norm(err, axis=1) / scale
 

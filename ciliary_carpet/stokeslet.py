@@ -97,10 +97,6 @@ logger = logging.getLogger(__name__)
 #: would be M = N ~ 5e5). In practice Auto therefore means Direct unless a scene is huge.
 FMM_CROSSOVER_PAIRS: float = 1.0e12
 
-#: Sums of fewer pairs than this run serially: starting the threads of a parallel region costs more
-#: (tens of microseconds idle, milliseconds on a loaded machine) than ~1e5 pairs take on one core.
-SERIAL_PAIRS: int = 200_000
-
 #: Value-safe fast-math flags: reassociation (vectorised reductions), FMA contraction, no signed
 #: zeros, reciprocal allowed. Not ``afn`` (approximate ``1/sqrt``) nor ``nnan``/``ninf``.
 _FASTMATH = {"reassoc", "contract", "nsz", "arcp"}
@@ -410,67 +406,6 @@ def _ranges_kernel(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no co
         out[i, 2] = scale * uz
 
 
-@njit(cache=True, fastmath=_FASTMATH)
-def _direct_serial(code, T, S, F, e2, scale, out):  # pragma: no cover - compiled
-    """Serial :func:`_direct` (small sums: no thread start-up). out[i] = scale * sum_j G(T[:, i], S[:, j]) F[:, j]; T (3, M), S, F (3, N) C-order,
-    heights above the wall z = 0 for codes 1, 2."""
-    sx = S[0]
-    sy = S[1]
-    sz = S[2]
-    fx = F[0]
-    fy = F[1]
-    fz = F[2]
-    n = sx.shape[0]
-    for i in range(T.shape[1]):
-        ux, uy, uz = _acc(code, T[0, i], T[1, i], T[2, i], sx, sy, sz, fx, fy, fz, e2, 0, n)
-        out[i, 0] = scale * ux
-        out[i, 1] = scale * uy
-        out[i, 2] = scale * uz
-
-
-@njit(cache=True, fastmath=_FASTMATH)
-def _ranges_serial(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no cover - compiled
-    """Serial :func:`_ranges_kernel`. out[i] = scale * sum over k in ptr[i]:ptr[i+1], j in ranges[k, 0]:ranges[k, 1] of
-    G(T[:, i], S[:, j]) F[:, j] for the kernel ``code`` (as :func:`_direct`; one loop per code so
-    that each inner sum vectorises). The body repeats :func:`_ranges_kernel`'s on purpose:
-    moving the per-target loop into a shared compiled helper measured 1.3-2.4x slower (4000
-    targets x 8 ranges of 65 sources: 7.9 ms written out, 10.4-18 ms through the helper)."""
-    sx = S[0]
-    sy = S[1]
-    sz = S[2]
-    fx = F[0]
-    fy = F[1]
-    fz = F[2]
-    for i in range(T.shape[1]):
-        ux = 0.0
-        uy = 0.0
-        uz = 0.0
-        x = T[0, i]
-        y = T[1, i]
-        z = T[2, i]
-        if code == 0:
-            for k in range(ptr[i], ptr[i + 1]):
-                a, b, c = _acc_free(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
-                ux += a
-                uy += b
-                uz += c
-        elif code == 1:
-            for k in range(ptr[i], ptr[i + 1]):
-                a, b, c = _acc_wall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
-                ux += a
-                uy += b
-                uz += c
-        else:
-            for k in range(ptr[i], ptr[i + 1]):
-                a, b, c = _acc_regwall(x, y, z, sx, sy, sz, fx, fy, fz, e2, ranges[k, 0], ranges[k, 1])
-                ux += a
-                uy += b
-                uz += c
-        out[i, 0] = scale * ux
-        out[i, 1] = scale * uy
-        out[i, 2] = scale * uz
-
-
 def _soa(a: np.ndarray, z_shift: float = 0.0) -> np.ndarray:
     """(K, 3) -> a new C-contiguous (3, K) array (structure of arrays), z shifted by
     ``-z_shift`` (always a copy: the caller's array is never modified)."""
@@ -531,8 +466,7 @@ class Direct(Backend):
         if targets.shape[0] == 0 or sources.shape[0] == 0:
             return out
         z = _shift(kernel)
-        f = _direct if targets.shape[0] * sources.shape[0] >= SERIAL_PAIRS else _direct_serial
-        f(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), kernel.eps ** 2, _INV_8PI / mu, out)
+        _direct(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), kernel.eps ** 2, _INV_8PI / mu, out)
         return out
 
     def describe(self) -> str:
@@ -544,11 +478,6 @@ class Direct(Backend):
         if targets.shape[0] == 0 or sources.shape[0] == 0 or ranges.shape[0] == 0:
             return out
         z = _shift(kernel)
-        pairs = int(np.sum(ranges[:, 1] - ranges[:, 0]))  # an upper bound of the pairs summed
-        if pairs < SERIAL_PAIRS:
-            _ranges_serial(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), ptr, ranges,
-                           kernel.eps ** 2, _INV_8PI / mu, out)
-            return out
         old = numba.get_parallel_chunksize()
         numba.set_parallel_chunksize(16)  # the work per target is uneven (near-field lists)
         try:
