@@ -137,7 +137,8 @@ class FlowSample:
     sum (zero where every pair was resolved); pairs: number of (cilium, point) pairs evaluated
     at each level; tol: the tolerance asked for; work: counters of the work done: ``sources``,
     the (point, source) interactions summed (the cost: each is one kernel evaluation), and
-    ``ranges``, the source blocks of the sparse sum."""
+    ``ranges``, the source blocks of the sparse sum (per point one sweep over the carriers, and
+    one block per near pair)."""
 
     velocity: np.ndarray
     error_bound: np.ndarray
