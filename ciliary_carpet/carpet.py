@@ -455,21 +455,20 @@ def _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, o
 
 
 @njit(cache=True, parallel=True)
-def _near_pairs(targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach):  # pragma: no cover - compiled
+def _near_pairs(targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, ptr, out):  # pragma: no cover
     """Near pairs (target i, cilium j) with |targets[i] - (cx_j, cy_j, 0)| <= r_j, the cilia
     binned on a grid of cells of side h >= max r / reach (origin x0, y0; nx x ny cells; cilia of
     cell c: order[cell_ptr[c]:cell_ptr[c + 1]]), so that the (2 reach + 1)^2 cells around a
-    target's hold every cilium near it. Returns CSR ``ptr`` (M + 1,) and the cilia ``out``, each
-    target's in ascending order (indices into cx, cy, r). Two passes: count, then fill."""
+    target's hold every cilium near it. Pass 1 (``out`` empty): ptr[i + 1] = the number of i's
+    pairs; pass 2 (``ptr`` the CSR offsets, ``out`` of size ptr[-1]): out[ptr[i]:ptr[i + 1]]
+    holds i's cilia in ascending order (indices into cx, cy, r). The caller allocates every
+    array: a compiled function that returns new arrays turns a Ctrl-C that lands while they are
+    boxed into a SystemError."""
     m = targets.shape[0]
-    cnt = np.zeros(m, np.int64)
-    none = np.zeros(0, np.int64)
-    for i in prange(m):
-        cnt[i] = _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, none, 0)
-    ptr = np.zeros(m + 1, np.int64)
-    for i in range(m):
-        ptr[i + 1] = ptr[i] + cnt[i]
-    out = np.empty(ptr[m], np.int64)
+    if out.shape[0] == 0:
+        for i in prange(m):
+            ptr[i + 1] = _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, out, 0)
+        return
     for i in prange(m):
         k0 = ptr[i]
         k = _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, out, k0)
@@ -480,7 +479,6 @@ def _near_pairs(targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach): 
                 out[b + 1] = out[b]
                 b -= 1
             out[b + 1] = v
-    return ptr, out
 
 
 @njit(cache=True)
@@ -868,7 +866,12 @@ class Carpet:
         ``ptr`` (M + 1,) and the cilia (ascending per point), by a compiled search over the cells
         of :meth:`_grid` (``grid``: its result, when cached)."""
         grid = self._grid(js, r) if grid is None else grid
-        ptr, out = _near_pairs(targets, *grid)
+        ptr = np.zeros(targets.shape[0] + 1, np.int64)
+        _near_pairs(targets, *grid, ptr, np.zeros(0, np.int64))
+        np.cumsum(ptr, out=ptr)
+        out = np.empty(int(ptr[-1]), np.int64)
+        if out.size:
+            _near_pairs(targets, *grid, ptr, out)
         return ptr, js[out]
 
     def _plan(self, tol: float, level: str, active: np.ndarray) -> dict:
