@@ -895,8 +895,8 @@ class Carpet:
 
     def _sum(self, targets: np.ndarray, ph: np.ndarray | None, F: np.ndarray, D: np.ndarray, T: np.ndarray,
              Q: np.ndarray, S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
-        """Per point: the carriers of every cilium summed cheaply at it, and the resolved sources
-        of its near cilia (one ranged sum; see :func:`_near_ranges`). The resolved sources of a
+        """Per point: the carriers of every cilium not near it, and the resolved sources of its
+        near cilia (one ranged sum per chunk of near cilia; see :func:`_near_ranges`). The resolved sources of a
         cilium: its line distribution at its phase ``ph[j]`` ((N,): the instantaneous flow), or at
         every phase sample of the table with weight 1 / n_phase (``ph=None``: the mean flow)."""
         c = self._c
