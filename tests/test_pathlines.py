@@ -262,6 +262,9 @@ def test_render_writes_paraview_ready_path_lines(tmp_path):
     p = s["pathlines"]
     assert p["stopped_early"] == 0 and p["model"] == "resolved" and p["duration_from"] == "scene"
     assert p["outcome"]["reached end time"] + p["outcome"]["left the domain"] == 6
+    e = p["end_point_error"]  # 6 tracers re-integrated at rtol 1e-8, flow tol 1e-4
+    assert e["tracers"] == 6 and "rtol 1e-8" in e["reference"] and 0 <= e["median"] <= e["max"] < 1e-2
+    assert "path-line end-point error (estimated" in (res.out_dir / "summary.md").read_text()
     assert {"particles.pvd", "open_in_paraview.py", "ftle.vti", "pathlines.vtp"} <= set(res.files)
     py_compile.compile(str(res.out_dir / "open_in_paraview.py"), doraise=True)
     assert "mixing_number" in s["mixing"] and 0 < s["mixing"]["defined_fraction"] <= 1
@@ -273,3 +276,20 @@ def test_render_writes_paraview_ready_path_lines(tmp_path):
     bad = dict(data, carpet=dict(data["carpet"], blob=1.5))
     with pytest.raises(SceneError, match="blob"):
         scene_from_dict(bad)
+
+
+def test_render_error_estimate_of_the_long_time_model(table):
+    """For the long-time model the render's estimate is its error against the time-resolved flow:
+    positive (the models differ), below the distance travelled, and named as the model's error."""
+    from ciliary_carpet.pathlines import MeanFlow
+    from ciliary_carpet.render import pathline_error
+
+    c = Carpet(np.array([[0.0, 0.0], [2.0, 0.0]]), [4.0, -4.0], table, phases=[0.3, 0.8])
+    T = float(np.nanmin(c.periods))
+    seeds = np.array([[-0.5, 1.5], [1.0, 1.4], [2.5, -1.5]])
+    flow = MeanFlow.from_carpet(c, (-4.0, 6.0, -4.0, 4.0), tol=1e-3)
+    pl = pathlines(c, seeds, (0.0, 6 * T), model=flow, domain=(-4.0, 6.0, -4.0, 4.0))
+    e = pathline_error(c, seeds, 6 * T, pl, "mean", flow, 1e-3, 2.0)
+    travel = np.linalg.norm(pl.end_points[:, :2] - seeds, axis=1)
+    assert e["tracers"] == 3 and "long-time model" in e["reference"]
+    assert 0 < e["median"] <= e["max"] < travel.max()
