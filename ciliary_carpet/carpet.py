@@ -788,15 +788,19 @@ class Carpet:
         """Six point forces per cilium reproducing F (N, 2), D (N, 2, 2) and T (N, 2, 2, 2) about
         c_j: positions (N, 6, 2) (fixed: c_j + delta_j u_m, delta_j = a_j / 2), forces (N, 6, 2)
         and their third moments Q3_rep (N,)."""
-        c = self._c
-        if "cpos" not in c:
-            delta = 0.5 * np.maximum(c["radius"], 1e-12)
-            c["delta"] = delta
-            c["cpos"] = c["centre"][:, None, :] + delta[:, None, None] * _UNIT[None]
+        pos = self._carrier_positions()
         fk, q_rep = np.empty((F.shape[0], 6, 2)), np.empty(F.shape[0])
         _carrier_forces(np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(D, dtype=float),
-                        np.ascontiguousarray(T, dtype=float), c["delta"], _UNIT_INV, fk, q_rep)
-        return c["cpos"], fk, q_rep
+                        np.ascontiguousarray(T, dtype=float), self._c["delta"], _UNIT_INV, fk, q_rep)
+        return pos, fk, q_rep
+
+    def _carrier_positions(self) -> np.ndarray:
+        """(N, 6, 2) the carriers' fixed positions c_j + delta_j u_m, delta_j = a_j / 2 (made once)."""
+        c = self._c
+        if "cpos" not in c:
+            c["delta"] = 0.5 * np.maximum(c["radius"], 1e-12)
+            c["cpos"] = c["centre"][:, None, :] + c["delta"][:, None, None] * _UNIT[None]
+        return c["cpos"]
 
     def _near_radius(self, Q: np.ndarray, S: np.ndarray, tol: float) -> np.ndarray:
         """Per cilium the distance R* beyond which the cheap level's bound
@@ -886,7 +890,7 @@ class Carpet:
             pj = np.nonzero(present)[0]
             pidx = np.full(self.n, -1, np.int64)
             pidx[pj] = np.arange(pj.size)
-            cpos = self._carriers(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros((0, 2, 2, 2)))[0]
+            cpos = self._carrier_positions()
             cand = np.nonzero(rstar > 0)[0]
             cache[key] = dict(rstar=rstar, present=present, pidx=pidx, cand=cand, n_car=6 * pj.size,
                               carr_src=_pad(cpos[present].reshape(-1, 2)),
