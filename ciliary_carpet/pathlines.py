@@ -299,15 +299,6 @@ def _dense(x0, k, h, s):
     return p, v
 
 
-def _dense_at(x0, k, h, s):
-    """Positions and velocities of each tracer J at its own fraction ``s`` (J,) of a step (see
-    :func:`_dense`): (J, 3) each."""
-    Q = np.tensordot(_P.T, k, axes=1)  # (4, J, 3)
-    pw = np.stack([s, s ** 2, s ** 3, s ** 4])[:, :, None]  # (4, J, 1)
-    dpw = np.stack([np.ones_like(s), 2 * s, 3 * s ** 2, 4 * s ** 3])[:, :, None]
-    return x0 + h * (pw * Q).sum(0), (dpw * Q).sum(0)
-
-
 class _Run:
     """State of one integration: positions, velocities, dense output, counters."""
 
@@ -382,19 +373,18 @@ class _Run:
         self.u[idx] = u_new
         if np.any(out):
             gone = idx[out]
-            s_exit = self._exit(x_old, k[:, out], h)
-            p, v = _dense_at(x_old, k[:, out], h, s_exit)
+            s_exit, p, v = self._exit(x_old, k[:, out], h)
             self.reason[gone] = DOMAIN
             self.active[gone] = False
             self.t_end[gone] = t + s_exit * h
             self.x_end[gone] = p
             self.u_end[gone] = v
 
-    def _exit(self, x0: np.ndarray, k: np.ndarray, h: float) -> np.ndarray:
+    def _exit(self, x0: np.ndarray, k: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Fractions s (J,) of a step at which tracers ``x0`` (J, 3) with stages ``k`` (7, J, 3),
-        inside the domain at s = 0 and outside at s = 1, first leave it: by bisection on the
-        continuous extension to 1e-12 of the step (the crossing lies on the domain's boundary,
-        not up to a step beyond it)."""
+        inside the domain at s = 0 and outside at s = 1, leave it, and their positions and
+        velocities there (J, 3): by bisection on the continuous extension to 1e-12 of the step
+        (the crossing lies on the domain's boundary, not up to a step beyond it)."""
         Q = h * np.tensordot(_P.T, k, axes=1)  # (4, J, 3): p(s) = x0 + sum_n Q[n] s^(n+1)
         lo_b, hi_b = self.dom[0::2], self.dom[1::2]
         lo = np.zeros(x0.shape[0])
@@ -406,7 +396,10 @@ class _Run:
             out = np.any((p < lo_b) | (p > hi_b), axis=1)
             hi = np.where(out, mid, hi)
             lo = np.where(out, lo, mid)
-        return hi
+        s = hi[:, None]
+        p = x0 + s * (Q[0] + s * (Q[1] + s * (Q[2] + s * Q[3])))
+        v = (Q[0] + s * (2 * Q[1] + s * (3 * Q[2] + s * 4 * Q[3]))) / h
+        return hi, p, v
 
     def advance(self, idx: np.ndarray, ta: float, tb: float, h: float, depth: int) -> float:
         """Integrate tracers ``idx`` from ``ta`` to ``tb``; returns the next step size guess."""
