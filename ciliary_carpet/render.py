@@ -212,14 +212,15 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
 
     For the time-resolved flow the reference is rtol = 1e-8 (atol 1e-6 spacing) with the flow
     tolerance ten times tighter: the estimate covers the integration and the levels of detail.
-    For the long-time model (``model == "mean"``) the reference is the time-resolved flow at the
-    render's settings: the estimate is the model's error. Returns max and median of the end-point
-    distances [L], the tracers used and the reference in words."""
+    For the long-time model (``model == "mean"``, ``flow`` its :class:`MeanFlow`) the reference
+    is the time-resolved flow at the render's settings in the same domain (the flow's box): the
+    estimate is the model's error. Returns max and median of the end-point distances [L], the
+    tracers used and the reference in words."""
     k = min(ERROR_SAMPLE, seeds.shape[0])
     idx = np.unique(np.linspace(0, seeds.shape[0] - 1, k).round().astype(int))
     if model == "mean":
         ref = carpet.pathlines(seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing, tol=tol,
-                               samples_per_period=1)
+                               samples_per_period=1, domain=tuple(float(v) for v in flow.box))
         what = f"the time-resolved flow (rtol 1e-6, flow tol {tol:g}): the long-time model's error"
     else:
         t_ref = max(tol / 10, 1e-6)
