@@ -424,12 +424,6 @@ def _blocks(coef, basis, wgt, bases, jc, src, frc):  # pragma: no cover - compil
                 frc[r, 2] = 0.0
 
 
-_blocks_serial = njit(cache=True)(_blocks.py_func)
-"""Serial :func:`_blocks` (few sources: a parallel region costs more than it saves)."""
-_PARALLEL_SOURCES = 50_000
-"""Source blocks of at least this many sources are made in parallel."""
-
-
 @njit(cache=True, inline="always")
 def _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, out, k):  # pragma: no cover
     """The cilia near targets[i] (see :func:`_near_pairs`) written to out[k:] when ``out`` is
@@ -928,8 +922,7 @@ class Carpet:
             else:
                 bs = np.empty((len(jc), 1, nk))
                 _basis(ph[jc], K, bs)
-            f = _blocks if out_s.shape[0] >= _PARALLEL_SOURCES else _blocks_serial
-            f(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), out_s, out_f)
+            _blocks(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), out_s, out_f)
 
         n_res_src = (c["n_phase"] if ph is None else 1) * c["n_s"]
         m = targets.shape[0]

@@ -300,3 +300,30 @@ def test_chunked_sums_match_one_sum(carpet, monkeypatch):
         assert np.abs(a.velocity - b.velocity).max() <= 1e-13 * np.abs(a.velocity).max()
         assert a.work == b.work and a.pairs == b.pairs
         assert np.array_equal(a.error_bound, b.error_bound)
+
+
+def test_compiled_functions_have_their_own_cache_slot():
+    """numba keys its on-disk cache by the Python function (module, name, first line) and the
+    signature, not by options such as ``parallel``: two dispatchers made from one function (a
+    serial copy of a parallel kernel) share one cache slot, and a later process loads whichever
+    was written last for both. _blocks had such a serial copy and, depending on the cache, ran
+    serially (2x slower on 2 cores). Every compiled function of the package has its own source."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    import ciliary_carpet
+    import single_cilium
+
+    seen = {}
+    for pkg in (single_cilium, ciliary_carpet):
+        for info in pkgutil.iter_modules(pkg.__path__, pkg.__name__ + "."):
+            mod = importlib.import_module(info.name)
+            for name, obj in vars(mod).items():
+                if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == mod.__name__:
+                    code = obj.py_func.__code__
+                    key = (code.co_filename, obj.py_func.__qualname__, code.co_firstlineno)
+                    assert seen.setdefault(key, f"{mod.__name__}.{name}") == f"{mod.__name__}.{name}", \
+                        f"{mod.__name__}.{name} and {seen[key]} compile the same function: one cache slot"
+    assert len(seen) > 20  # the scan found the package's kernels
