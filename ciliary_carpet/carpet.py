@@ -26,36 +26,53 @@ inside another cilium's swept region is warned about.
 Levels of detail (DESIGN.md "flow fidelity")
 --------------------------------------------
 Per (cilium, evaluation point) pair the cheapest representation whose error bound is under the
-tolerance is expected to meet it is used. Around the force centre c_j (the centroid of the cilium's swept samples;
+tolerance is used. Around the force centre c_j (the centroid of the cilium's swept samples;
 every filament point lies within the radius a_j of it), with h = r - c, the moments
-F = int f ds, D = int h f^T ds, T = int h h f ds (second moments) and Q3 = int |h|^3 |f| ds:
+F = int f ds, D = int h f^T ds, T = int h h f ds (second moments) and Qk = int |h|^k |f| ds:
 
-* ``point``: F(t), D(t) and T(t) at the current phase, carried by six point forces, one at c and
-  five at c + delta u_m (u_m at 72 degree steps, delta = a/2), whose forces solve the 6 x 6
-  moment system, so that they reproduce F, D and T exactly;
+* ``point``: the moments at the current phase carried by point forces at fixed positions about
+  c, at one of three orders: the *monopole* (F at c), the *dipole* (three forces at
+  c + delta u_m, an equilateral triangle, delta = a/2, reproducing F and D) or the *quadrupole*
+  (six forces, one at c and five on a regular pentagon of radius delta, reproducing F, D and T:
+  their moment systems are invertible);
 * ``mean``: the same with the cycle means (the steady, time-averaged flow only);
 * ``resolved``: the full line distribution (for the mean flow: averaged over the phase samples).
 
-Both cheap levels share the monopole, dipole and quadrupole with the resolved sum, so by
-Taylor's theorem with remainder their error for a target at distance R > a from c is at most
+By Taylor's theorem, for a target at distance R > a from c the order-k carriers (matching the
+moments below order k) err by the order-k term they miss plus a remainder:
 
-    |u_level - u_resolved| <= C3 (Q3 + Q3_rep) / (6 * 8 pi mu (R - a)^4),
+    monopole:    8 pi mu |u - u_resolved| <= C1 nu(D) / R^2 + C2 Q2 / (2 (R - a)^3)
+    dipole:      8 pi mu |u - u_resolved| <= C2 nu(T - T_rep) / (2 R^3) + C3 (Q3 + Q3_rep) / (6 (R - a)^4)
+    quadrupole:  8 pi mu |u - u_resolved| <= C3 (Q3 + Q3_rep) / (6 (R - a)^4)
 
-with Q3_rep = sum_m delta^3 |f_m| the third moment of the carrier and C3 the supremum of
-|(h.grad)^3 G f| over unit in-plane h, f at unit distance (:attr:`Kernel.c3
-<ciliary_carpet.kernel.Kernel.c3>`; sampled in the tests: 12.3 free, 12.9 times R^4 with a wall;
-the constants 16 and 64 leave a margin). A pair is
-summed cheaply when this bound is at most ``LOD_SLACK * tol * S_j / (8 pi mu R)``, where S_j is
+with Ck the supremum of |(h.grad)^k G f| over unit in-plane h, f at unit distance (times R^(k+1)
+with a wall; :attr:`Kernel.c1 <ciliary_carpet.kernel.Kernel.c1>`, ``c2``, ``c3``: 2, 4, 16 free
+and 4, 16, 64 with a wall; sampled maxima 2, 4, 12.3 free, 1.98 for C1 and 12.9 for C3 with a
+wall, tests/test_carpet.py), T_rep and
+Q3_rep = delta^3 sum_m |f_m| the carriers' own second and third moments, and nu the sum of the
+singular values of D (of the symmetric matrices T[:, :, c], summed over c, for the second
+moment): the missed term is taken exactly, only the remainder by absolute values. A pair is summed
+at the cheapest order whose bound is at most ``LOD_SLACK * tol * S_j / (8 pi mu R)``, where S_j is
 the cilium's force scale (|Fbar_j| for the mean flow, the r.m.s. of |F_j(t)| over the cycle for
-the instantaneous flow) and :data:`LOD_SLACK` = 8 a calibration, so that at every point
+the instantaneous flow, whose orders are chosen with the bounds' maxima over the cycle) and
+:data:`LOD_SLACK` = 8 a calibration, so that at every point
 
     |u - u_resolved| <= LOD_SLACK * tol * sum_j S_j / (8 pi mu |x - c_j|)
 
-rigorously (the ``error_bound`` of the result: the pairs' bounds summed), while the measured error
-stays below ``0.09 * tol`` times the same sum (tested; the worst-case alignments and signs that
-the bound adds up do not occur, see :data:`LOD_SLACK`): ``tol`` is relative to the sum of the
-cilia's far-field magnitudes (for a carpet whose cilia push roughly the same way, relative to |u|
-itself). Measured on 10 x 10 and 30 x 30 carpets: see the tests and benchmarks/bench_flow.py.
+rigorously (the ``error_bound`` of the result: the pairs' bounds at the current moments summed),
+while the measured error stays below ``0.2 * tol`` times the same sum (tested; the worst-case
+alignments and signs that the bound adds up do not occur, see :data:`LOD_SLACK`): ``tol`` is
+relative to the sum of the cilia's far-field magnitudes (for a carpet whose cilia push roughly
+the same way, relative to |u| itself).
+
+Per cilium the three bounds give distances R1, R2, R3 beyond which each order will do
+(:meth:`Carpet._thresholds`; at tol 1e-3 about 80, 7 and 3 L for the instantaneous flow). One
+ranged sum per evaluation (:func:`_traverse`): per target the cilia of the grid cells around it
+are given their cheapest order one by one, and all the others, runs of cilia sorted by cell,
+one order ``far`` whose cells the grid makes wide enough -- the monopoles, dipoles or quadrupoles,
+whichever the plan estimates cheapest (:meth:`Carpet._plan`: classifying a cilium costs about
+five kernel evaluations, so small carpets keep quadrupoles and large ones take monopoles or
+dipoles). Measured on 10 x 10 and 30 x 30 carpets: see the tests and benchmarks/bench_flow.py.
 """
 from __future__ import annotations
 
@@ -72,17 +89,24 @@ from single_cilium.equilibrium import equilibrium_shape
 from single_cilium.params import CiliumParams
 from single_cilium.table import ThrustTable
 
-from .kernel import C2_FREE, C2_WALL, C3_FREE, C3_WALL, Kernel, Wall, make_kernel
+from .kernel import C1_FREE, C1_WALL, C2_FREE, C2_WALL, C3_FREE, C3_WALL, Kernel, Wall, make_kernel
 from .stokeslet import Auto, Backend, stokeslet_velocity
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Carpet", "Scales", "FlowSample", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL", "LEVELS", "BLOB",
-           "LOD_SLACK"]
+__all__ = ["Carpet", "Scales", "FlowSample", "C1_FREE", "C1_WALL", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL",
+           "LEVELS", "BLOB", "PHASE_MARGIN", "LOD_SLACK"]
 
 LEVELS = ("mean", "point", "resolved")
 _AUTO = Auto()
 """The evaluator of a carpet made without ``backend``."""
+_CLASSIFY = 5.0
+"""Cost of classifying one cilium for one target (:func:`_traverse`) in kernel evaluations
+(measured: about 3 ns against 0.55 ns per evaluation on 2 cores); used to choose the order of
+the far cilia (:meth:`Carpet._plan`)."""
+_MAX_ROWS = 1 << 23
+"""An evaluation's targets are taken in parts when their source ranges could take more rows than
+this (128 MB: :func:`_upper`)."""
 _CHUNK_SOURCES = 1 << 19
 """The resolved near-field sources of a flow evaluation are made and summed in chunks of cilia
 of at most this many sources (3 MB per coordinate array): :meth:`Carpet._sum`."""
@@ -92,16 +116,27 @@ _UNIT = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2), m
 _UNIT_INV = np.linalg.inv(np.stack([np.ones(6), _UNIT[:, 0], _UNIT[:, 1], _UNIT[:, 0] ** 2,
                                     _UNIT[:, 0] * _UNIT[:, 1], _UNIT[:, 1] ** 2]))
 """Inverse of the carrier's moment matrix (rows: the monomials 1, x, y, x^2, xy, y^2)."""
+_U3 = np.array([[math.cos(2 * math.pi * m / 3 + math.pi / 2), math.sin(2 * math.pi * m / 3 + math.pi / 2)]
+                for m in range(3)])
+"""Carrier positions of the dipole order for unit delta: an equilateral triangle."""
+_U3_INV = np.linalg.inv(np.stack([np.ones(3), _U3[:, 0], _U3[:, 1]]))
+"""Inverse of the dipole carriers' moment matrix (rows: the monomials 1, x, y)."""
+PHASE_MARGIN = 1.25
+"""The exact terms of the cheap orders' bounds (nu(D), nu(T - T_rep)) are maximised over the
+table's phase samples to choose the orders for every time; this factor covers the phases between
+the samples (measured: the maximum over 2000 random phases exceeds the samples' by at most
+0.4 %, tests/test_carpet.py). The reported error bound uses the moments at the current phase."""
 LOD_SLACK = 8.0
-"""Calibration of the levels of detail: a pair is summed cheaply when its Taylor bound is at most
-``LOD_SLACK * tol * S_j / (8 pi mu R)`` (module docstring). The bound adds worst-case magnitudes:
-every pair's third-order term at its worst alignment, and all pairs with the same sign; in fact
-the force density changes sign along the filament (the third moment cancels in part) and the
-cilia's errors add with mixed signs. Measured (tests/test_carpet.py, 10 x 10 carpets with and
-without wall, tol 1e-2 to 1e-4, four times and the mean flow, points 0.05 L from the swept
-regions and beyond): with 8 the error stays below 0.09 tol sum_j S_j / (8 pi mu |x - c_j|) (free
-space; 0.011 with a wall), i.e. an 11-fold margin left, while the near pairs fall 3-fold
-(benchmarks/bench_flow.py, levels). The rigorous bound is still what ``error_bound`` reports."""
+"""Calibration of the levels of detail: a pair is summed at an order when its Taylor bound is at
+most ``LOD_SLACK * tol * S_j / (8 pi mu R)`` (module docstring). The bound adds worst-case
+magnitudes: every pair's remainder at its worst alignment, and all pairs with the same sign; in
+fact the force density changes sign along the filament (the third moment cancels in part) and
+the cilia's errors add with mixed signs. Measured (tests/test_carpet.py, 10 x 10 carpets with
+and without wall, tol 1e-2 to 1e-4, four times and the mean flow, points 0.05 L from the swept
+regions and beyond): with 8 the error stays below 0.16 tol sum_j S_j / (8 pi mu |x - c_j|) (free
+space, the dipole order at tol 1e-2; 0.07 with quadrupoles at 1e-3 and 1e-4; 0.01 with a wall),
+while the near pairs fall 3-fold (benchmarks/bench_flow.py, levels). The rigorous bound is still
+what ``error_bound`` reports."""
 BLOB = 0.02
 """Default blob size eps of the regularised Stokeslets, in units of L: the filament radius of a
 slender filament of aspect ratio L / (2 a) = 25 (scene key ``[carpet] blob``)."""
@@ -136,9 +171,10 @@ class FlowSample:
     velocity (M, 3); error_bound (M,): the bound of the levels of detail against the resolved
     sum (zero where every pair was resolved); pairs: number of (cilium, point) pairs evaluated
     at each level; tol: the tolerance asked for; work: counters of the work done: ``sources``,
-    the (point, source) interactions summed (the cost: each is one kernel evaluation), and
-    ``ranges``, the source blocks of the sparse sum (per point one sweep over the carriers, and
-    one block per near pair)."""
+    the (point, source) interactions summed (the cost: each is one kernel evaluation),
+    ``ranges``, the source ranges of the sparse sum (per point the runs of carriers and one block
+    per resolved pair), and ``orders``, the cheap pairs per order (``monopole``, ``dipole``,
+    ``quadrupole``)."""
 
     velocity: np.ndarray
     error_bound: np.ndarray
@@ -226,7 +262,7 @@ def _basis(ph, K, out):  # pragma: no cover - compiled
 
 @njit(cache=True, parallel=True)
 def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coef, mom_coef, centre, radius,
-                F, D, T, Q):  # pragma: no cover - compiled
+                F, D, T, Q, Q2):  # pragma: no cover - compiled
     """Per cilium j (parallel over j) of one chunk: rotate its cycle samples x, y, fx, fy
     (n, n_p, n_s) by ``rot`` into the lab frame, then
 
@@ -239,7 +275,8 @@ def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coe
       to three functions of K harmonics hold 3 (K - 1) + 1 <= Km, so the samples alias nothing;
     * from the raw samples: centre[j] (the centroid of the swept samples, plus the base),
       radius[j], and per table phase F[j] (n_p, 2), D[j] (n_p, 2, 2), T[j] (n_p, 2, 2, 2) and
-      Q[j] (n_p,) = sum_s w_s |h|^3 |f| about the centroid (Simpson weights ``w``)."""
+      Q[j] (n_p,) = sum_s w_s |h|^3 |f| and Q2[j] (n_p,) = sum_s w_s |h|^2 |f| about the centroid
+      (Simpson weights ``w``)."""
     n, n_p, n_s = x.shape
     K = cos_p.shape[1]
     n_m, Km = cos_m.shape
@@ -291,6 +328,7 @@ def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coe
                     for c3 in range(2):
                         T[j, p, a, b, c3] = 0.0
             Q[j, p] = 0.0
+            Q2[j, p] = 0.0
             for s in range(n_s):
                 h0 = v[p, 4 * s + 0] - cx
                 h1 = v[p, 4 * s + 1] - cy
@@ -312,7 +350,9 @@ def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coe
                 T[j, p, 1, 0, 1] += h1 * h0 * g1
                 T[j, p, 1, 1, 0] += h1 * h1 * g0
                 T[j, p, 1, 1, 1] += h1 * h1 * g1
-                Q[j, p] += r * r * r * math.sqrt(v[p, 4 * s + 2] ** 2 + v[p, 4 * s + 3] ** 2) * w[s]
+                af = math.sqrt(v[p, 4 * s + 2] ** 2 + v[p, 4 * s + 3] ** 2) * w[s]
+                Q[j, p] += r * r * r * af
+                Q2[j, p] += r * r * af
         radius[j] = rmax
         # moments of the interpolant on the oversampled phase grid, then their coefficients
         mx = 0.0
@@ -365,31 +405,6 @@ def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coe
         mom_coef[j] = mc
 
 @njit(cache=True, parallel=True)
-def _lod_bound(targets, centre, radius, q, active, near_ptr, near_j, out):  # pragma: no cover - compiled
-    """out[i] = sum_j q_j / (R_ij - a_j)^4 over the active cilia j not listed for point i in
-    ``near_j[near_ptr[i]:near_ptr[i + 1]]`` (ascending), R_ij the distance of targets[i] (M, 3)
-    from the force centre c_j (in the plane z = 0): the levels of detail's Taylor bound."""
-    n = centre.shape[0]
-    for i in prange(targets.shape[0]):
-        x = targets[i, 0]
-        y = targets[i, 1]
-        z2 = targets[i, 2] * targets[i, 2]
-        k = near_ptr[i]
-        end = near_ptr[i + 1]
-        acc = 0.0
-        for j in range(n):
-            if k < end and near_j[k] == j:
-                k += 1
-                continue
-            if active[j]:
-                dx = x - centre[j, 0]
-                dy = y - centre[j, 1]
-                d = math.sqrt(dx * dx + dy * dy + z2) - radius[j]
-                acc += q[j] / (d * d * d * d)
-        out[i] = acc
-
-
-@njit(cache=True, parallel=True)
 def _blocks(coef, basis, wgt, bases, jc, src, frc):  # pragma: no cover - compiled
     """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
     ``frc``, (len(jc) * blk, 3), z = 0, blk = P n_s) holds the resolved sources of cilium
@@ -424,62 +439,245 @@ def _blocks(coef, basis, wgt, bases, jc, src, frc):  # pragma: no cover - compil
                 frc[r, 2] = 0.0
 
 
+@njit(cache=True, parallel=True)
+def _tier_bound(targets, centre, radius, R1, R2, R3, a1, b1, a2, b2, b3, out):  # pragma: no cover - compiled
+    """out[i] = sum over the cilia j summed cheaply for targets[i] (M, 3) of the Taylor bound of
+    their order (times 8 pi mu; module docstring), R the distance from the force centre c_j (in
+    the plane z = 0), d = R - a_j:
+
+    * R >= R1[j] (monopole): a1_j / R^2 + b1_j / d^3;
+    * R2[j] <= R < R1[j] (dipole): a2_j / R^3 + b2_j / d^4;
+    * R3[j] <= R < R2[j] (quadrupole): b3_j / d^4;
+
+    the same rule as :func:`_traverse`. Closer cilia are resolved (exact); a cilium with
+    R1[j] < 0 makes no flow."""
+    n = centre.shape[0]
+    for i in prange(targets.shape[0]):
+        x = targets[i, 0]
+        y = targets[i, 1]
+        z2 = targets[i, 2] * targets[i, 2]
+        acc = 0.0
+        for j in range(n):
+            if R1[j] < 0.0:
+                continue
+            dx = x - centre[j, 0]
+            dy = y - centre[j, 1]
+            R = math.sqrt(dx * dx + dy * dy + z2)
+            d = R - radius[j]
+            if R >= R1[j]:
+                acc += a1[j] / (R * R) + b1[j] / (d * d * d)
+            elif R >= R2[j]:
+                acc += a2[j] / (R * R * R) + b2[j] / (d * d * d * d)
+            elif R >= R3[j]:
+                acc += b3[j] / (d * d * d * d)
+        out[i] = acc
+
+
 @njit(cache=True, inline="always")
-def _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, out, k):  # pragma: no cover
-    """The cilia near targets[i] (see :func:`_near_pairs`) written to out[k:] when ``out`` is
-    not empty; returns the end of i's list (k plus their number)."""
-    fill = out.shape[0] > 0
-    x = targets[i, 0]
-    y = targets[i, 1]
-    z2 = targets[i, 2] * targets[i, 2]
+def _close(seg, lo, hi, r, ranges, n_p):  # pragma: no cover - compiled
+    """Write the open run [lo, hi) of order ``seg`` (0 monopole, 1 dipole, 2 quadrupole; -1 none)
+    as source range r of the carrier segments (:func:`_traverse`); returns the next range."""
+    if seg < 0:
+        return r
+    base = 0 if seg == 0 else (n_p if seg == 1 else 4 * n_p)
+    mult = 1 if seg == 0 else (3 if seg == 1 else 6)
+    ranges[r, 0] = base + mult * lo
+    ranges[r, 1] = base + mult * hi
+    return r + 1
+
+
+@njit(cache=True, inline="always")
+def _window(x, y, x0, y0, h, nx, ny, reach):  # pragma: no cover - compiled
+    """The columns gx0..gx1 and rows gy0..gy1 of the cells within ``reach`` of the cell of
+    (x, y) (none: gx1 < gx0)."""
     ix = int(math.floor((x - x0) / h))
     iy = int(math.floor((y - y0) / h))
-    for gx in range(max(ix - reach, 0), min(ix + reach + 1, nx)):
-        for gy in range(max(iy - reach, 0), min(iy + reach + 1, ny)):
-            c = gx * ny + gy
-            for q in range(cell_ptr[c], cell_ptr[c + 1]):
-                j = order[q]
-                dx = x - cx[j]
-                dy = y - cy[j]
-                if dx * dx + dy * dy + z2 <= r[j] * r[j]:
-                    if fill:
-                        out[k] = j
-                    k += 1
-    return k
+    gx0 = max(ix - reach, 0)
+    gx1 = min(ix + reach, nx - 1)
+    gy0 = max(iy - reach, 0)
+    gy1 = min(iy + reach, ny - 1)
+    if gx0 > gx1 or gy0 > gy1:  # the target is beside the grid: no cell is near it
+        gx0 = 0
+        gx1 = -1
+    return gx0, gx1, gy0, gy1
 
 
 @njit(cache=True, parallel=True)
-def _near_pairs(targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, ptr, out):  # pragma: no cover
-    """Near pairs (target i, cilium j) with |targets[i] - (cx_j, cy_j, 0)| <= r_j, the cilia
-    binned on a grid of cells of side h >= max r / reach (origin x0, y0; nx x ny cells; cilia of
-    cell c: order[cell_ptr[c]:cell_ptr[c + 1]]), so that the (2 reach + 1)^2 cells around a
-    target's hold every cilium near it. Pass 1 (``out`` empty): ptr[i + 1] = the number of i's
-    pairs; pass 2 (``ptr`` the CSR offsets, ``out`` of size ptr[-1]): out[ptr[i]:ptr[i + 1]]
-    holds i's cilia in ascending order (indices into cx, cy, r). The caller allocates every
-    array: a compiled function that returns new arrays turns a Ctrl-C that lands while they are
-    boxed into a SystemError."""
-    m = targets.shape[0]
-    if out.shape[0] == 0:
-        for i in prange(m):
-            ptr[i + 1] = _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, out, 0)
-        return
-    for i in prange(m):
-        k0 = ptr[i]
-        k = _near_of(i, targets, cx, cy, r, order, cell_ptr, x0, y0, h, nx, ny, reach, out, k0)
-        for a in range(k0 + 1, k):  # insertion sort: a handful of cilia per target
-            v = out[a]
-            b = a - 1
-            while b >= k0 and out[b] > v:
-                out[b + 1] = out[b]
-                b -= 1
-            out[b + 1] = v
+def _upper(targets, cell_ptr, x0, y0, h, nx, ny, reach, n_always, uptr):  # pragma: no cover - compiled
+    """uptr[i + 1] = an upper bound of target i's ranges (and resolved cilia) in
+    :func:`_traverse`: the cilia of its cells, one run of far cilia before each column of cells
+    and after the last, and the cilia always resolved."""
+    for i in prange(targets.shape[0]):
+        gx0, gx1, gy0, gy1 = _window(targets[i, 0], targets[i, 1], x0, y0, h, nx, ny, reach)
+        k = gx1 - gx0 + 2 + n_always
+        for gx in range(gx0, gx1 + 1):
+            k += cell_ptr[gx * ny + gy1 + 1] - cell_ptr[gx * ny + gy0]
+        uptr[i + 1] = k
+
+
+@njit(cache=True, parallel=True)
+def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+              uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover - compiled
+    """Per target i (M, 3) the list of source ranges of one ranged sum: each present cilium q
+    (sorted by grid cell: centres scx, scy, the squares of the thresholds sR1, sR2, sR3, cilium
+    index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
+    the target: its monopole carrier (row q) when R >= R1, else its three dipole carriers (rows
+    n_p + 3q ...) when R >= R2, else its six quadrupole carriers (rows 4 n_p + 6q ...) when R >= R3,
+    else its resolved block (a placeholder range, filled by the caller; the cilium and the range
+    go to res_j, res_r). Consecutive cilia at the same order make one range.
+
+    Only the cilia of the (2 reach + 1)^2 cells around the target's (origin x0, y0, nx x ny
+    cells of side h; cell c holds the sorted cilia cell_ptr[c] ... cell_ptr[c + 1]) are looked
+    at: every other cilium is further than reach h and is summed at the order ``far`` (0, 1 or 2),
+    taken as the runs between those cells; the caller makes reach h at least the threshold of
+    that order (max R1 for monopoles, max R2 for dipoles, with R1 = inf). The cilia ``always``
+    (no finite threshold) are resolved for every target.
+
+    Target i writes its ranges and resolved cilia from row uptr[i] on (:func:`_upper` bounds
+    their number), and its counts: nr[i] ranges, nres[i] resolved cilia, counts[i] its pairs at
+    the three cheap orders (:func:`_compact` then packs the rows)."""
+    n_p = scx.shape[0]
+    for i in prange(targets.shape[0]):
+        x = targets[i, 0]
+        y = targets[i, 1]
+        z2 = targets[i, 2] * targets[i, 2]
+        gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
+        r = uptr[i]
+        k = uptr[i]
+        seg = -1
+        lo = 0
+        hi = 0
+        c1 = 0
+        c2 = 0
+        c3 = 0
+        pos = 0
+        for gx in range(gx0, gx1 + 2):
+            if gx <= gx1:
+                a = cell_ptr[gx * ny + gy0]
+                b = cell_ptr[gx * ny + gy1 + 1]
+            else:  # past the last column: the rest is far
+                a = n_p
+                b = n_p
+            if a > pos:  # a run of far cilia
+                if seg == far and hi == pos:
+                    hi = a
+                else:
+                    r = _close(seg, lo, hi, r, ranges, n_p)
+                    if seg == 0:
+                        c1 += hi - lo
+                    elif seg == 1:
+                        c2 += hi - lo
+                    elif seg == 2:
+                        c3 += hi - lo
+                    seg = far
+                    lo = pos
+                    hi = a
+            for q in range(a, b):
+                dx = x - scx[q]
+                dy = y - scy[q]
+                R2 = dx * dx + dy * dy + z2  # squared distance against squared thresholds
+                if R2 >= sR1[q]:
+                    t = 0
+                elif R2 >= sR2[q]:
+                    t = 1
+                elif R2 >= sR3[q]:
+                    t = 2
+                else:
+                    t = 3
+                if t == seg and hi == q:
+                    hi = q + 1
+                    continue
+                r = _close(seg, lo, hi, r, ranges, n_p)
+                if seg == 0:
+                    c1 += hi - lo
+                elif seg == 1:
+                    c2 += hi - lo
+                elif seg == 2:
+                    c3 += hi - lo
+                if t == 3:
+                    seg = -1
+                    res_j[k] = sj[q]
+                    res_r[k] = r
+                    ranges[r, 0] = 0
+                    ranges[r, 1] = 0
+                    r += 1
+                    k += 1
+                else:
+                    seg = t
+                    lo = q
+                    hi = q + 1
+            if b > pos:
+                pos = b
+        r = _close(seg, lo, hi, r, ranges, n_p)
+        if seg == 0:
+            c1 += hi - lo
+        elif seg == 1:
+            c2 += hi - lo
+        elif seg == 2:
+            c3 += hi - lo
+        for q in range(always.shape[0]):
+            res_j[k] = always[q]
+            res_r[k] = r
+            ranges[r, 0] = 0
+            ranges[r, 1] = 0
+            r += 1
+            k += 1
+        nr[i] = r - uptr[i]
+        nres[i] = k - uptr[i]
+        counts[i, 0] = c1
+        counts[i, 1] = c2
+        counts[i, 2] = c3
+
+
+@njit(cache=True, parallel=True)
+def _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r):  # pragma: no cover
+    """Pack target i's rows of :func:`_traverse` (from uptr[i]) into CSR rows ptr[i] ... (ranges)
+    and rptr[i] ... (resolved cilia, their range indices shifted along)."""
+    for i in prange(nr.shape[0]):
+        u = uptr[i]
+        p = ptr[i]
+        for q in range(nr[i]):
+            ranges[p + q, 0] = ranges_u[u + q, 0]
+            ranges[p + q, 1] = ranges_u[u + q, 1]
+        rp = rptr[i]
+        for q in range(nres[i]):
+            res_j[rp + q] = res_j_u[u + q]
+            res_r[rp + q] = res_r_u[u + q] - u + p
+
+
+@njit(cache=True, parallel=True)
+def _block_ranges(res_j, res_r, local, per, k, off, blk, out):  # pragma: no cover - compiled
+    """The source range of each resolved pair q (cilium res_j[q]) in the sum of chunk k of the
+    resolved blocks (cilia of local index l in chunk l // per, rows off + (l % per) blk ...),
+    empty for another chunk's cilium: at row res_r[q] of ``out`` (the first chunk: the ranges of
+    :func:`_traverse`), or at row q (``res_r`` empty: a later chunk's own ranges)."""
+    direct = res_r.shape[0] == 0
+    for q in prange(res_j.shape[0]):
+        loc = local[res_j[q]]
+        row = np.int64(q) if direct else res_r[q]
+        if loc // per == k:
+            out[row, 0] = off + (loc % per) * blk
+            out[row, 1] = out[row, 0] + blk
+        else:
+            out[row, 0] = 0
+            out[row, 1] = 0
 
 
 @njit(cache=True)
-def _carrier_forces(F, D, T, delta, inv, fk, q_rep):  # pragma: no cover - compiled
-    """Forces fk (N, 6, 2) of the six carriers at c_j + delta_j u_m reproducing F (N, 2),
-    D (N, 2, 2) and T (N, 2, 2, 2) of each cilium about c_j (``inv``: the inverse moment matrix
-    :data:`_UNIT_INV`), and their third moments q_rep (N,) = delta^3 sum_m |fk_m|."""
+def _carrier_sets(F, D, T, delta, u3, inv3, inv6, f3, f6, nu1, nu2, q3, q6):  # pragma: no cover - compiled
+    """Per cilium j the carriers of the cheap orders about c_j (module docstring), for its
+    moments F (N, 2), D (N, 2, 2), T (N, 2, 2, 2):
+
+    * f3 (N, 3, 2): the dipole carriers' forces at c_j + delta_j u3_m (``inv3``: the inverse of
+      their moment matrix), reproducing F and D; their third moments q3 (N,) = delta^3 sum |f3_m|
+      and nu2 (N,) = nu(T - T_rep), T_rep their second moment;
+    * f6 (N, 6, 2): the quadrupole carriers' forces at c_j + delta_j u_m (``inv6``:
+      :data:`_UNIT_INV`), reproducing F, D and T; q6 (N,) = delta^3 sum |f6_m|;
+    * nu1 (N,) = nu(D), the sum of D's singular values.
+
+    nu of a second moment M (2, 2, 2), symmetric in its first two indices, is
+    sum_c (|lambda_1| + |lambda_2|) of the symmetric matrices M[:, :, c]: with M = sum of
+    |lambda| u u^T e_c terms, |(grad^2 G) : M| <= C2 nu(M) / R^3 (and |(grad G) : D| <= C1 nu(D) / R^2)."""
     b = np.empty((6, 2))
     for j in range(F.shape[0]):
         d = delta[j]
@@ -496,46 +694,41 @@ def _carrier_forces(F, D, T, delta, inv, fk, q_rep):  # pragma: no cover - compi
             gx = 0.0
             gy = 0.0
             for q in range(6):
-                gx += inv[m, q] * b[q, 0]
-                gy += inv[m, q] * b[q, 1]
-            fk[j, m, 0] = gx
-            fk[j, m, 1] = gy
+                gx += inv6[m, q] * b[q, 0]
+                gy += inv6[m, q] * b[q, 1]
+            f6[j, m, 0] = gx
+            f6[j, m, 1] = gy
             acc += math.sqrt(gx * gx + gy * gy)
-        q_rep[j] = d2 * d * acc
-
-
-@njit(cache=True, parallel=True)
-def _near_ranges(near_ptr, near_j, pidx, chunk, slot, k, off, blk, n_car, gaps, ranges):  # pragma: no cover
-    """Source ranges of each target i for chunk ``k`` of the near blocks (CSR by
-    ``near_ptr``/``near_j``: i's near cilia, ascending). With ``gaps`` (chunk 0: ranges
-    ``2 near_ptr[i] + i`` ... ``2 near_ptr[i + 1] + i + 1``) the carriers of every present cilium
-    that is not near i (present cilium p's six at rows 6p ... 6p + 6: the runs between i's near
-    cilia), interleaved with the near cilia's resolved blocks (rows off + slot[j] blk ... + blk);
-    without (ranges near_ptr[i] ... near_ptr[i + 1]) the blocks only. A near cilium of another
-    chunk gets an empty range."""
-    for i in prange(near_ptr.shape[0] - 1):
-        a = near_ptr[i]
-        b = near_ptr[i + 1]
-        r = 2 * a + i if gaps else a
-        prev = 0
-        for q in range(a, b):
-            j = near_j[q]
-            if gaps:
-                p = pidx[j]
-                ranges[r, 0] = 6 * prev
-                ranges[r, 1] = 6 * p
-                r += 1
-                prev = p + 1
-            if chunk[j] == k:
-                ranges[r, 0] = off + slot[j] * blk
-                ranges[r, 1] = off + (slot[j] + 1) * blk
-            else:
-                ranges[r, 0] = 0
-                ranges[r, 1] = 0
-            r += 1
-        if gaps:
-            ranges[r, 0] = 6 * prev
-            ranges[r, 1] = n_car
+        q6[j] = d2 * d * acc
+        acc = 0.0
+        for m in range(3):
+            gx = 0.0
+            gy = 0.0
+            for q in range(3):
+                gx += inv3[m, q] * b[q, 0]
+                gy += inv3[m, q] * b[q, 1]
+            f3[j, m, 0] = gx
+            f3[j, m, 1] = gy
+            acc += math.sqrt(gx * gx + gy * gy)
+        q3[j] = d2 * d * acc
+        nu = 0.0
+        for c in range(2):
+            # the symmetric part of T[:, :, c] minus the carriers' second moment
+            sxx = T[j, 0, 0, c]
+            sxy = 0.5 * (T[j, 0, 1, c] + T[j, 1, 0, c])
+            syy = T[j, 1, 1, c]
+            for m in range(3):
+                fm = f3[j, m, c] * d2
+                sxx -= u3[m, 0] * u3[m, 0] * fm
+                sxy -= u3[m, 0] * u3[m, 1] * fm
+                syy -= u3[m, 1] * u3[m, 1] * fm
+            tr = sxx + syy
+            det = sxx * syy - sxy * sxy
+            nu += abs(tr) if det >= 0.0 else math.sqrt(tr * tr - 4.0 * det)
+        nu2[j] = nu
+        fro = D[j, 0, 0] ** 2 + D[j, 0, 1] ** 2 + D[j, 1, 0] ** 2 + D[j, 1, 1] ** 2
+        det = D[j, 0, 0] * D[j, 1, 1] - D[j, 0, 1] * D[j, 1, 0]
+        nu1[j] = math.sqrt(fro + 2.0 * abs(det))
 
 
 def _simpson(n: int) -> np.ndarray:
@@ -650,6 +843,7 @@ class Carpet:
         mom_coef = np.empty((n, 2 * Km - 1, 14))
         centre, radius = np.empty((n, 2)), np.empty(n)
         F, D, T2, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p, 2, 2, 2)), np.empty((n, n_p))
+        Q2 = np.empty((n, n_p))
         for lo in range(0, n, 128):  # in chunks: the full cycle data of a large carpet would not fit
             sl = slice(lo, min(n, lo + 128))
             cyc = t.cycles(self.chi_N[sl])  # raises TableError for chi_N outside the table
@@ -659,14 +853,15 @@ class Carpet:
                 cyc["x"][i], cyc["y"][i] = x[None], y[None]
             _cycle_data(cyc["x"], cyc["y"], cyc["fx"], cyc["fy"], rot, self.bases[sl], w, np.cos(arg), np.sin(arg),
                         mk, np.cos(arg_m), np.sin(arg_m), coef[sl], mom_coef[sl], centre[sl], radius[sl], F[sl], D[sl],
-                        T2[sl], Q[sl])
+                        T2[sl], Q[sl], Q2[sl])
         period = np.full(n, np.nan)
         if np.any(fl):
             period[fl] = t.scalar("period", self.chi_N[fl])
         return dict(flutter=fl, n_s=n_s, n_phase=n_p, s=s, w=w, coef=coef, k=np.arange(K),
                     period=period, rate=np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0),
                     centre=centre, radius=radius, F=F, D=D, Q=Q, F_rms=np.sqrt((F ** 2).sum(-1).mean(axis=1)),
-                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls={}, radii={},
+                    F_mean=F.mean(axis=1), D_mean=D.mean(axis=1), Q_mean=Q.mean(axis=1), hulls={}, memo={},
+                    Q2=Q2, Q2_mean=Q2.mean(axis=1),
                     T=T2, T_mean=T2.mean(axis=1), mom_coef=mom_coef, k_m=np.arange(Km),
                     Q_max=Q.max(axis=1))
 
@@ -777,130 +972,164 @@ class Carpet:
         return np.all(p @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
 
     # ------------------------------------------------------------------ flow
-    def _carriers(self, F: np.ndarray, D: np.ndarray, T: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Six point forces per cilium reproducing F (N, 2), D (N, 2, 2) and T (N, 2, 2, 2) about
-        c_j: positions (N, 6, 2) (fixed: c_j + delta_j u_m, delta_j = a_j / 2), forces (N, 6, 2)
-        and their third moments Q3_rep (N,)."""
-        pos = self._carrier_positions()
-        fk, q_rep = np.empty((F.shape[0], 6, 2)), np.empty(F.shape[0])
-        _carrier_forces(np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(D, dtype=float),
-                        np.ascontiguousarray(T, dtype=float), self._c["delta"], _UNIT_INV, fk, q_rep)
-        return pos, fk, q_rep
-
-    def _carrier_positions(self) -> np.ndarray:
-        """(N, 6, 2) the carriers' fixed positions c_j + delta_j u_m, delta_j = a_j / 2 (made once)."""
+    def _delta(self) -> np.ndarray:
+        """(N,) the carriers' scale delta_j = a_j / 2."""
         c = self._c
-        if "cpos" not in c:
+        if "delta" not in c:
             c["delta"] = 0.5 * np.maximum(c["radius"], 1e-12)
-            c["cpos"] = c["centre"][:, None, :] + c["delta"][:, None, None] * _UNIT[None]
-        return c["cpos"]
+        return c["delta"]
 
-    def _near_radius(self, Q: np.ndarray, S: np.ndarray, tol: float) -> np.ndarray:
-        """Per cilium the distance R* beyond which the cheap level's bound
-        C3 Q R / (6 (R - a)^4) <= LOD_SLACK tol S holds (inf when S = 0 but Q > 0)."""
-        a = self._c["radius"]
-        k = self.kernel.c3 * Q / (6.0 * LOD_SLACK)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            g = lambda R: k * R - tol * S * (R - a) ** 4  # noqa: E731 -- decreasing past its root
-            lo = a.copy()
-            hi = a + 1.0
-            for _ in range(200):
-                grow = g(hi) > 0
-                if not np.any(grow & (S > 0)):
-                    break
-                hi = np.where(grow & (S > 0), 2 * hi, hi)
-            for _ in range(60):
-                mid = 0.5 * (lo + hi)
-                pos = g(mid) > 0
-                lo = np.where(pos, mid, lo)
-                hi = np.where(pos, hi, mid)
-        R = hi * (1 + 1e-12) + 1e-12
-        R = np.where(S > 0, R, np.where(Q > 0, np.inf, a))
-        return R
+    def _carriers(self, F: np.ndarray, D: np.ndarray, T: np.ndarray, delta: np.ndarray | None = None) -> dict:
+        """The cheap orders' carriers for moments F (K, 2), D (K, 2, 2), T (K, 2, 2, 2) of cilia of
+        carrier scale ``delta`` (K,) (default: every cilium's): the dipole and quadrupole forces
+        f3 (K, 3, 2), f6 (K, 6, 2) and the bound terms nu1, nu2, q3, q6 (K,) of
+        :func:`_carrier_sets`."""
+        d = self._delta() if delta is None else delta
+        k = F.shape[0]
+        out = dict(f3=np.empty((k, 3, 2)), f6=np.empty((k, 6, 2)), nu1=np.empty(k), nu2=np.empty(k), q3=np.empty(k),
+                   q6=np.empty(k))
+        _carrier_sets(np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(D, dtype=float),
+                      np.ascontiguousarray(T, dtype=float), np.ascontiguousarray(d, dtype=float), _U3, _U3_INV,
+                      _UNIT_INV, out["f3"], out["f6"], out["nu1"], out["nu2"], out["q3"], out["q6"])
+        return out
 
-    def _near_radii(self, tol: float, level: str) -> np.ndarray:
-        """:meth:`_near_radius` for the ``point`` level (second moments maximised over the cycle's
-        phase samples, so that one radius serves every time) or the ``mean`` level; memoised per
-        tolerance."""
-        key = (level, tol)
-        cache = self._c["radii"]
-        if key not in cache:
-            c = self._c
+    def _coefficients(self, level: str) -> dict:
+        """Per cilium the force scale S and the bound coefficients (times 8 pi mu) that choose its
+        order at a distance (module docstring): ``a1`` = C1 nu(D), ``b1`` = C2 Q2 / 2,
+        ``a2`` = C2 nu(T - T_rep) / 2, ``b2`` = C3 (Q3 + q3) / 6, ``b3`` = C3 (Q3 + q6) / 6. For the
+        ``point`` level their maxima over the cycle's phase samples (the exact terms times
+        :data:`PHASE_MARGIN`, for the phases between the samples), S the r.m.s. of |F(t)|; for the
+        ``mean`` level those of the cycle means, S = |Fbar|. Memoised."""
+        c = self._c
+        key = ("coef", level)
+        if key not in c["memo"]:
+            k = self.kernel
+            n = self.n
             if level == "mean":
-                Qt = c["Q_mean"] + self._carriers(c["F_mean"], c["D_mean"], c["T_mean"])[2]
+                car = self._carriers(c["F_mean"], c["D_mean"], c["T_mean"])
+                nu1, nu2, q3, q6 = car["nu1"], car["nu2"], car["q3"], car["q6"]
+                Q2, Q3 = c["Q2_mean"], c["Q_mean"]
                 S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
+                margin = 1.0
             else:
-                Qt = np.max([c["Q"][:, p] + self._carriers(c["F"][:, p], c["D"][:, p], c["T"][:, p])[2]
-                             for p in range(c["n_phase"])], axis=0)
+                n_p = c["n_phase"]
+                car = self._carriers(c["F"].reshape(-1, 2), c["D"].reshape(-1, 2, 2), c["T"].reshape(-1, 2, 2, 2),
+                                     np.repeat(self._delta(), n_p))
+                nu1, nu2 = (car[q].reshape(n, n_p).max(axis=1) for q in ("nu1", "nu2"))
+                Q3 = c["Q_max"]
+                q3, q6 = ((c["Q"] + car[q].reshape(n, n_p)).max(axis=1) - Q3 for q in ("q3", "q6"))
+                Q2 = c["Q2"].max(axis=1)
                 S = c["F_rms"] * c["flutter"]
-            R = self._near_radius(Qt, S, tol) if tol > 0 else np.full(self.n, np.inf)
-            if len(cache) > 32:
-                cache.clear()
-            cache[key] = np.where((S > 0) | (Qt > 0), R, -1.0)
-        return cache[key]
+                margin = PHASE_MARGIN
+            c["memo"][key] = dict(S=S, a1=margin * k.c1 * nu1, b1=0.5 * k.c2 * Q2, a2=margin * 0.5 * k.c2 * nu2,
+                                  b2=k.c3 / 6.0 * (Q3 + q3), b3=k.c3 / 6.0 * (Q3 + q6))
+        return c["memo"][key]
 
-    def _grid(self, js: np.ndarray, r: np.ndarray) -> tuple:
-        """Cilia ``js`` binned on a grid of cells of side at least max ``r`` / 2 (for
-        :func:`_near_pairs`: each target searches the 5 x 5 cells around its own)."""
-        cen = self._c["centre"][js]
-        reach = 2
-        h = float(min(r.max(), 1e300)) / reach
-        lo = cen.min(axis=0) - h
-        span = cen.max(axis=0) + h - lo
-        nx, ny = (int(min(max(1, math.ceil(v / h)), 4096)) for v in span)
-        h = float(max(span[0] / nx, span[1] / ny, h))  # at most 4096 cells a side
-        g = np.minimum((np.floor((cen - lo) / h)).astype(np.int64), [nx - 1, ny - 1])
-        cell = g[:, 0] * ny + g[:, 1]
-        order = np.argsort(cell, kind="stable")
-        ptr = np.searchsorted(cell[order], np.arange(nx * ny + 1)).astype(np.int64)
-        cx, cy = np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1])
-        return (cx, cy, np.ascontiguousarray(np.minimum(r, 1e300)), order, ptr, float(lo[0]), float(lo[1]), h, nx,
-                ny, reach)
+    def _thresholds(self, tol: float, level: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per cilium the distances R1, R2, R3 from its force centre beyond which its monopole,
+        dipole and quadrupole carriers meet the tolerance: the smallest R > a_j with
+        R (A / R^p + B / (R - a)^(p + 1)) <= LOD_SLACK tol S (the left side decreases in R; A, B
+        from :meth:`_coefficients`). -1 for a cilium that makes no flow, inf for one whose S is 0
+        while it makes a flow (always resolved)."""
+        co = self._coefficients(level)
+        a = self._c["radius"]
+        S = co["S"]
+        target = LOD_SLACK * tol * S
+        out = []
+        for A, p, B in ((co["a1"], 2, co["b1"]), (co["a2"], 3, co["b2"]), (np.zeros_like(a), 3, co["b3"])):
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                g = lambda R: R * (A / R ** p + B / (R - a) ** (p + 1)) - target  # noqa: E731,B023
+                lo = a.copy()
+                hi = a + 1.0
+                for _ in range(200):
+                    grow = (g(hi) > 0) & (S > 0)
+                    if not np.any(grow):
+                        break
+                    hi = np.where(grow, 2 * hi, hi)
+                for _ in range(60):
+                    mid = 0.5 * (lo + hi)
+                    pos = g(mid) > 0
+                    lo = np.where(pos, mid, lo)
+                    hi = np.where(pos, hi, mid)
+            R = hi * (1 + 1e-12) + 1e-12
+            flow = (A > 0) | (B > 0)
+            out.append(np.where(S > 0, np.minimum(R, 1e300), np.where(flow | (co["b3"] > 0), np.inf, -1.0)))
+        return tuple(out)
 
-    def _pairs(self, targets: np.ndarray, js: np.ndarray, r: np.ndarray, grid: tuple | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
-        """Near pairs (point i, cilium j) with |x_i - c_j| <= r (cilia ``js``, radii ``r``) as CSR:
-        ``ptr`` (M + 1,) and the cilia (ascending per point), by a compiled search over the cells
-        of :meth:`_grid` (``grid``: its result, when cached)."""
-        grid = self._grid(js, r) if grid is None else grid
-        ptr = np.zeros(targets.shape[0] + 1, np.int64)
-        _near_pairs(targets, *grid, ptr, np.zeros(0, np.int64))
-        np.cumsum(ptr, out=ptr)
-        out = np.empty(int(ptr[-1]), np.int64)
-        if out.size:
-            _near_pairs(targets, *grid, ptr, out)
-        return ptr, js[out]
-
-    def _plan(self, tol: float, level: str, active: np.ndarray) -> dict:
-        """What an evaluation at (tol, level) reuses: the near radii, the cilia that carry carriers
-        (active, or with a finite near radius) and their index among them, the carriers'
-        positions and the grid of the near-pair search; memoised with the radii."""
+    def _plan(self, tol: float, level: str) -> dict:
+        """What an evaluation at (tol, level) reuses (memoised): the thresholds, the cilia that
+        are chosen per target (finite thresholds; ``sj``: sorted by the cells of a grid of side
+        max R1 / 2, :func:`_traverse`) and those always resolved, the grid, and the carriers'
+        fixed positions in that order: monopoles (at c_j), dipoles, quadrupoles."""
         key = ("plan", level, tol)
-        cache = self._c["radii"]
-        if key not in cache:
-            rstar = self._near_radii(tol, level)
-            present = active | (rstar > 0)
-            pj = np.nonzero(present)[0]
-            pidx = np.full(self.n, -1, np.int64)
-            pidx[pj] = np.arange(pj.size)
-            cpos = self._carrier_positions()
-            cand = np.nonzero(rstar > 0)[0]
-            cache[key] = dict(rstar=rstar, present=present, pidx=pidx, cand=cand, n_car=6 * pj.size,
-                              carr_src=_pad(cpos[present].reshape(-1, 2)),
-                              grid=self._grid(cand, rstar[cand]) if cand.size else None)
-        return cache[key]
+        memo = self._c["memo"]
+        if key not in memo:
+            if len(memo) > 32:
+                memo.clear()
+            c = self._c
+            R1, R2, R3 = self._thresholds(tol, level)
+            js = np.nonzero(np.isfinite(R3) & (R3 >= 0))[0]
+            always = np.nonzero(np.isinf(R3))[0].astype(np.int64)
+            reach = 2
+            far = 0
+            if js.size:
+                cen = c["centre"][js]
+                # Far cilia (beyond reach h) at one order f, and the cells of side max R_f / 2
+                # (R_1 = R1, R_2 = R2, R_3 = R3): per target the cilia of its 5 x 5 cells are
+                # classified one by one (about CLASSIFY kernel evaluations' worth each) and get
+                # their cheapest order, the others cost 1, 3 or 6 evaluations. The order with the
+                # least estimated cost per target (cilia spread evenly over their bounding box,
+                # the cells' box as a disc of radius 1.4 max R_f, median thresholds) is taken.
+                ext = np.ptp(cen, axis=0) + 2.0
+                rho = js.size / float(ext[0] * ext[1])
+                med = [float(np.median(R[js])) for R in (R1, R2, R3)]
+
+                def within(r):
+                    return min(float(js.size), rho * math.pi * min(r, 1e150) ** 2)
+
+                cost = []
+                for f, (Rf, sf) in enumerate(((R1, 1.0), (R2, 3.0), (R3, 6.0))):
+                    rn = 1.4 * float(min(Rf[js].max(), 1e150))
+                    n_in = within(rn)
+                    # inside: order f's carriers beyond its threshold, costlier ones closer in
+                    # (the resolved cilia cost the same for every f and are left out)
+                    edges = [min(r, rn) for r in med[f:]][::-1] + [rn]  # R3 <= ... <= rn
+                    price = (6.0, 3.0, 1.0)[:len(edges) - 1]
+                    inside = sum(p * (within(b) - within(a)) for p, a, b in zip(price, edges[:-1], edges[1:]))
+                    cost.append(_CLASSIFY * n_in + inside + sf * (js.size - n_in))
+                far = int(np.argmin(cost))
+                R1 = np.where(R1 >= 0, np.inf, R1) if far >= 1 else R1  # the far cilia are summed at order f
+                R2 = np.where(R2 >= 0, np.inf, R2) if far >= 2 else R2
+                h = float(min((R1, R2, R3)[far][js].max(), 1e300)) / reach
+                lo = cen.min(axis=0) - h
+                span = cen.max(axis=0) + h - lo
+                nx, ny = (int(min(max(1, math.ceil(v / h)), 4096)) for v in span)
+                h = float(max(span[0] / nx, span[1] / ny, h))  # at most 4096 cells a side
+                g = np.minimum(np.floor((cen - lo) / h).astype(np.int64), [nx - 1, ny - 1])
+                cell = g[:, 0] * ny + g[:, 1]
+                order = np.argsort(cell, kind="stable")
+                cell_ptr = np.searchsorted(cell[order], np.arange(nx * ny + 1)).astype(np.int64)
+                x0, y0 = float(lo[0]), float(lo[1])
+            else:
+                order, cell_ptr, x0, y0, h, nx, ny = np.zeros(0, np.int64), np.zeros(2, np.int64), 0.0, 0.0, 1.0, 1, 1
+            sj = js[order].astype(np.int64)
+            cen, dl = c["centre"][sj], self._delta()[sj][:, None, None]
+            pos = np.concatenate([cen, (cen[:, None] + dl * _U3[None]).reshape(-1, 2),
+                                  (cen[:, None] + dl * _UNIT[None]).reshape(-1, 2)])
+            memo[key] = dict(R=(R1, R2, R3), sj=sj, always=always, carr_src=_pad(pos),
+                             trav=(np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1]), R1[sj] ** 2,
+                                   R2[sj] ** 2, R3[sj] ** 2, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always))
+        return memo[key]
 
     def _sum(self, targets: np.ndarray, ph: np.ndarray | None, F: np.ndarray, D: np.ndarray, T: np.ndarray,
-             Q: np.ndarray, S: np.ndarray, tol: float, error: bool, cheap_level: str) -> FlowSample:
-        """Per point: the carriers of every cilium not near it, and the resolved sources of its
-        near cilia (one ranged sum per chunk of near cilia; see :func:`_near_ranges`). The resolved sources of a
-        cilium: its line distribution at its phase ``ph[j]`` ((N,): the instantaneous flow), or at
-        every phase sample of the table with weight 1 / n_phase (``ph=None``: the mean flow)."""
+             tol: float, error: bool, level: str) -> FlowSample:
+        """Per point one ranged sum (:func:`_traverse`): every cilium at the cheapest order whose
+        bound meets ``tol`` at its distance, its carriers reproducing its moments F, D, T about c_j,
+        or its resolved sources. The resolved sources of a cilium: its line distribution at its
+        phase ``ph[j]`` ((N,): the instantaneous flow), or at every phase sample of the table with
+        weight 1 / n_phase (``ph=None``: the mean flow)."""
         c = self._c
         n = self.n
-        active = S > 0
-        _, cf, q_rep = self._carriers(F, D, T)
         nk = c["coef"].shape[1]
         K = (nk + 1) // 2
 
@@ -924,79 +1153,96 @@ class Carpet:
                 _basis(ph[jc], K, bs)
             _blocks(c["coef"], bs, wgt, self.bases, np.asarray(jc, np.int64), out_s, out_f)
 
-        n_res_src = (c["n_phase"] if ph is None else 1) * c["n_s"]
+        blk = (c["n_phase"] if ph is None else 1) * c["n_s"]
         m = targets.shape[0]
         kernel = self.kernel
         evaluator = self.backend if self.backend is not None else _AUTO
-        if tol == 0:  # the resolved sum itself: every source of every active cilium, in chunks
-            js = np.nonzero(active)[0]
+        if tol == 0:  # the resolved sum itself: every source of every cilium that makes a flow, in chunks
+            S = self._coefficients(level)["S"]
+            js = np.nonzero(S > 0)[0]
             u = np.zeros((m, 3))
-            per = max(1, _CHUNK_SOURCES // n_res_src)
+            per = max(1, _CHUNK_SOURCES // blk)
             for lo in range(0, js.size, per):
                 jc = js[lo:lo + per]
-                bsrc, bfrc = np.empty((len(jc) * n_res_src, 3)), np.empty((len(jc) * n_res_src, 3))
+                bsrc, bfrc = np.empty((len(jc) * blk, 3)), np.empty((len(jc) * blk, 3))
                 blocks(jc, bsrc, bfrc)
                 u += stokeslet_velocity(targets, bsrc, bfrc, self.mu, kernel=kernel, backend=self.backend)
-            return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": m * js.size},
-                              tol=tol, work=dict(sources=m * js.size * n_res_src, ranges=0))
-        plan = self._plan(tol, cheap_level, active)
-        present = plan["present"]
-        n_car = plan["n_car"]
-        u = np.zeros((m, 3))
-        work = dict(sources=0, ranges=0)
-        near_ptr, near_j = np.zeros(m + 1, np.int64), np.zeros(0, np.int64)
-        if plan["cand"].size and m:
-            near_ptr, near_j = self._pairs(targets, plan["cand"], plan["rstar"][plan["cand"]], plan["grid"])
-        n_near = near_j.size
-        if not n_car or not m:
-            return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={cheap_level: 0, "resolved": 0}, tol=tol,
-                              work=work)
-        # Per point one list of source ranges: the carriers of the cilia that are not near it (the
-        # runs between its near cilia) and the resolved block of each near cilium (long ranges
-        # vectorise in the kernel). The blocks are made and summed in chunks of cilia of at most
-        # _CHUNK_SOURCES sources (the resolved mean flow has 4160 per cilium: a whole carpet's
-        # would take hundreds of MB, and fresh memory costs more than the sum); the first chunk
-        # carries the carriers too, so that an instantaneous flow (65 sources per cilium: one
-        # chunk) is one ranged sum, one parallel region.
-        blk = n_res_src
+            return FlowSample(velocity=u, error_bound=np.zeros(m), pairs={level: 0, "resolved": m * js.size},
+                              tol=tol, work=dict(sources=m * js.size * blk, ranges=0,
+                                                 orders=dict(monopole=0, dipole=0, quadrupole=0)))
+        plan = self._plan(tol, level)
+        sj = plan["sj"]
+        n_car = 10 * sj.size
+        car = self._carriers(F, D, T)
+        # the ranges of every point, written into rows bounded by _upper, then packed (the
+        # resolved blocks as placeholders); targets in parts when the bound is very large
+        uptr = np.zeros(m + 1, np.int64)
+        _upper(targets, *plan["trav"][6:13], plan["always"].size, uptr)
+        np.cumsum(uptr, out=uptr)
+        if uptr[-1] > _MAX_ROWS and m > 1:
+            cut = np.searchsorted(uptr, np.arange(1, -(-int(uptr[-1]) // _MAX_ROWS)) * _MAX_ROWS)
+            cut = np.unique(np.clip(cut, 1, m - 1))
+            parts = [self._sum(t, ph, F, D, T, tol, error, level) for t in np.split(targets, cut)]
+            return FlowSample(velocity=np.concatenate([q.velocity for q in parts]),
+                              error_bound=np.concatenate([q.error_bound for q in parts]),
+                              pairs={k: sum(q.pairs[k] for q in parts) for k in parts[0].pairs}, tol=tol,
+                              work=dict(sources=sum(q.work["sources"] for q in parts),
+                                        ranges=sum(q.work["ranges"] for q in parts),
+                                        orders={k: sum(q.work["orders"][k] for q in parts)
+                                                for k in parts[0].work["orders"]}))
+        ranges_u, res_j_u, res_r_u = np.empty((int(uptr[-1]), 2), np.int64), np.empty(int(uptr[-1]), np.int64), \
+            np.empty(int(uptr[-1]), np.int64)
+        nr, nres, counts = np.empty(m, np.int64), np.empty(m, np.int64), np.empty((m, 3), np.int64)
+        _traverse(targets, *plan["trav"], uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
+        ptr, rptr = np.zeros(m + 1, np.int64), np.zeros(m + 1, np.int64)
+        np.cumsum(nr, out=ptr[1:])
+        np.cumsum(nres, out=rptr[1:])
+        ranges = np.empty((int(ptr[-1]), 2), np.int64)
+        res_j, res_r = np.empty(int(rptr[-1]), np.int64), np.empty(int(rptr[-1]), np.int64)
+        _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
+        # The resolved blocks are made and summed in chunks of cilia of at most _CHUNK_SOURCES
+        # sources (the resolved mean flow has 4160 per cilium: a whole carpet's would take hundreds
+        # of MB, and fresh memory costs more than the sum); the first chunk carries the carriers
+        # too, so that an instantaneous flow (65 sources per cilium: one chunk) is one ranged sum.
         used = np.zeros(n, bool)
-        used[near_j] = True
-        js = np.nonzero(used)[0]
+        used[res_j] = True
+        used = np.flatnonzero(used)
         per = max(1, _CHUNK_SOURCES // blk)
         local = np.zeros(n, np.int64)
-        local[js] = np.arange(js.size)
-        slot, chunk = local % per, local // per
-        n_chunks = max(1, -(-js.size // per))
-        for k in range(n_chunks):
-            jc = js[k * per:(k + 1) * per]
+        local[used] = np.arange(used.size)
+        u = np.zeros((m, 3))
+        for k in range(max(1, -(-used.size // per))):
+            jc = used[k * per:(k + 1) * per]
             off = n_car if k == 0 else 0
             src, frc = np.empty((off + jc.size * blk, 3)), np.empty((off + jc.size * blk, 3))
             if k == 0:
                 src[:n_car] = plan["carr_src"]
-                frc[:n_car, :2] = cf[present].reshape(-1, 2)
+                frc[:n_car, :2] = np.concatenate([F[sj], car["f3"][sj].reshape(-1, 2), car["f6"][sj].reshape(-1, 2)])
                 frc[:n_car, 2] = 0.0
-                ptr = 2 * near_ptr + np.arange(m + 1)
+                rng, p = ranges, ptr
+                _block_ranges(res_j, res_r, local, per, k, off, blk, rng)
             else:
-                ptr = near_ptr
+                rng, p = np.empty((res_j.size, 2), np.int64), rptr
+                _block_ranges(res_j, np.zeros(0, np.int64), local, per, k, off, blk, rng)
             if jc.size:
                 blocks(jc, src[off:], frc[off:])
-            ranges = np.empty((int(ptr[-1]), 2), np.int64)
-            _near_ranges(near_ptr, near_j, plan["pidx"], chunk, slot, k, off, blk, n_car, k == 0, ranges)
-            # the evaluator directly: every array here is made and checked by this method (the
-            # public front door's validation of them cost a fifth of a 100-tracer evaluation)
-            u += evaluator.ranged(kernel, targets, src, frc, ptr, ranges, self.mu)
-        # every point: the carriers of each present cilium not near it, the block of each near one
-        work["sources"] = m * n_car + n_near * (blk - 6)
-        work["ranges"] = m + n_near
+            if src.shape[0] and rng.shape[0]:
+                # the evaluator directly: every array here is made and checked by this method
+                u += evaluator.ranged(kernel, targets, src, frc, p, rng, self.mu)
+        cnt = counts.sum(axis=0)
+        work = dict(sources=int(cnt[0] + 3 * cnt[1] + 6 * cnt[2] + res_j.size * blk), ranges=int(ptr[-1]),
+                    orders=dict(monopole=int(cnt[0]), dipole=int(cnt[1]), quadrupole=int(cnt[2])))
         bound = np.zeros(m)
-        if error and np.any(active):
-            # per point, over the active cilia not summed resolved (near pairs listed by point)
-            _lod_bound(targets, c["centre"], c["radius"], kernel.c3 * (Q + q_rep) / 6.0, active, near_ptr,
-                       near_j, bound)
+        if error and sj.size:
+            R1, R2, R3 = plan["R"]
+            co = self._coefficients(level)
+            k3 = kernel.c3 / 6.0
+            Q3 = c["Q_mean"] if ph is None else c["Q_max"]
+            # the bound at the current moments (the thresholds used their maxima over the cycle)
+            _tier_bound(targets, c["centre"], c["radius"], R1, R2, R3, kernel.c1 * car["nu1"], co["b1"],
+                        0.5 * kernel.c2 * car["nu2"], k3 * (Q3 + car["q3"]), k3 * (Q3 + car["q6"]), bound)
             bound /= 8 * math.pi * self.mu
-        n_pairs = m * int(active.sum())
-        n_res = int(np.sum(active[near_j])) if n_near else 0
-        pairs = {cheap_level: n_pairs - n_res, "resolved": n_res}
+        pairs = {level: int(cnt.sum()), "resolved": int(res_j.size)}
         return FlowSample(velocity=u, error_bound=bound, pairs=pairs, tol=tol, work=work)
 
     def _targets(self, points) -> np.ndarray:
@@ -1030,10 +1276,7 @@ class Carpet:
             c["mom_coef_t"] = np.ascontiguousarray(c["mom_coef"].transpose(0, 2, 1))
         _moments_at(c["mom_coef_t"], ph, mom)
         F, D, T = mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
-
-        if "S_point" not in c:
-            c["S_point"] = c["F_rms"] * c["flutter"]
-        return self._sum(x, ph, F, D, T, c["Q_max"], c["S_point"], tol, error, "point")
+        return self._sum(x, ph, F, D, T, tol, error, "point")
 
     def velocity(self, points, t: float, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) fluid velocity at ``points`` at time ``t`` (see :meth:`evaluate`)."""
@@ -1045,9 +1288,7 @@ class Carpet:
         x = self._targets(points)
         tol = self._tol(tol)
         c = self._c
-
-        S = np.sqrt((c["F_mean"] ** 2).sum(-1)) * c["flutter"]
-        return self._sum(x, None, c["F_mean"], c["D_mean"], c["T_mean"], c["Q_mean"], S, tol, error, "mean")
+        return self._sum(x, None, c["F_mean"], c["D_mean"], c["T_mean"], tol, error, "mean")
 
     def mean_velocity(self, points, tol: float = 1e-3) -> np.ndarray:
         """(M, 3) time-averaged fluid velocity (see :meth:`evaluate_mean`)."""

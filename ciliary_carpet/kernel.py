@@ -21,9 +21,9 @@ evaluator (:class:`ciliary_carpet.stokeslet.Backend`: numba CPU, FMM) says *how*
   potential source dipole, a regularised Stokes doublet and a rotlet difference, all at the image
   point. It vanishes exactly on the wall (tested) and tends to :class:`Blake` as ``eps -> 0``.
 
-Every kernel carries the two facts its users need: :attr:`Kernel.c2`, the Taylor constant of the
-levels of detail (``sup |(h . grad)^2 G f|`` over unit vectors at unit distance; see
-:mod:`ciliary_carpet.carpet`), and :attr:`Kernel.symmetric`, whether the reciprocity
+Every kernel carries the facts its users need: :attr:`Kernel.c1`, :attr:`Kernel.c2` and
+:attr:`Kernel.c3`, the Taylor constants of the levels of detail (``sup |(h . grad)^k G f|`` over
+unit vectors at unit distance, times ``R^(k+1)`` with a wall; see :mod:`ciliary_carpet.carpet`), and :attr:`Kernel.symmetric`, whether the reciprocity
 ``G_ij(x, y) = G_ji(y, x)`` holds (an adjoint may then swap targets and sources).
 
 The regularisation length ``eps`` is the filament's radius (the blob spreads each force over a
@@ -40,7 +40,16 @@ from typing import Any
 import numpy as np
 
 __all__ = ["Wall", "Kernel", "Stokeslet", "Blake", "RegularisedStokeslet", "RegularisedBlake", "make_kernel",
-           "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL"]
+           "C1_FREE", "C1_WALL", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL"]
+
+C1_FREE = 2.0
+"""sup |(h . grad) G^S(e) f| over unit h, f, e: the first-order Taylor constant of the free-space
+Stokeslet (attained at h = f = e: ``(h . grad)(f/r + R (R . f)/r^3) = -2 e`` there; sampled
+maximum 1.99, tested), an upper bound for the regularised one too."""
+C1_WALL = 4.0
+"""The same for Blake's tensor (in-plane source derivatives) times R^2, over wall heights and
+directions (sampled maximum 1.98 singular, 1.95 regularised, tested; a margin of 2 as for
+:data:`C2_WALL`)."""
 
 C2_FREE = 4.0
 """sup |(h . grad)^2 G^S(e) f| over unit h, f, e: the Taylor constant of the free-space Stokeslet
@@ -105,13 +114,19 @@ class Kernel:
     """A Green's function of Stokes flow (base class; see the module docstring).
 
     Attributes every kernel has: ``eps`` (regularisation length, 0 for a singular kernel),
-    ``wall`` (a :class:`Wall` or None), :attr:`c2` and :attr:`symmetric`; ``code`` is the integer
+    ``wall`` (a :class:`Wall` or None), the Taylor constants :attr:`c1`, :attr:`c2`, :attr:`c3` and
+    :attr:`symmetric`; ``code`` is the integer
     the compiled evaluators dispatch on (0 free space, 1 Blake, 2 regularised Blake).
     """
 
     eps: float = 0.0
     wall: Wall | None = None
     code: int = 0
+
+    @property
+    def c1(self) -> float:
+        """First-order Taylor constant of the levels of detail (:data:`C1_FREE`, :data:`C1_WALL`)."""
+        return C1_WALL if self.wall is not None else C1_FREE
 
     @property
     def c2(self) -> float:

@@ -82,6 +82,63 @@ def test_taylor_constant_free_space():
     assert 3.5 < best <= C2_FREE * (1 + 1e-4)
 
 
+@pytest.mark.parametrize("wall", [False, True])
+def test_first_order_taylor_constants(wall):
+    """C1_FREE / C1_WALL bound the first in-plane source derivatives of the (regularised)
+    kernels times R^2 (the free singular Stokeslet reaches 2 at h = f = e)."""
+    from ciliary_carpet.carpet import C1_FREE, C1_WALL
+    from ciliary_carpet.kernel import make_kernel
+
+    rng = np.random.default_rng(5)
+    best = 0.0
+    for i in range(1500):
+        hgt = 10 ** rng.uniform(-2, 1)
+        x = rng.normal(size=3)
+        if wall:
+            x[2] = rng.uniform(-hgt, 3)
+        R = np.linalg.norm(x)
+        h = np.array([*rng.normal(size=2), 0.0])
+        h /= np.linalg.norm(h)
+        f = np.array([*rng.normal(size=2), 0.0])
+        f /= np.linalg.norm(f)
+        k = make_kernel(Wall(-hgt) if wall else None, 0.0 if i % 2 else 0.02 * R)
+        e = 1e-4 * R
+        u = [stokeslet_velocity(x[None], (sg * e * h)[None], f[None], mu=1 / (8 * math.pi), kernel=k)[0]
+             for sg in (-1, 1)]
+        best = max(best, np.linalg.norm(u[1] - u[0]) / (2 * e) * R ** 2)
+    if not wall:  # attained: x along h and f
+        x = np.array([1.0, 0.0, 0.0])
+        u = [stokeslet_velocity(x[None], np.array([[sg * 1e-5, 0.0, 0.0]]), x[None], mu=1 / (8 * math.pi))[0]
+             for sg in (-1, 1)]
+        best = max(best, np.linalg.norm(u[1] - u[0]) / 2e-5)
+        assert best == pytest.approx(2.0, rel=1e-6)
+    assert 1.5 < best <= (C1_WALL if wall else C1_FREE) * (1 + 1e-6)
+
+
+def test_phase_margin_covers_the_phases_between_samples(table):
+    """The exact terms of the monopole and dipole bounds, nu(D) and nu(T - T_rep), over 2000
+    random phases stay within PHASE_MARGIN of their maxima over the table's phase samples
+    (measured: 0.5 % above at most, over chi_N in -160..160)."""
+    from ciliary_carpet.carpet import PHASE_MARGIN, _moments_at
+
+    rng = np.random.default_rng(1)
+    c = Carpet(layout.square(5, 5, 2.0), rng.uniform(-160, 160, 25), table, layout.random_phases(25, 0))
+    C = c._c
+    n, n_p = c.n, C["n_phase"]
+    car = c._carriers(C["F"].reshape(-1, 2), C["D"].reshape(-1, 2, 2), C["T"].reshape(-1, 2, 2, 2),
+                      np.repeat(c._delta(), n_p))
+    top = {q: car[q].reshape(n, n_p).max(axis=1) for q in ("nu1", "nu2")}
+    coef_t = np.ascontiguousarray(C["mom_coef"].transpose(0, 2, 1))
+    mom = np.empty((n, 14))
+    worst = {"nu1": 0.0, "nu2": 0.0}
+    for t in rng.random(2000):
+        _moments_at(coef_t, np.full(n, t), mom)
+        now = c._carriers(mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2))
+        for q in worst:
+            worst[q] = max(worst[q], float((now[q] / top[q]).max()))
+    assert 1.0 < max(worst.values()) <= 1.01 < PHASE_MARGIN
+
+
 def test_taylor_constant_wall():
     """C2_WALL bounds the in-plane second source derivatives of Blake's tensor times R^3."""
     rng = np.random.default_rng(1)
@@ -225,30 +282,44 @@ def _inside_points(carpet, n=200, seed=7, t=0.37):
 
 
 def test_level_of_detail_cost(carpet):
-    """Work counters at tol 1e-3 on 200 points in the 10 x 10 carpet: a regression in the pair
-    selection (more resolved pairs) or in the blocks summed fails here. Measured with this code:
-    1378 resolved pairs (point level) and 2123 (mean level); the previous, uncalibrated selection
+    """Work counters on 200 points in the 10 x 10 carpet: a regression in the choice of orders
+    (more resolved pairs, costlier carriers) or in the blocks summed fails here. Measured with
+    this code: at tol 1e-3 1378 resolved pairs (point level; the far cilia as quadrupoles, the
+    cheapest choice on this carpet) and 2123 (mean level); at tol 1e-2 the far cilia are dipoles
+    (3 carriers) and 453 pairs are resolved. The selection before the levels were calibrated
     resolved 4001 and 6092 (LOD_SLACK = 1)."""
     p = _inside_points(carpet)
     assert p.shape == (200, 2)
-    n_s, n_car, n_ph = carpet._c["n_s"], 6, carpet._c["n_phase"]
+    n_s, n_ph = carpet._c["n_s"], carpet._c["n_phase"]
+
+    def sources(s, blk):
+        o = s.work["orders"]
+        return o["monopole"] + 3 * o["dipole"] + 6 * o["quadrupole"] + s.pairs["resolved"] * blk
+
     s = carpet.evaluate(p, 0.37, tol=1e-3)
     assert s.pairs["resolved"] <= 1450 and s.pairs["point"] + s.pairs["resolved"] == 200 * 100
-    # every point: six carriers per cilium not near it; every resolved pair: its sources only
-    assert s.work["sources"] == 200 * 100 * n_car + s.pairs["resolved"] * (n_s - n_car)
-    assert s.work["ranges"] == 200 + s.pairs["resolved"]  # one sweep of carriers per point, one block per pair
+    assert sum(s.work["orders"].values()) == s.pairs["point"]
+    # every cheap pair: its carriers; every resolved pair: its sources
+    assert s.work["sources"] == sources(s, n_s)
+    # per point the runs of carriers end at a resolved cilium or at the end: one block per pair
+    assert 200 + s.pairs["resolved"] <= s.work["ranges"] <= 200 + 2 * s.pairs["resolved"]
+    loose = carpet.evaluate(p, 0.37, tol=1e-2)
+    assert loose.work["orders"]["dipole"] > 0.8 * loose.pairs["point"] and loose.pairs["resolved"] <= 500
+    assert loose.work["sources"] == sources(loose, n_s) < 0.5 * s.work["sources"]
     m = carpet.evaluate_mean(p, tol=1e-3)
     assert m.pairs["resolved"] <= 2250
-    assert m.work["sources"] == 200 * 100 * n_car + m.pairs["resolved"] * (n_ph * n_s - n_car)
+    assert m.work["sources"] == sources(m, n_ph * n_s)
     # the resolved sum: every source of every cilium, in one dense sum
     r = carpet.evaluate(p, 0.37, tol=0)
-    assert r.work == {"sources": 200 * 100 * n_s, "ranges": 0} and r.pairs["resolved"] == 200 * 100
+    assert r.work["sources"] == 200 * 100 * n_s and r.work["ranges"] == 0 and r.pairs["resolved"] == 200 * 100
 
 
 @pytest.mark.parametrize("wall", [None, 0.5])
 def test_level_of_detail_calibration_margin(table, wall):
-    """LOD_SLACK = 8 leaves a margin: the measured error stays under 0.1 tol times the far-field
-    sum at points in and around the carpet (the rigorous bound, 8 times larger, still holds)."""
+    """LOD_SLACK = 8 leaves a margin: the measured error stays under 0.2 tol times the far-field
+    sum at points in and around the carpet (measured: 0.16 with the dipole order at tol 1e-2,
+    0.07 at 1e-3 and 1e-4; 0.01 with the wall), while the rigorous bound, up to LOD_SLACK times
+    larger, still holds."""
     from ciliary_carpet.carpet import LOD_SLACK
 
     assert LOD_SLACK == 8.0
@@ -256,31 +327,77 @@ def test_level_of_detail_calibration_margin(table, wall):
     c = Carpet(layout.square(10, 10, 2.0), rng.uniform(-100, 100, 100), table, layout.random_phases(100, 0),
                wall=wall)
     p = np.concatenate([_inside_points(c, t=0.81), _grid(c, distances=(0.0, 5.0))])
-    for tol in (1e-2, 1e-3):
-        ref = c.evaluate(p, 0.81, tol=0)
+    ref = c.evaluate(p, 0.81, tol=0)
+    for tol in (1e-2, 1e-3, 1e-4):
         s = c.evaluate(p, 0.81, tol=tol)
         err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
         assert np.all(err <= s.error_bound * (1 + 1e-9) + 1e-15)
         scale = _scale(c, p, c._c["F_rms"])
-        assert np.all(err <= 0.1 * tol * scale)
+        assert np.all(err <= 0.2 * tol * scale)
         assert np.all(s.error_bound <= LOD_SLACK * tol * scale * (1 + 1e-9))
 
 
-def test_near_pair_search_matches_brute_force(carpet):
-    """The compiled grid search of the near pairs finds exactly the pairs within each cilium's
-    radius (3-D distance from its force centre in the plane), sorted by point then cilium, for
-    mixed radii, points above/below the plane and far away, and an unbounded radius."""
+def _orders_of(carpet, plan, s_ranges, ptr, res_j, rptr, m):
+    """(M, N) the order each target's ranges give each cilium (0 monopole, 1 dipole, 2
+    quadrupole, 3 resolved; -1 none), decoded from the carrier segments of :func:`_traverse`."""
+    sj = plan["sj"]
+    n_p = sj.size
+    out = np.full((m, carpet.n), -1)
+    for i in range(m):
+        for lo, hi in s_ranges[ptr[i]:ptr[i + 1]]:
+            if hi <= lo:
+                continue
+            seg, base, mult = (0, 0, 1) if hi <= n_p else (1, n_p, 3) if hi <= 4 * n_p else (2, 4 * n_p, 6)
+            assert (lo - base) % mult == 0 and (hi - base) % mult == 0
+            q = sj[(lo - base) // mult:(hi - base) // mult]
+            assert np.all(out[i, q] == -1)
+            out[i, q] = seg
+        q = res_j[rptr[i]:rptr[i + 1]]
+        assert np.all(out[i, q] == -1)
+        out[i, q] = 3
+    return out
+
+
+@pytest.mark.parametrize("classify", [0.0, 5.0, 1e6])
+def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
+    """The compiled traversal gives every (target, cilium) pair exactly the cheapest order whose
+    threshold its distance reaches (3-D distance from the force centre in the plane; the far
+    cilia at the plan's far order), for each choice of the far order (forced by the price of a
+    classification), points above/below the plane, beside the grid and far away."""
+    import ciliary_carpet.carpet as cm
+
+    monkeypatch.setattr(cm, "_CLASSIFY", classify)
     rng = np.random.default_rng(7)
-    x = np.column_stack([rng.uniform(-8, 28, 700), rng.uniform(-8, 28, 700), rng.uniform(-2, 2, 700)])
-    x = np.vstack([x, [[1e6, -3e5, 0.0]]])
-    js = np.arange(0, carpet.n, 2)
-    for r in (rng.uniform(0.5, 4.0, js.size), np.r_[np.full(js.size - 1, 1.5), np.inf]):
-        ptr, pj = carpet._pairs(x, js, r)
-        pi = np.repeat(np.arange(x.shape[0]), np.diff(ptr))
-        d = np.linalg.norm(x[:, None, :] - np.c_[carpet.centres[js], np.zeros(js.size)][None], axis=-1)
-        bi, bk = np.nonzero(d <= np.minimum(r, 1e300)[None])
-        assert np.array_equal(pi, bi) and np.array_equal(pj, js[bk])  # np.nonzero: by point, then cilium
-        assert pi.size > 300  # the case is not empty (the unbounded cilium alone pairs with every point)
+    x = np.column_stack([rng.uniform(-8, 28, 500), rng.uniform(-8, 28, 500), rng.uniform(-2, 2, 500)])
+    x = np.vstack([x, [[1e6, -3e5, 0.0], [9.0, 9.0, 0.0]]])
+    m = x.shape[0]
+    fars = set()
+    for tol in (1e-2, 1e-3):
+        carpet._c["memo"].clear()
+        plan = carpet._plan(tol, "point")
+        fars.add(plan["trav"][13])
+        uptr = np.zeros(m + 1, np.int64)
+        cm._upper(x, *plan["trav"][6:13], plan["always"].size, uptr)
+        np.cumsum(uptr, out=uptr)
+        ru, ju, rr = np.empty((uptr[-1], 2), np.int64), np.empty(uptr[-1], np.int64), np.empty(uptr[-1], np.int64)
+        nr, nres, counts = np.empty(m, np.int64), np.empty(m, np.int64), np.empty((m, 3), np.int64)
+        cm._traverse(x, *plan["trav"], uptr, nr, nres, counts, ru, ju, rr)
+        assert np.all(nr <= np.diff(uptr)) and np.all(nres <= nr)
+        ptr, rptr = np.r_[0, np.cumsum(nr)], np.r_[0, np.cumsum(nres)]
+        ranges, res_j, res_r = np.empty((ptr[-1], 2), np.int64), np.empty(rptr[-1], np.int64), np.empty(rptr[-1], np.int64)
+        cm._compact(uptr, nr, nres, ptr, rptr, ru, ju, rr, ranges, res_j, res_r)
+        got = _orders_of(carpet, plan, ranges, ptr, res_j, rptr, m)
+        R = np.linalg.norm(x[:, None, :] - np.c_[carpet.centres, np.zeros(carpet.n)][None], axis=-1)
+        R1, R2, R3 = plan["R"]
+        want = np.where(R >= R1, 0, np.where(R >= R2, 1, np.where(R >= R3, 2, 3)))
+        assert np.array_equal(got, want)
+        assert np.array_equal(counts.sum(axis=0), [(want == k).sum() for k in range(3)])
+        assert np.all(ranges[res_r] == 0)  # the resolved blocks' placeholders
+        assert (want == 3).sum() > 20 and len(np.unique(want)) >= 2  # the case is not trivial
+    carpet._c["memo"].clear()
+    # free classification: monopoles far; the default price: dipoles at 1e-2, quadrupoles at
+    # 1e-3 (on this 18 x 18 L carpet); a prohibitive one: the smallest cells, quadrupoles
+    assert fars == {0.0: {0}, 5.0: {1, 2}, 1e6: {2}}[classify]
 
 
 def test_chunked_sums_match_one_sum(carpet, monkeypatch):
