@@ -266,7 +266,9 @@ def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coe
     """Per cilium j (parallel over j) of one chunk: rotate its cycle samples x, y, fx, fy
     (n, n_p, n_s) by ``rot`` into the lab frame, then
 
-    * coef[j] (2K-1, n_s, 4): the trigonometric interpolant's coefficients in phase,
+    * coef[j] (2K-1, n_s, 4), float32: the trigonometric interpolant's coefficients in phase
+      (rounded to single precision, the table's own: the near-field blocks made from them at
+      every evaluation read half the memory),
       a_k = mk_k / n_p sum_p v_p cos(2 pi k p / n_p), b_k = mk_k / n_p sum_p v_p sin(...)
       (``cos_p``, ``sin_p`` (n_p, K) hold the cosines and sines; v = x, y, fx, fy);
     * mom_coef[j] (2Km-1, 14): the coefficients (cos k = 0..Km-1, then sin k = 1..Km-1) of
@@ -304,6 +306,9 @@ def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coe
                 c = mk[k] * sin_p[p, k] / n_p
                 for r in range(R):
                     cf[K - 1 + k, r] += c * v[p, r]
+        for k in range(2 * K - 1):  # stored in single precision, as the table's samples are: the
+            for r in range(R):      # moments below are those of the rounded interpolant
+                cf[k, r] = np.float32(cf[k, r])
         for k in range(2 * K - 1):
             for s in range(n_s):
                 for q in range(4):
@@ -404,7 +409,7 @@ def _cycle_data(x, y, fx, fy, rot, bases, w, cos_p, sin_p, mk, cos_m, sin_m, coe
                     mc[Km - 1 + k, q] += c * mom[q]
         mom_coef[j] = mc
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _blocks(coef, basis, wgt, bases, jc, src, frc):  # pragma: no cover - compiled
     """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
     ``frc``, (len(jc) * blk, 3), z = 0, blk = P n_s) holds the resolved sources of cilium
@@ -839,7 +844,7 @@ class Carpet:
         if n_p % 2 == 0 and K - 1 == n_p // 2:
             mk[-1] = 1.0
         fl = np.zeros(n, bool)
-        coef = np.empty((n, 2 * K - 1, n_s, 4))
+        coef = np.empty((n, 2 * K - 1, n_s, 4), np.float32)
         mom_coef = np.empty((n, 2 * Km - 1, 14))
         centre, radius = np.empty((n, 2)), np.empty(n)
         F, D, T2, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p, 2, 2, 2)), np.empty((n, n_p))
@@ -941,7 +946,7 @@ class Carpet:
         ph = self.phase_at(t)
         arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
         basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)  # (N, 2K-1)
-        vals = np.einsum("jk,jksq->jsq", basis, c["coef"], optimize=True)
+        vals = np.einsum("jk,jksq->jsq", basis, c["coef"], dtype=float, optimize=True)
         return vals[..., :2] + self.bases[:, None, :], vals[..., 2:], ph
 
     def cycle_samples(self, js) -> tuple[np.ndarray, np.ndarray]:
@@ -952,7 +957,7 @@ class Carpet:
         ph = np.arange(c["n_phase"]) / c["n_phase"]
         arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
         basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)  # (phase, 2K-1)
-        vals = np.einsum("pk,jksq->jpsq", basis, c["coef"][js], optimize=True)
+        vals = np.einsum("pk,jksq->jpsq", basis, c["coef"][js], dtype=float, optimize=True)
         return vals[..., :2] + self.bases[js][:, None, None, :], vals[..., 2:]
 
     def in_swept_region(self, points, j: int, margin: float = 0.0) -> np.ndarray:
