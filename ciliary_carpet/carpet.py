@@ -220,20 +220,20 @@ def _basis_row(ph, cs, sn):  # pragma: no cover - compiled
         sn[k] = sn[k - 1] * c1 + cs[k - 1] * s1
 
 
-@njit(cache=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _moments_at(coef_t, ph, out):  # pragma: no cover - compiled
     """out[j, p] = a_0 + sum_{k=1}^{K-1} a_k cos(2 pi k ph_j) + b_k sin(2 pi k ph_j), the
-    trigonometric interpolant of every cilium j at its phase ph[j], with coef_t[j, p] (2K-1,)
-    holding a_0..a_{K-1} then b_1..b_{K-1} (the moments' coefficients stored transposed, so that
-    each output is one contiguous dot product, which vectorises: the reordered sum differs by
-    rounding only). The basis by the angle-addition recurrence (rounding grows like k eps: below
-    1e-13 for the K <= 64 used)."""
+    trigonometric interpolant of every cilium j (in parallel) at its phase ph[j], with
+    coef_t[j, p] (2K-1,) holding a_0..a_{K-1} then b_1..b_{K-1} (the moments' coefficients stored
+    transposed, so that each output is one contiguous dot product, which vectorises: the
+    reordered sum differs by rounding only). The basis by the angle-addition recurrence
+    (rounding grows like k eps: below 1e-13 for the K <= 64 used)."""
     nk = coef_t.shape[2]
     K = (nk + 1) // 2
-    cs = np.empty(K)
-    sn = np.empty(K)
-    b = np.empty(nk)
-    for j in range(coef_t.shape[0]):
+    for j in prange(coef_t.shape[0]):
+        cs = np.empty(K)
+        sn = np.empty(K)
+        b = np.empty(nk)
         _basis_row(ph[j], cs, sn)
         for k in range(K):
             b[k] = cs[k]
