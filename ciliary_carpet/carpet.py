@@ -671,6 +671,23 @@ def _block_ranges(res_j, res_r, local, per, k, off, blk, out):  # pragma: no cov
             out[row, 1] = 0
 
 
+@njit(cache=True, inline="always")
+def _solve_carriers(inv, b, fk):  # pragma: no cover - compiled
+    """fk (n, 2) = inv (n, n) @ b[:n] (the carriers' forces from their scaled moments); returns
+    sum_m |fk_m|."""
+    acc = 0.0
+    for m in range(inv.shape[0]):
+        gx = 0.0
+        gy = 0.0
+        for q in range(inv.shape[1]):
+            gx += inv[m, q] * b[q, 0]
+            gy += inv[m, q] * b[q, 1]
+        fk[m, 0] = gx
+        fk[m, 1] = gy
+        acc += math.sqrt(gx * gx + gy * gy)
+    return acc
+
+
 @njit(cache=True)
 def _carrier_sets(F, D, T, delta, u3, inv3, inv6, f3, f6, nu1, nu2, q3, q6):  # pragma: no cover - compiled
     """Per cilium j the carriers of the cheap orders about c_j (module docstring), for its
@@ -697,28 +714,8 @@ def _carrier_sets(F, D, T, delta, u3, inv3, inv6, f3, f6, nu1, nu2, q3, q6):  # 
             b[3, k] = T[j, 0, 0, k] / d2
             b[4, k] = T[j, 0, 1, k] / d2
             b[5, k] = T[j, 1, 1, k] / d2
-        acc = 0.0
-        for m in range(6):
-            gx = 0.0
-            gy = 0.0
-            for q in range(6):
-                gx += inv6[m, q] * b[q, 0]
-                gy += inv6[m, q] * b[q, 1]
-            f6[j, m, 0] = gx
-            f6[j, m, 1] = gy
-            acc += math.sqrt(gx * gx + gy * gy)
-        q6[j] = d2 * d * acc
-        acc = 0.0
-        for m in range(3):
-            gx = 0.0
-            gy = 0.0
-            for q in range(3):
-                gx += inv3[m, q] * b[q, 0]
-                gy += inv3[m, q] * b[q, 1]
-            f3[j, m, 0] = gx
-            f3[j, m, 1] = gy
-            acc += math.sqrt(gx * gx + gy * gy)
-        q3[j] = d2 * d * acc
+        q6[j] = d2 * d * _solve_carriers(inv6, b, f6[j])
+        q3[j] = d2 * d * _solve_carriers(inv3, b, f3[j])
         nu = 0.0
         for c in range(2):
             # the symmetric part of T[:, :, c] minus the carriers' second moment
@@ -1043,6 +1040,7 @@ class Carpet:
         a = self._c["radius"]
         S = co["S"]
         target = LOD_SLACK * tol * S
+        makes_flow = co["b3"] > 0  # Q3 > 0: some force on the fluid
         out = []
         for A, p, B in ((co["a1"], 2, co["b1"]), (co["a2"], 3, co["b2"]), (np.zeros_like(a), 3, co["b3"])):
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -1060,15 +1058,41 @@ class Carpet:
                     lo = np.where(pos, mid, lo)
                     hi = np.where(pos, hi, mid)
             R = hi * (1 + 1e-12) + 1e-12
-            flow = (A > 0) | (B > 0)
-            out.append(np.where(S > 0, np.minimum(R, 1e300), np.where(flow | (co["b3"] > 0), np.inf, -1.0)))
+            out.append(np.where(S > 0, np.minimum(R, 1e300), np.where(makes_flow, np.inf, -1.0)))
         return tuple(out)
 
+    def _far_order(self, js: np.ndarray, R: tuple) -> int:
+        """The order (0 monopole, 1 dipole, 2 quadrupole) of the cilia beyond the cells around a
+        target with the least estimated cost per target, cells of side max R_f / 2 for order f
+        (R = (R1, R2, R3) of the cilia ``js``): the cilia of the 5 x 5 cells are classified one by
+        one (:data:`_CLASSIFY` kernel evaluations' worth each) and get their cheapest order, the
+        others cost 1, 3 or 6 evaluations. Cilia spread evenly over their bounding box, the cells'
+        box as a disc of radius 1.4 max R_f, median thresholds; the resolved cilia cost the same
+        for every f and are left out."""
+        cen = self._c["centre"][js]
+        ext = np.ptp(cen, axis=0) + 2.0
+        rho = js.size / float(ext[0] * ext[1])
+        med = [float(np.median(r[js])) for r in R]
+
+        def within(r):
+            return min(float(js.size), rho * math.pi * min(r, 1e150) ** 2)
+
+        cost = []
+        for f, (Rf, sf) in enumerate(zip(R, (1.0, 3.0, 6.0))):
+            rn = 1.4 * float(min(Rf[js].max(), 1e150))
+            n_in = within(rn)
+            edges = [min(r, rn) for r in med[f:]][::-1] + [rn]  # R3 <= ... <= rn
+            price = (6.0, 3.0, 1.0)[:len(edges) - 1]  # inside: costlier orders closer in
+            inside = sum(p * (within(b) - within(a)) for p, a, b in zip(price, edges[:-1], edges[1:]))
+            cost.append(_CLASSIFY * n_in + inside + sf * (js.size - n_in))
+        return int(np.argmin(cost))
+
     def _plan(self, tol: float, level: str) -> dict:
-        """What an evaluation at (tol, level) reuses (memoised): the thresholds, the cilia that
-        are chosen per target (finite thresholds; ``sj``: sorted by the cells of a grid of side
-        max R1 / 2, :func:`_traverse`) and those always resolved, the grid, and the carriers'
-        fixed positions in that order: monopoles (at c_j), dipoles, quadrupoles."""
+        """What an evaluation at (tol, level) reuses (memoised): the thresholds, the order ``far``
+        of the cilia beyond the cells around a target, the cilia that are chosen per target
+        (finite thresholds; ``sj``: sorted by the cells of a grid of side max R_far / 2,
+        :func:`_traverse`) and those always resolved, the grid, and the carriers' fixed positions
+        in that order: monopoles (at c_j), dipoles, quadrupoles."""
         key = ("plan", level, tol)
         memo = self._c["memo"]
         if key not in memo:
@@ -1082,34 +1106,12 @@ class Carpet:
             far = 0
             if js.size:
                 cen = c["centre"][js]
-                # Far cilia (beyond reach h) at one order f, and the cells of side max R_f / 2
-                # (R_1 = R1, R_2 = R2, R_3 = R3): per target the cilia of its 5 x 5 cells are
-                # classified one by one (about CLASSIFY kernel evaluations' worth each) and get
-                # their cheapest order, the others cost 1, 3 or 6 evaluations. The order with the
-                # least estimated cost per target (cilia spread evenly over their bounding box,
-                # the cells' box as a disc of radius 1.4 max R_f, median thresholds) is taken.
-                ext = np.ptp(cen, axis=0) + 2.0
-                rho = js.size / float(ext[0] * ext[1])
-                med = [float(np.median(R[js])) for R in (R1, R2, R3)]
-
-                def within(r):
-                    return min(float(js.size), rho * math.pi * min(r, 1e150) ** 2)
-
-                cost = []
-                for f, (Rf, sf) in enumerate(((R1, 1.0), (R2, 3.0), (R3, 6.0))):
-                    rn = 1.4 * float(min(Rf[js].max(), 1e150))
-                    n_in = within(rn)
-                    # inside: order f's carriers beyond its threshold, costlier ones closer in
-                    # (the resolved cilia cost the same for every f and are left out)
-                    edges = [min(r, rn) for r in med[f:]][::-1] + [rn]  # R3 <= ... <= rn
-                    price = (6.0, 3.0, 1.0)[:len(edges) - 1]
-                    inside = sum(p * (within(b) - within(a)) for p, a, b in zip(price, edges[:-1], edges[1:]))
-                    cost.append(_CLASSIFY * n_in + inside + sf * (js.size - n_in))
-                # The mean flow (fields, the design's checks) keeps quadrupoles: its resolved blocks
+                # Far cilia (beyond reach h) at one order f (:meth:`_far_order`), cells of side
+                # max R_f / 2; the cheaper orders' thresholds made infinite. The mean flow (fields, the design's checks) keeps quadrupoles: its resolved blocks
                 # (4160 sources a cilium) dominate its cost, the cheaper orders save about 2 % there
                 # (benchmarks/bench_flow.py, levels), and their bounds, each near its budget, would
                 # add up to LOD_SLACK tol: the design residuals' error bars grew from 0.01 to 0.04 rad.
-                far = 2 if level == "mean" else int(np.argmin(cost))
+                far = 2 if level == "mean" else self._far_order(js, (R1, R2, R3))
                 R1 = np.where(R1 >= 0, np.inf, R1) if far >= 1 else R1  # the far cilia are summed at order f
                 R2 = np.where(R2 >= 0, np.inf, R2) if far >= 2 else R2
                 h = float(min((R1, R2, R3)[far][js].max(), 1e300)) / reach
