@@ -482,16 +482,27 @@ def _tier_bound(targets, centre, radius, R1, R2, R3, a1, b1, a2, b2, b3, out):  
 
 
 @njit(cache=True, inline="always")
-def _close(seg, lo, hi, r, ranges, n_p):  # pragma: no cover - compiled
+def _close(seg, lo, hi, r, ranges, n_p, count):  # pragma: no cover - compiled
     """Write the open run [lo, hi) of order ``seg`` (0 monopole, 1 dipole, 2 quadrupole; -1 none)
-    as source range r of the carrier segments (:func:`_traverse`); returns the next range."""
+    as source range r of the carrier segments (:func:`_traverse`) and count its pairs in
+    count[seg]; returns the next range."""
     if seg < 0:
         return r
     base = 0 if seg == 0 else (n_p if seg == 1 else 4 * n_p)
     mult = 1 if seg == 0 else (3 if seg == 1 else 6)
     ranges[r, 0] = base + mult * lo
     ranges[r, 1] = base + mult * hi
+    count[seg] += hi - lo
     return r + 1
+
+
+@njit(cache=True, inline="always")
+def _resolve(j, r, k, ranges, res_j, res_r):  # pragma: no cover - compiled
+    """Record cilium j as resolved k, its block's placeholder as range r (:func:`_traverse`)."""
+    res_j[k] = j
+    res_r[k] = r
+    ranges[r, 0] = 0
+    ranges[r, 1] = 0
 
 
 @njit(cache=True, inline="always")
@@ -555,9 +566,8 @@ def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny,
         seg = -1
         lo = 0
         hi = 0
-        c1 = 0
-        c2 = 0
-        c3 = 0
+        count = counts[i]
+        count[:] = 0
         pos = 0
         for gx in range(gx0, gx1 + 2):
             if gx <= gx1:
@@ -570,13 +580,7 @@ def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny,
                 if seg == far and hi == pos:
                     hi = a
                 else:
-                    r = _close(seg, lo, hi, r, ranges, n_p)
-                    if seg == 0:
-                        c1 += hi - lo
-                    elif seg == 1:
-                        c2 += hi - lo
-                    elif seg == 2:
-                        c3 += hi - lo
+                    r = _close(seg, lo, hi, r, ranges, n_p, count)
                     seg = far
                     lo = pos
                     hi = a
@@ -595,19 +599,10 @@ def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny,
                 if t == seg and hi == q:
                     hi = q + 1
                     continue
-                r = _close(seg, lo, hi, r, ranges, n_p)
-                if seg == 0:
-                    c1 += hi - lo
-                elif seg == 1:
-                    c2 += hi - lo
-                elif seg == 2:
-                    c3 += hi - lo
+                r = _close(seg, lo, hi, r, ranges, n_p, count)
                 if t == 3:
                     seg = -1
-                    res_j[k] = sj[q]
-                    res_r[k] = r
-                    ranges[r, 0] = 0
-                    ranges[r, 1] = 0
+                    _resolve(sj[q], r, k, ranges, res_j, res_r)
                     r += 1
                     k += 1
                 else:
@@ -616,25 +611,13 @@ def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny,
                     hi = q + 1
             if b > pos:
                 pos = b
-        r = _close(seg, lo, hi, r, ranges, n_p)
-        if seg == 0:
-            c1 += hi - lo
-        elif seg == 1:
-            c2 += hi - lo
-        elif seg == 2:
-            c3 += hi - lo
+        r = _close(seg, lo, hi, r, ranges, n_p, count)
         for q in range(always.shape[0]):
-            res_j[k] = always[q]
-            res_r[k] = r
-            ranges[r, 0] = 0
-            ranges[r, 1] = 0
+            _resolve(always[q], r, k, ranges, res_j, res_r)
             r += 1
             k += 1
         nr[i] = r - uptr[i]
         nres[i] = k - uptr[i]
-        counts[i, 0] = c1
-        counts[i, 1] = c2
-        counts[i, 2] = c3
 
 
 @njit(cache=True, parallel=True)
