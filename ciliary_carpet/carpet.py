@@ -498,7 +498,7 @@ def _close(seg, lo, hi, r, ranges, n_p, count):  # pragma: no cover - compiled
 
 @njit(cache=True, inline="always")
 def _resolve(j, r, k, ranges, res_j, res_r):  # pragma: no cover - compiled
-    """Record cilium j as resolved k, its block's placeholder as range r (:func:`_traverse`)."""
+    """Record cilium j as resolved k, its block's range r left empty for the caller (:func:`_traverse`)."""
     res_j[k] = j
     res_r[k] = r
     ranges[r, 0] = 0
@@ -542,7 +542,7 @@ def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny,
     index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
     the target: its monopole carrier (row q) when R >= R1, else its three dipole carriers (rows
     n_p + 3q ...) when R >= R2, else its six quadrupole carriers (rows 4 n_p + 6q ...) when R >= R3,
-    else its resolved block (a placeholder range, filled by the caller; the cilium and the range
+    else its resolved block (an empty range, filled by the caller; the cilium and the range
     go to res_j, res_r). Consecutive cilia at the same order make one range.
 
     Only the cilia of the (2 reach + 1)^2 cells around the target's (origin x0, y0, nx x ny
@@ -1172,7 +1172,7 @@ class Carpet:
         n_car = 10 * sj.size
         car = self._carriers(F, D, T)
         # the ranges of every point, written into rows bounded by _upper, then packed (the
-        # resolved blocks as placeholders); targets in parts when the bound is very large
+        # resolved blocks' ranges filled later); targets in parts when the bound is very large
         uptr = np.zeros(m + 1, np.int64)
         _upper(targets, *plan["trav"][6:13], plan["always"].size, uptr)
         np.cumsum(uptr, out=uptr)
