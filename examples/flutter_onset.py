@@ -1,4 +1,7 @@
-"""Flutter onset of the published cilium (chi_E = 200, eta = 1, chi_N = 16*2pi).
+"""Flutter onset
+=============
+
+The flutter onset of the published cilium (chi_E = 200, eta = 1, chi_N = 16*2pi).
 
 A small perturbation of the equilibrium grows into an oscillation: the clamp force F(t) (the force
 the filament exerts on the fluid) oscillates with a growing amplitude. The script measures the

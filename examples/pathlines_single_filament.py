@@ -1,9 +1,14 @@
-"""Path lines around one cilium: curvature steers the flow like a tilted field.
+"""Path lines around one cilium
+============================
+
+Curvature steers the flow like a tilted field.
 
 Three single-filament scenes under the shipped field (chi_E, eta) = (200, 1):
-  straight   chi_N = 0 under a vertical field,
-  tilted     chi_N = 0 under the field tilted by theta_lim(24*2pi) (the curved filament's limit angle),
-  curved     chi_N = 24*2pi under a vertical field.
+
+- straight: chi_N = 0 under a vertical field,
+- tilted: chi_N = 0 under the field tilted by theta_lim(24*2pi) (the curved filament's limit angle),
+- curved: chi_N = 24*2pi under a vertical field.
+
 The curved filament pushes the fluid along nearly the same direction as the straight one under the
 tilted field: natural curvature is a design lever that keeps the field uniform.
 

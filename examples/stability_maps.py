@@ -1,4 +1,7 @@
-"""The two stability studies of the published work, with Hopf boundaries traced by continuation.
+"""Stability maps
+==============
+
+The two stability studies of the published work, with Hopf boundaries traced by continuation.
 
 (a) chi_E in [-50, 150], eta in [0.1, 2.5], for chi_N = 0 and chi_N = 0.01*2pi side by side: for
     chi_E < 0 the tiny natural curvature removes flutter (the equilibrium folds over; see the
