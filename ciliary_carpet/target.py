@@ -561,7 +561,8 @@ def reachable_check(angles, angle_range, clip: bool = False, *, what: str = "con
             at = f" at ({pts[i, 0]:.4g}, {pts[i, 1]:.4g})" if pts is not None else ""
             items.append(f"{what} {i}{at} asks {math.degrees(a[i]):.2f} deg")
         more = f" (and {idx.size - 10} more)" if idx.size > 10 else ""
-        msg = (f"{idx.size} of {a.size} {what}s ask for a deflection outside the reachable range "
+        items_name = "cilia" if what == "cilium" else f"{what}s"
+        msg = (f"{idx.size} of {a.size} {items_name} ask for a deflection outside the reachable range "
                f"|angle| <= {math.degrees(hi):.2f} deg ({hi:.4f} rad) of this field: {'; '.join(items)}{more}")
         if not clip:
             raise UnreachableTargetError(msg + "; lower target.angle, or set target.strict = false to clip them")

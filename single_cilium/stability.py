@@ -257,7 +257,7 @@ def stability(params: CiliumParams, *, mesh: Mesh | None = None, degree: int = D
                    f"{coarse.degree} to {mesh.degree}")
         if status == "inaccurate":
             message += f" > rtol={rtol:g}: raise the degree or refine the mesh"
-            warnings.warn(f"stability{params}: {message}", ResolutionWarning, stacklevel=2)
+            warnings.warn(f"stability at {params}: {message}", ResolutionWarning, stacklevel=2)
     return Stability(params, mesh, w, th, ka, mesh.nodes, error, status, message)
 
 
