@@ -51,13 +51,10 @@ everywhere, so the fields are not blanked inside the cilia's swept regions.
 from __future__ import annotations
 
 import inspect
-import json
 import logging
 import math
 import os
-import re
 import shutil
-import socket
 import tempfile
 import time as _time
 from dataclasses import dataclass
@@ -71,8 +68,14 @@ from single_cilium.progress import Progress
 from .assembly import check_table_range
 from .carpet import BLOB, Carpet
 from .design import design
+from .figures import _design_picture, _preview
 from .ftle import ftle_field
+from .outdir import MANIFEST, SUMMARY, RenderError, is_complete, owned_files
+from .outdir import _OUTPUT_NAME, _check_out_dir, _clean_stale_stages, _place, _stage_prefix, _write_manifest  # noqa: F401
+from .outdir import usual_mode as _usual_mode
+from .paraview import _paraview_script
 from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
+from .report import _markdown
 from .scene import Scene, SceneError
 from .stokeslet import Auto, backend_named
 from .vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
@@ -81,18 +84,6 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["render", "RenderResult", "RenderError", "ResourceError", "is_complete", "owned_files", "check_resources",
            "check_table_range", "Estimate", "MANIFEST", "pathline_duration", "pathline_model"]
-
-SUMMARY = "summary.json"
-MANIFEST = "ciliary-carpet.manifest"
-# the names a render writes (used to recognise renders made before the manifest existed)
-_OUTPUT_NAME = re.compile(r"(layout\.(nc|vtp)|design\.(png|vtp)|mean_field\.vti|snapshot_\d+\.vti|snapshots\.pvd|"
-                          r"cilia_\d+\.vtp|cilia\.pvd|pathlines\.vtp|particles_\d+\.vtp|particles\.pvd|ftle\.vti|"
-                          r"open_in_paraview\.py|preview\.png|summary\.(json|md))\Z")
-
-
-class RenderError(RuntimeError):
-    """The output folder cannot be (re)written as asked, or the result is not finite."""
-
 
 class ResourceError(RenderError):
     """The scene needs more memory or time than the machine has (raised before any work)."""
@@ -105,43 +96,6 @@ class RenderResult:
     out_dir: Path
     files: tuple
     summary: dict
-
-
-def _usual_mode(executable: bool = False) -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return (0o777 if executable else 0o666) & ~umask
-
-
-def owned_files(out_dir) -> set[str] | None:
-    """The names in ``out_dir`` that a render wrote (its manifest), or None when ``out_dir`` is
-    not a render's folder. A folder from before the manifest (a ``summary.json`` with the
-    resolved scene) owns the entries with the names a render writes."""
-    out_dir = Path(out_dir)
-    m = out_dir / MANIFEST
-    if m.is_file():
-        try:
-            names = json.loads(m.read_text())["files"]
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise RenderError(f"{m}: unreadable manifest ({exc}); the folder is kept: remove it yourself") from None
-        return {n for n in names if isinstance(n, str) and n and "/" not in n and n not in (".", "..")} | {MANIFEST}
-    summ = out_dir / SUMMARY
-    try:
-        legacy = summ.is_file() and "scene_resolved" in json.loads(summ.read_text())
-    except (OSError, ValueError, TypeError):
-        legacy = False
-    if not legacy:
-        return None
-    return {p.name for p in out_dir.iterdir() if p.is_file() and _OUTPUT_NAME.match(p.name)}
-
-
-def is_complete(out_dir, sources=()) -> bool:
-    """Whether ``out_dir`` holds a complete render newer than every file in ``sources``."""
-    s = Path(out_dir) / SUMMARY
-    if not s.is_file() or owned_files(out_dir) is None:
-        return False
-    t = s.stat().st_mtime
-    return all(Path(p).stat().st_mtime < t for p in sources if p is not None and Path(p).exists())
 
 
 def _seeds(scene: Scene, carpet: Carpet) -> np.ndarray:
@@ -273,53 +227,6 @@ def _vorticity(u: np.ndarray, spacing, shape) -> np.ndarray:
     w = np.zeros((u.shape[0], 3))
     w[:, 2] = (np.gradient(W, spacing[0], axis=1) - np.gradient(U, spacing[1], axis=0)).ravel()
     return w
-
-
-_PARAVIEW = """# Open this render in ParaView, in one command:  paraview --script=open_in_paraview.py
-# (or pvpython open_in_paraview.py to check it loads). Written by ciliary-carpet render; the
-# files are found next to this script, so the folder can be moved as a whole.
-import os
-
-from paraview.simple import *  # noqa: F401,F403
-
-here = os.path.dirname(os.path.abspath(__file__))
-view = GetActiveViewOrCreate("RenderView")
-
-
-def show(name, reader, color=None, **kw):
-    path = os.path.join(here, name)
-    if not os.path.exists(path):
-        return None
-    src = reader(registrationName=name, FileName=path if reader is PVDReader else [path], **kw)
-    d = Show(src, view)
-    if color:
-        ColorBy(d, color)
-        d.RescaleTransferFunctionToDataRange(True, False)
-    return src
-
-
-field = show("mean_field.vti", XMLImageDataReader, ("POINTS", "speed"))
-if field is not None:
-    glyph = Glyph(registrationName="velocity arrows", Input=field, GlyphType="Arrow")
-    glyph.OrientationArray = ["POINTS", "velocity"]
-    glyph.ScaleArray = ["POINTS", "No scale array"]
-    glyph.MaximumNumberOfSamplePoints = 1500
-    Show(glyph, view)
-show("layout.vtp", XMLPolyDataReader, ("POINTS", "chi_N"))
-show("cilia.pvd", PVDReader, ("POINTS", "chi_N"))
-show("pathlines.vtp", XMLPolyDataReader, ("POINTS", "IntegrationTime"))
-show("particles.pvd", PVDReader, ("POINTS", "speed"))
-show("snapshots.pvd", PVDReader)
-view.InteractionMode = "2D"
-ResetCamera(view)
-GetAnimationScene().UpdateAnimationUsingDataTimeSteps()
-Render(view)
-"""
-
-
-def _paraview_script(path: Path) -> None:
-    """Write the pvpython script that opens every output of the render in ParaView."""
-    path.write_text(_PARAVIEW)
 
 
 # ------------------------------------------------------------------------------ resources
@@ -454,116 +361,6 @@ def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
                             f"--max-hours)")
     logger.debug("resource estimate for %s: %s", src, est)
     return est
-
-
-# ------------------------------------------------------------------------------ output folder
-_STAGE_TAIL = re.compile(r"(\d+)\.[A-Za-z0-9_]+\.partial\Z")
-
-
-def _stage_prefix(out_dir: Path) -> str:
-    return f".{out_dir.name}.{socket.gethostname()}-"
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
-def _clean_stale_stages(out_dir: Path) -> None:
-    """Remove the staging folders of ``out_dir`` left by killed renders on this host."""
-    prefix = _stage_prefix(out_dir)
-    try:
-        entries = list(out_dir.parent.iterdir()) if out_dir.parent.is_dir() else []
-    except OSError:
-        return
-    for e in entries:
-        m = _STAGE_TAIL.match(e.name[len(prefix):]) if e.name.startswith(prefix) else None
-        if m is None or int(m.group(1)) == os.getpid() or _alive(int(m.group(1))):
-            continue
-        if e.is_dir() and not e.is_symlink():
-            shutil.rmtree(e, ignore_errors=True)
-            logger.info("removed %s, the staging folder of a killed render", e)
-
-
-def _check_out_dir(out_dir: Path, overwrite: bool) -> set:
-    """The names in ``out_dir`` a render may replace (empty for a new or empty folder); raises
-    RenderError when ``out_dir`` must be kept as it is."""
-    if out_dir.is_symlink() and not out_dir.exists():
-        raise RenderError(f"{out_dir} is a broken symbolic link")
-    if not out_dir.exists():
-        return set()
-    if not out_dir.is_dir():
-        raise RenderError(f"{out_dir} exists and is not a folder")
-    try:
-        names = {e.name for e in out_dir.iterdir()}
-    except OSError as exc:
-        raise RenderError(f"{out_dir}: cannot read the output folder ({exc.strerror or exc})") from None
-    if not names:
-        return set()
-    owned = owned_files(out_dir)
-    if not overwrite:
-        if owned is not None:
-            what = "results (" + ("complete" if (out_dir / SUMMARY).is_file() else "partial") + ")"
-            raise RenderError(f"{out_dir} already holds {what}; they are kept: pass overwrite=True (--overwrite) to "
-                              f"replace them (only the files ciliary-carpet wrote)")
-        raise RenderError(f"{out_dir} holds files ciliary-carpet did not write ({', '.join(sorted(names)[:3])}"
-                          f"{', ...' if len(names) > 3 else ''}); they are kept: choose a new or empty folder, or pass "
-                          f"--overwrite to write the render beside them")
-    owned = owned or set()
-    clash = sorted(nm for nm in names - owned if _OUTPUT_NAME.match(nm) or nm == MANIFEST)
-    if clash:
-        raise RenderError(f"{out_dir / clash[0]} was not written by ciliary-carpet (it is not in the folder's "
-                          f"manifest) and the render would replace it; it is kept: move it away or choose another "
-                          f"folder")
-    return owned
-
-
-def _write_manifest(folder: Path, names) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{MANIFEST}.", suffix=".part", dir=folder)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(json.dumps({"written_by": "ciliary-carpet", "files": sorted(set(names) | {MANIFEST})}, indent=1))
-        os.chmod(tmp, _usual_mode())
-        os.replace(tmp, folder / MANIFEST)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _place(stage: Path, out_dir: Path, owned: set) -> None:
-    """Move the complete ``stage`` onto ``out_dir``: one rename for a new or empty folder;
-    otherwise file by file, replacing only ``owned`` names, ``summary.json`` last."""
-    if not out_dir.is_symlink():
-        try:
-            os.replace(stage, out_dir)
-            return
-        except OSError as exc:
-            if not out_dir.is_dir():
-                raise RenderError(f"cannot write '{out_dir}': {exc.strerror or exc}") from None
-    new = {e.name for e in stage.iterdir()}
-    existing = {e.name for e in out_dir.iterdir()}
-    clash = sorted((new & existing) - owned)
-    if clash:
-        raise RenderError(f"{out_dir / clash[0]} appeared during the render and was not written by ciliary-carpet; "
-                          f"it is kept, and the render was not placed")
-    try:
-        _write_manifest(out_dir, owned | new)  # first: a folder being replaced is marked as the toolkit's
-        if SUMMARY in owned:
-            (out_dir / SUMMARY).unlink(missing_ok=True)  # incomplete from here on
-        for nm in sorted(owned - new - {MANIFEST}):
-            q = out_dir / nm
-            if q.is_symlink() or q.is_file():
-                q.unlink(missing_ok=True)
-        for nm in sorted(new - {SUMMARY, MANIFEST}) + [SUMMARY, MANIFEST]:
-            os.replace(stage / nm, out_dir / nm)
-        stage.rmdir()
-    except OSError as exc:
-        raise RenderError(f"cannot write '{exc.filename or out_dir}': {exc.strerror or exc}") from None
 
 
 def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress | None = None,
@@ -742,50 +539,6 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     return RenderResult(out_dir=out_dir, files=files, summary=summary)
 
 
-def _markdown(s: dict) -> str:
-    lines = [f"# {s['scene']}", "", f"- source: `{s['source']}`", f"- cilia: {s['n_cilia']}",
-             f"- flow tolerance: {s['tolerance']:g}", f"- units: {s['units']}", f"- flow sums: {s['backend']}"]
-    if "design" in s:
-        dd = s["design"]
-        lines.append(f"- design ({dd['kind']} target, {dd['control_points']} control points): rms residual "
-                     f"{dd['residual_rms']:.3g} {dd['residual_unit']} (+- {dd['residual_error']:.1g}), worst "
-                     f"{dd['residual_max']:.3g}; local layout {dd['local_rms']:.3g}; returned the {dd['returned']} "
-                     f"layout; {dd['cilia_near_cutoff']} of {s['n_cilia']} cilia near the flutter cutoff; "
-                     f"{dd['work']['iterations']} L-BFGS-B iterations, {dd['work']['checks']} full-model checks")
-        if "met" in dd:
-            worst = ", ".join(f"#{w['index']} at ({w['x']:.3g}, {w['y']:.3g}): {w['residual']:.3g}" for w in dd["worst"])
-            lines.append(f"- target {'met' if dd['met'] else 'NOT met: the closest flow the cilia make'} (rms "
-                         f"{dd['residual_rms']:.3g} against [target] residual = {dd['residual_threshold']:g}); "
-                         f"worst control points {worst}")
-        if "reachability" in dd:
-            lines.append(f"- reachability (estimated up front): {dd['reachability']['text']}")
-        if "tolerance" in dd:
-            tt = dd["tolerance"]
-            lines.append(f"- fabrication tolerance (relative chi_N error sigma = {tt['sigma']:g}, {tt['samples']} "
-                         f"samples): expected rms residual {tt['mean_rms']:.3g} +- {tt['sampling_error']:.1g} "
-                         f"(spread {tt['std_rms']:.2g}; 10-90%: {tt['p10_rms']:.3g}..{tt['p90_rms']:.3g}); "
-                         f"nominal {tt['nominal_rms']:.3g}")
-    if "mean_field" in s:
-        m = s["mean_field"]
-        fid = ", ".join(f"{k} {v:.1%}" for k, v in m["fidelity"].items())
-        lines.append(f"- mean field: {m['points']} points, fidelity {fid}, max error bound {m['max_error_bound']:.2e}")
-    if "pathlines" in s:
-        p = s["pathlines"]
-        out = ", ".join(f"{v} {k}" for k, v in p["outcome"].items() if v)
-        lines.append(f"- path lines: {p['tracers']} tracers, {p['model']} flow, over {p['duration']:.4g} "
-                     f"({p['periods']:.3g} beats; {p['duration_from']}): {out}; {p['stopped_early']} stopped early")
-        e = p["end_point_error"]
-        lines.append(f"- path-line end-point error (estimated, {e['tracers']} tracers against {e['reference']}): "
-                     f"max {e['max']:.2g}, median {e['median']:.2g}")
-    if "mixing" in s:
-        mx = s["mixing"]
-        top = "n/a" if mx["ftle_max"] is None else f"{mx['ftle_max']:.3g}"
-        lines.append(f"- mixing: number {mx['mixing_number']:.3g} (mean log-stretching over {mx['duration']:.4g}, "
-                     f"{mx['model']} flow; FTLE max {top}, defined on {mx['defined_fraction']:.0%} of the grid)")
-    lines += ["", "| stage | seconds |", "|---|---|"] + [f"| {k} | {v:.2f} |" for k, v in s["seconds"].items()]
-    return "\n".join(lines) + "\n"
-
-
 def _write_design(stage: Path, d, L: float, V: float) -> None:
     """design.vtp: the control points with the target and achieved flow and the residual."""
     P = d.control.shape[0]
@@ -794,110 +547,3 @@ def _write_design(stage: Path, d, L: float, V: float) -> None:
                  {"target": np.concatenate([d.target * (V if d.kind == "velocity" else 1.0), z], axis=1),
                   "achieved": np.concatenate([d.achieved * V, z], axis=1), "residual": d.residual,
                   **({"speed_ratio": d.speed_ratio} if d.speed_ratio is not None else {})})
-
-
-def _savefig(fig, path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110)
-        os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; the usual permissions, like the other files
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        Path(tmp).unlink(missing_ok=True)
-
-
-def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
-    """Three panels: target (grey) and achieved (blue) flow directions at the control points over
-    the layout coloured by chi_N; the residual per control point; the layout with the cilia
-    near the flutter cutoff ringed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    X, b = d.control, carpet.bases
-    lim = float(carpet.table.flutter_range[1])
-    fig, axs = plt.subplots(1, 3, figsize=(17, 6.2))
-    h = float(np.median(np.linalg.norm(np.diff(X, axis=0), axis=1))) if len(X) > 1 else 1.0
-    scale = 0.8 * max(h, 0.5)
-
-    def arrows(ax, v, **kw):
-        n = np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
-        vv = v / n * scale
-        ax.quiver(X[:, 0] - 0.5 * vv[:, 0], X[:, 1] - 0.5 * vv[:, 1], vv[:, 0], vv[:, 1], angles="xy",
-                  scale_units="xy", scale=1, **kw)
-
-    ax = axs[0]
-    ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=14, zorder=1)
-    arrows(ax, d.target, color="0.6", width=0.009, zorder=2, label="target")
-    arrows(ax, d.achieved, color="tab:blue", width=0.0035, zorder=3, label="achieved")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2, fontsize=8)
-    ax.set_title("mean-flow direction at the control points\ntarget (grey) vs achieved (blue), over chi_N",
-                 fontsize=10)
-    ax = axs[1]
-    unit = "rad" if d.kind == "angle" else "relative"
-    sc = ax.scatter(X[:, 0], X[:, 1], c=d.residual, cmap="magma_r", vmin=0, s=40, marker="s")
-    ax.scatter(b[:, 0], b[:, 1], c="0.7", s=6)
-    fig.colorbar(sc, ax=ax, label=f"residual [{unit}]", shrink=0.85)
-    ax.set_title(f"residual per control point\nrms {d.residual_rms:.3g} {unit} (+- {d.residual_error:.1g}), worst "
-                 f"{d.residual.max():.3g}", fontsize=10)
-    ax = axs[2]
-    sc = ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=40)
-    nc = list(d.near_cutoff)
-    if nc:
-        ax.scatter(b[nc, 0], b[nc, 1], facecolors="none", edgecolors="k", s=110, lw=1.2,
-                   label=f"{len(nc)} near the flutter cutoff")
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8)
-    fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.85)
-    ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g})\nreturned: the {d.returned} layout", fontsize=10)
-    for ax in axs:
-        ax.set_aspect("equal")
-        ax.set_xlabel("x / L")
-        ax.set_ylabel("y / L")
-    fig.suptitle(f"{scene.name}: design ({d.kind} target, {len(X)} control points; local layout rms "
-                 f"{d.local_rms:.3g})", fontsize=11)
-    fig.tight_layout()
-    _savefig(fig, path)
-
-
-def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 6.5))
-    if mean_field is not None:
-        origin, spacing, shape, pts, u = mean_field
-        X = pts[:, 0].reshape(shape[1], shape[0])
-        Y = pts[:, 1].reshape(shape[1], shape[0])
-        U = np.nan_to_num(u[:, 0]).reshape(X.shape)
-        W = np.nan_to_num(u[:, 1]).reshape(X.shape)
-        sp = np.hypot(U, W)
-        ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", density=1.4, linewidth=0.6, arrowsize=0.7)
-    if pl is not None:
-        cmap = plt.cm.autumn
-        for k, p in enumerate(pl.points):
-            ax.plot(p[:, 0], p[:, 1], color=cmap(k / max(1, len(pl.points) - 1)), lw=0.5, alpha=0.8)
-        e = pl.end_points
-        ax.plot(e[:, 0], e[:, 1], ".", color="k", ms=2)
-    pos, _, _ = carpet.state(0.0)
-    lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
-    for j in range(carpet.n):
-        ax.plot(pos[j, :, 0], pos[j, :, 1], color=plt.cm.coolwarm(0.5 + 0.5 * carpet.chi_N[j] / lim), lw=1.2)
-    sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim,
-                    s=12, zorder=3)
-    fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.8)
-    title = scene.name
-    if d is not None:
-        title += f"  (design rms residual {d.residual_rms:.3g}{' rad' if d.kind == 'angle' else ''})"
-    ax.set_title(title)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x / L")
-    ax.set_ylabel("y / L")
-    fig.tight_layout()
-    _savefig(fig, path)
