@@ -1,0 +1,119 @@
+"""The render's pictures: ``design.png`` and ``preview.png`` (matplotlib, Agg)."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .carpet import Carpet
+from .scene import Scene
+from .vtkfiles import _usual_mode
+
+
+def _savefig(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110)
+        os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; the usual permissions, like the other files
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        Path(tmp).unlink(missing_ok=True)
+
+
+def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
+    """Three panels: target (grey) and achieved (blue) flow directions at the control points over
+    the layout coloured by chi_N; the residual per control point; the layout with the cilia
+    near the flutter cutoff ringed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    X, b = d.control, carpet.bases
+    lim = float(carpet.table.flutter_range[1])
+    fig, axs = plt.subplots(1, 3, figsize=(17, 6.2))
+    h = float(np.median(np.linalg.norm(np.diff(X, axis=0), axis=1))) if len(X) > 1 else 1.0
+    scale = 0.8 * max(h, 0.5)
+
+    def arrows(ax, v, **kw):
+        n = np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
+        vv = v / n * scale
+        ax.quiver(X[:, 0] - 0.5 * vv[:, 0], X[:, 1] - 0.5 * vv[:, 1], vv[:, 0], vv[:, 1], angles="xy",
+                  scale_units="xy", scale=1, **kw)
+
+    ax = axs[0]
+    ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=14, zorder=1)
+    arrows(ax, d.target, color="0.6", width=0.009, zorder=2, label="target")
+    arrows(ax, d.achieved, color="tab:blue", width=0.0035, zorder=3, label="achieved")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2, fontsize=8)
+    ax.set_title("mean-flow direction at the control points\ntarget (grey) vs achieved (blue), over chi_N",
+                 fontsize=10)
+    ax = axs[1]
+    unit = "rad" if d.kind == "angle" else "relative"
+    sc = ax.scatter(X[:, 0], X[:, 1], c=d.residual, cmap="magma_r", vmin=0, s=40, marker="s")
+    ax.scatter(b[:, 0], b[:, 1], c="0.7", s=6)
+    fig.colorbar(sc, ax=ax, label=f"residual [{unit}]", shrink=0.85)
+    ax.set_title(f"residual per control point\nrms {d.residual_rms:.3g} {unit} (+- {d.residual_error:.1g}), worst "
+                 f"{d.residual.max():.3g}", fontsize=10)
+    ax = axs[2]
+    sc = ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=40)
+    nc = list(d.near_cutoff)
+    if nc:
+        ax.scatter(b[nc, 0], b[nc, 1], facecolors="none", edgecolors="k", s=110, lw=1.2,
+                   label=f"{len(nc)} near the flutter cutoff")
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8)
+    fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.85)
+    ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g})\nreturned: the {d.returned} layout", fontsize=10)
+    for ax in axs:
+        ax.set_aspect("equal")
+        ax.set_xlabel("x / L")
+        ax.set_ylabel("y / L")
+    fig.suptitle(f"{scene.name}: design ({d.kind} target, {len(X)} control points; local layout rms "
+                 f"{d.local_rms:.3g})", fontsize=11)
+    fig.tight_layout()
+    _savefig(fig, path)
+
+
+def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6.5))
+    if mean_field is not None:
+        origin, spacing, shape, pts, u = mean_field
+        X = pts[:, 0].reshape(shape[1], shape[0])
+        Y = pts[:, 1].reshape(shape[1], shape[0])
+        U = np.nan_to_num(u[:, 0]).reshape(X.shape)
+        W = np.nan_to_num(u[:, 1]).reshape(X.shape)
+        sp = np.hypot(U, W)
+        ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", density=1.4, linewidth=0.6, arrowsize=0.7)
+    if pl is not None:
+        cmap = plt.cm.autumn
+        for k, p in enumerate(pl.points):
+            ax.plot(p[:, 0], p[:, 1], color=cmap(k / max(1, len(pl.points) - 1)), lw=0.5, alpha=0.8)
+        e = pl.end_points
+        ax.plot(e[:, 0], e[:, 1], ".", color="k", ms=2)
+    pos, _, _ = carpet.state(0.0)
+    lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
+    for j in range(carpet.n):
+        ax.plot(pos[j, :, 0], pos[j, :, 1], color=plt.cm.coolwarm(0.5 + 0.5 * carpet.chi_N[j] / lim), lw=1.2)
+    sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim,
+                    s=12, zorder=3)
+    fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.8)
+    title = scene.name
+    if d is not None:
+        title += f"  (design rms residual {d.residual_rms:.3g}{' rad' if d.kind == 'angle' else ''})"
+    ax.set_title(title)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x / L")
+    ax.set_ylabel("y / L")
+    fig.tight_layout()
+    _savefig(fig, path)
