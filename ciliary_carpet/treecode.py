@@ -6,9 +6,10 @@ plane z = 0,
 
     u_k = 1/(8 pi mu) sum_s G(x_k, y_s) f_s,                          (A f)
 
-and the adjoint sum g_s = sum_k G(y_s, x_k) w_k (A^T w for a symmetric G, the free Stokeslet and
-Blake's tensor in one plane), with only the forces changing. Direct, both cost P S kernel
-evaluations; at 10,000 cilia (S = 30,000 carriers) 3e8 per sum.
+and the adjoint sum g_s = sum_k G(y_s, x_k) w_k (A^T w for a reciprocal G, G_ij(x, y) =
+G_ji(y, x): the free Stokeslet, Blake's tensor and their regularised versions, the wall's
+included, :attr:`~ciliary_carpet.kernel.Kernel.symmetric`), with only the forces changing.
+Direct, both cost P S kernel evaluations; at 10,000 cilia (S = 30,000 carriers) 3e8 per sum.
 
 Barnes-Hut in the plane: the sources are sorted into a quadtree (cells of at most ``leaf``
 sources, contiguous after sorting). A cell of centre c (its sources' centroid) and radius r (the
@@ -108,7 +109,8 @@ class Treecode:
     ----------
     targets : (P, 3) control points x_k (z = 0).
     sources : (S, 3) source points y_s (z = 0).
-    kernel : the symmetric Green's function (:mod:`ciliary_carpet.kernel`; singular or with the wall).
+    kernel : a reciprocal Green's function (:mod:`ciliary_carpet.kernel`: every kernel there,
+        singular or regularised, free or with the wall; one whose ``symmetric`` is False is refused).
     mu : viscosity.
     backend : the evaluator of the sums.
     theta : opening angle in (0, 1) (:data:`THETA`); ``leaf``: leaf size (:data:`LEAF`).
