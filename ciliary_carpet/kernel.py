@@ -180,11 +180,11 @@ class RegularisedStokeslet(Kernel):
 class RegularisedBlake(Kernel):
     """Regularised Stokeslet of blob size ``eps`` above the no-slip ``wall`` (Ainley et al. 2008
     with Smith's 2009 correction). Symmetric: exactly reciprocal, ``G_ij(x, y) = G_ji(y, x)`` for
-    any two points above the wall (Smith 2009 shows the corrected system is the regularised
-    Green's function of a self-adjoint problem; an independent 40-digit evaluation of the formula
-    gives 1e-35). In float64 the two sides agree to rounding: the image terms are each of size
-    up to about ``1/|R_eps| + h^2/|R_eps|^3 + h/|R_eps|^2`` and cancel in part, so the difference
-    is a few ulps of that scale (measured at most 2.7, tested to 64) (tests/test_treecode.py). The earlier "only up
+    any two points above the wall (an independent 40-digit evaluation of the formula gives an
+    asymmetry of 1e-35). In float64 the two sides agree to rounding: the image terms are each of
+    size up to about ``1/|R_eps| + h^2/|R_eps|^3 + h/|R_eps|^2`` and cancel in part, and the
+    difference is a few ulps of that scale (measured at most 2.7, tested to 64:
+    tests/test_treecode.py). The earlier "reciprocal only up
     to O(eps^2)" was wrong; what is O(eps^2 / r^2) is its difference from Blake's tensor."""
 
     eps: float = 0.02
