@@ -1,50 +1,267 @@
-"""The ParaView script a render writes beside its outputs (``open_in_paraview.py``)."""
+"""The ParaView script a render writes beside its outputs (``open_in_paraview.py``).
+
+The script opens the whole render folder in ParaView, from any working folder, however it is
+run: ``paraview --script=DIR/open_in_paraview.py`` (the GUI runs the script's text with no
+``__file__`` and an empty ``sys.argv``), ``pvpython DIR/open_in_paraview.py`` or ``pvbatch``.
+
+What opens, readable at a glance (a 2D top view on the carpet, one legend per colour):
+
+- the mean speed as the background (``mean_field.vti``, colour map "Blues"),
+- a sparse lattice of mean-flow arrows (at most about 400, resampled from the mean field and
+  scaled so that the fastest is one lattice spacing long),
+- the path lines coloured by time ("Inferno"),
+- the cilia (``cilia.pvd``, moving) and their bases (``layout.vtp``) coloured by chi_N
+  ("Cool to Warm"),
+- the time, and a line saying what is shown.
+
+Loaded but hidden, ready to switch on with their eye icon: the instantaneous fields
+(``snapshots.pvd``), the FTLE field (``ftle.vti``), the design's control points
+(``design.vtp``, coloured by residual) and the tracers as moving points (``particles.pvd``).
+Each of them lies in the plane z = 0 like the mean field, so only one field is shown at a time.
+"""
 from __future__ import annotations
 
 from pathlib import Path
 
-_PARAVIEW = """# Open this render in ParaView, in one command:  paraview --script=open_in_paraview.py
-# (or pvpython open_in_paraview.py to check it loads). Written by ciliary-carpet render; the
-# files are found next to this script, so the folder can be moved as a whole.
+__all__ = ["SCRIPT", "write_script"]
+
+SCRIPT = "open_in_paraview.py"
+"""The script's name in a render folder."""
+
+_HEADER = '''# Open this render in ParaView:
+#     paraview --script=open_in_paraview.py      (the GUI; from any working folder, with the path)
+#     pvpython open_in_paraview.py               (or pvbatch: loads the scene without a window)
+# Written by ciliary-carpet render. The files are found beside this script (its path, or the
+# --script= argument on the command line); failing that, in the folder the render was written to:
+RENDER_FOLDER = {folder!r}
+LENGTH, TIME, SPEED = {length!r}, {time!r}, {speed!r}  # units of the files
+SCENE = {scene!r}
+'''
+
+_BODY = '''
 import os
+import sys
 
 from paraview.simple import *  # noqa: F401,F403
 
-here = os.path.dirname(os.path.abspath(__file__))
+
+def _has_render(folder):
+    return bool(folder) and os.path.isfile(os.path.join(folder, "layout.vtp"))
+
+
+def _render_folder():
+    """The folder of this script: __file__ (pvpython, pvbatch), else the --script= argument
+    (paraview --script= runs the script's text: no __file__, sys.argv == ['']), else the
+    folder the render was written to."""
+    try:
+        here = os.path.dirname(os.path.abspath(__file__))
+        if _has_render(here):
+            return here
+    except NameError:
+        pass
+    args = list(sys.argv)
+    try:
+        with open("/proc/self/cmdline", "rb") as fh:
+            args += [a.decode("utf-8", "replace") for a in fh.read().split(b"\\0") if a]
+    except OSError:
+        pass
+    for a in args:
+        if a.startswith("--script="):
+            here = os.path.dirname(os.path.abspath(os.path.expanduser(a[len("--script="):])))
+            if _has_render(here):
+                return here
+    if _has_render(RENDER_FOLDER):
+        return RENDER_FOLDER
+    if _has_render(os.getcwd()):
+        return os.getcwd()
+    raise RuntimeError("open_in_paraview.py: cannot find the render's files (layout.vtp ...): run it with "
+                       "its path, e.g. paraview --script=out/NAME/open_in_paraview.py; the render was written "
+                       "to " + RENDER_FOLDER)
+
+
+here = _render_folder()
 view = GetActiveViewOrCreate("RenderView")
 
 
-def show(name, reader, color=None, **kw):
+def load(name):
     path = os.path.join(here, name)
     if not os.path.exists(path):
         return None
-    src = reader(registrationName=name, FileName=path if reader is PVDReader else [path], **kw)
-    d = Show(src, view)
-    if color:
-        ColorBy(d, color)
-        d.RescaleTransferFunctionToDataRange(True, False)
-    return src
+    if name.endswith(".pvd"):
+        return PVDReader(registrationName=name, FileName=path)
+    reader = XMLImageDataReader if name.endswith(".vti") else XMLPolyDataReader
+    return reader(registrationName=name, FileName=[path])
 
 
-field = show("mean_field.vti", XMLImageDataReader, ("POINTS", "speed"))
+def colour(source, display, association, array, preset, title, slot=None, symmetric=False, separate=False):
+    """Colour ``display`` by ``array`` with its own colour map (``separate``: one of its own even
+    where another dataset has an array of the same name); a legend at ``slot`` (0, 1, 2 from
+    the bottom of the right edge) when given."""
+    ColorBy(display, (association, array), separate=separate)
+    lut = GetColorTransferFunction(array, display, separate=separate) if separate else GetColorTransferFunction(array)
+    if preset != "light greys":
+        lut.ApplyPreset(preset, True)
+    data = source.PointData if association == "POINTS" else source.CellData
+    lo, hi = data[array].GetRange()
+    if symmetric and lo < 0 < hi:
+        lo, hi = -max(-lo, hi), max(-lo, hi)
+    hi = hi if hi > lo else lo + 1.0
+    if preset == "light greys":  # a backdrop: white (slow) to mid-grey (fast), under coloured lines
+        lut.ColorSpace = "RGB"
+        lut.RGBPoints = [lo, 1.0, 1.0, 1.0, hi, 0.55, 0.55, 0.55]
+    lut.RescaleTransferFunction(lo, hi)
+    lut.AutomaticRescaleRangeMode = "Never"
+    if not separate:
+        GetOpacityTransferFunction(array).RescaleTransferFunction(lut.RGBPoints[0], lut.RGBPoints[-4])
+    if slot is not None:
+        bar = GetScalarBar(lut, view)
+        bar.Title = title
+        bar.ComponentTitle = ""
+        bar.WindowLocation = "Any Location"
+        bar.Orientation = "Vertical"
+        bar.Position = [0.90, 0.04 + 0.32 * slot]
+        bar.ScalarBarLength = 0.27
+        bar.TitleFontSize = 13
+        bar.LabelFontSize = 11
+        bar.RangeLabelFormat = "%-#.3g"
+        display.SetScalarBarVisibility(view, True)
+    return lut
+
+
+def hidden(source):
+    if source is not None:
+        Hide(source, view)
+
+
+shown = []
+# the mean speed behind everything, with a sparse lattice of mean-flow arrows over it
+field = load("mean_field.vti")
 if field is not None:
-    glyph = Glyph(registrationName="velocity arrows", Input=field, GlyphType="Arrow")
-    glyph.OrientationArray = ["POINTS", "velocity"]
-    glyph.ScaleArray = ["POINTS", "No scale array"]
-    glyph.MaximumNumberOfSamplePoints = 1500
-    Show(glyph, view)
-show("layout.vtp", XMLPolyDataReader, ("POINTS", "chi_N"))
-show("cilia.pvd", PVDReader, ("POINTS", "chi_N"))
-show("pathlines.vtp", XMLPolyDataReader, ("POINTS", "IntegrationTime"))
-show("particles.pvd", PVDReader, ("POINTS", "speed"))
-show("snapshots.pvd", PVDReader)
+    d = Show(field, view)
+    d.SetRepresentationType("Slice")
+    colour(field, d, "POINTS", "speed", "light greys", "mean speed [%s]" % SPEED, slot=0)
+    b = field.GetDataInformation().GetBounds()
+    lo, hi = field.PointData["speed"].GetRange()
+    n = 20  # arrows along the longer side: about 400 in all
+    h = max(b[1] - b[0], b[3] - b[2]) / (n - 1)
+    lattice = ResampleToImage(registrationName="arrow lattice", Input=field)
+    lattice.UseInputBounds = 0
+    lattice.SamplingBounds = [b[0] + h / 2, b[1] - h / 2, b[2] + h / 2, b[3] - h / 2, 0.0, 0.0]
+    lattice.SamplingDimensions = [max(2, int((b[1] - b[0]) / h)), max(2, int((b[3] - b[2]) / h)), 1]
+    arrows = Glyph(registrationName="mean-flow arrows", Input=lattice, GlyphType="Arrow")
+    arrows.OrientationArray = ["POINTS", "velocity"]
+    arrows.ScaleArray = ["POINTS", "speed"]
+    arrows.ScaleFactor = 0.9 * h / hi if hi > 0 else h
+    arrows.GlyphMode = "All Points"
+    a = Show(arrows, view)
+    ColorBy(a, None)
+    a.AmbientColor = a.DiffuseColor = [0.1, 0.1, 0.1]
+    shown.append("grey: mean speed; arrows: mean flow")
+# the fields of single instants, the FTLE and the design's control points: hidden
+snap = load("snapshots.pvd")
+if snap is not None:
+    d = Show(snap, view)
+    d.SetRepresentationType("Slice")
+    colour(snap, d, "POINTS", "speed", "light greys", "speed [%s]" % SPEED, separate=True)
+    hidden(snap)
+ftle = load("ftle.vti")
+if ftle is not None:
+    d = Show(ftle, view)
+    d.SetRepresentationType("Slice")
+    colour(ftle, d, "POINTS", "FTLE", "Inferno (matplotlib)", "FTLE [1/%s]" % TIME)
+    hidden(ftle)
+path = load("pathlines.vtp")
+if path is not None:
+    d = Show(path, view)
+    colour(path, d, "POINTS", "time", "Viridis (matplotlib)", "path lines: time [%s]" % TIME, slot=1)
+    d.LineWidth = 2.0
+    shown.append("lines: path lines (time)")
+particles = load("particles.pvd")
+if particles is not None:
+    d = Show(particles, view)
+    ColorBy(d, None)
+    d.SetRepresentationType("Points")
+    d.PointSize = 5.0
+    d.RenderPointsAsSpheres = 1
+    d.AmbientColor = d.DiffuseColor = [1.0, 1.0, 1.0]
+    hidden(particles)
+design = load("design.vtp")
+if design is not None:
+    d = Show(design, view)
+    d.SetRepresentationType("Points")
+    d.PointSize = 9.0
+    d.RenderPointsAsSpheres = 1
+    colour(design, d, "POINTS", "residual", "Reds", "design residual")
+    hidden(design)
+# the cilia (moving) and their bases, coloured by chi_N
+cilia = load("cilia.pvd")
+if cilia is not None:
+    d = Show(cilia, view)
+    colour(cilia, d, "CELLS", "chi_N", "Cool to Warm", "chi_N", slot=2, symmetric=True)
+    d.LineWidth = 2.5
+layout = load("layout.vtp")
+if layout is not None:
+    d = Show(layout, view)
+    d.SetRepresentationType("Points")
+    d.PointSize = 6.0
+    d.RenderPointsAsSpheres = 1
+    colour(layout, d, "POINTS", "chi_N", "Cool to Warm", "chi_N", slot=2, symmetric=True)
+    shown.insert(0, "cilia and bases: chi_N")
+
+clock = AnnotateTime(registrationName="time")
+clock.Format = "t = {time:.3f} " + TIME
+c = Show(clock, view)
+c.WindowLocation = "Lower Left Corner"
+c.FontSize = 12
+label = Text(registrationName="legend")
+label.Text = SCENE + ": " + "; ".join(shown) + "\\nhidden (eye icon): snapshots, FTLE, design, particles"
+t = Show(label, view)
+t.WindowLocation = "Upper Left Corner"
+t.FontSize = 12
+t.Justification = "Left"
+
+# a 2D top view on the carpet (the mean field's box, else the layout's)
 view.InteractionMode = "2D"
-ResetCamera(view)
-GetAnimationScene().UpdateAnimationUsingDataTimeSteps()
+view.OrientationAxesVisibility = 0
+box = (field or layout or path or cilia).GetDataInformation().GetBounds()
+cx, cy = 0.5 * (box[0] + box[1]), 0.5 * (box[2] + box[3])
+view.CameraFocalPoint = [cx, cy, 0.0]
+view.CameraPosition = [cx, cy, 10.0 * max(box[1] - box[0], box[3] - box[2], 1e-300)]
+view.CameraViewUp = [0.0, 1.0, 0.0]
+view.ResetCamera(box[0], box[1], box[2], box[3], 0.0, 0.0)
+view.CameraParallelScale = 0.55 * max(box[3] - box[2], (box[1] - box[0]) * 0.75)
+animation = GetAnimationScene()
+animation.UpdateAnimationUsingDataTimeSteps()
+animation.AnimationTime = 0.0
+SetActiveSource(cilia or layout)
 Render(view)
-"""
+'''
 
 
-def _paraview_script(path: Path) -> None:
-    """Write the pvpython script that opens every output of the render in ParaView."""
-    path.write_text(_PARAVIEW)
+def write_script(path, folder, *, si: bool = False, scene: str = "") -> Path:
+    """Write the ParaView script that opens a render folder.
+
+    Parameters
+    ----------
+    path : str or Path
+        The script to write (``DIR/open_in_paraview.py``).
+    folder : str or Path
+        The render folder as it will be once complete (the script finds its files beside
+        itself first; this absolute path is its fallback when ParaView does not tell it where
+        it is).
+    si : bool, optional
+        Whether the files are in SI units (m, s) rather than L and tau.
+    scene : str, optional
+        The scene's name, shown in the view.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    path = Path(path)
+    length, time = ("m", "s") if si else ("L", "tau")
+    header = _HEADER.format(folder=str(Path(folder).resolve()), length=length, time=time,
+                            speed=f"{length}/{time}", scene=scene)
+    path.write_text(header + _BODY)
+    return path

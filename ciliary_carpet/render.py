@@ -73,7 +73,7 @@ from .ftle import ftle_field
 from .outdir import MANIFEST, SUMMARY, RenderError, is_complete, owned_files
 from .outdir import _OUTPUT_NAME, _check_out_dir, _clean_stale_stages, _place, _stage_prefix, _write_manifest  # noqa: F401
 from .outdir import usual_mode as _usual_mode
-from .paraview import _paraview_script
+from .paraview import SCRIPT, write_script
 from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
 from .report import _markdown
 from .scene import Scene, SceneError
@@ -227,6 +227,25 @@ def _vorticity(u: np.ndarray, spacing, shape) -> np.ndarray:
     w = np.zeros((u.shape[0], 3))
     w[:, 2] = (np.gradient(W, spacing[0], axis=1) - np.gradient(U, spacing[1], axis=0)).ravel()
     return w
+
+
+def _beat(carpet: Carpet, T0: float) -> dict:
+    """The cilia's beat: the median period of the beating cilia (each beats with the period of
+    its own limit cycle, T(chi_N)), their range, and how many beat; T0 when none does."""
+    p = carpet.periods
+    p = p[np.isfinite(p)]
+    if p.size == 0:
+        return {"period": T0, "period_min": T0, "period_max": T0, "beating": 0}
+    return {"period": float(np.median(p)), "period_min": float(p.min()), "period_max": float(p.max()),
+            "beating": int(p.size)}
+
+
+def _looped(files: list, beat: float, span: float) -> list:
+    """(time, file) entries that repeat one beat's ``files`` (at k beat / n) from 0 until
+    ``span`` is covered: a .pvd of them plays the beat on over the whole time range."""
+    n = len(files)
+    count = max(n + 1, int(math.ceil(span / beat * n - 1e-9)) + 1)
+    return [(k * beat / n, files[k % n]) for k in range(count)]
 
 
 # ------------------------------------------------------------------------------ resources
@@ -434,21 +453,28 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
                                      "max_speed": float(np.nanmax(np.linalg.norm(u, axis=1))) * V}
             done += 1
             progress.update(done)
+        # one time base for what moves: the snapshots and the cilia's frames sample one beat of the
+        # cilia (their median period) and their .pvd repeats it over the path lines' time range
+        beat = _beat(carpet, T0)
+        Tb = beat["period"]
+        span = pathline_duration(scene, carpet, T0)[0] if o.pathlines else Tb
+        summary["beat"] = {k: (v * T if k != "beating" else v) for k, v in beat.items()}
+        summary["beat"]["loop_until"] = span * T
         if o.snapshots > 0:
             t1 = _time.perf_counter()
             origin, spacing, shape, pts = _field_grid(scene, carpet)
             entries, fid = [], []
             for k in range(o.snapshots):
-                t = k * T0 / o.snapshots
+                t = k * Tb / o.snapshots
                 s = carpet.evaluate(pts, t, tol=tol)
                 u = s.velocity
                 f = write_field(stage / f"snapshot_{k:03d}.vti", np.asarray(origin) * L, np.asarray(spacing) * L,
                                 shape, {"velocity": u * V, "speed": np.linalg.norm(u, axis=1) * V,
                                         "vorticity": _vorticity(u, spacing, shape) / T,
                                         "error_bound": s.error_bound * V}, time=t * T)
-                entries.append((t * T, f))
+                entries.append(f)
                 fid.append(s.fidelity)
-            write_pvd(stage / "snapshots.pvd", entries)
+            write_pvd(stage / "snapshots.pvd", _looped(entries, Tb * T, span * T))
             clock["snapshots"] = _time.perf_counter() - t1
             summary["snapshots"] = {"count": o.snapshots, "fidelity": fid[0]}
             done += 1
@@ -459,13 +485,13 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
             s_arc = carpet.s
             f_scale = sc.viscosity_Pa_s * V / carpet.mu if sc is not None else 1.0
             for k in range(o.frames):
-                t = k * T0 / o.frames
+                t = k * Tb / o.frames
                 pos, f, ph = carpet.state(t)
                 z = np.zeros(pos.shape[:2] + (1,))
                 fn = write_cilia(stage / f"cilia_{k:03d}.vtp", np.concatenate([pos * L, z], -1), s_arc * L,
                                  np.arange(carpet.n), chi, ph, drag=np.concatenate([f * f_scale, z], -1), time=t * T)
-                entries.append((t * T, fn))
-            write_pvd(stage / "cilia.pvd", entries)
+                entries.append(fn)
+            write_pvd(stage / "cilia.pvd", _looped(entries, Tb * T, span * T))
             clock["frames"] = _time.perf_counter() - t1
             done += 1
             progress.update(done)
@@ -485,7 +511,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
             clock["pathline_error"] = _time.perf_counter() - t1
             early = int(np.sum(pl.reason == UNDERFLOW))
             summary["pathlines"] = {"tracers": int(seeds.shape[0]), "duration": duration * T, "duration_from": how,
-                                    "periods": duration / T0, "model": model, "samples_per_period": o.samples_per_period,
+                                    "periods": duration / T0, "beats": duration / Tb, "model": model, "samples_per_period": o.samples_per_period,
                                     "outcome": pl.counts(), "stopped_early": early, "status": pl.status,
                                     "message": pl.message, "work": pl.stats,
                                     "end_point_error": dict(err, max=err["max"] * L, median=err["median"] * L)}
@@ -513,7 +539,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
             clock["preview"] = _time.perf_counter() - t1
             done += 1
             progress.update(done)
-        _paraview_script(stage / "open_in_paraview.py")
+        write_script(stage / SCRIPT, out_dir, si=sc is not None, scene=scene.name)
         done += 1
         progress.update(done)
         clock["total"] = _time.perf_counter() - t0
