@@ -166,8 +166,8 @@ class TargetSpec(Section):
         "cells", 'where the designed mean flow is compared with the target: `"cilia"`: each base point moved '
         'half a spacing downstream; `"cells"`: the cell centres (circumcentres of the Delaunay triangles of the '
         'base points: square cells\' centres, hexagonal triangles\' centres; a row uses the `"cilia"` rule). '
-        "Control points more than 2 spacings + 1 L from every base, or inside a cilium's swept region, are an "
-        "error", "pairs", choices=("cells", "cilia"), kinds=ANGLE_KINDS)
+        "Control points more than 2 spacings + 1 L from every base are an error; those inside a cilium's swept "
+        "region are used (see `inside_swept`)", "pairs", choices=("cells", "cilia"), kinds=ANGLE_KINDS)
     residual: float = key(
         0.05, 'acceptance threshold on the design\'s rms residual (rad for angle targets, relative to rms target '
         'speed for `"points"`); the test suite checks it', lo=0, lo_open=True, kinds=_DESIGNED)
@@ -178,6 +178,12 @@ class TargetSpec(Section):
         0.3, "the speed along the target direction each control point keeps, as a fraction of the speed the "
         "straight cilia within 5 spacings make there (keeps the design from switching cilia off; local, so that "
         "it means the same on every carpet size)", lo=0, hi=1, hi_open=True, kinds=ANGLE_KINDS)
+    inside_swept: str = key(
+        "use", "control points inside a cilium's swept region (any PIV field, grid or random sample over a carpet "
+        "has some): `\"use\"` them like the others (the regularised mean flow is bounded there and resolved "
+        "exactly by the design), `\"downweight\"` them (weight 0.1 in the objective and in the rms residual) or "
+        "`\"drop\"` them; the design's summary says how many and what was done", "str",
+        choices=("use", "downweight", "drop"), kinds=_DESIGNED)
     smoothness: float = key(
         0.0, "weight of the neighbour-difference regulariser (Delaunay neighbours): larger gives layouts with "
         "fewer distinct curvatures", lo=0, kinds=_DESIGNED)
@@ -359,7 +365,7 @@ class Target:
     amplitude : float or None
         RADIANS: the deflection (uniform, signed) or the pattern amplitude (> 0); None for
         "none" and "points".
-    line, width, centre, control, residual, strict, speed_floor, smoothness, sigma, samples, robust :
+    line, width, centre, control, residual, strict, speed_floor, inside_swept, smoothness, sigma, samples, robust :
         as the keys of :class:`TargetSpec` (same defaults): width None = ``frame.spacing``,
         centre None = ``frame.centre``; ``control`` see :func:`control_points`; the design
         settings go to :func:`~ciliary_carpet.design.design_layout` (``robust``: its
@@ -378,6 +384,7 @@ class Target:
     residual: float = _as_in_spec("residual")
     strict: bool = _as_in_spec("strict")
     speed_floor: float = _as_in_spec("speed_floor")
+    inside_swept: str = _as_in_spec("inside_swept")
     smoothness: float = _as_in_spec("smoothness")
     sigma: float = _as_in_spec("sigma")
     samples: int = _as_in_spec("samples")
@@ -395,6 +402,9 @@ class Target:
             if not self.pattern.signed and self.amplitude <= 0:
                 raise TargetError(f"the amplitude of a {self.kind!r} target must be > 0, got {self.amplitude!r}")
             object.__setattr__(self, "amplitude", float(self.amplitude))
+        if self.inside_swept not in ("use", "downweight", "drop"):
+            raise TargetError(f"target inside_swept must be \"use\", \"downweight\" or \"drop\", got "
+                              f"{self.inside_swept!r}")
         if self.robust and not self.sigma > 0:
             raise TargetError(f"target robust = true designs for the fabrication tolerance sigma, which must then be "
                               f"> 0, got sigma = {self.sigma!r}")

@@ -12,8 +12,11 @@ from ciliary_carpet import layout
 from ciliary_carpet.carpet import Carpet
 from ciliary_carpet.cli import main
 from ciliary_carpet.design import (
+    INSIDE_WEIGHT,
+    NEAR_RADIUS,
     DesignError,
     DesignModel,
+    NearField,
     angle_objective,
     cycle_moments,
     design,
@@ -150,8 +153,10 @@ def test_bad_control_points_and_settings_are_named_errors(table):
     c = _carpet(table, 3)
     with pytest.raises(TargetError, match="outside the carpet"):
         design_layout(c, np.array([[1.0, 1.0], [40.0, 1.0]]), angles=[0.1, 0.1])
-    with pytest.raises(TargetError, match="on a cilium"):
-        design_layout(c, c.bases[:1] + [0.0, 0.3], angles=[0.1])
+    with pytest.raises(ValueError, match="inside_swept"):
+        design_layout(c, _cells(c), angles=0.1, inside_swept="ignore")
+    with pytest.raises(TargetError, match="every control point lies inside"):
+        design_layout(c, c.bases[:1] + [0.0, 0.3], angles=[0.1], inside_swept="drop")
     with pytest.raises(ValueError, match="speed_floor"):
         design_layout(c, _cells(c), angles=0.1, speed_floor=1.5)
     with pytest.raises(ValueError, match="speed_floor"):
@@ -262,7 +267,10 @@ def test_tolerance_study_against_brute_force(table):
     rng = np.random.default_rng(3)
     full = []
     for _ in range(12):
-        u = _carpet(table, 4, chi=d.chi_N * (1 + 0.1 * rng.standard_normal(c.n))).mean_velocity(X, tol=1e-2)[:, :2]
+        # beyond the flutter cutoff a cilium is still, in the study and in the carpet (clipped
+        # within the table's range, which ends a little above the cutoff)
+        chi = np.clip(d.chi_N * (1 + 0.1 * rng.standard_normal(c.n)), -170.0, 170.0)
+        u = _carpet(table, 4, chi=chi).mean_velocity(X, tol=1e-2)[:, :2]
         r = np.angle((u[:, 0] + 1j * u[:, 1]) * np.conj(d.target[:, 0] + 1j * d.target[:, 1]))
         full.append(math.sqrt(np.mean(r ** 2)))
     full = np.array(full)
@@ -389,3 +397,170 @@ def test_narrowest_width_estimate_matches_designs(table):
             cc = Carpet(c.bases, np.array([table.chi_N_for_angle(a) for a in want]), table, c.phases)
         rms[w] = design_layout(cc, X, angles=t.deflection(X, fr), cilium_angles=want).residual_rms
     assert w2 <= 3.0 and rms[3.0] < 0.05 < rms[1.0]
+
+
+# ------------------------------------------------------------------ targets users have (issue 24)
+def _reachable(table, n, spacing, wall, points, seed=1, extra=0):
+    """A carpet of n x n cilia at chi_N = 0 and a reachable velocity target: the mean flow (the
+    resolved sum, tol = 0) of a smooth known layout, sampled at ``points``: "scattered" (as many
+    uniform random points over the bases' box as cilia, some inside swept regions) or "grid"
+    (a regular grid of half the spacing over the same box, every other row and column through the
+    cilia, 0.4 L above their bases))."""
+    b = layout.square(n, n, spacing)
+    lo, hi = b.min(axis=0), b.max(axis=0)
+    if points == "scattered":
+        X = lo + np.random.default_rng(seed).random((n * n, 2)) * (hi - lo)
+        X = np.concatenate([X, b[:extra] + [0.0, 0.4]])  # and ``extra`` on the first cilia
+    else:
+        g = [np.arange(lo[i], hi[i] + 1e-9, 0.5 * spacing) + (0.0, 0.4)[i] for i in range(2)]  # rows on cilia
+        X = np.stack(np.meshgrid(*g), axis=-1).reshape(-1, 2)
+    span = hi - lo
+    chi = 90 * np.sin(2 * np.pi * 0.8 * b[:, 0] / span[0] + 0.3) * np.cos(2 * np.pi * 0.6 * b[:, 1] / span[1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        phases = layout.random_phases(n * n, 0)
+        U = Carpet(b, chi, table, phases, wall=wall).mean_velocity(X, tol=0.0)[:, :2]
+        c0 = Carpet(b, 0.0, table, phases, wall=wall)
+    return c0, X, U
+
+
+def _exact_rms(d):
+    """The rms residual of design ``d`` on the resolved mean flow (tol = 0: the dense sum)."""
+    u = d.carpet.mean_velocity(d.control, tol=0.0)[:, :2]
+    w = np.ones(len(u)) if d.weights is None else d.weights
+    if d.kind == "velocity":
+        s = math.sqrt(np.sum(w * np.sum(d.target ** 2, axis=1)) / np.sum(w))
+        r = np.linalg.norm(u - d.target, axis=1) / s
+    else:
+        r = np.abs(np.angle((u[:, 0] + 1j * u[:, 1]) * np.conj(d.target[:, 0] + 1j * d.target[:, 1])))
+    return math.sqrt(np.sum(w * r ** 2) / np.sum(w))
+
+
+@pytest.mark.parametrize("wall, points", [(None, "scattered"), (0.5, "scattered"), (0.5, "grid"), (0.1, "scattered")],
+                         ids=["free-scattered", "wall0.5-scattered", "wall0.5-grid", "wall0.1-scattered"])
+def test_reachable_velocity_targets_are_designed_to_their_threshold(table, wall, points):
+    """A target made by a known layout, at scattered or gridded points (some inside swept
+    regions), with or without a wall (down to 5 blob radii below the filaments), is designed to
+    rms <= 0.05, with an error bar at most half that which holds against the resolved sum.
+    Before issue 24 the wall cases ended at 0.15-0.18 (the design model's carriers at points
+    close to the cilia; local minima), and inside points were refused."""
+    c0, X, U = _reachable(table, 7, 2.5, wall, points)
+    d = design_layout(c0, X, velocities=U, threshold=0.05)
+    assert d.inside_swept["count"] > 0 and d.inside_swept["action"] == "use"
+    assert d.residual_rms <= 0.05 < d.local_rms
+    assert d.residual_error <= 0.025
+    assert abs(d.residual_rms - _exact_rms(d)) <= d.residual_error
+    assert d.summary()["residual_error_ok"] and d.summary()["inside_swept"]["count"] == d.inside_swept["count"]
+
+
+def test_the_wall_design_needs_the_near_field_and_the_sweep(table):
+    """What fixed the design above a wall: without the near field's exact pair flows and the
+    sweep (the design model of before), the same target misses its threshold."""
+    c0, X, U = _reachable(table, 7, 2.5, 0.5, "scattered")
+    old = design_layout(c0, X, velocities=U, near_radius=0.0, sweeps=0)
+    assert old.residual_rms > 0.05
+
+
+def test_error_bar_of_an_angle_design_holds_and_is_half_the_threshold(table):
+    """The bundled kind of target (angles at the cell centres) with a wall: the error bar, from
+    the final check at a tolerance picked from the threshold, is at most half the threshold and
+    bounds the difference from the resolved sum."""
+    c = _carpet(table, 5, wall=0.5)
+    X = _cells(c)
+    d = design_layout(c, X, angles=math.radians(20.0), threshold=0.05)
+    assert d.residual_error <= 0.025
+    assert abs(d.residual_rms - _exact_rms(d)) <= d.residual_error
+    loose = design_layout(c, X, angles=math.radians(20.0))  # no threshold: the check tolerance's bar
+    assert loose.residual_error > d.residual_error
+
+
+def test_inside_points_used_downweighted_or_dropped(table):
+    c0, X, U = _reachable(table, 5, 2.5, None, "scattered", seed=3, extra=3)
+    inside = []
+    for j in range(c0.n):
+        inside += np.nonzero(c0.in_swept_region(X, j))[0].tolist()
+    inside = sorted(set(inside))
+    assert inside  # the sample puts points on cilia
+    used = design_layout(c0, X, velocities=U, threshold=0.05)
+    assert used.inside_swept["indices"] == inside and used.weights is None
+    assert used.control.shape[0] == X.shape[0] and "inside a cilium's swept region used" in used.message
+    down = design_layout(c0, X, velocities=U, threshold=0.05, inside_swept="downweight")
+    assert np.all(down.weights[inside] == INSIDE_WEIGHT) and np.sum(down.weights == 1.0) == len(X) - len(inside)
+    assert abs(down.residual_rms - _exact_rms(down)) <= down.residual_error
+    drop = design_layout(c0, X, velocities=U, threshold=0.05, inside_swept="drop")
+    assert drop.control.shape[0] == len(X) - len(inside) and drop.inside_swept["action"] == "drop"
+    keep = np.setdiff1d(np.arange(len(X)), inside)
+    assert np.array_equal(drop.control, X[keep]) and np.array_equal(drop.target, U[keep])
+    for d in (used, down, drop):
+        assert d.residual_rms <= 0.05
+
+
+def test_near_field_interpolates_the_resolved_pair_flows(table):
+    """NearField's spline in chi against the resolved mean flow of one cilium computed directly
+    at curvatures between its samples (points inside and around the swept region)."""
+    rng = np.random.default_rng(4)
+    c = _carpet(table, 1, wall=0.5)
+    X = c.bases + rng.uniform([-1.0, -0.5], [1.0, 1.5], (40, 2))
+    nf = NearField(c, X, NEAR_RADIUS)
+    assert nf.k.size == np.sum(np.linalg.norm(X - c.bases, axis=1) <= NEAR_RADIUS)
+    h = nf.grid[1] - nf.grid[0]
+    worst = 0.0
+    for chi in (nf.grid[20] + 0.5 * h, nf.grid[45] + 0.37 * h, -150.0, 3.3):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            u = Carpet(c.bases, chi, table, wall=0.5).mean_velocity(X[nf.k], tol=0.0)[:, :2]
+        v = nf.pair_velocity(np.array([chi]))
+        worst = max(worst, np.linalg.norm(v - u, axis=1).max() / np.linalg.norm(u, axis=1).max())
+    assert worst < 2e-3
+
+
+def test_mean_flow_inside_a_swept_region_is_resolved(table):
+    """The model's mean flow at points inside a swept region (the table's 65 arc-length x 64
+    phase samples, Simpson and the trapezoid rule over phase) against sums 4x finer in both
+    (the cycle's trigonometric interpolant at 256 phases, a cubic spline in s at 257 points): an
+    error far below the design threshold (the issue measured about 3e-3)."""
+    from scipy.interpolate import CubicSpline
+
+    from ciliary_carpet.carpet import _simpson
+    from ciliary_carpet.design import INSIDE_ACCURACY
+    from ciliary_carpet.stokeslet import stokeslet_velocity
+
+    rng = np.random.default_rng(0)
+    for chi, wall in ((60.0, None), (-120.0, 0.5)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            c = Carpet(np.zeros((1, 2)), np.array([chi]), table, wall=wall)
+        pos = c.cycle_samples([0])[0][0].reshape(-1, 2)
+        lo, hi = pos.min(0), pos.max(0)
+        X = lo + rng.random((300, 2)) * (hi - lo)
+        X = X[c.in_swept_region(X, 0)][:60]
+        u = c.mean_velocity(X, tol=0.0)[:, :2]
+        coef = c._c["coef"][0].astype(float)
+        K = (coef.shape[0] + 1) // 2
+        n_p = 4 * c._c["n_phase"]
+        arg = 2 * math.pi * (np.arange(n_p) / n_p)[:, None] * np.arange(K)
+        v = np.einsum("pk,ksq->psq", np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1), coef)
+        s2 = np.linspace(0, 1, 4 * (c._c["s"].size - 1) + 1)
+        v = CubicSpline(c._c["s"], v, axis=1)(s2)
+        w = _simpson(s2.size) / n_p
+        src = np.column_stack([v[..., :2].reshape(-1, 2), np.zeros(v.shape[0] * v.shape[1])])
+        f = np.column_stack([(v[..., 2:] * w[None, :, None]).reshape(-1, 2), np.zeros(src.shape[0])])
+        ref = stokeslet_velocity(np.column_stack([X, np.zeros(len(X))]), src, f, c.mu, kernel=c.kernel)[:, :2]
+        e = np.linalg.norm(ref - u, axis=1)
+        rel = math.sqrt(np.mean(e ** 2) / np.mean(np.sum(ref ** 2, axis=1)))
+        assert 1e-5 < rel < INSIDE_ACCURACY  # measured 1.4e-3 - 1.8e-3: far below 0.05 / 2
+        assert e.max() < 2.5 * INSIDE_ACCURACY * np.linalg.norm(ref, axis=1).max()
+
+
+def test_scene_inside_swept_reaches_the_design(tmp_path, table):
+    """``[target] inside_swept`` from a scene file reaches the design and its summary."""
+    c0, X, U = _reachable(table, 4, 2.5, None, "scattered", seed=3, extra=2)
+    f = tmp_path / "pts.csv"
+    f.write_text("x,y,u,v\n" + "".join(f"{a},{b},{u},{v}\n" for (a, b), (u, v) in zip(X, U)))
+    body = ('[carpet]\nshape = [4, 4]\nspacing = 2.5\nphases = "random"\n[target]\nkind = "points"\n'
+            'file = "pts.csv"\ninside_swept = "drop"\n')
+    d, _ = design(load_scene(_scene(tmp_path, body)))
+    s = d.summary()
+    assert s["inside_swept"]["action"] == "drop" and s["inside_swept"]["count"] >= 2
+    assert d.control.shape[0] == len(X) - s["inside_swept"]["count"]
+    assert s["residual_error"] <= 0.5 * s["residual_threshold"]

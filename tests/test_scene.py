@@ -413,7 +413,7 @@ def test_target_defaults_have_one_home():
 
     t, spec = Target("focus", 0.2), TargetSpec()
     shared = [f.name for f in dataclasses.fields(Target) if f.name in {g.name for g in dataclasses.fields(spec)}]
-    assert len(shared) == 12
+    assert len(shared) == 13
     for k in shared[1:]:  # all but kind
         assert getattr(t, k) == getattr(spec, k), k
     assert CarpetSpec().blob == BLOB

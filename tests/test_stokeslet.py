@@ -564,7 +564,7 @@ def test_kernel_objects():
     assert make_kernel(None, 0.1) == RegularisedStokeslet(0.1)
     assert make_kernel(Wall(), 0.1) == RegularisedBlake(0.1, Wall())
     assert all(k.symmetric for k in (Stokeslet(), Blake(), RegularisedStokeslet(0.1)))
-    assert not RegularisedBlake(0.1).symmetric
+    assert RegularisedBlake(0.1).symmetric  # exactly reciprocal (tests/test_treecode.py)
     assert RegularisedStokeslet(0.1).c2 == C2_FREE
     for bad in (0.0, -1.0, np.nan, "x"):
         with pytest.raises(ValueError, match="blob"):
