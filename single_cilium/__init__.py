@@ -7,8 +7,9 @@ along ``e2``; ``theta`` is the tangent angle from ``e2``, anticlockwise.
 
 Front doors
 -----------
-CiliumParams      the three groups (and SI conversion)
-equilibrium       closed-form equilibrium theta(s); limit_angle, equilibrium_shape
+CiliumParams      the three groups, an optional background flow U (and SI conversion)
+equilibrium       closed-form equilibrium theta(s) in fluid at rest; limit_angle, equilibrium_shape;
+                  steady_state: the discrete equilibrium in a background flow (params.background)
 Mesh              graded spectral-element mesh of the arc length
 simulate          nonlinear dynamics (Galerkin in space, Radau IIA(5) in time) with error estimates
 stability         leading eigenvalues, modes and regime of the linearisation; flutter_cutoff,
@@ -19,7 +20,8 @@ limit_cycle       periodic orbit by shooting with the exact monodromy (single_ci
 __version__ = "0.1.0"
 
 from .params import CiliumParams, PhysicalCilium
-from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
+from .equilibrium import (NoLimitAngleError, SteadyState, equilibrium, equilibrium_shape, limit_angle,
+                          steady_state)
 from .mesh import Mesh
 from .filament import Filament
 from .radau import ConvergenceError
@@ -31,7 +33,8 @@ from .stability import (Cutoff, FlutterBoundary, ResolutionWarning, Stability, f
 
 __all__ = [
     "CiliumParams", "PhysicalCilium", "equilibrium", "equilibrium_shape", "limit_angle",
-    "NoLimitAngleError", "Mesh", "Filament", "simulate", "Simulation", "ConvergenceError",
+    "NoLimitAngleError", "steady_state", "SteadyState", "Mesh", "Filament", "simulate", "Simulation",
+    "ConvergenceError",
     "Progress", "TqdmProgress", "stability", "Stability", "ResolutionWarning", "flutter_cutoff",
     "Cutoff", "flutter_boundary", "FlutterBoundary", "stability_map", "limit_cycle", "LimitCycle",
     "CycleError", "__version__",

@@ -5,6 +5,14 @@ for all stages in one call: per stage four triangular-ish matvecs with the cumul
 integration matrix and two with the stiffness and load matrices, O(n^2) work that numpy would
 spread over some twenty calls. No fastmath: the exact mirror symmetry chi_N -> -chi_N is tested
 bit for bit.
+
+Background flow: in a uniform stream ``U = (U1, U2)`` (field frame, units ``L / tau``) the drag
+acts on the relative velocity, ``d = -eta ((v - U).t t + 2 (v - U).n n)``. With
+``v = -(a, b)``, ``a = int_0^s cos(theta) theta_t``, ``b = int_0^s sin(theta) theta_t``, this is
+``a -> a + U1``, ``b -> b + U2`` at every quadrature node: the kernels take ``U1, U2`` and do
+exactly that, so every derivative with respect to ``theta`` (which acts on the tangent and
+normal at the node, not on ``U``) picks the stream up, and the derivative with respect to
+``theta_t`` (the drag matrix) is unchanged. ``U = (0, 0)`` adds nothing (bit for bit).
 """
 from __future__ import annotations
 
@@ -33,7 +41,7 @@ TI_COMPLEX = _TI[1] + 1j * _TI[2]
 
 
 @njit(cache=True)
-def stage_residual(Y, Kd, I, w, Kmat, Bmat, eta, chi_E, chi_N, relax):
+def stage_residual(Y, Kd, I, w, Kmat, Bmat, eta, chi_E, chi_N, relax, U1, U2):
     """``f(Y_j) - M(Y_j) K_j`` for each row ``j``.
 
     Parameters
@@ -46,6 +54,8 @@ def stage_residual(Y, Kd, I, w, Kmat, Bmat, eta, chi_E, chi_N, relax):
     relax : float
         1.0 for the activity law ``kappa_t = -kappa - chi_E sin theta``; 0.0 for frozen kappa
         (``chi_E`` must then be passed as 0.0).
+    U1, U2 : float
+        Background flow (module docstring); 0.0, 0.0 for the fluid at rest.
     """
     k = Y.shape[0]
     n = w.shape[0]
@@ -72,8 +82,8 @@ def stage_residual(Y, Kd, I, w, Kmat, Bmat, eta, chi_E, chi_N, relax):
             st[i] = s[i] * tht[i]
         # velocity v = -(a, b) by cumulative integration, then the drag density, weighted
         for q in range(n):
-            a = 0.0
-            b = 0.0
+            a = U1
+            b = U2
             for i in range(n):
                 a += I[q, i] * ct[i]
                 b += I[q, i] * st[i]
@@ -110,14 +120,19 @@ def stage_residual(Y, Kd, I, w, Kmat, Bmat, eta, chi_E, chi_N, relax):
 # hence the exact derivative of the discrete step map.
 # ---------------------------------------------------------------------------------------------
 @njit(cache=True)
-def _drag_projections(th, v, I, w, eta):
+def _drag_projections(th, v, I, w, eta, U1, U2):
     """The pieces of ``D(th) v`` for full nodal ``th`` and ``v`` (theta_t): cos th, sin th, the
     tangential and normal velocities at the nodes, ``I[:, 1:]``, and the quadrature-weighted drag
-    projected on the free nodes, ``Px``, ``Py`` (so that ``D(th) v = cos th Px + sin th Py``)."""
+    projected on the free nodes, ``Px``, ``Py`` (so that ``D(th) v = cos th Px + sin th Py``).
+    With a background flow ``(U1, U2)`` the velocities are relative to it and ``Px``, ``Py``
+    include the stream's drag (``D(th) v + g_U(th)``)."""
     c = np.cos(th)
     s = np.sin(th)
     a = I @ (c * v)
     b = I @ (s * v)
+    if U1 != 0.0 or U2 != 0.0:
+        a = a + U1
+        b = b + U2
     vpar = a * s - b * c
     vperp = a * c + b * s
     wdx = w * eta * (vpar * s + 2.0 * vperp * c)
@@ -127,11 +142,13 @@ def _drag_projections(th, v, I, w, eta):
 
 
 @njit(cache=True)
-def _stage_terms(th, v, I, w, eta):
+def _stage_terms(th, v, I, w, eta, U1, U2):
     """For full nodal ``th`` and ``v`` (theta_t): ``D(th) v`` on the free nodes (n-1,), the drag
-    matrix ``D(th)`` (n-1, n-1) and ``d(D(th) v)/dth`` at fixed ``v`` (n-1, n-1)."""
+    matrix ``D(th)`` (n-1, n-1) and ``d(D(th) v)/dth`` at fixed ``v`` (n-1, n-1). With a
+    background flow the first and the last include the stream's drag ``g_U(th)`` (the first is
+    then ``D(th) v + g_U(th)``; at ``v = 0``, ``g_U`` and its Jacobian)."""
     n = th.shape[0]
-    c, s, vpar, vperp, If, Px, Py = _drag_projections(th, v, I, w, eta)
+    c, s, vpar, vperp, If, Px, Py = _drag_projections(th, v, I, w, eta, U1, U2)
     Dv = c[1:] * Px + s[1:] * Py
     # drag matrix: D = eta (Wt^T W Wt + 2 Wn^T W Wn), Wt[q, a] = I[q, a] sin(th_q - th_a)
     Wt = np.empty((n, n - 1))
@@ -162,7 +179,7 @@ def _stage_terms(th, v, I, w, eta):
 
 
 @njit(cache=True)
-def _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N, jac):
+def _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N, jac, U1, U2):
     """Residual (3(n-1),) of the reduced stage equations and, if ``jac``, the Jacobian and the
     per-stage pieces needed for the sensitivities (see the block comment above)."""
     n = th0.shape[0]
@@ -193,11 +210,11 @@ def _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N,
             Vs[i, a_] = v[a_ + 1]
         th = Th[i].copy()
         if jac:
-            Dv, D, Jd = _stage_terms(th, v, I, w, eta)
+            Dv, D, Jd = _stage_terms(th, v, I, w, eta, U1, U2)
             Ds[i] = D
             Jds[i] = Jd
         else:
-            Dv = _dv_only(th, v, I, w, eta)
+            Dv = _dv_only(th, v, I, w, eta, U1, U2)
         Ri = Br @ ka - Kr @ th[1:] - Dv
         R[i * m:(i + 1) * m] = Ri
         if jac:
@@ -215,15 +232,19 @@ def _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N,
 
 
 @njit(cache=True)
-def _dv_only(th, v, I, w, eta):
-    """``D(th) v`` on the free nodes alone (no matrices: the cheap path of the stage Newton)."""
-    c, s, _, _, _, Px, Py = _drag_projections(th, v, I, w, eta)
+def _dv_only(th, v, I, w, eta, U1, U2):
+    """``D(th) v`` (+ ``g_U(th)``) on the free nodes alone (no matrices: the cheap path of the stage Newton)."""
+    c, s, _, _, _, Px, Py = _drag_projections(th, v, I, w, eta, U1, U2)
     return c[1:] * Px + s[1:] * Py
 
 
 @njit(cache=True)
-def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi_N, tol, max_newton):
-    """``n_steps`` Radau IIA(5) steps of size ``h`` from ``y0`` (full Newton on the stages).
+def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi_N, tol, max_newton,
+                U1, U2):
+    """``n_steps`` Radau IIA(5) steps of size ``h`` from ``y0`` (full Newton on the stages), in
+    the background flow ``(U1, U2)`` (module docstring; the reduced residual then reads
+    ``R_i = B (...) - K Theta_i - D(Theta_i) V_i - g_U(Theta_i)``, and the sensitivities carry
+    ``dg_U/dtheta``).
 
     Returns ``Y`` (n_steps+1, N) the step ends, ``Yd`` (n_steps+1, N) the derivative of the
     collocation polynomial there (at the start: of the first step's polynomial), ``S``
@@ -272,7 +293,7 @@ def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi
         v0 = np.zeros(n)
         if k > 0:
             v0[1:] = Yd[k, :m]
-        _, D0, Jd0 = _stage_terms(th0, v0, I, w, eta)
+        _, D0, Jd0 = _stage_terms(th0, v0, I, w, eta, U1, U2)
         c0 = np.cos(th0[1:])
         sr = MU_REAL / h
         sc = MU_COMPLEX / h
@@ -287,7 +308,7 @@ def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi
         counts[1] += 2
         last = 1e300
         for it in range(max_newton):
-            R = _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N, False)[0]
+            R = _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N, False, U1, U2)[0]
             counts[0] += 1
             if not np.all(np.isfinite(R)):
                 break
@@ -320,7 +341,7 @@ def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi
             last = 1e300
             for it in range(max_newton):
                 R, J, Ds, Jds, Vs, Th, sinT, cosT = _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat,
-                                                                     eta, chi_E, chi_N, True)
+                                                                     eta, chi_E, chi_N, True, U1, U2)
                 counts[0] += 1
                 counts[1] += 1
                 if not np.all(np.isfinite(R)):
@@ -342,7 +363,7 @@ def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi
             return Y, Yd, S, Sh, counts
         # stages at the converged point
         R, J, Ds, Jds, Vs, Th, sinT, cosT = _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat,
-                                                             eta, chi_E, chi_N, sens)
+                                                             eta, chi_E, chi_N, sens, U1, U2)
         Zk = np.empty((3, n))
         for i in range(3):
             qs = Q[i, 0] + Q[i, 1] + Q[i, 2]

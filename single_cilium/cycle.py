@@ -104,7 +104,8 @@ class LimitCycle:
     thrust_norm, thrust_angle : float
         ``|Fbar|`` and ``phi_Fbar - pi`` wrapped into (-pi, pi] (DESIGN.md), close to theta_lim.
     theta_lim : float
-        Limit angle of the equilibrium (NaN where it has none).
+        Limit angle of the equilibrium (NaN where it has none); in a background flow, of the
+        still-fluid closed form (the stream does not enter it).
     tip_area : float
         Signed area enclosed by the tip orbit (anticlockwise positive): the non-reciprocity.
     floquet_multipliers : (k,) complex
@@ -171,6 +172,7 @@ class LimitCycle:
     def as_dict(self) -> dict:
         e = self.errors
         return {"chi_E": self.params.chi_E, "eta": self.params.eta, "chi_N": self.params.chi_N,
+                "U1": self.params.background[0], "U2": self.params.background[1],
                 "flutter": self.flutter, "period": self.period, "thrust_norm": self.thrust_norm,
                 "thrust_angle": self.thrust_angle, "thrust_x": self.thrust_x, "thrust_y": self.thrust_y,
                 "theta_lim": self.theta_lim, "tip_area": self.tip_area, "floquet": self.floquet,
@@ -233,7 +235,8 @@ def _assemble(params, mesh, fil, orbit: Orbit) -> dict:
         coords={"phase": ("phase", phase, {"long_name": "phase t/T from the upward crossing of the tip "
                                                         "angle through its cycle mean", "units": "1"}),
                 "s": ("s", mesh.nodes, {"long_name": "arc length / filament length", "units": "1"})},
-        attrs={"chi_E": params.chi_E, "eta": params.eta, "chi_N": params.chi_N, "period": orbit.period,
+        attrs={"chi_E": params.chi_E, "eta": params.eta, "chi_N": params.chi_N,
+               "background_U1": params.background[0], "background_U2": params.background[1], "period": orbit.period,
                "package_version": __version__},
     )
     return {"data": data, "thrust": Fbar, "tip_area": area}
@@ -347,8 +350,14 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
     Parameters
     ----------
     params : CiliumParams
+        With ``params.background = (U1, U2)``, the filament in that uniform flow (field frame,
+        ``e2`` along the field, units ``L / tau``): the drag is
+        ``d = -eta ((v - U).t t + 2 (v - U).n n)``, the equilibrium the discrete steady state in
+        the stream, and the thrust ``Fbar = -<int d ds>`` includes the stream's drag on the
+        filament (for a filament held still, ``-int eta (U.t t + 2 U.n n) ds``). The monodromy
+        of the shooting method carries the stream's terms exactly.
     mesh : Mesh, optional
-        Default ``Mesh.for_params(params, degree)``.
+        Default ``Mesh.for_params(params, degree)`` (graded for the still-fluid clamp layer).
     n_phase : int, optional
         Constant steps per period = points of the uniform phase grid (>= 16). Default: chosen
         by the solver (doubling from 32 until the time error estimate is below ``rtol``).
@@ -394,7 +403,7 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         raise ValueError(f"rtol must lie in (0, 0.1), got {rtol}")
     mesh = mesh if mesh is not None else Mesh.for_params(params, degree)
     try:
-        theta_lim = limit_angle(params)
+        theta_lim = limit_angle(params.with_background((0.0, 0.0)))
     except NoLimitAngleError:
         theta_lim = math.nan
     used: list[OrbitSolver] = []

@@ -2,10 +2,12 @@
 
 It integrates the Galerkin system of :mod:`single_cilium.filament` (MODEL.md section 2)
 
-    D(theta) theta_t = -K theta + B (kappa + chi_N),   kappa_t = -kappa - chi_E sin(theta)
+    D(theta) theta_t = -K theta + B (kappa + chi_N) - g_U(theta),   kappa_t = -kappa - chi_E sin(theta)
 
-with the Radau IIA(5) method of :mod:`single_cilium.radau` and returns a labelled time series
-with an estimate of its error.
+(``g_U``: the drag of the background flow ``U = params.background`` on the filament held still,
+zero in fluid at rest; the drag is ``d = -eta ((v - U).t t + 2 (v - U).n n)``, ``U`` in the field
+frame in units ``L / tau``) with the Radau IIA(5) method of :mod:`single_cilium.radau` and returns a
+labelled time series with an estimate of its error.
 """
 from __future__ import annotations
 
@@ -68,15 +70,17 @@ def check_resolution(params: CiliumParams, mesh: Mesh, state: np.ndarray | None 
     """Refuse a mesh that cannot represent the problem; return the resolution indicator.
 
     The indicator (:meth:`Mesh.tail`, about the relative interpolation error) is taken of the
-    closed-form equilibrium ``theta`` (the clamp boundary layer, of width about
+    closed-form (still-fluid) equilibrium ``theta`` (the clamp boundary layer, of width about
     ``1/(|chi_E| cos theta_lim)``) and, when given, of the initial state (``cos theta``,
     ``sin theta`` and ``kappa``: an initial coil must be resolved too). Above ``limit`` a
     ValueError says which mesh would do.
     """
     from .equilibrium import equilibrium
 
+    still = params.with_background((0.0, 0.0))
+
     def worst(m: Mesh, th0: np.ndarray | None, ka0: np.ndarray | None) -> float:
-        fields = [equilibrium(params, m.nodes)]
+        fields = [equilibrium(still, m.nodes)]
         if th0 is not None:
             fields += [np.cos(th0), np.sin(th0), ka0]
         return max(m.tail(f) for f in fields)
@@ -121,8 +125,10 @@ class Simulation:
     data : xarray.Dataset
         dims ``time`` (output times) and ``s`` (mesh nodes). Variables: ``theta``, ``kappa``,
         ``theta_t`` (time, s); ``x``, ``y`` (shape); ``dx``, ``dy`` (drag density: force per
-        length of the fluid ON the filament); ``Fx``, ``Fy`` (time): the clamp force
-        ``F = -int_0^1 d ds``, the force the filament exerts on the fluid; ``energy`` (time):
+        length of the fluid ON the filament, ``d = -eta ((v - U).t t + 2 (v - U).n n)`` with the
+        background flow ``U``); ``Fx``, ``Fy`` (time): the clamp force ``F = -int_0^1 d ds``, the
+        force the filament exerts on the fluid (in a stream, including the stream's drag on the
+        filament); ``energy`` (time):
         the discrete bending energy. Field frame: ``e2`` along the field, angles anticlockwise
         from ``e2``.
     stats : RadauStats
@@ -186,11 +192,14 @@ def simulate(
     Parameters
     ----------
     params : CiliumParams
+        With ``params.background = (U1, U2)``, the filament in that uniform flow (field frame,
+        ``e2`` along the field, units ``L / tau``): the drag acts on the velocity relative to it.
     t_end : float
         Final time (units of the relaxation time tau), > 0.
     state : (theta, kappa), optional
         Initial nodal values on ``mesh.nodes`` (each of shape ``(mesh.n_nodes,)``; ``theta[0]``
-        must be 0, the clamp). Default: the discrete equilibrium with ``theta`` perturbed by
+        must be 0, the clamp). Default: the discrete equilibrium (in a background flow: the
+        steady state, :meth:`Filament.equilibrium_state`) with ``theta`` perturbed by
         ``amplitude`` times a seeded smooth shape that keeps the tip conditions
         (:func:`initial_state`).
     mesh : Mesh, optional
@@ -339,6 +348,7 @@ def _dataset(fil: Filament, t: np.ndarray, Y, Yd, rtol, stats: RadauStats) -> xr
         },
         attrs={
             "chi_E": p.chi_E, "eta": p.eta, "chi_N": p.chi_N,
+            "background_U1": p.background[0], "background_U2": p.background[1],
             "field_direction": "e2 (angles anticlockwise from e2)",
             "mesh_breaks": np.asarray(fil.mesh.breaks), "mesh_degree": fil.mesh.degree,
             "rtol": rtol, "method": "Galerkin spectral elements (GLL) + Radau IIA(5)",

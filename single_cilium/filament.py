@@ -33,6 +33,22 @@ then ``(D theta_t)_i = -n_i . int phi_i C`` with ``C = int_s^1 d``.
 With kappa frozen the semi-discrete energy ``E_h = 1/2 sum_q w_q (theta_s - kappa - chi_N)^2``
 (element-wise derivative at the nodes) obeys ``dE_h/dt = -theta_t^T D theta_t <= 0`` exactly.
 
+Background flow
+---------------
+In a uniform stream ``U = (U1, U2)`` (``params.background``; field frame, ``e2`` along the field,
+units ``L / tau``) the drag acts on the velocity relative to the fluid,
+``d = -eta ((v - U).t t + 2 (v - U).n n)``. The dissipation is then that of the relative velocity
+and the weak form gains a load that depends on theta alone::
+
+    eta int ((v - U)_par dv_par + 2 (v - U)_perp dv_perp) ds + int (theta_s - kappa - chi_N) dtheta_s ds = 0,
+
+so that, discretised, ``D(theta) theta_t = -K theta + B (kappa + chi_N) - g_U(theta)`` with
+``g_U(theta)_i = -n_i . int phi_i C_U``, ``C_U = int_s^1 eta (U.t t + 2 U.n n)`` (the drag of the
+stream on the filament held still). ``g_U`` is part of ``f`` (:meth:`Filament.rhs`); the mass
+matrix ``D(theta)`` is unchanged. The energy identity below then holds only for ``U = 0``
+(the stream does work on the filament). ``U = (0, 0)`` reproduces the still-fluid equations bit
+for bit.
+
 State vector
 ------------
 ``y = [theta_1, ..., theta_{n-1}, kappa_0, ..., kappa_{n-1}]`` (length ``2n - 1``). Helpers
@@ -45,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
-from ._kernels import stage_residual
+from ._kernels import _stage_terms, stage_residual
 from .equilibrium import equilibrium
 from .mesh import Mesh
 from .params import CiliumParams
@@ -61,7 +77,12 @@ class Filament:
     ``M(y) y' = f(y)`` with ``M = diag(D(theta), I)``.
 
     ``kappa_frozen=True`` replaces the activity law by ``kappa_t = 0`` (a passive filament with a
-    fixed spontaneous curvature): the dynamics is then a pure gradient flow of the bending energy.
+    fixed spontaneous curvature): the dynamics is then a pure gradient flow of the bending energy
+    (in still fluid).
+
+    ``params.background`` (the uniform stream ``U``, module docstring) enters the drag
+    (:meth:`drag`, hence the clamp force) and ``f`` (:meth:`rhs`, :meth:`residual`) through
+    ``g_U(theta)``; the Newton matrices (:meth:`factor`) include ``dg_U/dtheta``.
     """
 
     params: CiliumParams
@@ -117,13 +138,20 @@ class Filament:
     def drag(self, theta: np.ndarray, theta_t: np.ndarray) -> np.ndarray:
         """Drag density ``d`` (force per length of the fluid ON the filament) at the nodes.
 
-        ``d = -eta (v_par t + 2 v_perp n)``, ``v = int_0^s n theta_t``.
+        ``d = -eta ((v - U).t t + 2 (v - U).n n)``, ``v = int_0^s n theta_t``, ``U`` the background
+        flow (``params.background``, field frame, units ``L / tau``; ``(0, 0)``: the fluid at rest).
         Shapes: ``theta``, ``theta_t`` (..., n) full nodal arrays; returns (..., n, 2).
         """
+        return self._drag(theta, theta_t, self.params.background)
+
+    def _drag(self, theta, theta_t, U) -> np.ndarray:
         c, s = np.cos(theta), np.sin(theta)
         I = self.mesh.cumulative
         a = (c * theta_t) @ I.T  # v_x = -a
         b = (s * theta_t) @ I.T  # v_y = -b
+        if U[0] != 0.0 or U[1] != 0.0:
+            a = a + U[0]  # v - U = -(a + U1, b + U2)
+            b = b + U[1]
         v_par = a * s - b * c
         v_perp = a * c + b * s
         eta = self.params.eta
@@ -132,8 +160,23 @@ class Filament:
         return np.stack([dx, dy], axis=-1)
 
     def resistance(self, theta: np.ndarray, theta_t: np.ndarray) -> np.ndarray:
-        """``D(theta) theta_t`` on the free nodes, matrix-free. Shapes (..., n) -> (..., n-1)."""
-        d = self.drag(theta, theta_t)
+        """``D(theta) theta_t`` on the free nodes, matrix-free (the drag of the motion alone, without
+        the background flow's ``g_U``). Shapes (..., n) -> (..., n-1)."""
+        return self._project(self._drag(theta, theta_t, (0.0, 0.0)), theta)
+
+    def stream_load(self, theta: np.ndarray) -> np.ndarray:
+        """``g_U(theta)``: the background flow's drag on the filament held still, as a load on the
+        free nodes (module docstring; zero for ``U = 0``). Shapes (..., n) -> (..., n-1)."""
+        return self._project(self.drag(theta, np.zeros_like(theta)), theta)
+
+    def stream_jacobian(self, theta: np.ndarray) -> np.ndarray:
+        """``dg_U/dtheta`` on the free nodes, shape (n-1, n-1), for full nodal ``theta`` (n,)."""
+        m = self.mesh
+        U1, U2 = self.params.background
+        return _stage_terms(np.ascontiguousarray(theta, dtype=float), np.zeros(self.n), m.cumulative,
+                            m.weights, float(self.params.eta), float(U1), float(U2))[2]
+
+    def _project(self, d: np.ndarray, theta: np.ndarray) -> np.ndarray:
         w = self.mesh.weights
         I = self.mesh.cumulative
         Px = (w * d[..., 0]) @ I  # P[i] = sum_q w_q I_qi d_q  (= int phi_i C)
@@ -159,7 +202,10 @@ class Filament:
             f_kappa = np.zeros_like(kappa)
         else:
             f_kappa = -kappa - p.chi_E * np.sin(theta)
-        return np.concatenate([f_theta[..., 1:], f_kappa], axis=-1)
+        f_theta = f_theta[..., 1:]
+        if p.has_background:
+            f_theta = f_theta - self.stream_load(theta)
+        return np.concatenate([f_theta, f_kappa], axis=-1)
 
     def mass_apply(self, y: np.ndarray, v: np.ndarray) -> np.ndarray:
         """``M(y) v`` with ``M = diag(D(theta), I)``. Shapes (..., 2n-1)."""
@@ -174,13 +220,15 @@ class Filament:
         p = self.params
         relax, cE = (0.0, 0.0) if self.kappa_frozen else (1.0, p.chi_E)
         m = self.mesh
+        U1, U2 = p.background
         return stage_residual(np.ascontiguousarray(Y, dtype=float), np.ascontiguousarray(Kd, dtype=float),
-                              m.cumulative, m.weights, self._K, self._B, p.eta, cE, p.chi_N, relax)
+                              m.cumulative, m.weights, self._K, self._B, p.eta, cE, p.chi_N, relax, U1, U2)
 
     def factor(self, y: np.ndarray, sigmas) -> list["_SchurFactor"]:
         """Factorisations of ``sigma M(y) - J(y)`` for each ``sigma`` in ``sigmas`` (``J = df/dy``;
         the derivative of ``D(theta)`` with respect to theta is left out, as in a simplified
-        Newton method). ``D(theta)`` is formed once for all of them.
+        Newton method; the background flow's ``dg_U/dtheta`` is included). ``D(theta)`` is
+        formed once for all of them.
 
         The kappa block is diagonal, so it is eliminated (Schur complement) and only an
         ``(n-1) x (n-1)`` matrix is LU-factorised per ``sigma``.
@@ -193,6 +241,8 @@ class Filament:
         coupling = cE * np.cos(theta[1:])
         Br = self._B[1:, :]
         Kr = self._K[1:, 1:]
+        if p.has_background:
+            Kr = Kr + self.stream_jacobian(theta)
         out = []
         for sigma in sigmas:
             A = sigma * D + Kr + Br[:, 1:] * (coupling / (sigma + r))[None, :]
@@ -235,8 +285,22 @@ class Filament:
         ``kappa = -chi_E sin theta``, solved by Newton's method from the closed form of
         MODEL.md section 3 interpolated at the nodes. It differs from the closed form by the
         discretisation error, and stays put to round-off under :func:`~single_cilium.simulate`.
+
+        In a background flow ``U != 0`` (``params.background``) there is no closed form: the
+        steady state solves ``K theta + B (chi_E sin theta - chi_N) + g_U(theta) = 0``
+        (``kappa = -chi_E sin theta``; the stream's drag ``g_U``, module docstring), by Newton's
+        method with the exact Jacobian, continued in the flow from the still-fluid state: the
+        stream is scaled by ``lambda`` from 0 to 1 in steps (secant predictor) that are cut by 4
+        when Newton fails and doubled when it succeeds. A fold of the branch (e.g. a filament
+        buckled by a strong stream against it) ends the continuation with a RuntimeError.
         """
         p = self.params
+        if p.has_background:
+            cached = self.__dict__.get("_steady")
+            if cached is None:
+                cached = self._steady_state(tol, max_iter)
+                object.__setattr__(self, "_steady", cached)
+            return cached.copy()
         theta = equilibrium(p, self.mesh.nodes)
         theta[0] = 0.0
         Kr, Br = self._K[1:, 1:], self._B[1:, :]
@@ -256,6 +320,55 @@ class Filament:
                 f"Newton's method for the discrete equilibrium did not converge (last step {size:.2g}); "
                 f"the mesh ({self.mesh.describe()}) probably does not resolve the equilibrium: use "
                 "Mesh.for_params or a higher degree")
+        return self.join(theta, -p.chi_E * np.sin(theta))
+
+    def _steady_state(self, tol: float, max_iter: int) -> np.ndarray:
+        """The steady state in the background flow, by continuation from the still fluid."""
+        p = self.params
+        still = Filament(p.with_background((0.0, 0.0)), self.mesh, self.kappa_frozen)
+        theta = still.split(still.equilibrium_state(tol, max_iter))[0]
+        Kr, Br = self._K[1:, 1:], self._B[1:, :]
+        m = self.mesh
+        I, w = np.ascontiguousarray(m.cumulative), np.ascontiguousarray(m.weights)
+        U1, U2 = p.background
+        zero = np.zeros(self.n)
+
+        def newton(th, lam):
+            th = th.copy()
+            last = np.inf
+            for it in range(max_iter):
+                gU, _, JU = _stage_terms(th, zero, I, w, p.eta, lam * U1, lam * U2)
+                g = Kr @ th[1:] + Br @ (p.chi_E * np.sin(th) - p.chi_N) + gU
+                J = Kr + Br[:, 1:] * (p.chi_E * np.cos(th[1:]))[None, :] + JU
+                try:
+                    step = np.linalg.solve(J, g)
+                except np.linalg.LinAlgError:
+                    return None
+                th[1:] -= step
+                size = np.max(np.abs(step)) / max(1.0, np.max(np.abs(th)))
+                if not np.isfinite(size) or (it >= 3 and size > last):
+                    return None
+                if size <= tol or (size <= 1e-9 and size >= 0.5 * last):
+                    return th
+                last = size
+            return None
+
+        lam, dlam = 0.0, 1.0
+        prev = None  # (lambda, theta) of the previous point, for the secant predictor
+        while lam < 1.0:
+            trial = min(1.0, lam + dlam)
+            guess = theta if prev is None else theta + (trial - lam) / (lam - prev[0]) * (theta - prev[1])
+            th = newton(guess, trial)
+            if th is None:
+                dlam *= 0.25
+                if dlam < 1e-6:
+                    raise RuntimeError(
+                        f"no steady state of {p} found by continuation in the background flow: "
+                        f"Newton fails beyond {lam:.6g} x U (a fold of the branch, e.g. a filament "
+                        f"buckled by the stream, or a mesh ({m.describe()}) that does not resolve it)")
+                continue
+            prev, theta, lam = (lam, theta), th, trial
+            dlam = min(2.0 * dlam, 1.0)
         return self.join(theta, -p.chi_E * np.sin(theta))
 
 

@@ -164,7 +164,8 @@ class Mesh:
         mesh = cls.graded(width, degree=degree, n_outer=n_outer)
         from .equilibrium import equilibrium
 
-        return mesh.refined(lambda s: equilibrium(params, s), 10.0 ** (1.0 - degree / 2.0))
+        still = params.with_background((0.0, 0.0))  # the clamp layer is the still fluid's (a stream leaves it)
+        return mesh.refined(lambda s: equilibrium(still, s), 10.0 ** (1.0 - degree / 2.0))
 
     # ------------------------------------------------------------------ reference element
     @property

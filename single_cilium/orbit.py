@@ -207,7 +207,8 @@ class ExactShooting(OrbitSolver):
         m = fil.mesh
         self._args = (RADAU_AINV, _P, np.ascontiguousarray(m.cumulative), np.ascontiguousarray(m.weights),
                       np.ascontiguousarray(fil._K), np.ascontiguousarray(fil._B), float(fil.params.eta),
-                      float(fil.params.chi_E), float(fil.params.chi_N), self.step_tol, self.step_maxiter)
+                      float(fil.params.chi_E), float(fil.params.chi_N), self.step_tol, self.step_maxiter,
+                      float(fil.params.background[0]), float(fil.params.background[1]))
 
     def _steps(self, y0, h, n, sens):
         Y, Yd, S, Sh, counts = radau_steps(np.ascontiguousarray(y0, dtype=float), float(h), int(n), sens,

@@ -9,6 +9,11 @@ remain:
 * ``eta = mu_par * L**4 / (tau * B)``: drag against bending, ``mu_par`` the parallel resistive
   coefficient (the normal one is ``2 * mu_par``);
 * ``chi_N = L * kappa_N``: the natural curvature fixed at fabrication.
+
+An optional uniform background flow ``U = (U1, U2)`` of the fluid (field frame: ``e2`` along the
+field; units ``L / tau``) makes the drag act on the velocity relative to the stream,
+``d = -eta ((v - U).t t + 2 (v - U).n n)`` (MODEL.md section 2 with ``v -> v - U``); the default
+``(0, 0)`` is the fluid at rest.
 """
 from __future__ import annotations
 
@@ -47,25 +52,55 @@ class CiliumParams:
         Drag-to-bending ratio ``mu_par L^4 / (tau B)``; must be > 0.
     chi_N : float, default 0
         Natural curvature ``L kappa_N`` (any sign; ``-chi_N`` is the mirror image).
+    background : (float, float), default (0, 0)
+        Uniform background flow ``U = (U1, U2)`` of the fluid far from the filament, in the
+        field frame (``U1`` along ``e1``, ``U2`` along ``e2``, the field direction), in units of
+        ``L / tau``. The drag per unit length (force of the fluid ON the filament) becomes
+        ``d = -eta ((v - U).t t + 2 (v - U).n n)`` with ``v`` the filament's velocity; a
+        filament at rest in the stream feels ``d = eta (U.t t + 2 U.n n)`` and exerts
+        ``F = -int_0^1 d ds`` on the fluid. Stored as a tuple of two floats.
 
     Raises
     ------
     ValueError
-        Naming the field, if a value is not a finite real number or ``eta <= 0``.
+        Naming the field, if a value is not a finite real number, ``eta <= 0`` or
+        ``background`` is not a pair.
     """
 
     chi_E: float
     eta: float
     chi_N: float = 0.0
+    background: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "chi_E", _finite("chi_E", self.chi_E))
         object.__setattr__(self, "eta", _positive("eta", self.eta))
         object.__setattr__(self, "chi_N", _finite("chi_N", self.chi_N))
+        try:
+            U1, U2 = self.background
+        except (TypeError, ValueError):
+            raise ValueError(f"background must be a pair (U1, U2) of real numbers, got {self.background!r}") from None
+        object.__setattr__(self, "background", (_finite("background U1", U1) + 0.0, _finite("background U2", U2) + 0.0))
+
+    def __repr__(self) -> str:
+        # the background is shown only when there is one (messages in still fluid stay as they were)
+        U = f", background={self.background!r}" if self.has_background else ""
+        return f"CiliumParams(chi_E={self.chi_E!r}, eta={self.eta!r}, chi_N={self.chi_N!r}{U})"
+
+    @property
+    def has_background(self) -> bool:
+        """True when the background flow ``U`` is not zero."""
+        return self.background != (0.0, 0.0)
+
+    def with_background(self, background: tuple[float, float]) -> "CiliumParams":
+        """The same filament in the background flow ``background = (U1, U2)`` (field frame, ``L / tau``)."""
+        return CiliumParams(self.chi_E, self.eta, self.chi_N, background)
 
     def mirrored(self) -> "CiliumParams":
-        """The mirror image ``chi_N -> -chi_N`` (``theta -> -theta``, ``e1 -> -e1``)."""
-        return CiliumParams(self.chi_E, self.eta, -self.chi_N)
+        """The mirror image ``chi_N -> -chi_N`` (``theta -> -theta``, ``e1 -> -e1``; the background
+        flow ``(U1, U2) -> (-U1, U2)``)."""
+        U1, U2 = self.background
+        return CiliumParams(self.chi_E, self.eta, -self.chi_N, (-U1 if U1 else 0.0, U2))
 
     @classmethod
     def from_physical(
@@ -76,6 +111,7 @@ class CiliumParams:
         drag_coefficient: float,
         target_curvature: float,
         natural_curvature: float = 0.0,
+        background_flow: tuple[float, float] = (0.0, 0.0),
     ) -> "CiliumParams":
         """Dimensionless groups from SI values.
 
@@ -93,6 +129,9 @@ class CiliumParams:
             Field-induced target curvature ``kappa_E`` [1/m] (signed).
         natural_curvature : float
             Natural curvature ``kappa_N`` [1/m] (signed).
+        background_flow : (float, float)
+            Uniform background flow [m/s] in the field frame (along ``e1``, along the field ``e2``);
+            divided by ``L / tau``.
         """
         L = _positive("length", length)
         tau = _positive("relaxation_time", relaxation_time)
@@ -100,7 +139,12 @@ class CiliumParams:
         mu = _positive("drag_coefficient", drag_coefficient)
         kE = _finite("target_curvature", target_curvature)
         kN = _finite("natural_curvature", natural_curvature)
-        return cls(chi_E=L * kE, eta=mu * L**4 / (tau * B), chi_N=L * kN)
+        try:
+            u1, u2 = background_flow
+        except (TypeError, ValueError):
+            raise ValueError(f"background_flow must be a pair of velocities, got {background_flow!r}") from None
+        U = (_finite("background_flow", u1) * tau / L, _finite("background_flow", u2) * tau / L)
+        return cls(chi_E=L * kE, eta=mu * L**4 / (tau * B), chi_N=L * kN, background=U)
 
     def to_physical(
         self, length: float, relaxation_time: float, bending_stiffness: float
@@ -116,6 +160,7 @@ class CiliumParams:
             drag_coefficient=self.eta * tau * B / L**4,
             target_curvature=self.chi_E / L,
             natural_curvature=self.chi_N / L,
+            background_flow=(self.background[0] * L / tau, self.background[1] * L / tau),
         )
 
 
@@ -124,7 +169,8 @@ class PhysicalCilium:
     """A filament in SI units, with the scales that turn dimensionless results into SI ones.
 
     ``force_scale = B / L^2`` [N] (multiply a dimensionless force, e.g. the clamp force),
-    ``time_scale = tau`` [s], ``velocity_scale = L / tau`` [m/s].
+    ``time_scale = tau`` [s], ``velocity_scale = L / tau`` [m/s]. ``background_flow`` [m/s] is
+    the uniform flow of the fluid in the field frame (default at rest).
     """
 
     length: float
@@ -133,8 +179,14 @@ class PhysicalCilium:
     drag_coefficient: float
     target_curvature: float
     natural_curvature: float = 0.0
+    background_flow: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
+        try:
+            u1, u2 = self.background_flow
+        except (TypeError, ValueError):
+            raise ValueError(f"background_flow must be a pair of velocities, got {self.background_flow!r}") from None
+        object.__setattr__(self, "background_flow", (_finite("background_flow", u1), _finite("background_flow", u2)))
         for name in ("length", "relaxation_time", "bending_stiffness", "drag_coefficient"):
             object.__setattr__(self, name, _positive(name, getattr(self, name)))
         for name in ("target_curvature", "natural_curvature"):
@@ -161,4 +213,5 @@ class PhysicalCilium:
             self.drag_coefficient,
             self.target_curvature,
             self.natural_curvature,
+            self.background_flow,
         )

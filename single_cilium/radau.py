@@ -242,8 +242,8 @@ class Radau:
                 mult = 1.0
             else:
                 mult = h_take / h_old * (err_old / err) ** 0.25
-            with np.errstate(divide="ignore"):
-                factor = min(1.0, mult) * err ** -0.25
+            # err is a Python float: 0 ** -0.25 raises (an exact steady state, e.g. amplitude 0)
+            factor = min(1.0, mult) * err ** -0.25 if err > 0 else MAX_FACTOR
             factor = min(MAX_FACTOR, safety * factor)
             if not refresh and factor < 1.2 and not rejected:
                 factor = 1.0  # keep h: the factorisations stay valid

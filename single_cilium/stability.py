@@ -12,6 +12,10 @@ the weak form of MODEL.md section 4 with the contact force obtained by integrati
 (as in the published treatment). ``M`` is symmetric positive definite, so the pencil has no
 infinite eigenvalues and none can turn into spurious finite ones; ``D`` is ill-conditioned
 (~1e10), so the pencil is solved by the QZ algorithm (LAPACK ggev), never through ``M^-1``.
+In a background flow ``U`` (``params.background``) the equilibrium is the discrete steady state
+(:meth:`~single_cilium.filament.Filament.equilibrium_state`, Newton continued in ``|U|``; no
+closed form) and ``J``'s theta block gains ``-dg_U/dtheta``, the derivative of the stream's drag
+on the held filament (not symmetric); ``M`` is unchanged.
 The stiff elastic modes lie far to the left (~ -h^-4/eta); the kappa relaxation contributes a
 cluster at Re omega = -1 (an essential spectrum in the continuum limit).
 
@@ -73,6 +77,8 @@ def _pencil(fil: Filament) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     M[: n - 1, : n - 1] = fil.resistance_matrix(theta)
     J = np.zeros((fil.size, fil.size))
     J[: n - 1, : n - 1] = -fil._K[1:, 1:]
+    if p.has_background:
+        J[: n - 1, : n - 1] -= fil.stream_jacobian(theta)
     J[: n - 1, n - 1:] = fil._B[1:, :]
     J[n:, : n - 1] = -p.chi_E * np.diag(np.cos(theta[1:]))
     J[n - 1:, n - 1:] = -np.eye(n)
@@ -215,6 +221,8 @@ def stability(params: CiliumParams, *, mesh: Mesh | None = None, degree: int = D
     Parameters
     ----------
     params : CiliumParams
+        With a background flow (``params.background != (0, 0)``) the linearisation is about the
+        discrete steady state in that stream (module docstring).
     mesh : Mesh, optional
         Default ``Mesh.for_params(params, degree)``.
     n_modes : int
