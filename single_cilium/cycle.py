@@ -92,7 +92,8 @@ class LimitCycle:
     Attributes
     ----------
     flutter : bool
-        False when the equilibrium is stable: no oscillation, zero thrust, NaN period.
+        False when the equilibrium is stable: no oscillation, zero thrust (in a background flow:
+        the force of the filament held in the stream, see ``thrust``), NaN period.
     period : float
     data : xarray.Dataset or None
         dims ``phase`` (uniform in [0, 1), phase 0 at the upward crossing of the tip angle
@@ -100,7 +101,10 @@ class LimitCycle:
         (force per length ON the fluid, ``= -d``); per phase ``Fx``, ``Fy`` (clamp force
         ``F = -int d``, the force on the fluid).
     thrust : (2,) array
-        ``Fbar``, the mean of F over exactly one period (field frame, e2 along the field).
+        ``Fbar``, the mean of F over exactly one period (field frame, e2 along the field). In a
+        background flow it includes the stream's drag on the filament; without flutter it is
+        then the force ``-int d ds`` of the (stable) steady state in the stream, and NaN when
+        that steady state is unstable without oscillating (divergence).
     thrust_norm, thrust_angle : float
         ``|Fbar|`` and ``phi_Fbar - pi`` wrapped into (-pi, pi] (DESIGN.md), close to theta_lim.
     theta_lim : float
@@ -159,7 +163,7 @@ class LimitCycle:
 
     @property
     def thrust_angle(self) -> float:
-        return thrust_angle(*self.thrust) if self.flutter else math.nan
+        return thrust_angle(*self.thrust) if (self.flutter or self.thrust_norm > 0) else math.nan
 
     @property
     def thrust_x(self) -> float:
@@ -384,7 +388,8 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
     Returns
     -------
     LimitCycle
-        With ``flutter=False`` and zero thrust when the equilibrium is stable (no oscillation).
+        With ``flutter=False`` and zero thrust when the equilibrium is stable (no oscillation); in
+        a background flow the thrust is then the steady state's force on the fluid.
 
     Raises
     ------
@@ -416,9 +421,23 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
     with single_threaded_blas():
         st = stability(params, mesh=mesh, n_modes=2, check=False)
         if st.regime != "flutter":
-            return LimitCycle(params, mesh, False, theta_lim=theta_lim, status="no oscillation",
+            if not params.has_background:
+                return LimitCycle(params, mesh, False, theta_lim=theta_lim, status="no oscillation",
+                                  message=f"the equilibrium is {st.regime} (leading eigenvalue "
+                                          f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle, zero thrust",
+                                  method=method)
+            # in a stream the filament at rest still exerts the stream's drag on the fluid
+            fil = Filament(params, mesh)
+            theta = fil.split(fil.equilibrium_state())[0]
+            if st.regime == "stable":
+                F = fil.clamp_force(fil.drag(theta, np.zeros_like(theta)))
+                what = f"thrust = the force of the steady state in the stream ({F[0]:.6g}, {F[1]:.6g})"
+            else:
+                F = np.full(2, math.nan)
+                what = "the steady state in the stream is unstable: no steady or periodic thrust (NaN)"
+            return LimitCycle(params, mesh, False, thrust=F, theta_lim=theta_lim, status="no oscillation",
                               message=f"the equilibrium is {st.regime} (leading eigenvalue "
-                                      f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle, zero thrust",
+                                      f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle; {what}",
                               method=method)
         fil = Filament(params, mesh)
         adaptive = n_phase is None

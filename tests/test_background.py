@@ -95,6 +95,11 @@ def test_straight_filament_in_a_stream_along_itself(U2):
     # perturbed, the (stable) filament returns to it: the force too
     sim = simulate(p, 25.0, amplitude=1e-2, n_out=3, error_estimate=False)
     np.testing.assert_allclose(sim.force[-1], [0.0, -eta * U2], rtol=0, atol=1e-10)
+    # no flutter here: the mean thrust is that force, not zero as in still fluid
+    c = limit_cycle(p, degree=6)
+    assert not c.flutter and c.status == "no oscillation" and "steady state" in c.message
+    np.testing.assert_allclose(c.thrust, [0.0, -eta * U2], rtol=0, atol=1e-10)
+    assert c.thrust_angle == pytest.approx(0.0 if U2 > 0 else math.pi, abs=1e-10)
 
 
 def test_cantilever_in_a_weak_cross_flow():
