@@ -11,7 +11,9 @@ a scene may need, default 24), ``--backend NAME`` (the evaluator of the flow sum
 
 Exit status: 0 success; 1 some scenes of a batch failed (each with its reason), or an internal
 error; 2 bad input (scene, table, target file, output folder, resources: the message names the file,
-key or value); 3 a target the cilia cannot make; 130 interrupted (Ctrl-C).
+key or value; also an output that cannot be written, e.g. no space left on device); 3 a target the
+cilia cannot make; 130 interrupted (Ctrl-C); 143 terminated (SIGTERM: kill, Slurm, systemd, Docker) and
+129 hung up (SIGHUP), handled like Ctrl-C: workers stopped, nothing half-written left behind.
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from single_cilium._io import strict_json, write_netcdf
+from single_cilium._signals import Terminated, exit_status, terminate_as_interrupt
 from single_cilium.progress import TqdmProgress
 from single_cilium.table import TableError
 
@@ -164,9 +167,12 @@ def _worker_context():
 
 
 def _worker(func, task, conn) -> None:
-    """A batch worker process: one task, its record sent back on ``conn``."""
+    """A batch worker process: one task, its record sent back on ``conn``. SIGTERM and SIGHUP
+    (a scheduler stopping the whole job) interrupt it like Ctrl-C, so that its render removes its
+    staging folder."""
     try:
-        conn.send(func(*task))
+        with terminate_as_interrupt():
+            conn.send(func(*task))
     except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the parent reports it
         pass
     finally:
@@ -224,7 +230,8 @@ def _stop(procs, grace: float) -> None:
 
 def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None, jobs: int = 2,
           overwrite: bool = False, reduced: bool = False, progress: bool = True,
-          max_seconds: float = 86400.0, backend: str | None = None) -> list[dict]:
+          max_seconds: float = 86400.0, backend: str | None = None,
+          scheduler_timeout: float | None = None) -> list[dict]:
     """Render many scene files into ``out_root/NAME``.
 
     Default: each scene in a fresh worker process, ``jobs`` at a time, so that a worker that
@@ -236,6 +243,11 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     older results is kept unless ``overwrite``, and reported as failed; a folder holding files
     ciliary-carpet did not write is never changed (:func:`~ciliary_carpet.render.render`).
     ``backend`` (a name of :data:`~ciliary_carpet.stokeslet.BACKENDS`) overrides the scenes'.
+    ``scheduler_timeout`` bounds the wait for ``scheduler`` to answer as a Dask scheduler (default
+    20 s, or ``CILIA_SCHEDULER_TIMEOUT``): an address that does not (e.g. the dashboard's HTTP port)
+    is an OSError after that wait. Interrupted (Ctrl-C, or SIGTERM/SIGHUP under the command line),
+    the local workers are stopped and remove their staging folders; on Dask the scenes not yet
+    started are cancelled (a running render is left to finish or fail whole).
     Returns one record per scene (status done / skipped / failed, message with the reason,
     seconds)."""
     from tqdm.auto import tqdm
@@ -258,16 +270,21 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
             _run_local(tasks, max(1, int(jobs)), on_done)
         else:
             if executor is None:
-                from distributed import Client
+                from single_cilium._scheduler import connect
 
-                client = Client(scheduler)
+                client = connect(scheduler, scheduler_timeout)
                 executor = client.get_executor()
             futs = {executor.submit(_render_one, *t): t for t in tasks}
-            for f in futs:
-                try:
-                    on_done(f.result())
-                except Exception as exc:  # noqa: BLE001 -- a dead worker (BrokenProcessPool, KilledWorker)
-                    on_done(_died(futs[f][0], type(exc).__name__))
+            try:
+                for f in futs:
+                    try:
+                        on_done(f.result())
+                    except Exception as exc:  # noqa: BLE001 -- a dead worker (BrokenProcessPool, KilledWorker)
+                        on_done(_died(futs[f][0], type(exc).__name__))
+            except BaseException:  # interrupted: the scenes not started yet are not started
+                for f in futs:
+                    f.cancel()
+                raise
     finally:
         bar.close()
         if client is not None:
@@ -278,7 +295,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
 
 def _cmd_batch(a) -> int:
     recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, overwrite=a.overwrite, reduced=a.reduced,
-                 max_seconds=a.max_hours * 3600, backend=a.backend)
+                 max_seconds=a.max_hours * 3600, backend=a.backend, scheduler_timeout=a.scheduler_timeout)
     n = {k: sum(r["status"] == k for r in recs) for k in ("done", "skipped", "failed")}
     if a.json:
         print(strict_json({"scenes": recs, "done": n["done"], "skipped": n["skipped"], "failed": n["failed"]}))
@@ -330,6 +347,9 @@ def main(argv=None) -> int:
     b.add_argument("-o", "--output", required=True, help="output root; each scene goes to OUTPUT/NAME")
     b.add_argument("-j", "--jobs", type=int, default=2, help="local worker processes (default 2)")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:port)")
+    b.add_argument("--scheduler-timeout", dest="scheduler_timeout", type=float, default=None, metavar="SECONDS",
+                   help="how long to wait for the scheduler to answer before giving up (default 20, or "
+                        "$CILIA_SCHEDULER_TIMEOUT)")
     b.add_argument("--overwrite", action="store_true")
     b.add_argument("--reduced", action="store_true")
     b.add_argument("--json", action="store_true", help="print the records as strict JSON")
@@ -341,10 +361,12 @@ def main(argv=None) -> int:
         os.environ[ALLOW_ENV] = "1"  # inherited by batch workers
     src = getattr(a, "scene", None)
     try:
-        return {"render": _cmd_render, "design": _cmd_design, "batch": _cmd_batch}[a.cmd](a)
-    except KeyboardInterrupt:
-        print("ciliary-carpet: interrupted; nothing half-written was left in the output folder", file=sys.stderr)
-        return 130
+        with terminate_as_interrupt():  # SIGTERM, SIGHUP: the Ctrl-C cleanup, exit 128 + signum
+            return {"render": _cmd_render, "design": _cmd_design, "batch": _cmd_batch}[a.cmd](a)
+    except KeyboardInterrupt as exc:
+        how = str(exc) if isinstance(exc, Terminated) else "interrupted"
+        print(f"ciliary-carpet: {how}; nothing half-written was left in the output folder", file=sys.stderr)
+        return exit_status(exc)
     except CANNOT_MAKE as exc:
         if a.debug:
             raise

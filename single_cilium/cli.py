@@ -3,7 +3,8 @@
 Exit status: 0 on success; 2 bad input (the message names the option and value; also an output
 file that cannot be written, or not enough memory); 3 a solver that could not continue (the message
 says where and what to change); 1 an internal error (a one-line message; ``--debug`` shows the
-traceback); 130 interrupted (Ctrl-C). ``--json`` output is strict JSON: NaN and infinities are
+traceback); 130 interrupted (Ctrl-C); 143 terminated (SIGTERM) and 129 hung up (SIGHUP), handled like
+Ctrl-C (a table build's pool workers are stopped, its finished rows kept). ``--json`` output is strict JSON: NaN and infinities are
 written as null and listed, with the reason, under ``"non_finite"``.
 """
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 
 from . import __version__
 from ._io import strict_json
+from ._signals import Terminated, exit_status, terminate_as_interrupt
 from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
 from .dynamics import simulate
 from .mesh import Mesh
@@ -149,7 +151,7 @@ def cmd_table(args) -> dict:
     # one value: the table of one field; a grid: a table over chi_E (interpolated in chi_E too)
     chi_E = float(args.chi_E[0]) if args.chi_E.size == 1 else args.chi_E
     t = build_table(chi_E, args.eta, args.chi_N, degree=args.degree, n_phase=args.n_phase,
-                    scheduler=args.scheduler, path=args.output,
+                    scheduler=args.scheduler, scheduler_timeout=args.scheduler_timeout, path=args.output,
                     progress=None if args.quiet else TqdmProgress(delay=0.5),
                     error_estimate=not args.no_error_estimate, tol=args.tol)
     ds = t.ds
@@ -229,6 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--chi-N", dest="chi_N", type=_grid, required=True, help="'start:stop:num' or a list")
     pt.add_argument("-o", "--output", required=True, help="NetCDF file (rows kept in OUTPUT.parts/ until done)")
     pt.add_argument("--scheduler", help="Dask distributed scheduler address (default: local process pool)")
+    pt.add_argument("--scheduler-timeout", dest="scheduler_timeout", type=float, default=None, metavar="SECONDS",
+                    help="how long to wait for the scheduler to answer before giving up (default 20, or "
+                         "$CILIA_SCHEDULER_TIMEOUT)")
     pt.add_argument("--degree", type=int, default=8)
     pt.add_argument("--n-phase", dest="n_phase", type=int, default=64)
     pt.add_argument("--no-error-estimate", action="store_true")
@@ -290,11 +295,12 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     name = f"single-cilium {args.command}"
     try:
-        out = args.func(args)
-        text = strict_json(out, indent=1) if getattr(args, "json", False) else None
-    except KeyboardInterrupt:
-        print(f"{name}: interrupted", file=sys.stderr)
-        return 130
+        with terminate_as_interrupt():  # SIGTERM, SIGHUP: the Ctrl-C cleanup, exit 128 + signum
+            out = args.func(args)
+            text = strict_json(out, indent=1) if getattr(args, "json", False) else None
+    except KeyboardInterrupt as exc:
+        print(f"{name}: {exc if isinstance(exc, Terminated) else 'interrupted'}", file=sys.stderr)
+        return exit_status(exc)
     except ConvergenceError as exc:
         if args.debug:
             raise

@@ -272,7 +272,7 @@ def _validated_chi_E(chi_E) -> np.ndarray | None:
 def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64, n_s: int = 65,
                 executor: Executor | None = None, scheduler: str | None = None,
                 progress: Progress | None = None, path=None, error_estimate: bool = True,
-                tol: float = 1e-8) -> "ThrustTable":
+                tol: float = 1e-8, scheduler_timeout: float | None = None) -> "ThrustTable":
     """Compute the thrust table of DESIGN.md over ``chi_N`` (>= 0, strictly increasing), for one
     field (``chi_E`` a number) or over a grid of field strengths (``chi_E`` a sequence).
 
@@ -298,6 +298,10 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
         Where chunks run (default: a process pool over the machine's cores).
     scheduler : str, optional
         Address of a Dask distributed scheduler; its executor is used (the same code path).
+    scheduler_timeout : float, optional
+        Seconds to wait for ``scheduler`` to answer as a Dask scheduler (default 20, or the
+        environment's ``CILIA_SCHEDULER_TIMEOUT``); an address that does not is an OSError
+        (:class:`~single_cilium._scheduler.SchedulerError`) after that wait, never a hang.
     path : path-like, optional
         Where the table is written; finished rows are kept in ``<path>.parts/`` while building,
         so a rerun after an interruption computes only the missing rows (rows of another field,
@@ -360,9 +364,9 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
     own = None
     if executor is None:
         if scheduler is not None:
-            from dask.distributed import Client
+            from ._scheduler import connect
 
-            own = Client(scheduler)
+            own = connect(scheduler, scheduler_timeout)
             executor = own.get_executor()
         else:
             from concurrent.futures import ProcessPoolExecutor
@@ -394,7 +398,8 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
             raise CycleError(f"{exc}; last good row before it: {last}{kept}", exc.t) from None
     except BaseException:  # Ctrl-C or a failure: do not wait for the running chunks (their
         # finished rows are on disk for the resume); stop our own pool's workers now
-        if own is not None and hasattr(own, "shutdown"):
+        if own is not None and own is executor and hasattr(own, "_processes"):  # our process pool (a Dask
+            # client's tasks are released when it closes below; Client.shutdown would stop the cluster)
             procs = list((getattr(own, "_processes", None) or {}).values())  # shutdown() forgets them
             own.shutdown(wait=False, cancel_futures=True)
             for proc in procs:
