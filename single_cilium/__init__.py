@@ -15,7 +15,8 @@ simulate          nonlinear dynamics (Galerkin in space, Radau IIA(5) in time) w
 stability         leading eigenvalues, modes and regime of the linearisation; flutter_cutoff,
                   flutter_boundary (continuation), stability_map
 limit_cycle       periodic orbit by shooting with the exact monodromy (single_cilium.orbit): period,
-                  mean thrust, Floquet multipliers, error estimates
+                  mean thrust, Floquet multipliers, error estimates; mean_thrust: Fbar at (chi_N, U)
+                  with an error estimate
 """
 __version__ = "0.1.0"
 
@@ -27,7 +28,7 @@ from .filament import Filament
 from .radau import ConvergenceError
 from .progress import Progress, TqdmProgress
 from .dynamics import Simulation, simulate
-from .cycle import CycleError, LimitCycle, limit_cycle
+from .cycle import CycleError, LimitCycle, MeanThrust, limit_cycle, mean_thrust
 from .stability import (Cutoff, FlutterBoundary, ResolutionWarning, Stability, flutter_boundary,
                         flutter_cutoff, stability, stability_map)
 
@@ -37,5 +38,5 @@ __all__ = [
     "ConvergenceError",
     "Progress", "TqdmProgress", "stability", "Stability", "ResolutionWarning", "flutter_cutoff",
     "Cutoff", "flutter_boundary", "FlutterBoundary", "stability_map", "limit_cycle", "LimitCycle",
-    "CycleError", "__version__",
+    "CycleError", "mean_thrust", "MeanThrust", "__version__",
 ]

@@ -60,7 +60,7 @@ from .stability import stability
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["limit_cycle", "LimitCycle", "CycleError", "METHODS"]
+__all__ = ["limit_cycle", "LimitCycle", "CycleError", "METHODS", "mean_thrust", "MeanThrust"]
 
 N_PHASE_START = 32
 N_PHASE_MAX = 1024
@@ -551,6 +551,110 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
     return LimitCycle(params, mesh, True, T, result["data"], result["thrust"], theta_lim,
                       result["tip_area"], mults, fl, triv, errors, work, status, msg, orbit.state0,
                       method, n)
+
+
+@dataclass(frozen=True)
+class MeanThrust:
+    """The mean force of one cilium on the fluid, with its error (what :func:`mean_thrust` returns).
+
+    Attributes
+    ----------
+    params : CiliumParams
+        Including the background flow ``U = params.background`` (field frame, ``L / tau``).
+    flutter : bool
+    thrust : (2,) array
+        ``Fbar = -<int_0^1 d ds>`` (field frame): averaged over exactly one period of the limit
+        cycle when the filament flutters; otherwise the force of the filament at rest in the
+        stream (zero in still fluid; NaN if that rest state is unstable without oscillating).
+    error : float
+        Estimate of ``|Fbar - Fbar_exact|`` (absolute, Euclidean norm): with flutter
+        ``|Fbar| (e_norm + e_angle)`` from the cycle's estimates (``e_norm`` relative, time and
+        space parts, ``e_angle`` in radians; first order in the errors); without flutter the
+        change of the rest state's force when the degree is lowered by 2 (0 in still fluid,
+        where the thrust is exactly 0).
+    period, period_error : float
+        Period and its relative error estimate (NaN without flutter).
+    status, message : str
+        As :class:`LimitCycle` (``"inaccurate"`` when ``error > rtol * max(|Fbar|, eta |U|)``).
+    cycle : LimitCycle
+        The full result it was taken from (a seed for a neighbouring point).
+    """
+
+    params: CiliumParams
+    flutter: bool
+    thrust: np.ndarray
+    error: float
+    period: float
+    period_error: float
+    status: str
+    message: str
+    cycle: LimitCycle
+
+    @property
+    def thrust_x(self) -> float:
+        return float(self.thrust[0])
+
+    @property
+    def thrust_y(self) -> float:
+        return float(self.thrust[1])
+
+    @property
+    def thrust_norm(self) -> float:
+        return float(np.hypot(*self.thrust))
+
+    @property
+    def thrust_angle(self) -> float:
+        """``phi_Fbar - pi`` wrapped into (-pi, pi] (DESIGN.md); NaN for zero thrust."""
+        return thrust_angle(*self.thrust) if self.thrust_norm > 0 else math.nan
+
+
+def mean_thrust(params: CiliumParams, *, degree: int = 10, rtol: float = 1e-6,
+                seed: "LimitCycle | Sequence[LimitCycle] | None" = None) -> MeanThrust:
+    """The cycle-averaged force ``Fbar`` one cilium exerts on the fluid at ``(chi_E, eta, chi_N)``
+    in the uniform background flow ``U = params.background``, with an error estimate.
+
+    The drag is ``d = -eta ((v - U).t t + 2 (v - U).n n)`` (``U`` in the field frame, ``e2``
+    along the field, units ``L / tau``), so ``Fbar`` includes the stream's drag on the filament:
+    a cilium that does not flutter still exerts the force of its rest state in the stream.
+    A thin front door over :func:`limit_cycle` (default discretisation: degree 10, the steps per
+    period chosen for ``rtol``); see :class:`MeanThrust` for what the error means.
+
+    Parameters
+    ----------
+    params : CiliumParams
+    degree, rtol : as :func:`limit_cycle`.
+    seed : LimitCycle or sequence, optional
+        Cycles at neighbouring parameters (e.g. ``MeanThrust.cycle`` of a neighbouring point).
+
+    Raises
+    ------
+    CycleError
+        As :func:`limit_cycle`.
+    """
+    c = limit_cycle(params, degree=degree, rtol=rtol, seed=seed, floquet=False)
+    U = float(np.hypot(*params.background))
+    if c.flutter:
+        e = c.errors
+        error = c.thrust_norm * (e["thrust_norm"] + e["thrust_angle"])
+        period, period_error = c.period, e["period"]
+        status, message = c.status, c.message
+    else:
+        period = period_error = math.nan
+        if not params.has_background or not np.all(np.isfinite(c.thrust)):
+            error = 0.0 if not params.has_background else math.nan
+        else:
+            coarse = Mesh(c.mesh.breaks, c.mesh.degree - 2)
+            fc = Filament(params, coarse)
+            th = fc.split(fc.equilibrium_state())[0]
+            error = float(np.hypot(*(fc.clamp_force(fc.drag(th, np.zeros_like(th))) - c.thrust)))
+        status, message = c.status, c.message
+    scale = max(c.thrust_norm if np.all(np.isfinite(c.thrust)) else 0.0, params.eta * U)
+    if status == "success" and error > rtol * scale:
+        status = "inaccurate"
+        message += f"; thrust error estimate {error:.1e} above rtol x {scale:.3g}: raise the degree"
+    message += f"; |Fbar| error estimate {error:.1e}"
+    return MeanThrust(params, c.flutter, np.array(c.thrust, dtype=float), float(error), period, period_error,
+                      status, message, c)
 
 
 def _first_orbit(solver: OrbitSolver, fil: Filament, st, seed, tol, params) -> Orbit:

@@ -11,6 +11,7 @@ import pytest
 
 from single_cilium import (CiliumParams, Filament, Mesh, equilibrium, limit_cycle, simulate, stability,
                            steady_state)
+from single_cilium.cycle import mean_thrust
 from single_cilium.orbit import ExactShooting
 from single_cilium.stability import _pencil
 
@@ -100,6 +101,10 @@ def test_straight_filament_in_a_stream_along_itself(U2):
     assert not c.flutter and c.status == "no oscillation" and "steady state" in c.message
     np.testing.assert_allclose(c.thrust, [0.0, -eta * U2], rtol=0, atol=1e-10)
     assert c.thrust_angle == pytest.approx(0.0 if U2 > 0 else math.pi, abs=1e-10)
+    m = mean_thrust(p, degree=6)
+    assert not m.flutter and m.status == "no oscillation" and math.isnan(m.period)
+    np.testing.assert_allclose(m.thrust, [0.0, -eta * U2], rtol=0, atol=1e-10)
+    assert m.error < 1e-12
 
 
 def test_cantilever_in_a_weak_cross_flow():
@@ -213,6 +218,10 @@ def test_error_estimate_holds_with_stream(stream_cycle):
     assert abs(c.thrust_norm / ref.thrust_norm - 1) <= c.errors["thrust_norm"]
     assert abs(c.thrust_angle - ref.thrust_angle) <= c.errors["thrust_angle"]
     assert max(c.errors[k] for k in ("period", "thrust_norm", "thrust_angle")) < 1e-6
+    # mean_thrust: the same cycle, its error a bound on the thrust vector's error
+    m = mean_thrust(P_STREAM, seed=c)
+    assert m.flutter and m.status == "success" and m.period == pytest.approx(c.period, rel=1e-9)
+    assert np.hypot(*(m.thrust - ref.thrust)) <= m.error < 1e-6 * m.thrust_norm
 
 
 def test_integrator_agrees_with_shooting_in_a_stream(fine_cycle):
