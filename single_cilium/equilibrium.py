@@ -409,7 +409,11 @@ def steady_state(params: CiliumParams, *, mesh=None, degree: int = 12) -> Steady
     ``L / tau``) on the filament held still (:mod:`single_cilium.filament`). Solved by Newton's
     method from the still-fluid closed form (:func:`equilibrium`), continued in ``|U|``
     (:meth:`~single_cilium.filament.Filament.equilibrium_state`). For ``U = 0`` it is the discrete
-    form of :func:`equilibrium`.
+    form of :func:`equilibrium`. It is the branch continued from the still fluid, which need not
+    be stable: a stream against the filament (``U . t < 0``) compresses it and beyond a critical
+    ``eta |U|`` buckles it (e.g. ``chi_E = chi_N = 0``, ``U = (0, -30)``: the straight state is
+    returned, and :func:`~single_cilium.stability` reports divergence); check with
+    :func:`~single_cilium.stability`.
 
     Parameters
     ----------
