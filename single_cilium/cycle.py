@@ -316,17 +316,28 @@ def _deviation(seed: "LimitCycle", fil: Filament) -> np.ndarray:
     return fil.join(dth, dka)
 
 
+def _coords(p: CiliumParams) -> tuple[float, float, float]:
+    return (p.chi_N, p.background[0], p.background[1])
+
+
 def _predict(seeds: list["LimitCycle"], fil: Filament) -> tuple[np.ndarray, float]:
-    """Predictor from cycles at neighbouring chi_N: their phase-0 states carried over as
-    deviations from their own equilibria, added to this problem's equilibrium (a raw copy would
-    violate the new clamp/tip compatibility and start a stiff initial layer). With two or three
-    seeds the deviation and the period are extrapolated along the branch by the Lagrange
-    polynomial through them in chi_N (the secant, or a parabola), as long as the step is at most
-    twice their spacing; otherwise the nearest seed alone."""
-    c = fil.params.chi_N
-    seeds = sorted(seeds, key=lambda sd: abs(sd.params.chi_N - c))[:3]
-    x = np.array([sd.params.chi_N for sd in seeds])
+    """Predictor from cycles at neighbouring chi_N (or background flow U): their phase-0 states
+    carried over as deviations from their own equilibria, added to this problem's equilibrium (a
+    raw copy would violate the new clamp/tip compatibility and start a stiff initial layer). With
+    two or three seeds the deviation and the period are extrapolated along the branch by the
+    Lagrange polynomial through them in the one coordinate of ``(chi_N, U1, U2)`` in which the
+    seeds and the target differ (the secant, or a parabola), as long as the step is at most
+    twice their spacing; otherwise the nearest seed alone (max-norm in ``(chi_N, U1, U2)``)."""
+    target = _coords(fil.params)
+    seeds = sorted(seeds, key=lambda sd: max(abs(a - b) for a, b in zip(_coords(sd.params), target)))[:3]
+    pts = [_coords(sd.params) for sd in seeds]
+    axes = [j for j in range(3) if any(q[j] != target[j] for q in pts)]
+    k = axes[0] if len(axes) == 1 else 0
+    c = target[k]
+    x = np.array([q[k] for q in pts])
     y_eq = fil.equilibrium_state()
+    if len(axes) > 1:
+        seeds, x = seeds[:1], x[:1]
     if len(set(x.tolist())) < len(x) or (len(x) > 1 and abs(c - x[0]) > 2 * np.ptp(x)):
         seeds, x = seeds[:1], x[:1]
     # Lagrange weights at c
@@ -375,9 +386,10 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         Orbit method, a key of :data:`single_cilium.orbit.METHODS`: ``"shooting"`` (exact
         monodromy, default) or ``"newton-krylov"``.
     seed : LimitCycle or sequence of LimitCycle, optional
-        Converged cycle(s) at neighbouring chi_N (same chi_E, eta) to start from instead of the
-        Hopf eigenvector: the nearest one's phase-0 state, or with two or three, their Lagrange
-        extrapolation along the branch (continuation in chi_N). If Newton does not converge from it, the
+        Converged cycle(s) at neighbouring chi_N or background flow (same chi_E, eta) to start
+        from instead of the Hopf eigenvector: the nearest one's phase-0 state, or with two or
+        three that differ from this point in one coordinate of ``(chi_N, U1, U2)`` only, their
+        Lagrange extrapolation along the branch (continuation in chi_N, U1 or U2). If Newton does not converge from it, the
         Hopf mode is used.
     floquet, error_estimate : bool
         Compute the Floquet multipliers (free with the exact monodromy; ``m + 5`` period maps

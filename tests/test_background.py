@@ -235,3 +235,20 @@ def test_integrator_agrees_with_shooting_in_a_stream(fine_cycle):
                    error_estimate=False)
     F = np.stack([c.data.Fx.values, c.data.Fy.values], -1)
     assert np.max(np.abs(sim.force[:-1][1:] - F[1:])) < 1e-6 * np.max(np.abs(F))
+
+
+def test_continuation_in_the_stream():
+    """Seeds at neighbouring U (same chi_N): the secant predictor along U2 converges in a few
+    Newton steps to the cycle found from scratch."""
+    kw = dict(degree=6, n_phase=32, floquet=False, error_estimate=False)
+
+    def P(U2):
+        return CiliumParams(200, 1, 16 * TWO_PI, (0.0, U2))
+
+    c1 = limit_cycle(P(0.5), **kw)
+    c2 = limit_cycle(P(1.0), seed=c1, **kw)
+    c3 = limit_cycle(P(1.5), seed=[c1, c2], **kw)
+    assert c3.work["newton"] <= 3
+    scratch = limit_cycle(P(1.5), **kw)
+    assert c3.period == pytest.approx(scratch.period, rel=1e-9)
+    np.testing.assert_allclose(c3.thrust, scratch.thrust, rtol=0, atol=1e-8)
