@@ -19,18 +19,18 @@ Conventions
   ``shape = (nx, ny, nz)`` points has index ``i + nx * (j + ny * k)``. :func:`grid_points`
   returns the coordinates in that order, so that ``u(grid_points(...))`` is ready to write.
 
-Every writer validates its input, creates the parent folder if needed, writes to a hidden
-temporary file in the target folder (``.<name>.<random><ext>``, the extension kept so the right
-VTK writer is picked) and renames it onto the target with :func:`os.replace`: readers never see a
-half-written file, and on any failure the temporary is removed and an existing target is left
-untouched. A folder that cannot be written raises :class:`OutputError`.
+Every writer validates its input, makes the file in memory (VTK's writers write to a string),
+creates the parent folder if needed, writes the bytes with :func:`os.write` to a hidden temporary
+file in the target folder and renames it onto the target with :func:`os.replace`: readers never
+see a half-written file, and on any failure the temporary is removed and an existing target is
+left untouched. A folder or file that cannot be written -- a full disk included -- raises
+:class:`OutputError`, one line naming the file and the reason ("no space left on device").
 """
 from __future__ import annotations
 
+import io
 import logging
 import math
-import os
-import tempfile
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 import pyvista as pv
+
+from single_cilium._io import _usual_mode, write_bytes  # noqa: F401 -- _usual_mode: figures.py uses it from here
 
 logger = logging.getLogger(__name__)
 
@@ -223,59 +225,52 @@ def _check_suffix(path, ext: str) -> Path:
 # atomic output
 
 
-def _usual_mode() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
+def _atomic_write(path: Path, make: Callable[[], bytes]) -> Path:
+    """Write the bytes ``make()`` returns to ``path`` atomically
+    (:func:`single_cilium._io.write_bytes`: a hidden temporary in ``path``'s folder, plain
+    :func:`os.write`, then a rename).
 
-
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> Path:
-    """Call ``write(tmp)`` on a hidden temporary in ``path``'s folder, then rename onto ``path``.
-
-    Raises OutputError (naming ``path``) when the folder or the file cannot be written; any other
-    exception from ``write`` propagates. Either way the temporary is gone afterwards.
+    Raises OutputError (naming ``path``) when the folder or the file cannot be written (a full
+    disk: "no space left on device") or VTK cannot make the file; any other exception from
+    ``make`` propagates. Either way no temporary is left and an existing ``path`` is unchanged.
     """
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    except OSError as err:
-        raise OutputError(path, err.strerror or str(err), err.errno) from err
-    os.close(fd)
-    tmp = Path(name)
+        data = make()
+    except pv.VTKExecutionError as err:
+        lines = [ln.strip() for ln in str(err).splitlines() if "): " in ln]  # "vtkX (0x..): msg"
+        detail = "; ".join(ln.split("): ", 1)[1] for ln in lines[:2]) or " ".join(str(err).split())
+        raise OutputError(path, f"VTK could not write the file ({detail})") from None
+    if not data:
+        raise OutputError(path, "the writer produced an empty file")
     try:
-        try:
-            write(tmp)
-            if tmp.stat().st_size == 0:
-                raise OutputError(path, "the writer produced an empty file")
-            os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; give the file the usual permissions
-            os.replace(tmp, path)
-        except OutputError:
-            raise
-        except pv.VTKExecutionError as err:
-            lines = [ln.strip() for ln in str(err).splitlines() if "): " in ln]  # "vtkX (0x..): msg"
-            detail = "; ".join(ln.split("): ", 1)[1] for ln in lines[:2]) or str(err)
-            raise OutputError(path, f"VTK could not write the file ({detail})") from err
-        except OSError as err:
-            raise OutputError(path, err.strerror or str(err), err.errno) from err
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        write_bytes(path, data)
+    except OSError as err:
+        raise OutputError(path, getattr(err, "reason", None) or err.strerror or str(err), err.errno) from None
     logger.debug("wrote %s", path)
     return path
 
 
+def _mesh_bytes(mesh: pv.DataObject, path: Path) -> bytes:
+    """The VTK XML file of ``mesh`` (binary, zlib, appended data base64-encoded: what
+    ``mesh.save(path, binary=True)`` writes), made in memory; the writer is picked from
+    ``path``'s extension. VTK's errors (which pyvista's save only logs) raise
+    ``pv.VTKExecutionError``."""
+    if hasattr(mesh, "_store_metadata"):  # as pyvista's save does (complex and bit arrays as field data)
+        mesh._store_metadata()
+    writer = mesh._WRITERS[path.suffix.lower()](path, mesh)
+    writer._apply_kwargs_safely(texture=None, data_format="binary", compression="zlib")
+    vtk_writer = writer.writer
+    vtk_writer.EncodeAppendedDataOn()  # text-safe: the string VTK returns is ASCII
+    vtk_writer.WriteToOutputStringOn()
+    with pv.VtkErrorCatcher(raise_errors=True, send_to_logging=False):
+        writer.write()
+    out = vtk_writer.GetOutputString()
+    return out if isinstance(out, bytes) else out.encode("ascii")
+
+
 def _save_mesh(mesh: pv.DataObject, path: Path) -> Path:
-    """Write ``mesh`` (binary, zlib) atomically; the writer is picked from ``path``'s extension.
-
-    pyvista's save reports success even when the VTK writer fails to open or write its file
-    (the failure only goes to VTK's output window); the error catcher turns it into an error.
-    """
-
-    def write(tmp: Path) -> None:
-        with pv.VtkErrorCatcher(raise_errors=True, send_to_logging=False):
-            mesh.save(tmp, binary=True)
-
-    return _atomic_write(path, write)
+    """Write ``mesh`` (binary, zlib) atomically; the writer is picked from ``path``'s extension."""
+    return _atomic_write(path, lambda: _mesh_bytes(mesh, path))
 
 
 # --------------------------------------------------------------------------------------------
@@ -634,8 +629,10 @@ def write_pvd(path, entries: Iterable[PvdEntry | tuple]) -> Path:
     ET.indent(root)
     tree = ET.ElementTree(root)
 
-    def write(tmp: Path) -> None:
-        tree.write(tmp, encoding="utf-8", xml_declaration=True)
+    def make() -> bytes:
+        buf = io.BytesIO()
+        tree.write(buf, encoding="utf-8", xml_declaration=True)
+        return buf.getvalue()
 
     logger.debug("writing a collection of %d data sets to %s", len(items), path)
-    return _atomic_write(path, write)
+    return _atomic_write(path, make)

@@ -1,6 +1,13 @@
-"""Atomic file output (write to a temporary name in the target folder, then rename) and strict JSON."""
+"""Atomic file output (write to a temporary name in the target folder, then rename) and strict JSON.
+
+Files are made in memory first and written with plain :func:`os.write`: a full disk (or quota)
+is then an ordinary error naming the file -- :class:`OutputFileError`, "no space left on
+device" -- with the temporary removed and an existing file unchanged. (HDF5 writing straight to a
+full disk prints pages of tracebacks and may crash the process.)
+"""
 from __future__ import annotations
 
+import errno as _errno
 import json
 import math
 import os
@@ -10,26 +17,91 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-__all__ = ["write_netcdf", "strict_json", "non_finite"]
+__all__ = ["write_netcdf", "write_bytes", "OutputFileError", "strict_json", "non_finite"]
+
+_FULL = (_errno.ENOSPC, getattr(_errno, "EDQUOT", _errno.ENOSPC), _errno.EFBIG)
 
 
-def write_netcdf(ds: xr.Dataset, path) -> Path:
-    """Write ``ds`` as NetCDF4/HDF5 (engine h5netcdf) to ``path`` atomically: readers never see
-    a half-written file, and an existing file is replaced only once the new one is complete."""
+class OutputFileError(OSError):
+    """A file that could not be written; ``str()`` is one line naming it and the reason.
+
+    Parameters
+    ----------
+    path : path-like
+        The file that was to be written.
+    reason : str
+        Why not (``"no space left on device"``, ``"Permission denied"``, ...).
+    errno : int, optional
+        The operating system's error number.
+    """
+
+    def __init__(self, path, reason: str, errno: int | None = None) -> None:
+        super().__init__(f"cannot write '{path}': {reason}")
+        self.path = Path(path)
+        self.reason = str(reason)
+        self.errno = errno
+        self.filename = str(path)
+
+    def __str__(self) -> str:
+        return f"cannot write '{self.path}': {self.reason}"
+
+    def __reduce__(self):  # picklable (raised in pool and Dask workers)
+        return (type(self), (self.path, self.reason, self.errno))
+
+
+def reason(err: OSError) -> str:
+    """What went wrong in ``err``, in words: ``"no space left on device"`` for a full disk or
+    quota (and a file too large for the file system), else the system's message."""
+    if err.errno in _FULL:
+        return "no space left on device (free some space, or write elsewhere)"
+    return err.strerror or " ".join(str(err).split()) or type(err).__name__
+
+
+def _usual_mode() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def write_bytes(path, data) -> Path:
+    """Write ``data`` (bytes-like) to ``path`` atomically: to a hidden temporary in the same
+    folder with :func:`os.write`, then renamed onto ``path``. Raises :class:`OutputFileError`
+    (naming ``path``) when the folder or the file cannot be written -- a full disk included --
+    after removing the temporary; an existing ``path`` is then unchanged."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    os.close(fd)
+    view = memoryview(data).cast("B")
     try:
-        ds.to_netcdf(tmp, engine="h5netcdf")
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    except OSError as err:
+        raise OutputFileError(path, reason(err), err.errno) from None
+    try:
+        try:
+            while view.nbytes:
+                n = os.write(fd, view)
+                view = view[n:]
+        finally:
+            os.close(fd)
+        os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; give the file the usual permissions
         os.replace(tmp, path)
+    except OSError as err:
+        Path(tmp).unlink(missing_ok=True)
+        raise OutputFileError(path, reason(err), err.errno) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def write_netcdf(ds: xr.Dataset, path) -> Path:
+    """Write ``ds`` as NetCDF4/HDF5 (engine h5netcdf) to ``path`` atomically: readers never see
+    a half-written file, and an existing file is replaced only once the new one is complete.
+    The file is made in memory and written by :func:`write_bytes`: a full disk is an
+    :class:`OutputFileError` naming ``path`` ("no space left on device"), never a crash."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputFileError(path, "it is a folder")
+    return write_bytes(path, ds.to_netcdf(engine="h5netcdf"))
 
 
 def _plain(v, path: str, bad: dict):

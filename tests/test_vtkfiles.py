@@ -10,6 +10,7 @@ import pyvista as pv
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
+import single_cilium._io as single_cilium_io
 from ciliary_carpet import vtkfiles
 from ciliary_carpet.vtkfiles import (
     OutputError,
@@ -311,18 +312,18 @@ def _leftovers(folder):
 def test_failed_save_leaves_target_and_no_temporary(tmp_path, tracers, monkeypatch):
     target = tmp_path / "paths.vtp"
     target.write_bytes(b"previous contents")
-    real_save = pv.PolyData.save
+    real_write = os.write
     seen = []
 
-    def broken_save(self, filename, *args, **kwargs):
-        real_save(self, filename, *args, **kwargs)  # the temporary is complete ...
-        seen.append(os.path.basename(filename))
+    def broken_write(fd, data):
+        real_write(fd, bytes(data)[:10])  # part of the temporary is written ...
+        seen.append(os.path.basename(os.readlink(f"/proc/self/fd/{fd}")) if os.path.isdir("/proc/self/fd") else ".")
         raise RuntimeError("disk on fire")  # ... and then the write fails
 
-    monkeypatch.setattr(pv.PolyData, "save", broken_save)
+    monkeypatch.setattr(single_cilium_io.os, "write", broken_write)
     with pytest.raises(RuntimeError, match="disk on fire"):
         write_pathlines(target, **tracers)
-    assert seen and seen[0].startswith(".paths.vtp.") and seen[0].endswith(".vtp")  # hidden, same extension
+    assert seen and seen[0].startswith(".")  # hidden
     assert target.read_bytes() == b"previous contents"
     assert _leftovers(tmp_path) == []
 
@@ -332,34 +333,31 @@ def test_failed_pvd_write_leaves_target(tmp_path, monkeypatch):
     target = tmp_path / "s.pvd"
     target.write_text("old")
 
-    def broken_write(self, file, *args, **kwargs):
-        with open(file, "w") as fh:
-            fh.write("<VTKFile")
+    real_write = os.write
+
+    def broken_write(fd, data):
+        real_write(fd, b"<VTKFile")
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(ET.ElementTree, "write", broken_write)
-    with pytest.raises(OutputError, match="No space left"):
+    monkeypatch.setattr(single_cilium_io.os, "write", broken_write)
+    with pytest.raises(OutputError, match="s.pvd.*no space left on device"):
         write_pvd(target, [(0.0, f)])
     assert target.read_text() == "old"
     assert _leftovers(tmp_path) == []
 
 
 def test_vtk_writer_failure_is_an_error(tmp_path, tracers, monkeypatch):
-    """pyvista's save returns normally when the VTK writer cannot open its file; we raise."""
-    real_save = pv.PolyData.save
-    blocked = tmp_path / "a_folder.vtp"
-    blocked.mkdir()
+    """VTK's errors (which pyvista's save only logs) are an OutputError naming the file."""
+    def failing(mesh, path):
+        raise pv.VTKExecutionError("ERROR:\nvtkXMLPolyDataWriter (0x1): Error writing the data")
 
-    def save_into_a_folder(self, filename, *args, **kwargs):
-        real_save(self, blocked, *args, **kwargs)  # VTK: 'Error opening output file', no exception
-
-    monkeypatch.setattr(pv.PolyData, "save", save_into_a_folder)
-    with pytest.raises(OutputError, match=r"paths\.vtp.*VTK could not write"):
+    monkeypatch.setattr(vtkfiles, "_mesh_bytes", failing)
+    with pytest.raises(OutputError, match=r"paths\.vtp.*VTK could not write.*Error writing the data"):
         write_pathlines(tmp_path / "paths.vtp", **tracers)
     assert not (tmp_path / "paths.vtp").exists()
     assert _leftovers(tmp_path) == []
 
-    monkeypatch.setattr(pv.PolyData, "save", lambda self, filename, *a, **k: None)  # writes nothing
+    monkeypatch.setattr(vtkfiles, "_mesh_bytes", lambda mesh, path: b"")  # writes nothing
     with pytest.raises(OutputError, match="empty file"):
         write_pathlines(tmp_path / "paths.vtp", **tracers)
     assert _leftovers(tmp_path) == []
@@ -410,7 +408,7 @@ def test_permission_denied_is_output_error(tmp_path, tracers, monkeypatch):
     def denied(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(vtkfiles.tempfile, "mkstemp", denied)
+    monkeypatch.setattr(single_cilium_io.tempfile, "mkstemp", denied)
     with pytest.raises(OutputError, match=r"paths\.vtp.*Permission denied") as info:
         write_pathlines(tmp_path / "paths.vtp", **tracers)
     assert info.value.errno == 13
