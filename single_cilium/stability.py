@@ -275,7 +275,8 @@ class Cutoff:
     """Flutter cutoff: ``chi_N_cutoff`` where the oscillatory mode crosses ``alpha = 0``, with
     ``beta`` there; ``error`` estimates the cutoff's discretisation error (relative), from the
     same root on the mesh of degree lowered by 4. ``chi_N_cutoff`` is NaN (with a message) when
-    the field does not flutter at ``chi_N = 0`` or does at every ``chi_N`` scanned."""
+    the field does not flutter at ``chi_N = 0`` or does at every ``chi_N`` scanned.
+    ``background``: the background flow ``U`` it was computed in."""
 
     chi_E: float
     eta: float
@@ -284,39 +285,62 @@ class Cutoff:
     error: float
     message: str
     n_eigensolves: int
+    background: tuple = (0.0, 0.0)
 
     def as_dict(self) -> dict:
-        return {"chi_E": self.chi_E, "eta": self.eta, "chi_N_cutoff": self.chi_N_cutoff,
-                "beta": self.beta, "error": self.error, "message": self.message}
+        return {"chi_E": self.chi_E, "eta": self.eta, "U1": self.background[0], "U2": self.background[1],
+                "chi_N_cutoff": self.chi_N_cutoff, "beta": self.beta, "error": self.error, "message": self.message}
 
 
 def flutter_cutoff(chi_E: float, eta: float, *, degree: int = DEFAULT_DEGREE, xtol: float = 1e-10,
-                   n_scan: int = 24) -> Cutoff:
+                   n_scan: int = 24, background: tuple[float, float] = (0.0, 0.0)) -> Cutoff:
     """The natural curvature above which the filament stops fluttering, at fixed (chi_E, eta).
 
     ``chi_N`` in ``[0, |chi_E|)`` is scanned at ``n_scan`` points for the last sign change of
     the oscillatory growth rate ``alpha`` (rightmost eigenvalue with ``beta > 0``), which is then
     located by Brent's method to ``xtol`` (relative). Only an unrolled filament
     (``|chi_E| > chi_N``) may flutter (MODEL.md section 4).
+
+    ``background``: the uniform flow ``U = (U1, U2)`` (field frame, units ``L / tau``) the filament
+    sits in; each eigensolve linearises about the steady state in it. Only ``chi_N >= 0`` is
+    scanned: negative ``chi_N`` is the mirror image with ``U1 -> -U1``. Where the steady state
+    in the stream ceases to exist (a fold, e.g. near ``chi_N = chi_E``, where the still-fluid
+    equilibrium is marginal and a weak stream tips it over) the scan stops, and says so.
     """
-    base = CiliumParams(chi_E, eta, 0.0)
+    base = CiliumParams(chi_E, eta, 0.0, background)
     count = [0]
 
     def alpha(cN: float, deg: int) -> float:
-        p = CiliumParams(base.chi_E, base.eta, cN)
+        p = CiliumParams(base.chi_E, base.eta, cN, base.background)
         count[0] += 1
-        return _hopf_alpha(spectrum(p, Mesh.for_params(p, deg)))[0]
+        try:
+            return _hopf_alpha(spectrum(p, Mesh.for_params(p, deg)))[0]
+        except RuntimeError:  # no steady state in the stream (continuation met a fold)
+            if not base.has_background:
+                raise
+            return math.nan
 
     top = abs(base.chi_E) * (1 - 1e-6)
     grid = np.linspace(0.0, top, int(n_scan))
     vals = np.array([alpha(c, degree) for c in grid])
+    if np.isnan(vals).any():
+        n_ok = int(np.argmax(np.isnan(vals)))
+        if n_ok == 0:
+            return Cutoff(base.chi_E, base.eta, math.nan, math.nan, math.nan,
+                          "no steady state at chi_N = 0 in this stream: no cutoff", count[0], base.background)
+        grid, vals = grid[:n_ok], vals[:n_ok]
+        top = float(grid[-1])
+        logger.info("flutter_cutoff(%g, %g, background=%s): no steady state beyond chi_N = %.6g; scan stops",
+                    base.chi_E, base.eta, base.background, top)
     pos = vals >= 0
     if not pos[0]:
         return Cutoff(base.chi_E, base.eta, math.nan, math.nan, math.nan,
-                      "no flutter at chi_N = 0 for this field: no cutoff", count[0])
+                      "no flutter at chi_N = 0 for this field: no cutoff", count[0], base.background)
     if pos[-1]:
         return Cutoff(base.chi_E, base.eta, math.nan, math.nan, math.nan,
-                      f"flutter at every chi_N scanned up to {top:.6g}", count[0])
+                      f"flutter at every chi_N scanned up to {top:.6g}"
+                      + (" (no steady state in this stream beyond)" if top < abs(base.chi_E) * (1 - 1e-6) else ""),
+                      count[0], base.background)
     k = np.nonzero(pos[:-1] & ~pos[1:])[0][-1]
 
     def root(deg: int) -> float:
@@ -326,11 +350,12 @@ def flutter_cutoff(chi_E: float, eta: float, *, degree: int = DEFAULT_DEGREE, xt
     with single_threaded_blas():
         c = root(degree)
         c_coarse = root(max(4, degree - 4))
-    p = CiliumParams(base.chi_E, base.eta, c)
+    p = CiliumParams(base.chi_E, base.eta, c, base.background)
     beta = _hopf_alpha(spectrum(p, Mesh.for_params(p, degree)))[1]
     err = abs(c - c_coarse) / c
     return Cutoff(base.chi_E, base.eta, c, beta, err,
-                  f"Hopf crossing between chi_N = {grid[k]:.6g} and {grid[k + 1]:.6g}", count[0])
+                  f"Hopf crossing between chi_N = {grid[k]:.6g} and {grid[k + 1]:.6g}", count[0],
+                  base.background)
 
 
 # ---------------------------------------------------------------------------------- boundary

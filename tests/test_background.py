@@ -13,7 +13,7 @@ from single_cilium import (CiliumParams, Filament, Mesh, equilibrium, limit_cycl
                            steady_state)
 from single_cilium.cycle import mean_thrust
 from single_cilium.orbit import ExactShooting
-from single_cilium.stability import _pencil
+from single_cilium.stability import _hopf_alpha, _pencil, flutter_cutoff, spectrum
 
 TWO_PI = 2 * np.pi
 #: a stream with both components, at the published field chi_E = 200, eta = 1
@@ -252,3 +252,17 @@ def test_continuation_in_the_stream():
     scratch = limit_cycle(P(1.5), **kw)
     assert c3.period == pytest.approx(scratch.period, rel=1e-9)
     np.testing.assert_allclose(c3.thrust, scratch.thrust, rtol=0, atol=1e-8)
+
+
+def test_flutter_cutoff_in_a_stream():
+    """The cutoff in chi_N in a stream is where the oscillatory mode about the steady state in that
+    stream crosses alpha = 0; U = (0, 0) gives today's cutoff."""
+    assert flutter_cutoff(200, 1, degree=8, background=(0.0, 0.0)).chi_N_cutoff == pytest.approx(
+        162.77486240831666, rel=1e-12)
+    U = (0.0, 2.0)
+    c = flutter_cutoff(200, 1, degree=8, background=U)
+    assert c.background == U and math.isfinite(c.chi_N_cutoff) and c.error < 1e-4
+    for f, sign in ((1.0, 0), (0.99, 1), (1.01, -1)):
+        p = CiliumParams(200, 1, f * c.chi_N_cutoff, U)
+        a = _hopf_alpha(spectrum(p, Mesh.for_params(p, 8)))[0]
+        assert (abs(a) < 1e-6) if sign == 0 else (np.sign(a) == sign)
