@@ -406,7 +406,8 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
     Raises
     ------
     CycleError
-        When the orbit does not converge (the message says what to change).
+        When the orbit does not converge (the message says what to change), or, in a background
+        flow, when the filament has no steady state in it to start from.
     """
     if not isinstance(params, CiliumParams):
         raise TypeError(f"params must be a CiliumParams, got {type(params).__name__}")
@@ -431,7 +432,12 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         return solver
 
     with single_threaded_blas():
-        st = stability(params, mesh=mesh, n_modes=2, check=False)
+        try:
+            st = stability(params, mesh=mesh, n_modes=2, check=False)
+        except RuntimeError as exc:  # in a stream: no steady state (the continuation met a fold)
+            if not params.has_background or isinstance(exc, ConvergenceError):
+                raise
+            raise CycleError(f"{params}: {exc}; no limit cycle about it can be sought", 0.0) from None
         if st.regime != "flutter":
             if not params.has_background:
                 return LimitCycle(params, mesh, False, theta_lim=theta_lim, status="no oscillation",

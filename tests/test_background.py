@@ -266,3 +266,15 @@ def test_flutter_cutoff_in_a_stream():
         p = CiliumParams(200, 1, f * c.chi_N_cutoff, U)
         a = _hopf_alpha(spectrum(p, Mesh.for_params(p, 8)))[0]
         assert (abs(a) < 1e-6) if sign == 0 else (np.sign(a) == sign)
+
+
+def test_no_steady_state_in_the_stream_is_a_clear_error():
+    """Near chi_N = chi_E the still-fluid equilibrium is marginal (across the field) and a weak
+    stream against the field tips it over: no steady state, said so."""
+    from single_cilium.cycle import CycleError
+
+    p = CiliumParams(200, 1, 199.9998, (0.0, -2.0))
+    with pytest.raises(RuntimeError, match="no steady state"):
+        steady_state(p, degree=8)
+    with pytest.raises(CycleError, match="no steady state"):
+        limit_cycle(p, degree=8)
