@@ -96,13 +96,13 @@ def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool, 
         out = Path(out_root) / scene.name
         rec["out_dir"] = str(out)
         table = scene.table.path(scene)
-        if is_complete(out, [scene_path, table]) and not overwrite:
+        if is_complete(out, [scene_path, table], scene=scene) and not overwrite:  # and made with these settings
             rec.update(status="skipped", message="complete and up to date")
         else:
             # a render interrupted while replacing a folder leaves its manifest without summary.json:
             # finish it (only the files it wrote are replaced)
             resume = out.is_dir() and owned_files(out) is not None and not (out / SUMMARY).is_file()
-            render(scene, out, overwrite=overwrite or resume, max_seconds=max_seconds)
+            render(scene, out, overwrite=overwrite or resume, max_seconds=max_seconds, within=out_root)
             rec.update(status="done", message="rendered")
     except Exception as exc:  # noqa: BLE001 -- one failing scene must not stop the others
         rec.update(status="failed", message=_one_line(exc, scene_path))

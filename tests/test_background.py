@@ -125,6 +125,13 @@ def test_stream_jacobian_and_linearisation_against_finite_differences():
     fil = Filament(p, Mesh.for_params(p, 6))
     y = fil.equilibrium_state()
     assert np.max(np.abs(fil.rhs(y))) < 1e-9  # a steady state of the discrete system
+    # the compiled stage residual (U added to the velocity integrals) against numpy's f - M K
+    # (U's drag as a separate load)
+    rng = np.random.default_rng(3)
+    Y = y + 0.1 * rng.standard_normal((3, fil.size)) * fil.scale
+    K = rng.standard_normal((3, fil.size)) * fil.scale
+    G = fil.residual(Y, K)
+    np.testing.assert_allclose(G, fil.rhs(Y) - fil.mass_apply(Y, K), rtol=0, atol=1e-9 * np.max(np.abs(G)))
     theta, _ = fil.split(y)
     Jg = fil.stream_jacobian(theta)
     eps = 1e-7
