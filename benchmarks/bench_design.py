@@ -1,6 +1,7 @@
 """Cost of the inverse design and of rendering the bundled scenes (see benchmarks/README.md).
 
-    python benchmarks/bench_design.py [--quick] [--cap S] [--out FILE] [--sections design large velocity render]
+    python benchmarks/bench_design.py [--quick] [--cap S] [--out FILE]
+                                      [--sections design large velocity reach render targets]
                                       [--sizes 100 1000] [--old-max-n N]
 
 Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also writes them to a file.
@@ -33,6 +34,12 @@ Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also write
    rms residual it expects at a width) against designs at widths 0.5-2 spacings, spacings 2 and
    3, focusing, spreading and shear, on 100, 240 and (two rows) 1024 cilia, with the cost of the
    estimate against the design's.
+
+5. (``targets``, issue 24) velocity targets users have: the mean flow of a smooth known layout
+   sampled at scattered points or on a grid through the cilia (points inside swept regions used),
+   free space and walls 0.5, 0.1 and 0.05 L below the filaments, 144, 400 and 900 cilia at spacing
+   2.5: the rms residual, its error bar (final check at a tolerance picked from the threshold
+   0.05) against the resolved sum, and the time. Results: ``results/bench_design_targets.md``.
 
 Timing: wall clock, single run, after a warm-up (numba kernels, table). The machine is shared: the
 load average at start and end is printed and inflates every time here; the ratios against the
@@ -328,6 +335,75 @@ def section_velocity(emit, table: ThrustTable, cap: float):
     emit("")
 
 
+def _reachable_target(table, n, spacing, wall, points, seed=1):
+    """An n x n carpet at chi_N = 0 and a reachable velocity target: the resolved (tol = 0) mean
+    flow of the smooth layout chi_N = 90 sin(2 pi 0.8 x / X + 0.3) cos(2 pi 0.6 y / Y) (X, Y the
+    carpet's extent) at "scattered" points (n^2 uniform random points over the bases' box) or on
+    a "grid" (the lattice shifted by (0, 0.4 L): every point on a cilium)."""
+    b = layout.square(n, n, spacing)
+    lo, hi = b.min(axis=0), b.max(axis=0)
+    if points == "scattered":
+        X = lo + np.random.default_rng(seed).random((n * n, 2)) * (hi - lo)
+    else:
+        X = b + [0.0, 0.4]
+    span = hi - lo
+    chi = 90 * np.sin(2 * np.pi * 0.8 * b[:, 0] / span[0] + 0.3) * np.cos(2 * np.pi * 0.6 * b[:, 1] / span[1])
+    phases = layout.random_phases(n * n, 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        U = Carpet(b, chi, table, phases, wall=wall).mean_velocity(X, tol=0.0)[:, :2]
+    return b, phases, X, U
+
+
+def section_targets(emit, table: ThrustTable, cap: float, quick: bool = False):
+    """Issue 24: reachable velocity targets at scattered and gridded points (some on cilia), free
+    space and walls 0.5, 0.1 and 0.05 L below the filaments, 144 / 400 / 900 cilia."""
+    emit("## 5. Velocity targets users have: scattered and gridded points, walls close by (issue 24)")
+    emit("")
+    emit("Target: the resolved (tol = 0) mean flow of the smooth layout chi_N = 90 sin(2 pi 0.8 x / X + 0.3) "
+         "cos(2 pi 0.6 y / Y) (X, Y the carpet's extent) at the control points: `scattered` = as many uniform "
+         "random points over the bases' box as cilia (seed 1), `grid` = the lattice moved 0.4 L along +y (every "
+         "point on a cilium). Square lattices, spacing 2.5, random phases (seed 0). The design starts from chi_N = "
+         "0 with `design_layout(..., threshold=0.05)` (inside points used); time = `Carpet(...)` + "
+         "`design_layout`. `+-`: the error bar of the final full-model check (tolerance in brackets, picked from "
+         "the threshold); `exact`: the rms residual of the returned layout on the resolved sum (tol = 0, not "
+         "timed); `|diff|` its difference from the reported one (the bar must cover it). `near`: the near "
+         "field's pairs and seconds; `sweeps`: cilia moved by the sweeps.")
+    emit("")
+    emit("| cilia | points | P | inside | wall [L] | start rms | rms | +- (final tol) | exact | abs diff | met, bar ok "
+         "| time [s] | near pairs / s | iterations | checks | sweeps moved | load avg |")
+    emit("|---:|---|---:|---:|---|---:|---:|---|---:|---:|---|---:|---|---:|---:|---:|---|")
+    sizes = (12,) if quick else (12, 20, 30)
+    walls = (None, 0.5) if quick else (None, 0.5, 0.1, 0.05)
+    for n in sizes:
+        for wall in walls:
+            for points in ("scattered", "grid"):
+                b, phases, X, U = _reachable_target(table, n, 2.5, wall, points)
+                log(f"targets: {n * n} cilia, {points}, wall {wall}")
+
+                def run():
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore", UserWarning)
+                        c = Carpet(b, 0.0, table, phases, wall=wall)
+                    return design_layout(c, X, velocities=U, threshold=0.05)
+
+                d, t_d = timed(run, cap)
+                if d is None:
+                    emit(f"| {n * n} | {points} | {len(X)} | | {wall} | stopped after {t_d:.0f} s |" + " |" * 11)
+                    continue
+                u = d.carpet.mean_velocity(d.control, tol=0.0)[:, :2]
+                s = math.sqrt(np.mean(np.sum(d.target ** 2, axis=1)))
+                exact = math.sqrt(np.mean(np.sum((u - d.target) ** 2, axis=1))) / s
+                w = d.work
+                emit(f"| {n * n} | {points} | {len(X)} | {d.inside_swept['count']} | "
+                     f"{'none' if wall is None else wall} | {f3(d.local_rms)} | {d.residual_rms:.3g} | "
+                     f"{d.residual_error:.2g} ({w['final_tol']:.2g}) | {exact:.3g} | {abs(exact - d.residual_rms):.1g} | "
+                     f"{'yes' if d.residual_rms <= 0.05 else 'NO'}, {'yes' if d.residual_error <= 0.025 else 'NO'} | "
+                     f"{t_d:.1f} | {w['near_pairs']} / {w['seconds_near']:.1f} | {w['iterations']} | {w['checks']} | "
+                     f"{w['swept_cilia']} | {loadavg()} |")
+    emit("")
+
+
 def section_reach(emit, table: ThrustTable, quick: bool = False):
     """reachability() against designs: focusing at several amplitudes (4), widths against the
     narrowest-width estimate at spacings 2 and 3 (4b)."""
@@ -478,7 +554,7 @@ def main(argv=None):
                     help="run the design before this version up to this N (default 1000)")
     ap.add_argument("--out", type=Path, default=None, help="also write the tables to this file")
     ap.add_argument("--sections", nargs="+", default=["design", "large", "velocity", "reach", "render"],
-                    choices=["design", "large", "velocity", "reach", "render"],
+                    choices=["design", "large", "velocity", "reach", "render", "targets"],
                     help="the sections to run (default: all)")
     ap.add_argument("--sizes", nargs="+", type=int, default=[100, 1000], help="carpet sizes of section 1")
     args = ap.parse_args(argv)
@@ -514,6 +590,10 @@ def main(argv=None):
     if "velocity" in run and not args.quick:
         section_velocity(emit, table, args.cap)
         emit(f"- load average after section 2: {loadavg()}")
+        emit("")
+    if "targets" in run:
+        section_targets(emit, table, args.cap, args.quick)
+        emit(f"- load average after section 5: {loadavg()}")
         emit("")
     t_s1 = time.perf_counter() - t1
     t2 = time.perf_counter()
