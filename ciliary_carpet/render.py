@@ -11,34 +11,42 @@ scene's tolerance and writes, into ``out_dir``:
                             control point, the layout coloured by chi_N (with a target)
 ``mean_field.vti``          the time-averaged velocity (active vectors), speed, vorticity and the
                             error bound on a grid around the carpet
-``snapshot_NNN.vti``        instantaneous fields, tied by ``snapshots.pvd``
-``cilia_NNN.vtp``           filament shapes per frame (arc length, drag density), ``cilia.pvd``
+``snapshot_NNN.vti``        instantaneous fields over one beat of the cilia, tied by ``snapshots.pvd``
+``cilia_NNN.vtp``           filament shapes over one beat (arc length, drag density), ``cilia.pvd``;
+                            both .pvd repeat that beat over the path lines' time range (one clock)
 ``pathlines.vtp``           tracer path lines (time, IntegrationTime, velocity, speed; SeedIds,
                             TerminationReason with TerminationReasonNames), >= 16 points per beat
 ``particles.pvd``           the tracers as moving points (``particles_NNNNN.vtp``), as ParticlePath gives
-``open_in_paraview.py``     ``pvpython open_in_paraview.py`` (or ``paraview --script=...``) opens
-                            the whole scene: fields, cilia, path lines, particles
+``open_in_paraview.py``     ``paraview --script=DIR/open_in_paraview.py`` (or ``pvpython``/``pvbatch``
+                            with its path), from any working folder, opens the whole folder
+                            (:mod:`ciliary_carpet.paraview`: what shows, what is loaded hidden)
 ``ftle.vti``                finite-time Lyapunov exponent over the carpet (mean flow, a quarter of
                             the path-line duration); the mixing number is in the summary
-``preview.png``             the mean flow (streamlines) with the layout and path lines
+``preview.png``             the mean flow (streamlines) with the layout and path lines, a colour
+                            bar for each colour
 ``summary.json``, ``.md``   residuals, timings, fidelity used, error bounds, path-line outcome
+                            (``.md``: the same in words, :mod:`ciliary_carpet.report`)
 ``ciliary-carpet.manifest``  the names of the files above: what the toolkit wrote (JSON)
 ==========================  ==================================================================
 
-Output-folder safety. Everything is first written into a hidden staging folder
-``.NAME.HOST-PID.*.partial`` beside ``out_dir`` (the only thing ever created outside it), which is
-renamed onto ``out_dir`` when complete, or removed on failure; one left by a killed render (its
-process gone) is removed by the next render of the same folder. A non-empty ``out_dir`` is kept
-unless ``overwrite=True``, and even then only the files listed in its manifest (what a render
-wrote) are replaced or removed: files someone else put there are never touched, and a render
-whose output would replace one of them is refused before any work. ``summary.json`` arrives last:
-a folder is complete (:func:`is_complete`) when it has the manifest and ``summary.json``.
+Output-folder safety (:mod:`ciliary_carpet.outdir`, whose docstring states the guarantees).
+Everything is first written into a hidden staging folder on the output's own filesystem (beside
+a new ``out_dir``, inside an existing one) and swapped in when complete, or removed on failure.
+A render holds a lock on ``out_dir`` (a second render of it is refused at once). A non-empty
+``out_dir`` is kept unless ``overwrite=True``, and even then only the files the toolkit wrote and
+that are unchanged (output names, regular files, the size and SHA-256 its manifest recorded) are
+replaced or removed: files someone else put there are never touched, and a render whose output
+would replace one of them is refused before any work. The swap is journalled and signals cannot
+split it; a folder is complete (:func:`is_complete`) when it has the manifest and
+``summary.json`` and no swap is under way, and current for a scene when it was made with the
+same settings (``package_version`` and ``scene_resolved`` in ``summary.json``).
 ``summary.json`` is strict JSON, and a render whose summary would hold a NaN or an infinity is
 a :class:`RenderError` (nothing is written). Before any work, :func:`check_resources` compares a
 lower bound of the memory and time the scene needs with what the machine has. Times are in units
 of tau, lengths in L
-(SI when the scene has ``[units]``). The periods of the outputs (snapshots, frames, path-line
-duration) are counted in periods of the straight filament, T0 = T(chi_N = 0).
+(SI when the scene has ``[units]``). ``[output] periods`` (the path-line duration) counts periods
+of the straight filament, T0 = T(chi_N = 0); the snapshots and frames sample one beat of the
+cilia themselves (each beats with its own period T(chi_N): their median, ``summary["beat"]``).
 
 Path lines (:func:`pathline_duration`, :func:`pathline_model`): unless the scene sets
 ``[output] periods``, the duration is long enough for a tracer to cross the whole carpet at the
@@ -54,8 +62,6 @@ import inspect
 import logging
 import math
 import os
-import shutil
-import tempfile
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,8 +76,7 @@ from .carpet import BLOB, Carpet
 from .design import design
 from .figures import _design_picture, _preview
 from .ftle import ftle_field
-from .outdir import MANIFEST, SUMMARY, RenderError, is_complete, owned_files
-from .outdir import _OUTPUT_NAME, _check_out_dir, _clean_stale_stages, _place, _stage_prefix, _write_manifest  # noqa: F401
+from .outdir import MANIFEST, PACKAGE_VERSION, SUMMARY, OutputFolder, RenderError, is_complete, owned_files
 from .outdir import usual_mode as _usual_mode
 from .paraview import SCRIPT, write_script
 from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
@@ -383,16 +388,23 @@ def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
 
 
 def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress | None = None,
-           max_seconds: float = 86400.0) -> RenderResult:
-    """Render ``scene`` into ``out_dir`` (see the module docstring for what is written and the
-    output-folder rules). Raises SceneError, TargetError, TableError or DesignError for a scene
-    that cannot be rendered, ResourceError when it certainly needs more memory than available or
-    more than ``max_seconds`` (:func:`check_resources`), and RenderError when ``out_dir`` holds
-    files and ``overwrite`` is False, when a file it would replace was not written by a render,
-    or when the result is not finite; nothing in ``out_dir`` is changed then."""
-    out_dir = Path(out_dir)
-    _clean_stale_stages(out_dir)
-    owned = _check_out_dir(out_dir, overwrite)
+           max_seconds: float = 86400.0, within=None) -> RenderResult:
+    """Render ``scene`` into ``out_dir`` (see the module docstring for what is written and
+    :mod:`ciliary_carpet.outdir` for the output-folder rules). Raises SceneError, TargetError,
+    TableError or DesignError for a scene that cannot be rendered, ResourceError when it
+    certainly needs more memory than available or more than ``max_seconds``
+    (:func:`check_resources`), and RenderError when ``out_dir`` holds files and ``overwrite`` is
+    False, when a file it would replace was not written by a render (or was changed since), when
+    another render is writing ``out_dir``, when ``out_dir`` resolves outside ``within`` (a
+    batch's output root), or when the result is not finite; nothing in ``out_dir`` is changed
+    then."""
+    with OutputFolder(out_dir, overwrite=overwrite, scene=scene, within=within) as folder:
+        return _render(scene, folder, progress=progress, max_seconds=max_seconds)
+
+
+def _render(scene: Scene, folder: OutputFolder, *, progress: Progress | None, max_seconds: float) -> RenderResult:
+    """:func:`render` into the held ``folder``."""
+    out_dir = folder.path
     check_resources(scene, max_seconds=max_seconds)
     backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError here, before any work
     progress = progress if progress is not None else Progress()
@@ -408,13 +420,9 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         check_output_size(carpet, seeds.shape[0], pathline_duration(scene, carpet, T0)[0], o.samples_per_period)
     sc = carpet.scales
     L, T, V = (sc.length_m, sc.time_s, sc.velocity) if sc is not None else (1.0, 1.0, 1.0)
-    try:
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        stage = Path(tempfile.mkdtemp(prefix=f"{_stage_prefix(out_dir)}{os.getpid()}.", suffix=".partial",
-                                      dir=out_dir.parent))
-    except OSError as exc:
-        raise RenderError(f"cannot write '{out_dir}': {exc.strerror or exc}") from None
-    summary = {"scene": scene.name, "source": scene.source_name, "n_cilia": carpet.n, "tolerance": tol,
+    stage = folder.stage()  # on the output's filesystem; removed unless placed
+    summary = {"scene": scene.name, "source": scene.source_name, "package_version": PACKAGE_VERSION,
+               "n_cilia": carpet.n, "tolerance": tol,
                "units": "SI" if sc is not None else "L, tau", "T0": T0 * T,
                "backend": (carpet.backend if carpet.backend is not None else Auto()).describe()}
     steps = 1 + bool(o.field) + (o.snapshots > 0) + (o.frames > 0) + bool(o.pathlines) + bool(o.ftle) + bool(o.preview) + 1
@@ -460,6 +468,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         span = pathline_duration(scene, carpet, T0)[0] if o.pathlines else Tb
         summary["beat"] = {k: (v * T if k != "beating" else v) for k, v in beat.items()}
         summary["beat"]["loop_until"] = span * T
+        summary["layout"] = {"chi_N_min": float(chi.min()), "chi_N_max": float(chi.max())}
         if o.snapshots > 0:
             t1 = _time.perf_counter()
             origin, spacing, shape, pts = _field_grid(scene, carpet)
@@ -552,15 +561,10 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
                               f"written to {out_dir}")
         (stage / "summary.md").write_text(_markdown(summary))
         (stage / SUMMARY).write_text(strict_json(summary, indent=2))
-        _write_manifest(stage, [e.name for e in stage.iterdir()])
-        os.chmod(stage, _usual_mode(executable=True))
-        _place(stage, out_dir, owned)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
+        folder.place()  # the manifest (sizes, hashes), then the swap
     finally:
         progress.close()
-    files = tuple(sorted(p.name for p in out_dir.iterdir()))
+    files = folder.files()
     logger.info("rendered %s into %s in %.1f s", scene.name, out_dir, clock["total"])
     return RenderResult(out_dir=out_dir, files=files, summary=summary)
 

@@ -39,7 +39,7 @@ from single_cilium.table import TableError, ThrustTable
 
 from . import layout
 from .carpet import BLOB
-from .paths import check_name, check_scene_paths
+from .paths import _inside, check_derived, check_name, check_scene_paths, table_parts
 from .pathlines import MEAN_MODEL_ERROR
 from .schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
 from .stokeslet import BACKENDS
@@ -174,6 +174,7 @@ class TableSpec(Section):
                         f"{src}: table.file '{self.file}' not found (looked for {p.absolute()}); fix the path, "
                         f"use file = \"default\" for the shipped table (chi_E = 200, eta = 1), or add a "
                         f"[table.build] section (n, degree) to compute it there (takes minutes)")
+                self._check_build_paths(scene, p)
                 self._build(scene, p)
             st = p.stat()
             key = (str(p.resolve()), st.st_mtime_ns, st.st_size)
@@ -194,6 +195,14 @@ class TableSpec(Section):
             raise SceneError(f"{src}: {where} is for {got}, but [field] asks {want}; use a table built "
                              f"for this field (table.file with [table.build]) or change [field]")
         return table
+
+    def _check_build_paths(self, scene: "Scene", p: Path) -> None:
+        """Just before a build: when ``table.file`` lies below the scene's folder, the row folder
+        the build derives from it must too (:func:`~ciliary_carpet.paths.check_derived`; it may
+        have become a symbolic link since the scene was read)."""
+        if not _inside(p, scene.base_dir)[0]:
+            return  # table.file itself was allowed outside (allow_outside): so is its row folder
+        check_derived(scene.source_name, "table.file", "the table build's row folder", table_parts(p), scene.base_dir)
 
     def _build(self, scene: "Scene", p: Path) -> None:
         from single_cilium import flutter_cutoff
