@@ -48,6 +48,9 @@ CANNOT_MAKE = (DesignError, UnreachableTargetError)
 
 
 def _scene(path: str, reduced: bool, backend: str | None = None) -> Scene:
+    p = Path(path)
+    if p.exists() and not p.is_file():  # a named pipe would hang the reader
+        raise SceneError(f"{path}: not a regular file (a folder, named pipe or device); a scene is a .toml file")
     s = load_scene(path, allow_outside=os.environ.get(ALLOW_ENV, "") == "1")
     if backend is not None:  # --backend overrides the scene's
         s = replace(s, backend=backend)

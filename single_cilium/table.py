@@ -708,6 +708,8 @@ class ThrustTable:
         path = Path(path)
         if not path.exists():
             raise TableError(f"{path}: no such table file")
+        if not path.is_file():  # a named pipe would hang the reader
+            raise TableError(f"{path}: not a regular file (a folder, named pipe or device); a table is a NetCDF file")
         try:
             with xr.open_dataset(path, engine="h5netcdf") as ds:
                 ds = ds.load()
