@@ -51,7 +51,10 @@ def _scene(path: str, reduced: bool, backend: str | None = None) -> Scene:
     p = Path(path)
     if p.exists() and not p.is_file():  # a named pipe would hang the reader
         raise SceneError(f"{path}: not a regular file (a folder, named pipe or device); a scene is a .toml file")
-    s = load_scene(path, allow_outside=os.environ.get(ALLOW_ENV, "") == "1")
+    try:
+        s = load_scene(path, allow_outside=os.environ.get(ALLOW_ENV, "") == "1")
+    except RecursionError:  # a value nested thousands deep: the TOML parser recurses
+        raise SceneError(f"{path}: values nested too deeply to read (a scene needs a few levels)") from None
     if backend is not None:  # --backend overrides the scene's
         s = replace(s, backend=backend)
     return s.reduced() if reduced else s

@@ -593,10 +593,14 @@ def read_target_points(path) -> tuple[np.ndarray, np.ndarray]:
     if not p.is_file():
         raise TargetError(f"{p}: no such control-point file")
     suf = p.suffix.lower()
-    if suf in CSV_SUFFIXES:
-        return _read_csv(p)
-    if suf in NETCDF_SUFFIXES:
-        return _read_netcdf(p)
+    if suf in CSV_SUFFIXES or suf in NETCDF_SUFFIXES:
+        xy, uv = (_read_csv if suf in CSV_SUFFIXES else _read_netcdf)(p)
+        big = np.abs(np.column_stack([xy, uv])) > 1e150  # squares and sums of these stay finite
+        if np.any(big):
+            i, j = (int(k[0]) for k in np.nonzero(big))
+            raise TargetError(f"{p}: control point {i} (data row {i + 1}): {_COLS[j]} = {(xy if j < 2 else uv)[i, j % 2]:g}"
+                              f" is beyond +-1e150; positions are in L, velocities in L / tau")
+        return xy, uv
     raise TargetError(f"{p}: unknown control-point file type {suf!r} (CSV: {', '.join(CSV_SUFFIXES)}; "
                       f"NetCDF: {', '.join(NETCDF_SUFFIXES)})")
 
