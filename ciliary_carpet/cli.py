@@ -2,7 +2,8 @@
 
     ciliary-carpet render designs/NAME.toml -o out/NAME [--overwrite] [--reduced] [--json]
     ciliary-carpet design designs/NAME.toml -o layout.nc [--overwrite]
-    ciliary-carpet batch designs/*.toml -o out/ [-j N] [--scheduler ADDRESS] [--overwrite] [--reduced] [--json]
+    ciliary-carpet batch designs/*.toml -o out/ [-j N] [--scheduler ADDRESS [--scheduler-timeout S]] [--overwrite]
+                         [--reduced] [--json]
 
 Options before the command: ``--debug`` (show the traceback of a failure), ``--allow-outside-paths``
 (let scene files name table and target files outside their own folder), ``--max-hours H`` (the time
