@@ -287,6 +287,9 @@ def write_manifest(folder: Path) -> None:
     files: dict = {MANIFEST: {"self": True}}
     for e in sorted(folder.iterdir()):
         if e.name != MANIFEST and not is_toolkit_name(e.name) and _is_regular(e):
+            if not _OUTPUT_NAME.match(e.name):  # a later render could never replace it: a bug, caught here
+                raise RenderError(f"internal error: the render wrote {e.name}, which is not one of its output names "
+                                  f"(ciliary_carpet.outdir._OUTPUT_NAME); nothing was placed")
             r = FileRecord.of(e)
             files[e.name] = {"size": r.size, "sha256": r.sha256}
     _write_json(folder / MANIFEST, {"written_by": "ciliary-carpet", "format": MANIFEST_FORMAT,

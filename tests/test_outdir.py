@@ -86,6 +86,14 @@ def test_batch_output_folder_named_from_the_scene_stays_in_the_output_root(tmp_p
     assert _tree(victim) == {"notes.txt": b"mine"}
 
 
+def test_a_long_folder_name_gives_bounded_staging_names(tmp_path):
+    """The staging folder and lock file derived from a 240-byte folder name stay valid names."""
+    out = tmp_path / ("x" * 240)
+    res = render(load_scene(_scene(tmp_path, TINY)), out)
+    assert "summary.json" in res.files
+    assert not [x for x in tmp_path.iterdir() if x.name.startswith(".")]
+
+
 # ------------------------------------------------------------------------------ 2: the manifest
 @pytest.mark.parametrize("old_format", [False, True])
 def test_an_edited_manifest_deletes_nothing_of_the_users(tmp_path, capsys, old_format):
