@@ -226,6 +226,25 @@ def test_a_second_render_of_the_same_folder_is_refused_at_once(tmp_path, monkeyp
     assert not [x for x in tmp_path.iterdir() if x.name.startswith(".")]
 
 
+def test_another_process_holding_the_folder_is_named(tmp_path):
+    """The lock is between processes: a render is refused while another process holds the folder."""
+    out = tmp_path / "o"
+    out.mkdir()
+    code = ("import sys, time\nfrom ciliary_carpet.outdir import OutputFolder\n"
+            "with OutputFolder(sys.argv[1], overwrite=True):\n    print('held', flush=True)\n    time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code, str(out)], env=dict(os.environ, PYTHONPATH=str(ROOT)),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "held", proc.stderr.read()
+        with pytest.raises(RenderError, match=f"being written by another ciliary-carpet render \\(process {proc.pid} "):
+            render(load_scene(_scene(tmp_path, TINY)), out)
+    finally:
+        proc.kill()
+        proc.wait()
+    render(load_scene(_scene(tmp_path, TINY)), out)  # a killed holder's lock is gone with it
+    _whole(out, 3)
+
+
 # ------------------------------------------------------------------------------ 4: the swap and signals
 _SWAP = r"""
 import os, sys, time
