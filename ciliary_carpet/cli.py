@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
 import signal
 import sys
@@ -30,6 +31,7 @@ from pathlib import Path
 
 from single_cilium._io import strict_json, write_netcdf
 from single_cilium._signals import Terminated, exit_status, terminate_as_interrupt
+from single_cilium._threads import ThreadBudget
 from single_cilium.progress import TqdmProgress
 from single_cilium.table import TableError
 
@@ -94,8 +96,20 @@ def _cmd_design(a) -> int:
 
 
 def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool, max_seconds: float = 86400.0,
-                backend: str | None = None) -> dict:
-    """One batch task (runs in a worker): never raises (but Ctrl-C), returns a record."""
+                backend: str | None = None, budget: ThreadBudget | None = None, threads: int | None = None) -> dict:
+    """One batch task (runs in a worker): never raises (but Ctrl-C), returns a record. It runs
+    with ``budget`` (local workers: the batch's), or on a Dask worker with its share of the
+    cores (:meth:`ThreadBudget.for_task`; ``threads`` numba threads if given)."""
+    if budget is None:
+        budget = ThreadBudget.for_task()
+        if threads is not None:
+            budget = replace(budget, numba=max(1, int(threads)))
+    with budget.applied():
+        return _render_task(scene_path, out_root, overwrite, reduced, max_seconds, backend)
+
+
+def _render_task(scene_path: str, out_root: str, overwrite: bool, reduced: bool, max_seconds: float,
+                 backend: str | None) -> dict:
     clock = _time.perf_counter()
     rec = {"scene": scene_path}
     try:
@@ -235,14 +249,31 @@ def _stop(procs, grace: float) -> None:
             p.join(max(0.0, end - _time.monotonic()) if wait_s is not None else None)
 
 
-def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None, jobs: int = 2,
+def _memory_per_task(scenes, reduced: bool, backend: str | None) -> float | None:
+    """The largest lower bound of the memory a scene of the batch needs (None if none is known)."""
+    need = []
+    for p in scenes:
+        try:
+            need.append(check_resources(_scene(p, reduced, backend), max_seconds=math.inf).memory_bytes)
+        except Exception:  # noqa: BLE001 -- a scene that cannot be estimated fails in its own task
+            continue
+    return max(need, default=None)
+
+
+def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None,
+          jobs: int | None = None, threads: int | None = None,
           overwrite: bool = False, reduced: bool = False, progress: bool = True,
           max_seconds: float = 86400.0, backend: str | None = None,
           scheduler_timeout: float | None = None) -> list[dict]:
     """Render many scene files into ``out_root/NAME``.
 
     Default: each scene in a fresh worker process, ``jobs`` at a time, so that a worker that
-    dies (killed, out of memory) fails only its own scene; with ``scheduler``: a Dask
+    dies (killed, out of memory) fails only its own scene. Each worker gets its share of the
+    cores (:class:`~single_cilium._threads.ThreadBudget`): ``jobs`` (default: as many as there
+    are scenes and cores, and as fit the available memory) times ``threads`` numba threads
+    (default: the cores divided among the workers) times one BLAS thread; on Dask each task
+    gets the cores of its worker divided among the worker's threads. Each render's summary
+    names the threads it used (``"threads"``). With ``scheduler``: a Dask
     distributed cluster, through ``Client(scheduler).get_executor()``; or any ``executor``.
     Two scenes with the same name (output folder) are a SceneError before anything runs.
     Resumable: a scene whose folder holds a complete render newer than the scene and its table
@@ -264,6 +295,18 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     if backend is not None:
         backend_named(backend)  # backend "cuda" without a GPU: CudaUnavailableError before any work
     tasks = [(s, str(out_root), overwrite, reduced, max_seconds, backend) for s in scenes]
+    budget = None
+    if executor is None and scheduler is None:
+        from .render import _available_memory
+
+        budget = ThreadBudget.for_batch(len(tasks), jobs=jobs, threads=threads,
+                                        memory_per_task=_memory_per_task(scenes, reduced, backend) if jobs is None
+                                        else None, memory_available=_available_memory())
+        logger.info("batch: %d workers x %d numba threads x %d BLAS threads", budget.workers, budget.numba,
+                    budget.blas)
+        tasks = [t + (budget,) for t in tasks]
+    else:
+        tasks = [t + (None, threads) for t in tasks]
     recs: list = []
     bar = tqdm(total=len(tasks), desc="scenes", disable=not progress)
 
@@ -274,7 +317,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     client = None
     try:
         if executor is None and scheduler is None:
-            _run_local(tasks, max(1, int(jobs)), on_done)
+            _run_local(tasks, budget.workers, on_done)
         else:
             if executor is None:
                 from single_cilium._scheduler import connect
@@ -301,7 +344,8 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
 
 
 def _cmd_batch(a) -> int:
-    recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, overwrite=a.overwrite, reduced=a.reduced,
+    recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, threads=a.threads, overwrite=a.overwrite,
+                 reduced=a.reduced,
                  max_seconds=a.max_hours * 3600, backend=a.backend, scheduler_timeout=a.scheduler_timeout)
     n = {k: sum(r["status"] == k for r in recs) for k in ("done", "skipped", "failed")}
     if a.json:
@@ -352,7 +396,12 @@ def main(argv=None) -> int:
     b = sub.add_parser("batch", help="render many scenes (a process per scene, or a Dask cluster), resumable")
     b.add_argument("scenes", nargs="+")
     b.add_argument("-o", "--output", required=True, help="output root; each scene goes to OUTPUT/NAME")
-    b.add_argument("-j", "--jobs", type=int, default=2, help="local worker processes (default 2)")
+    b.add_argument("-j", "--jobs", type=int, default=None,
+                   help="local worker processes at once (default: as many as scenes and cores allow, and as fit "
+                        "the available memory)")
+    b.add_argument("--threads", type=int, default=None,
+                   help="numba threads per worker (default: the cores divided among the workers; one BLAS thread "
+                        "each); each render's summary.json says what it used under \"threads\"")
     b.add_argument("--scheduler", default=None, help="Dask scheduler address (tcp://host:port)")
     b.add_argument("--scheduler-timeout", dest="scheduler_timeout", type=float, default=None, metavar="SECONDS",
                    help="how long to wait for the scheduler to answer before giving up (default 20, or "

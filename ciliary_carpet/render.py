@@ -554,6 +554,9 @@ def _render(scene: Scene, folder: OutputFolder, *, progress: Progress | None, ma
         clock["total"] = _time.perf_counter() - t0
         summary["seconds"] = clock
         summary["scene_resolved"] = scene.to_dict()
+        from single_cilium._threads import threads_in_use  # the numba and BLAS threads (and batch workers) used
+
+        summary["threads"] = threads_in_use()
         bad = non_finite(summary)
         if bad:
             listed = "; ".join(f"{k} = {v}" for k, v in list(bad.items())[:3])

@@ -200,7 +200,17 @@ def _chunk(args):
     1.3-1.4x the unseeded start for fields 2 to 10 apart and 1.4-4x for 20 apart (degree 8, 64
     steps, chi_N = 0 and 100 at chi_E = 200; 0.36-0.40 s unseeded). Rows at a field's own cutoff
     are left to the caller; coiled rows are only marked. Each row is written to ``parts`` if
-    given. Returns ``[(chi_E, chi_N, row)]``."""
+    given. Runs with the thread budget in ``args`` (the pool's share of the cores per worker),
+    or its Dask worker's share (:meth:`~single_cilium._threads.ThreadBudget.for_task`).
+    Returns ``[(chi_E, chi_N, row)]``."""
+    from ._threads import ThreadBudget
+
+    budget = args[7] if len(args) > 7 and args[7] is not None else ThreadBudget.for_task()
+    with budget.applied():
+        return _chunk_rows(args[:7])
+
+
+def _chunk_rows(args):
     chi_Es, eta, chi_Ns, settings, parts, cutoffs, two_d = args
     degree, n_phase, s_grid = settings["degree"], settings["n_phase"], np.asarray(settings["s"])
     out = []
@@ -362,6 +372,7 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
     progress.start(len(keys), "thrust table")
     progress.update(len(keys) - n_todo)
     own = None
+    budget = None  # a Dask worker's task takes its worker's share; another executor's, the cores
     if executor is None:
         if scheduler is not None:
             from ._scheduler import connect
@@ -371,10 +382,13 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
         else:
             from concurrent.futures import ProcessPoolExecutor
 
-            own = executor = ProcessPoolExecutor(max_workers=os.cpu_count() or 1)
+            from ._threads import ThreadBudget, cores
+
+            own = executor = ProcessPoolExecutor(max_workers=cores())
+            budget = ThreadBudget(workers=cores(), numba=1, blas=1)  # a process per core, one thread each
     try:
         chunks = _balanced_chunks(todo, weight, os.cpu_count() or 1)
-        tasks = [(fields, eta, c, settings, str(parts) if parts else None, cutoff, two_d) for c in chunks]
+        tasks = [(fields, eta, c, settings, str(parts) if parts else None, cutoff, two_d, budget) for c in chunks]
         finished = len(keys) - n_todo
         try:
             for res in executor.map(_chunk, tasks):

@@ -1,0 +1,149 @@
+"""Each worker its share of the cores: numba and BLAS thread counts per worker process or task.
+
+numba's parallel regions use as many threads as the machine has cores by default, and so does
+the BLAS. Two batch workers on two cores then run four threads on two cores, and the path lines'
+tens of thousands of short parallel regions wait at every barrier for a descheduled thread: a
+default two-scene batch ran more than ten times slower than its renders one after another
+(issue 23). A :class:`ThreadBudget` says how many workers run at once and how many numba and BLAS
+threads each may use, with ``workers x numba x blas <= cores``; :meth:`ThreadBudget.applied` sets
+it in the worker (``numba.set_num_threads``, which is per thread, and threadpoolctl's BLAS limit)
+before the work starts, and :func:`threads_in_use` reports it (the render's ``summary.json``
+``"threads"``).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+
+__all__ = ["ThreadBudget", "cores", "threads_in_use"]
+
+logger = logging.getLogger(__name__)
+
+_LOCAL = threading.local()  # .budgets: the budgets applied in this thread, innermost last
+
+
+def _active() -> list:
+    if not hasattr(_LOCAL, "budgets"):
+        _LOCAL.budgets = []
+    return _LOCAL.budgets
+
+
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity where the system tells, else the count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class ThreadBudget:
+    """How many workers run at once, and the numba and BLAS threads of each.
+
+    Parameters
+    ----------
+    workers : int
+        Worker processes (or Dask worker threads) running at the same time.
+    numba : int
+        Threads of numba's parallel regions in each worker.
+    blas : int
+        BLAS threads in each worker.
+    """
+
+    workers: int = 1
+    numba: int = 1
+    blas: int = 1
+
+    def __post_init__(self) -> None:
+        for name in ("workers", "numba", "blas"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and v >= 1):
+                raise ValueError(f"ThreadBudget.{name} must be an integer >= 1, got {v!r}")
+
+    @property
+    def threads(self) -> int:
+        """Threads of all workers together, ``workers x numba x blas``."""
+        return self.workers * self.numba * self.blas
+
+    def as_dict(self) -> dict:
+        """``{"numba": n, "blas": m, "workers": k}`` (for summaries)."""
+        d = asdict(self)
+        return {"numba": d["numba"], "blas": d["blas"], "workers": d["workers"]}
+
+    @classmethod
+    def for_batch(cls, n_tasks: int, *, jobs: int | None = None, threads: int | None = None,
+                  n_cores: int | None = None, memory_per_task: float | None = None,
+                  memory_available: float | None = None) -> "ThreadBudget":
+        """The budget of a batch of ``n_tasks`` on ``n_cores`` (default: :func:`cores`).
+
+        Workers: ``jobs`` if given, else as many as there are tasks, cores, and copies of the
+        largest task that fit the available memory (``memory_per_task`` of ``memory_available``
+        bytes, when both are known). numba threads per worker: ``threads`` if given, else the
+        cores divided among the workers. BLAS: one thread (the matrices of a render are small;
+        processes pay better than threads, measured in benchmarks/bench_batch.py). Given
+        ``jobs`` and ``threads`` are taken as they are, even beyond the cores (with a warning).
+        """
+        c = int(n_cores) if n_cores is not None else cores()
+        if jobs is not None:
+            k = max(1, int(jobs))
+        else:
+            k = max(1, min(int(n_tasks), c))
+            if memory_per_task and memory_available and memory_per_task > 0 and math.isfinite(memory_available):
+                k = max(1, min(k, int(memory_available // memory_per_task)))
+        n = max(1, int(threads)) if threads is not None else max(1, c // k)
+        budget = cls(workers=k, numba=n, blas=1)
+        if budget.threads > c:
+            logger.warning("%d workers x %d numba threads exceed the %d cores: they will wait for each other "
+                           "(leave out --jobs or --threads to have them chosen)", k, n, c)
+        return budget
+
+    @classmethod
+    def for_task(cls, n_cores: int | None = None) -> "ThreadBudget":
+        """The budget of one task in the process running it: on a Dask worker with several
+        threads each task gets ``cores / threads`` numba threads; elsewhere the cores."""
+        c = int(n_cores) if n_cores is not None else cores()
+        k = 1
+        try:
+            from distributed import get_worker
+
+            k = max(1, int(get_worker().state.nthreads))
+        except (ImportError, ValueError, AttributeError):  # not on a Dask worker
+            pass
+        return cls(workers=k, numba=max(1, c // k), blas=1)
+
+    @contextmanager
+    def applied(self) -> Iterator["ThreadBudget"]:
+        """Within the block, numba's parallel regions of this thread use at most ``numba``
+        threads and the BLAS at most ``blas`` (restored after)."""
+        import numba
+        from threadpoolctl import threadpool_limits
+
+        n = min(self.numba, int(numba.config.NUMBA_NUM_THREADS))
+        before = numba.get_num_threads()
+        numba.set_num_threads(n)
+        active = _active()
+        active.append(ThreadBudget(self.workers, n, self.blas))
+        try:
+            with threadpool_limits(limits=self.blas, user_api="blas"):
+                yield active[-1]
+        finally:
+            active.pop()
+            numba.set_num_threads(before)
+
+
+def threads_in_use() -> dict:
+    """``{"numba": n, "blas": m, "workers": k}``: the threads numba's parallel regions and the
+    BLAS use now in this thread (measured), and the workers of the budget applied here
+    (:meth:`ThreadBudget.applied`; 1 without one)."""
+    import numba
+    from threadpoolctl import threadpool_info
+
+    blas = [i.get("num_threads", 1) for i in threadpool_info() if i.get("user_api") == "blas"]
+    active = _active()
+    return {"numba": int(numba.get_num_threads()), "blas": int(max(blas, default=1)),
+            "workers": active[-1].workers if active else 1}

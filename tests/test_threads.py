@@ -1,0 +1,66 @@
+"""Each batch worker gets its share of the cores (issue 23, point 1): the budget the batch sets
+(workers x numba threads x BLAS threads <= cores), and the threads each render reports using."""
+import json
+
+import numba
+import pytest
+
+import single_cilium._threads as threads_mod
+from ciliary_carpet.cli import batch
+from single_cilium._threads import ThreadBudget
+
+TINY = ('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\nsnapshots = 0\n'
+        'frames = 1\npreview = false\n')
+
+
+def test_default_budget_fits_the_cores():
+    assert ThreadBudget.for_batch(2, n_cores=2) == ThreadBudget(workers=2, numba=1, blas=1)
+    assert ThreadBudget.for_batch(1, n_cores=2) == ThreadBudget(workers=1, numba=2, blas=1)
+    assert ThreadBudget.for_batch(3, n_cores=8) == ThreadBudget(workers=3, numba=2, blas=1)
+    # memory: two copies of the largest scene fit
+    assert ThreadBudget.for_batch(4, n_cores=8, memory_per_task=3e9, memory_available=7e9).workers == 2
+    assert ThreadBudget.for_batch(4, n_cores=8, memory_per_task=3e9, memory_available=1e9).workers == 1
+    for c in range(1, 17):
+        for n in range(1, 20):
+            b = ThreadBudget.for_batch(n, n_cores=c)
+            assert b.workers * b.numba * b.blas <= c and b.workers == min(n, c)
+    # --jobs and --threads are taken as given
+    assert ThreadBudget.for_batch(5, jobs=3, threads=4, n_cores=2) == ThreadBudget(workers=3, numba=4, blas=1)
+    with pytest.raises(ValueError, match="numba"):
+        ThreadBudget(workers=1, numba=0)
+
+
+def _scenes(tmp_path, names):
+    out = []
+    for n in names:
+        p = tmp_path / f"{n}.toml"
+        p.write_text(TINY)
+        out.append(p)
+    return out
+
+
+def _threads(folder):
+    return json.loads((folder / "summary.json").read_text())["threads"]
+
+
+def test_batch_sets_each_workers_threads(tmp_path, monkeypatch):
+    monkeypatch.setattr(threads_mod, "cores", lambda: 2)  # the batch's view of the machine: 2 cores
+    scenes = _scenes(tmp_path, "ab")
+    recs = batch(scenes, tmp_path / "out", progress=False)
+    assert [r["status"] for r in recs] == ["done", "done"], recs
+    for n in "ab":  # two workers, one numba thread and one BLAS thread each
+        assert _threads(tmp_path / "out" / n) == {"numba": 1, "blas": 1, "workers": 2}
+    recs = batch(scenes[:1], tmp_path / "out2", jobs=1, threads=2, progress=False)
+    assert recs[0]["status"] == "done", recs
+    assert _threads(tmp_path / "out2" / "a") == {"numba": min(2, numba.config.NUMBA_NUM_THREADS), "blas": 1,
+                                                  "workers": 1}
+
+
+def test_dask_task_takes_its_workers_share(tmp_path, monkeypatch):
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.setattr(threads_mod, "cores", lambda: 2)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cl, \
+            distributed.Client(cl) as client:
+        recs = batch(_scenes(tmp_path, "a"), tmp_path / "out", executor=client.get_executor(), progress=False)
+    assert recs[0]["status"] == "done", recs
+    assert _threads(tmp_path / "out" / "a") == {"numba": 1, "blas": 1, "workers": 2}
