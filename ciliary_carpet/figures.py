@@ -81,12 +81,18 @@ def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
 
 
 def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None:
+    """The render at a glance: the mean flow's streamlines (coloured by mean speed), the path
+    lines (coloured by time, their end points in black) and the cilia at t = 0 with their bases
+    (coloured by chi_N); a colour bar for each colour. In the model's units (L, tau)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
 
-    fig, ax = plt.subplots(figsize=(7, 6.5))
+    fig = plt.figure(figsize=(9.6, 6.5))
+    ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
+    bars = []
     if mean_field is not None:
         origin, spacing, shape, pts, u = mean_field
         X = pts[:, 0].reshape(shape[1], shape[0])
@@ -94,11 +100,17 @@ def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> Non
         U = np.nan_to_num(u[:, 0]).reshape(X.shape)
         W = np.nan_to_num(u[:, 1]).reshape(X.shape)
         sp = np.hypot(U, W)
-        ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", density=1.4, linewidth=0.6, arrowsize=0.7)
-    if pl is not None:
-        cmap = plt.cm.autumn
-        for k, p in enumerate(pl.points):
-            ax.plot(p[:, 0], p[:, 1], color=cmap(k / max(1, len(pl.points) - 1)), lw=0.5, alpha=0.8)
+        norm = matplotlib.colors.Normalize(0.0, float(sp.max()) if sp.max() > 0 else 1.0)
+        ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", norm=norm, density=1.4, linewidth=0.6, arrowsize=0.7)
+        bars.append((matplotlib.cm.ScalarMappable(norm=norm, cmap="Blues"), "streamlines: mean speed [L/tau]"))
+    if pl is not None and len(pl.points):
+        segs = [np.stack([p[:-1, :2], p[1:, :2]], axis=1) for p in pl.points if len(p) > 1]
+        if segs:
+            tt = np.concatenate([0.5 * (t[:-1] + t[1:]) for p, t in zip(pl.points, pl.times) if len(p) > 1])
+            lc = LineCollection(np.concatenate(segs), cmap="autumn", lw=0.6, alpha=0.85)
+            lc.set_array(tt)
+            ax.add_collection(lc)
+            bars.append((lc, "path lines: time [tau]"))
         e = pl.end_points
         ax.plot(e[:, 0], e[:, 1], ".", color="k", ms=2)
     pos, _, _ = carpet.state(0.0)
@@ -107,13 +119,18 @@ def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> Non
         ax.plot(pos[j, :, 0], pos[j, :, 1], color=plt.cm.coolwarm(0.5 + 0.5 * carpet.chi_N[j] / lim), lw=1.2)
     sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim,
                     s=12, zorder=3)
-    fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.8)
+    bars.insert(0, (sc, "cilia: chi_N"))
+    for k, (m, label) in enumerate(bars):  # a colour bar for each colour, side by side at the right
+        cb = fig.colorbar(m, cax=fig.add_axes([0.735 + 0.09 * k, 0.17, 0.016, 0.67]))
+        cb.set_label(label, fontsize=9)
+        cb.ax.tick_params(labelsize=8)
     title = scene.name
     if d is not None:
-        title += f"  (design rms residual {d.residual_rms:.3g}{' rad' if d.kind == 'angle' else ''})"
+        unit = f"{np.degrees(d.residual_rms):.2g} deg" if d.kind == "angle" else f"{d.residual_rms:.1%}"
+        title += f"  (design: {unit} rms off the target)"
     ax.set_title(title)
     ax.set_aspect("equal")
+    ax.autoscale_view()
     ax.set_xlabel("x / L")
     ax.set_ylabel("y / L")
-    fig.tight_layout()
     _savefig(fig, path)

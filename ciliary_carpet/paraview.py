@@ -230,9 +230,10 @@ view.CameraPosition = [cx, cy, 10.0 * max(box[1] - box[0], box[3] - box[2], 1e-3
 view.CameraViewUp = [0.0, 1.0, 0.0]
 view.ResetCamera(box[0], box[1], box[2], box[3], 0.0, 0.0)
 view.CameraParallelScale = 0.55 * max(box[3] - box[2], (box[1] - box[0]) * 0.75)
-animation = GetAnimationScene()
-animation.UpdateAnimationUsingDataTimeSteps()
-animation.AnimationTime = 0.0
+# play through every data time step (cilia frames, particles); the time starts at 0. Nothing here
+# moves the animation: in the GUI under --script that hangs ParaView 5.11 (UpdateAnimationUsingDataTimeSteps,
+# AnimationTime), and the animation already spans the data's time range.
+GetAnimationScene().PlayMode = "Snap To TimeSteps"
 SetActiveSource(cilia or layout)
 Render(view)
 '''

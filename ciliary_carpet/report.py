@@ -1,46 +1,227 @@
-"""The render's summary in words (``summary.md``)."""
+"""The render's summary in words (``summary.md``): what the numbers of ``summary.json`` mean for
+the design, each with its unit.
+
+Lengths are in L (the cilium's length) and times in tau (the filament's relaxation time,
+MODEL.md) unless the scene has ``[units]`` (then m and s); durations are also counted in beats
+of the cilia themselves (their median period, ``summary["beat"]``). Angles are given in degrees
+with the radians the scene's ``[target] residual`` is written in. An error bar is stated as the
+bound it is: the flow model's tolerance can move a figure by at most that much.
+"""
 from __future__ import annotations
 
+import math
 
-def _markdown(s: dict) -> str:
-    lines = [f"# {s['scene']}", "", f"- source: `{s['source']}`", f"- cilia: {s['n_cilia']}",
-             f"- flow tolerance: {s['tolerance']:g}", f"- units: {s['units']}", f"- flow sums: {s['backend']}"]
+from .target import PATTERNS
+
+__all__ = ["markdown"]
+
+_TWO_SIDED = {p.name for p in PATTERNS if p.two_sided}
+_SUMMED = {"mean": "far from the cilium from its cycle-averaged forces",
+           "point": "far from the cilium from point forces at its current phase",
+           "resolved": "near it from the whole moving filament"}
+
+
+def _g(x: float, digits: int = 3) -> str:
+    return f"{x:.{digits}g}"
+
+
+def _deg(rad: float) -> str:
+    return f"{math.degrees(rad):.2g} deg" if abs(math.degrees(rad)) < 10 else f"{math.degrees(rad):.1f} deg"
+
+
+def markdown(s: dict) -> str:
+    """``summary.md`` from the render's summary dict (``summary.json``)."""
+    si = s.get("units") == "SI"
+    Lu, Tu = ("m", "s") if si else ("L", "tau")
+    Vu = f"{Lu}/{Tu}"
+    scene = s.get("scene_resolved", {})
+    beat = s.get("beat")
+    period = beat["period"] if beat else s.get("T0")
+
+    def dur(t: float) -> str:
+        out = f"{_g(t, 4)} {Tu}"
+        if period and period > 0:
+            out += f" ({_g(t / period)} beats)"
+        return out
+
+    lines = [f"# {s['scene']}", ""]
+    if scene.get("description"):
+        lines += [scene["description"] + ".", ""]
+    units = ("SI: lengths in m, times in s, speeds in m/s" if si else
+             "lengths in L (the cilium's length), times in tau (the filament's relaxation time), speeds in L/tau")
+    lines.append(f"Scene `{s['source']}`: {s['n_cilia']} cilia; {units}.")
+    if beat:
+        if beat["beating"] == 0:
+            lines.append("None of the cilia beats (every one is beyond the flutter cutoff): they stand still.")
+        else:
+            spread = beat["period_max"] / beat["period_min"] - 1.0 if beat["period_min"] > 0 else 0.0
+            txt = f"The cilia beat once every {_g(beat['period'])} {Tu}"
+            if spread > 1e-6:
+                txt += (f" (the median; each cilium beats with its own period, from {_g(beat['period_min'])} to "
+                        f"{_g(beat['period_max'])} {Tu})")
+            still = s["n_cilia"] - beat["beating"]
+            if still:
+                txt += f"; {still} of them do not beat (beyond the flutter cutoff) and stand still"
+            lines.append(txt + ".")
     if "design" in s:
-        dd = s["design"]
-        lines.append(f"- design ({dd['kind']} target, {dd['control_points']} control points): rms residual "
-                     f"{dd['residual_rms']:.3g} {dd['residual_unit']} (+- {dd['residual_error']:.1g}), worst "
-                     f"{dd['residual_max']:.3g}; local layout {dd['local_rms']:.3g}; returned the {dd['returned']} "
-                     f"layout; {dd['cilia_near_cutoff']} of {s['n_cilia']} cilia near the flutter cutoff; "
-                     f"{dd['work']['iterations']} L-BFGS-B iterations, {dd['work']['checks']} full-model checks")
-        if "met" in dd:
-            worst = ", ".join(f"#{w['index']} at ({w['x']:.3g}, {w['y']:.3g}): {w['residual']:.3g}" for w in dd["worst"])
-            lines.append(f"- target {'met' if dd['met'] else 'NOT met: the closest flow the cilia make'} (rms "
-                         f"{dd['residual_rms']:.3g} against [target] residual = {dd['residual_threshold']:g}); "
-                         f"worst control points {worst}")
-        if "reachability" in dd:
-            lines.append(f"- reachability (estimated up front): {dd['reachability']['text']}")
-        if "tolerance" in dd:
-            tt = dd["tolerance"]
-            lines.append(f"- fabrication tolerance (relative chi_N error sigma = {tt['sigma']:g}, {tt['samples']} "
-                         f"samples): expected rms residual {tt['mean_rms']:.3g} +- {tt['sampling_error']:.1g} "
-                         f"(spread {tt['std_rms']:.2g}; 10-90%: {tt['p10_rms']:.3g}..{tt['p90_rms']:.3g}); "
-                         f"nominal {tt['nominal_rms']:.3g}")
+        lines += ["", "## The design", ""] + _design(s, scene)
+    if any(k in s for k in ("mean_field", "snapshots", "pathlines", "mixing")):
+        lines += ["", "## The flow", ""]
     if "mean_field" in s:
         m = s["mean_field"]
-        fid = ", ".join(f"{k} {v:.1%}" for k, v in m["fidelity"].items())
-        lines.append(f"- mean field: {m['points']} points, fidelity {fid}, max error bound {m['max_error_bound']:.2e}")
+        parts = [f"{_SUMMED.get(k, k)} ({v:.1%} of the cilium-point pairs)" for k, v in m["fidelity"].items() if v > 0]
+        top = m.get("max_speed")
+        rel = f" ({m['max_error_bound'] / top:.2%} of the fastest flow)" if top else ""
+        lines.append(f"- **Mean flow** (averaged over the beat; `mean_field.vti`, {m['points']} grid points): "
+                     + (f"up to {_g(top)} {Vu}; " if top else "")
+                     + f"accurate to {_g(m['max_error_bound'], 2)} {Vu} or better everywhere{rel}, a bound. To "
+                     f"save time, each cilium's flow was summed {', and '.join(parts)}; the bound covers that.")
+    if "snapshots" in s:
+        n = s["snapshots"]["count"]
+        lines.append(f"- **Instantaneous flow**: {n} snapshot{'s' if n > 1 else ''} over one beat "
+                     "(`snapshots.pvd`; hidden when ParaView opens).")
     if "pathlines" in s:
-        p = s["pathlines"]
-        out = ", ".join(f"{v} {k}" for k, v in p["outcome"].items() if v)
-        lines.append(f"- path lines: {p['tracers']} tracers, {p['model']} flow, over {p['duration']:.4g} "
-                     f"({p['periods']:.3g} beats; {p['duration_from']}): {out}; {p['stopped_early']} stopped early")
-        e = p["end_point_error"]
-        lines.append(f"- path-line end-point error (estimated, {e['tracers']} tracers against {e['reference']}): "
-                     f"max {e['max']:.2g}, median {e['median']:.2g}")
+        lines += _pathlines(s["pathlines"], dur, Lu, Vu)
     if "mixing" in s:
         mx = s["mixing"]
-        top = "n/a" if mx["ftle_max"] is None else f"{mx['ftle_max']:.3g}"
-        lines.append(f"- mixing: number {mx['mixing_number']:.3g} (mean log-stretching over {mx['duration']:.4g}, "
-                     f"{mx['model']} flow; FTLE max {top}, defined on {mx['defined_fraction']:.0%} of the grid)")
+        flow = "the mean flow" if mx["model"] == "mean" else "the time-resolved flow"
+        txt = (f"- **Mixing**: over {dur(mx['duration'])} of {flow}, neighbouring fluid parcels over the carpet "
+               f"move apart by a factor {math.exp(mx['mixing_number']):.3f} on average (mixing number "
+               f"{_g(mx['mixing_number'])}: the mean log-stretching; 0 for a flow that only carries or turns "
+               "the fluid)")
+        if mx["ftle_max"] is not None:
+            txt += f"; the fastest stretching is {_g(mx['ftle_max'])} per {Tu} (the FTLE field, `ftle.vti`)"
+        if mx["defined_fraction"] < 1:
+            txt += (f"; measured on {mx['defined_fraction']:.0%} of the grid (the rest starts inside a cilium "
+                    "or leaves the field)")
+        lines.append(txt + ".")
+    if beat and beat["beating"] and "loop_until" in beat and beat["loop_until"] > 1.5 * beat["period"]:
+        txt = (f"- **In ParaView** the cilia and the snapshots repeat one beat ({_g(beat['period'])} {Tu}) until "
+               f"{_g(beat['loop_until'], 4)} {Tu}, the path lines' end, so that everything moves on one clock")
+        spread = beat["period_max"] / beat["period_min"] - 1.0 if beat["period_min"] > 0 else 0.0
+        if spread > 1e-6:
+            txt += (f"; the cilia's own periods differ by up to {spread:.1%}, so after the first beat the "
+                    "animated cilia keep the first beat's phases, not the drifting ones of the computed flow")
+        lines.append(txt + ".")
+    lines += ["", "## How it was computed", ""]
+    lines.append(f"- Flow tolerance {s['tolerance']:g} (relative to the carpet's far-field flow); flow sums: "
+                 f"{s['backend']}.")
+    if "design" in s:
+        w = s["design"]["work"]
+        lines.append(f"- Design: {w['iterations']} optimiser iterations (L-BFGS-B on the design model), "
+                     f"{w['checks']} checks with the full flow model.")
     lines += ["", "| stage | seconds |", "|---|---|"] + [f"| {k} | {v:.2f} |" for k, v in s["seconds"].items()]
     return "\n".join(lines) + "\n"
+
+
+def _design(s: dict, scene: dict) -> list:
+    dd = s["design"]
+    tgt = scene.get("target", {})
+    kind = tgt.get("kind", "")
+    angle = dd["residual_unit"] == "rad"
+    P = dd["control_points"]
+
+    def r(x):  # a residual in words
+        return f"{_deg(x)} ({_g(x, 2)} rad)" if angle else f"{x:.1%} of the target speed"
+
+    what = "off the target direction" if angle else "off the target velocity"
+    out = []
+    rms, err = dd["residual_rms"], dd["residual_error"]
+    if "met" in dd:
+        thr = dd["residual_threshold"]
+        if dd["met"]:
+            head = f"- **Target met**: the designed carpet's mean flow is {r(rms)} rms {what}"
+        else:
+            head = f"- **Target NOT met**: the closest flow these cilia make is {r(rms)} rms {what}"
+        out.append(f"{head} at the {P} control points; the scene allows {r(thr)} (`[target] residual = {thr:g}`).")
+    else:
+        out.append(f"- The designed carpet's mean flow is {r(rms)} rms {what} at the {P} control points.")
+    hi = rms + err
+    txt = f"- The flow model's tolerance can move that figure by at most {r(err)} (a bound): the true rms is "
+    txt += f"between {r(rms - err)} and {r(hi)}" if err < rms else f"at most {r(hi)}"
+    if "met" in dd:
+        thr = dd["residual_threshold"]
+        if dd["met"] and hi <= thr:
+            txt += ", below the allowed, so the target is met whatever that error"
+        elif dd["met"]:
+            txt += ", past the allowed: met by the computed flow, but not beyond the model's error"
+    out.append(txt + ".")
+    worst = ", ".join(f"({w['x']:.3g}, {w['y']:.3g}) {r(w['residual'])}" for w in dd["worst"][:3])
+    out.append(f"- Largest misses, at the control points (x, y in L): {worst}.")
+    lay = s.get("layout")
+    txt = "- The layout: "
+    if lay:
+        txt += f"chi_N (natural curvature) from {lay['chi_N_min']:.3g} to {lay['chi_N_max']:.3g}; "
+    nc = dd["cilia_near_cutoff"]
+    txt += (f"{nc} of {s['n_cilia']} cilia close to the flutter cutoff (where the beat stops and the push fades)"
+            if nc else "no cilium close to the flutter cutoff (where the beat stops and the push fades)")
+    out.append(txt + " (`layout.vtp`, `layout.nc`, `design.png`).")
+    if dd.get("returned") == "local":
+        out.append(f"- The starting layout (each cilium curved for the target on its own) was already the best: "
+                   f"{r(dd['local_rms'])} rms; the design kept it.")
+    elif dd.get("local_rms") is not None and math.isfinite(dd["local_rms"]):
+        out.append(f"- Without the design (each cilium curved for the target on its own) the flow would be "
+                   f"{r(dd['local_rms'])} rms off: the cilia's flows interfere, and the design corrects for it.")
+    if dd.get("clipped"):
+        out.append(f"- {len(dd['clipped'])} cilia were asked for more turn than a cilium can make and were given "
+                   "the most they can.")
+    reach = dd.get("reachability")
+    if reach is not None:
+        floor = tgt.get("speed_floor")
+        keep = f"keeping {floor:.0%} of a straight cilium's push" if floor is not None else "at the speed floor"
+        txt = (f"- What these cilia can make (estimated before designing): one cilium turns its push by up to "
+               f"{reach['angle_max_deg']:.1f} deg ({reach['angle_floor_deg']:.1f} deg {keep})")
+        if kind in _TWO_SIDED:
+            txt += (f"; a pattern that turns the flow both ways ({kind}) holds about {reach['pattern_max_deg']:.1f} "
+                    f"deg away from its line")
+            if tgt.get("angle") is not None:
+                txt += f" (asked {abs(tgt['angle']):.3g} deg)"
+            if reach.get("width") is not None:
+                wm = reach.get("width_min")
+                txt += (f"; the narrowest transition across the line at that angle is "
+                        + ("wider than 8 spacings" if wm is None else f"about {wm:.3g} L")
+                        + f" (asked {reach['width']:.3g} L)")
+        elif tgt.get("angle") is not None:
+            txt += f"; asked {abs(tgt['angle']):.3g} deg"
+        out.append(txt + ".")
+    tt = dd.get("tolerance")
+    if tt is not None:
+        out.append(f"- Fabrication: if each cilium's chi_N is off by {tt['sigma']:.0%} at random ({tt['samples']} "
+                   f"samples), the flow would be {r(tt['mean_rms'])} rms off on average (sampling error "
+                   f"{_g(tt['sampling_error'], 1)}; 10-90%: {_g(tt['p10_rms'])} to {_g(tt['p90_rms'])}), against "
+                   f"{r(tt['nominal_rms'])} as designed.")
+    return out
+
+
+def _pathlines(p: dict, dur, Lu: str, Vu: str) -> list:
+    flow = "the time-resolved flow (the beat included)" if p["model"] == "resolved" else \
+        "the long-time mean flow (the beat averaged out)"
+    oc = p["outcome"]
+    ends = []
+    if oc.get("reached end time"):
+        ends.append(f"{oc['reached end time']} reached the end")
+    if oc.get("left the domain"):
+        ends.append(f"{oc['left the domain']} left the flow's domain")
+    if oc.get("step size underflow"):
+        ends.append(f"{oc['step size underflow']} stopped early (the integrator's step size vanished, next to a "
+                    "cilium)")
+    how = p["duration_from"]
+    if how == "scene":
+        why = "as the scene's `[output] periods` asks"
+    else:
+        why = "long enough to cross the carpet" + (f" ({how.split(': ', 1)[1]}, plus 25%)" if ": " in how else "")
+    out = [f"- **Path lines** (`pathlines.vtp`, `particles.pvd`): {p['tracers']} tracers followed {flow} for "
+           f"{dur(p['duration'])}, {why}: {', '.join(ends) or 'none moved'}."]
+    e = p["end_point_error"]
+    if p["model"] == "mean":
+        out.append(f"- The mean flow moves their end points by up to {_g(e['max'], 2)} {Lu} (median "
+                   f"{_g(e['median'], 2)}) against the time-resolved flow ({e['tracers']} tracers compared): an "
+                   "estimate of the model's error.")
+    else:
+        out.append(f"- Their end points are accurate to about {_g(e['max'], 2)} {Lu} (the largest of "
+                   f"{e['tracers']} tracers run again more accurately; median {_g(e['median'], 2)} {Lu}): an "
+                   "estimate, not a bound.")
+    return out
+
+
+_markdown = markdown  # the name render used

@@ -19,7 +19,7 @@ from ciliary_carpet.render import render
 from ciliary_carpet.scene import scene_from_dict
 
 TINY = {"name": "tiny", "carpet": {"lattice": "square", "shape": [2, 2], "spacing": 2.0, "chi_N": 3.0},
-        "output": {"n_seeds": 6, "periods": 3.0, "field_shape": [12, 12], "snapshots": 2, "frames": 8}}
+        "output": {"n_seeds": 4, "periods": 2.0, "field_shape": [10, 10], "snapshots": 2, "frames": 8}}
 
 # what --script does: the script's text runs with no __file__ and sys.argv == [''] (checked with
 # paraview 5.11 under xvfb-run); then a screenshot of the view it left
@@ -65,9 +65,12 @@ def test_script_opens_the_render_in_paraview_as_script_does(tiny, tmp_path):
     shot = tmp_path / "shot.png"
     elsewhere = tmp_path / "elsewhere"  # another working folder, with nothing of the render in it
     elsewhere.mkdir()
-    p = subprocess.run(cmd + [str(runner), str(tiny.out_dir / "open_in_paraview.py"), str(shot)], cwd=elsewhere,
-                       capture_output=True, text=True, timeout=120)
-    out = p.stdout + p.stderr
+    for _ in range(3):  # a virtual X server that xvfb-run could not bring up (a busy machine) is retried
+        p = subprocess.run(cmd + [str(runner), str(tiny.out_dir / "open_in_paraview.py"), str(shot)], cwd=elsewhere,
+                           capture_output=True, text=True, timeout=120)
+        out = p.stdout + p.stderr
+        if "bad X server connection" not in out:
+            break
     assert p.returncode == 0, out
     lines = [ln for ln in out.splitlines() if ln.strip() and not ln.startswith("SOURCES")]
     noise = [ln for ln in lines if "XDG_RUNTIME_DIR" in ln]  # xvfb-run's environment, not ParaView's
