@@ -155,8 +155,9 @@ def test_bad_control_points_and_settings_are_named_errors(table):
         design_layout(c, np.array([[1.0, 1.0], [40.0, 1.0]]), angles=[0.1, 0.1])
     with pytest.raises(ValueError, match="inside_swept"):
         design_layout(c, _cells(c), angles=0.1, inside_swept="ignore")
-    with pytest.raises(TargetError, match="every control point lies inside"):
-        design_layout(c, c.bases[:1] + [0.0, 0.3], angles=[0.1], inside_swept="drop")
+    with pytest.warns(UserWarning, match="every control point lies inside"):  # not an error: used
+        d = design_layout(c, c.bases[:1] + [0.0, 0.3], angles=[0.1], inside_swept="drop")
+    assert d.control.shape == (1, 2) and d.inside_swept["count"] == 1
     with pytest.raises(ValueError, match="speed_floor"):
         design_layout(c, _cells(c), angles=0.1, speed_floor=1.5)
     with pytest.raises(ValueError, match="speed_floor"):

@@ -64,18 +64,20 @@ def table():
     return ThrustTable.default()
 
 
-def test_design_model_gradient_through_the_treecode(monkeypatch, table):
-    """With the treecode forced on, the design model's gradient is still exact for its velocity."""
+@pytest.mark.parametrize("wall", [None, 0.5], ids=["free", "wall"])
+def test_design_model_gradient_through_the_treecode(monkeypatch, table, wall):
+    """With the treecode forced on, the design model's gradient is still exact for its velocity,
+    free and above a wall, with the near field's exact pairs (points on and between cilia)."""
     monkeypatch.setattr(design_mod, "TREE_PAIRS", 0)
     from ciliary_carpet.carpet import Carpet
 
     b = layout.square(8, 6, 2.0)
-    c = Carpet(b, np.zeros(len(b)), table, layout.random_phases(len(b), 0))
-    X = b[:-1] + 1.0
+    c = Carpet(b, np.zeros(len(b)), table, layout.random_phases(len(b), 0), wall=wall)
+    X = np.concatenate([b[:-1] + 1.0, b[:5] + [0.0, 0.4]])
     rng = np.random.default_rng(2)
     chi = rng.uniform(-120, 120, len(b))
-    dm = design_mod.DesignModel(c, X, chi)
-    assert dm.tree is not None
+    dm = design_mod.DesignModel(c, X, chi, near=design_mod.NearField(c, X))
+    assert dm.tree is not None and dm.near is not None
     g_u = rng.standard_normal((len(X), 2))
     g = dm.gradient(chi, g_u)
     h = 1e-4
