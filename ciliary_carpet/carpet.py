@@ -920,17 +920,36 @@ class Carpet:
         """(N,) phase of every cilium at time t, in [0, 1)."""
         return np.mod(self.phases + float(t) * self._c["rate"], 1.0)
 
-    def state(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Shapes and forces of all cilia at time t.
+    def state(self, t: float, js=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Shapes and forces of all cilia (or of cilia ``js``) at time t.
 
         Returns positions (N, n_s, 2) (lab frame), force per length on the fluid (N, n_s, 2),
-        and the phases (N,)."""
+        and the phases (N,) (N = len(js) with ``js``)."""
         c = self._c
         ph = self.phase_at(t)
+        coef, bases = c["coef"], self.bases
+        if js is not None:
+            js = np.asarray(js, dtype=np.int64).reshape(-1)
+            ph, coef, bases = ph[js], coef[js], bases[js]
         arg = 2.0 * math.pi * ph[:, None] * c["k"][None, :]
         basis = np.concatenate([np.cos(arg), np.sin(arg[:, 1:])], axis=1)  # (N, 2K-1)
-        vals = np.einsum("jk,jksq->jsq", basis, c["coef"], dtype=float, optimize=True)
-        return vals[..., :2] + self.bases[:, None, :], vals[..., 2:], ph
+        vals = np.einsum("jk,jksq->jsq", basis, coef, dtype=float, optimize=True)
+        return vals[..., :2] + bases[:, None, :], vals[..., 2:], ph
+
+    def beat_velocity(self, t, js=None) -> np.ndarray:
+        """Velocity d r_j / dt (s, t) of the filaments ``js`` (default all) at time ``t`` (a
+        number, or one per cilium of ``js``): (len(js), n_s, 2), lab frame, in L / tau. The
+        exact time derivative of the phase interpolant that :meth:`state` evaluates (its
+        harmonics times 2 pi k / T_j); zero for still cilia."""
+        c = self._c
+        js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).reshape(-1)
+        t = np.broadcast_to(np.asarray(t, dtype=float), js.shape)
+        ph = np.mod(self.phases[js] + t * c["rate"][js], 1.0)
+        k = c["k"]
+        arg = 2.0 * math.pi * ph[:, None] * k[None, :]
+        w = 2.0 * math.pi * k[None, :] * c["rate"][js][:, None]  # d(phase angle)/dt of harmonic k
+        dbasis = np.concatenate([-w * np.sin(arg), (w * np.cos(arg))[:, 1:]], axis=1)  # (len(js), 2K-1)
+        return np.einsum("jk,jksq->jsq", dbasis, c["coef"][js][..., :2], dtype=float, optimize=True)
 
     def cycle_samples(self, js) -> tuple[np.ndarray, np.ndarray]:
         """Positions and forces per length of cilia ``js`` at the table's phase samples:

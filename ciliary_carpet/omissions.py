@@ -1,0 +1,451 @@
+"""What the carpet model leaves out, sized for a given carpet (MODEL.md section 6, last bullet).
+
+The carpet's flow superposes filaments that each beat on their own limit cycle, computed for a
+single filament in fluid at rest, far from any wall, with resistive coefficients that fix a
+viscosity of their own. :func:`omissions` measures, for any :class:`~ciliary_carpet.carpet.Carpet`,
+how large the three neglected effects are, and :class:`Omissions` says it in numbers (with units)
+and in one plain sentence each (:meth:`Omissions.lines`, :meth:`Omissions.summary`).
+
+(b) Hydrodynamic interaction between cilia
+------------------------------------------
+For a sampled cilium j, a point s on it (mid-length s = 1/2 and the tip s = 1) and an instant t,
+
+    induced_j(s, t) = |u_others(x_j(s, t), t)|,   u_others = u_carpet - u_j,
+
+the flow that all the *other* cilia make at the filament point: the carpet's flow
+(:meth:`Carpet.evaluate <ciliary_carpet.carpet.Carpet.evaluate>` at tolerance ``tol``) minus
+cilium j's own resolved line of Stokeslets (the same kernel, blob, wall and Simpson weights as the
+carpet's sum, at the same phase; the carpet resolves a cilium at its own points, so the
+subtraction removes exactly that term, to rounding). Its error is the evaluation's
+``FlowSample.error_bound`` (the rigorous bound of the levels of detail, ``tol``-relative to the
+sum of the cilia's far fields), reported as ``interaction_error`` in the units of the ratios below.
+
+The cilium's own speed there is |dx_j/dt (s, t)|, the exact time derivative of the phase
+interpolant the carpet evaluates (:meth:`Carpet.beat_velocity
+<ciliary_carpet.carpet.Carpet.beat_velocity>`). It passes through (nearly) zero twice a beat, at
+the stroke's turning points, where a pointwise ratio is meaningless; the reported ratio is
+therefore normalised by the cilium's **r.m.s. beat speed at that s over its cycle**,
+
+    ratio_j(s, t) = induced_j(s, t) / v_rms,j(s),   v_rms,j(s)^2 = <|dx_j/dt (s)|^2>_cycle,
+
+(the cycle average by the uniform rule on 2 n_phase phases: exact for the interpolant's
+trigonometric polynomial), and its median, 90th percentile and maximum over the sampled
+cilia and instants are given for s = 1/2 and s = 1. The pointwise ratio induced / |dx/dt| is
+given too (median and 90th percentile only: its maximum is unbounded at the turning points).
+
+Sampling: at most ``n_cilia`` (default 64) fluttering cilia, drawn without replacement by
+``numpy.random.default_rng(seed)`` (all of them when there are fewer; still cilia neither beat
+nor push and are not sampled), and ``n_instants`` (default 6) instants t_k = k T / n_instants,
+k = 0 .. n_instants - 1, T the median period of the fluttering cilia. Each instant is one carpet
+evaluation at 2 x n_cilia points, so the cost is that of 6 small evaluations plus one of the
+carpet's state: well under a second for 10 x 10, a few seconds for 100 x 100.
+
+The mean push of the neighbours. A filament held in a uniform stream U feels about eta U per
+unit length (eta the model's tangential resistive coefficient, MODEL.md section 2; 2 eta across
+the stream), so the stream that would cancel cilium j's mean thrust |Fbar_j| has the speed
+U_cancel,j = |Fbar_j| / (eta L). The others' cycle-mean flow at j's force centre c_j,
+|u_mean_others(c_j)| (:meth:`Carpet.evaluate_mean` minus j's own cycle-averaged resolved line),
+over U_cancel,j is the ``pushback`` ratio: 1 means the neighbours' mean flow would stall the
+cilium (the tangential coefficient makes it a lower bound, by up to 2, of that push).
+
+Spacing. The induced flow falls with the carpet's spacing d. The same carpet with its base
+points spread by a factor 2 (same layout shape, curvatures, phases, wall) is summed directly
+(every pair resolved) at the same points, giving a local power law median ~ d^-p; the spacing
+at which the median tip ratio would fall to 10 % is d (median / 0.1)^(1 / p) (an extrapolation
+of that power law; for a carpet whose median is already under 10 % it is not extrapolated
+downwards: the carpet's own spacing is given).
+
+(a) The wall's effect on each cilium's own drag
+-----------------------------------------------
+The limit cycles use free-space resistive coefficients, in slender-body form (Gray & Hancock
+1955; the model's, MODEL.md section 2, with the slender limit c_perp = 2 c_par)
+
+    c_par = 2 pi mu / (ln(2 L / a) - 1/2),   c_perp = 2 c_par,
+
+for a filament of length L and radius a. A slender filament parallel to a no-slip plane at height
+h, with a << h << L, has instead (Katz, Blake & Paveri-Fontana 1975, J. Fluid Mech. 72, 529,
+eqs. for a slender body parallel to a plane; reviewed by Brennen & Winet 1977, Annu. Rev. Fluid
+Mech. 9, 339, section 4)
+
+    c_par = 2 pi mu / ln(2 h / a),   c_perp = 4 pi mu / (ln(2 h / a) - 1/2)
+
+(c_perp for motion normal to the filament and parallel to the wall, which is how a planar carpet
+beats: the wall's image system cuts the Stokeslet's logarithm off at 2 h instead of the filament's
+length). The ratios wall / free are
+
+    par:  (ln(2 L / a) - 1/2) / ln(2 h / a),   perp: (ln(2 L / a) - 1/2) / (ln(2 h / a) - 1/2),
+
+taken as 1 where they fall below 1 (h >= L e^{-1/2} = 0.61 L for c_par, h >= L for c_perp: the
+wall then cuts the logarithm off no sooner than the filament's own length does, and its effect is
+of the order of the theory's O(1 / ln) error); ``wall_regime`` says whether the carpet's h lies in
+a << h << L (taken as 5 a <= h <= L / 2). For a planar carpet every filament point lies at the
+wall depth h = ``carpet.wall`` above the wall, so that is the cilia's mean height; with no wall
+both ratios are 1. A ratio of 1.5 means the filament near the wall is 1.5 times as hard to move as
+its cycle assumes: its beat is slower and its stroke smaller than modelled, by an amount the
+single-cilium model with scaled eta would give (eta ~ 1 / frequency).
+
+The viscosity. The Stokeslets use the carpet's viscosity ``mu`` (in B tau / L^4, the model's
+unit: MODEL.md section 2 writes eta = mu_par L^4 / (tau B), so eta and mu are in the same units),
+a free parameter, while the filaments' tangential coefficient eta already implies, through the
+free-space c_par above,
+
+    mu_sbt = eta (ln(2 L / a) - 1/2) / (2 pi)
+
+(0.653 eta for a = 0.02 L). Flow speeds scale as 1 / mu, so the carpet's flows are
+mu_sbt / mu - 1 too fast (negative: too slow) against the filaments' own drag
+(``flow_speed_error``; -35 % for the default mu = 1 = eta, issue 27).
+
+The filament radius a is the carpet's blob (its filament radius, :data:`~ciliary_carpet.carpet.BLOB`
+when the carpet uses singular Stokeslets).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .carpet import BLOB, Carpet
+from .stokeslet import stokeslet_velocity, stokeslet_velocity_ranges
+
+__all__ = ["Omissions", "omissions", "wall_drag_ratios", "sbt_viscosity", "N_CILIA", "N_INSTANTS",
+           "TARGET_RATIO", "SPREAD", "SPREAD_SOURCES"]
+
+N_CILIA = 64
+"""Default largest number of sampled cilia."""
+N_INSTANTS = 6
+"""Default number of instants over one (median) beat period."""
+TARGET_RATIO = 0.1
+"""The interaction level at which :attr:`Omissions.spacing_10` is given (median tip ratio)."""
+SPREAD = 2.0
+"""Factor by which the base points are spread to measure the spacing power law."""
+SPREAD_SOURCES = 1_500_000
+"""The spread carpet (:data:`SPREAD`) is summed directly at m of the instants, evenly spaced, with
+m x N x n_s (its sources over those instants) at most this: all six instants up to about 3,800
+cilia, two at 100 x 100 (about 1 s an instant there: every cilium's state and the direct sum)."""
+
+
+def sbt_viscosity(eta: float, a: float, length: float = 1.0) -> float:
+    """The fluid viscosity that slender-body theory assigns to a tangential resistive coefficient
+    ``eta`` of a filament of radius ``a`` and length ``length``: eta (ln(2 L / a) - 1/2) / (2 pi)
+    (same units as eta; module docstring)."""
+    return float(eta) * (math.log(2.0 * length / a) - 0.5) / (2.0 * math.pi)
+
+
+def wall_drag_ratios(h: float | None, a: float, length: float = 1.0) -> tuple[float, float]:
+    """(parallel, perpendicular) ratios of a slender filament's resistive coefficients at height
+    ``h`` above a no-slip plane to the free-space ones the model uses (module docstring, Katz,
+    Blake & Paveri-Fontana 1975): (ln(2L/a) - 1/2) / ln(2h/a) and (ln(2L/a) - 1/2) /
+    (ln(2h/a) - 1/2), each at least 1; (1, 1) for ``h`` None (no wall). NaN where
+    ln(2 h / a) - 1/2 <= 1/2 (h < 1.36 a: the filament touches the wall, lubrication)."""
+    if h is None:
+        return 1.0, 1.0
+    h, a = float(h), float(a)
+    if not (h > 0 and a > 0):
+        raise ValueError(f"need h > 0 and a > 0, got h = {h!r}, a = {a!r}")
+    lg = math.log(2.0 * h / a)
+    if lg - 0.5 <= 0.5:
+        return math.nan, math.nan
+    free = math.log(2.0 * length / a) - 0.5
+    return max(1.0, free / lg), max(1.0, free / (lg - 0.5))
+
+
+@dataclass(frozen=True, eq=False)
+class Omissions:
+    """The neglected effects of a carpet, sized (see the module docstring for the definitions).
+
+    Hydrodynamic interaction (ratios, dimensionless; median, 90th percentile, max over the
+    sampled cilia and instants): ``mid_median``, ``mid_p90``, ``mid_max`` at s = 1/2 and
+    ``tip_median``, ``tip_p90``, ``tip_max`` at s = 1, the others' flow over the cilium's r.m.s.
+    beat speed there; ``mid_pointwise_median``, ``tip_pointwise_median``, ``tip_pointwise_p90``:
+    the same over the instantaneous own speed; ``interaction_error``: the largest error bound of
+    a ratio from the evaluation's tolerance; ``ratio_mid``, ``ratio_tip`` (n_instants, n_sampled):
+    the ratios themselves; ``beat_speed_mid``, ``beat_speed_tip`` (n_sampled,): the r.m.s. beat
+    speeds [L / tau].
+
+    Mean push: ``pushback_median``, ``pushback_max`` (dimensionless): |mean flow of the others at
+    the force centre| * eta / |Fbar|; ``mean_flow_others_median`` [L / tau].
+
+    Spacing: ``spacing`` [L], the median nearest-neighbour distance of the base points (NaN for
+    one cilium); ``spacing_exponent`` p of median tip ratio ~ spacing^-p (NaN when not measured);
+    ``spacing_10`` [L], the spacing at which the median tip ratio falls to
+    :data:`TARGET_RATIO` (NaN when not measured).
+
+    Wall: ``wall_height`` [L] (None without a wall), ``filament_radius`` a [L],
+    ``wall_drag_parallel``, ``wall_drag_normal`` (dimensionless, 1 without a wall),
+    ``wall_regime`` (text).
+
+    Viscosity: ``mu`` (the carpet's, B tau / L^4), ``mu_sbt`` (slender-body theory's from eta and
+    a, same units), ``flow_speed_error`` = mu_sbt / mu - 1 (dimensionless: the carpet's flow
+    speeds relative to consistent ones, minus 1).
+
+    Sampling: ``n_cilia`` (carpet), ``cilia`` (the sampled indices), ``instants`` [tau], ``tol``,
+    ``seed``."""
+
+    n_cilia: int
+    cilia: np.ndarray
+    instants: np.ndarray
+    tol: float
+    seed: int
+    ratio_mid: np.ndarray
+    ratio_tip: np.ndarray
+    beat_speed_mid: np.ndarray
+    beat_speed_tip: np.ndarray
+    mid_median: float
+    mid_p90: float
+    mid_max: float
+    tip_median: float
+    tip_p90: float
+    tip_max: float
+    mid_pointwise_median: float
+    tip_pointwise_median: float
+    tip_pointwise_p90: float
+    interaction_error: float
+    pushback_median: float
+    pushback_max: float
+    mean_flow_others_median: float
+    spacing: float
+    spacing_exponent: float
+    spacing_10: float
+    wall_height: float | None
+    filament_radius: float
+    wall_drag_parallel: float
+    wall_drag_normal: float
+    wall_regime: str
+    mu: float
+    mu_sbt: float
+    flow_speed_error: float
+
+    def summary(self) -> dict:
+        """Strict-JSON-safe dict (floats, ints, strings; NaN as None) of the scalar results and
+        the sampling, with ``lines`` the plain-English sentences of :meth:`lines`."""
+        def f(v):
+            return None if v is None or not math.isfinite(float(v)) else float(v)
+
+        return {
+            "interaction": {
+                "definition": "|flow of all other cilia at the filament point| / r.m.s. beat speed of the "
+                              "filament at that point over its cycle",
+                "mid_length": {"median": f(self.mid_median), "p90": f(self.mid_p90), "max": f(self.mid_max),
+                               "pointwise_median": f(self.mid_pointwise_median)},
+                "tip": {"median": f(self.tip_median), "p90": f(self.tip_p90), "max": f(self.tip_max),
+                        "pointwise_median": f(self.tip_pointwise_median),
+                        "pointwise_p90": f(self.tip_pointwise_p90)},
+                "error_bound": f(self.interaction_error),
+                "sampled_cilia": int(len(self.cilia)), "instants": int(len(self.instants)),
+                "carpet_cilia": int(self.n_cilia), "tol": float(self.tol), "seed": int(self.seed),
+            },
+            "pushback": {
+                "definition": "|mean flow of the other cilia at the force centre| / (|Fbar| / (eta L))",
+                "median": f(self.pushback_median), "max": f(self.pushback_max),
+                "mean_flow_others_median_L_per_tau": f(self.mean_flow_others_median),
+            },
+            "spacing": {"spacing_L": f(self.spacing), "exponent": f(self.spacing_exponent),
+                        "spacing_for_10pct_L": f(self.spacing_10)},
+            "wall": {"height_L": f(self.wall_height), "filament_radius_L": f(self.filament_radius),
+                     "drag_ratio_parallel": f(self.wall_drag_parallel),
+                     "drag_ratio_normal": f(self.wall_drag_normal), "regime": self.wall_regime},
+            "viscosity": {"mu": f(self.mu), "mu_sbt": f(self.mu_sbt), "flow_speed_error": f(self.flow_speed_error)},
+            "lines": self.lines(),
+        }
+
+    def lines(self) -> list[str]:
+        """One plain-English sentence per neglected effect, with what it means for the design."""
+        out = []
+        if math.isfinite(self.tip_median):
+            trust = ("superposition is a fair approximation" if self.tip_median < TARGET_RATIO else
+                     "superposition is approximate" if self.tip_median < 0.3 else
+                     "superposition is only qualitative")
+            sp = ""
+            if math.isfinite(self.spacing_10) and self.tip_median >= TARGET_RATIO:
+                sp = (f"; the median falls like spacing^-{self.spacing_exponent:.2g}, so a spacing of about "
+                      f"{self.spacing_10:.3g} L (now {self.spacing:.3g} L) would bring it under "
+                      f"{100 * TARGET_RATIO:.0f} %")
+            out.append(f"Neighbours' flow at a cilium is {100 * self.tip_median:.0f} % of its own r.m.s. tip speed "
+                       f"(median; 90th percentile {100 * self.tip_p90:.0f} %, max {100 * self.tip_max:.0f} %) and "
+                       f"{100 * self.mid_median:.0f} % at mid-length (median; max {100 * self.mid_max:.0f} %; "
+                       f"{len(self.cilia)} of {self.n_cilia} cilia x {len(self.instants)} instants): {trust}, "
+                       f"the cilia beat as if alone{sp}.")
+        else:
+            out.append("No cilium flutters: there is no interaction to size.")
+        if math.isfinite(self.pushback_median):
+            out.append(f"The others' mean flow at a cilium is {100 * self.pushback_median:.0f} % (median; max "
+                       f"{100 * self.pushback_max:.0f} %) of the stream that would cancel its own thrust "
+                       f"(|Fbar| / eta): " + ("small, the thrusts stand" if self.pushback_max < 0.1 else
+                                              "the thrusts the table gives are overestimated where it is large"
+                                              if self.pushback_max < 1 else
+                                              "somewhere the neighbours' flow would stall the cilia: the "
+                                              "superposed mean flow is not one the cilia can sustain") + ".")
+        if self.wall_height is None:
+            out.append("No wall: the filaments' free-space drag coefficients are the right ones.")
+        elif math.isfinite(self.wall_drag_normal):
+            out.append(f"The wall {self.wall_height:.3g} L below the filaments makes them "
+                       f"{self.wall_drag_normal:.2f} times as hard to move across and {self.wall_drag_parallel:.2f} "
+                       f"times along themselves as their free-space cycles assume (slender-body theory, "
+                       f"{self.wall_regime}): near the wall they beat slower and smaller than modelled.")
+        else:
+            out.append(f"The wall {self.wall_height:.3g} L below the filaments is within a few radii of them: "
+                       "slender-body theory does not apply (lubrication), their drag is far above the model's.")
+        direction = "slow" if self.flow_speed_error < 0 else "fast"
+        out.append(f"The flow's viscosity mu = {self.mu:.3g} differs from the {self.mu_sbt:.3g} that the filaments' "
+                   f"drag eta implies (slender-body theory, radius {self.filament_radius:.3g} L): the flow speeds are "
+                   f"{100 * abs(self.flow_speed_error):.0f} % too {direction} against the filaments' own drag.")
+        return out
+
+
+def _stats(r: np.ndarray) -> tuple[float, float, float]:
+    r = r[np.isfinite(r)]
+    if r.size == 0:
+        return math.nan, math.nan, math.nan
+    return float(np.median(r)), float(np.percentile(r, 90)), float(r.max())
+
+
+def _simpson(n: int) -> np.ndarray:
+    """The composite Simpson weights of the carpet's s grid (the carpet's own rule)."""
+    w = np.ones(n)
+    w[1:-1:2] = 4.0
+    w[2:-1:2] = 2.0
+    return w / (3.0 * (n - 1))
+
+
+def _own(carpet: Carpet, targets: np.ndarray, src: np.ndarray, frc: np.ndarray, per: int, blk: int) -> np.ndarray:
+    """Velocity at ``targets`` ((len(js) * per, 3), ``per`` consecutive targets per cilium) of
+    each cilium's own sources only (block i of ``blk`` rows of ``src``, ``frc``)."""
+    m = targets.shape[0]
+    i = np.arange(m) // per
+    ranges = np.stack([i * blk, (i + 1) * blk], axis=1).astype(np.int64)
+    ptr = np.arange(m + 1, dtype=np.int64)
+    return stokeslet_velocity_ranges(targets, src, frc, ptr, ranges, carpet.mu, kernel=carpet.kernel,
+                                     backend=carpet.backend)
+
+
+def _pad(a: np.ndarray) -> np.ndarray:
+    return np.concatenate([a, np.zeros(a.shape[:-1] + (1,))], axis=-1)
+
+
+def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_instants: int = N_INSTANTS,
+              seed: int = 0, spacing: bool = True) -> Omissions:
+    """Size what ``carpet``'s model leaves out (module docstring): the cilia's hydrodynamic
+    interaction at ``n_instants`` instants of a beat on at most ``n_cilia`` fluttering cilia
+    drawn with ``seed``, the carpet's flow evaluated at tolerance ``tol``; the neighbours' mean
+    push; with ``spacing`` the spacing power law (a direct sum of the carpet spread by
+    :data:`SPREAD`); the wall's effect on the filaments' drag; the viscosity's consistency."""
+    if not isinstance(carpet, Carpet):
+        raise TypeError(f"carpet must be a Carpet, got {type(carpet).__name__}")
+    if int(n_cilia) < 1 or int(n_instants) < 1:
+        raise ValueError(f"n_cilia and n_instants must be >= 1, got {n_cilia!r}, {n_instants!r}")
+    tol = float(tol)
+    s = carpet.s
+    n_s = s.size
+    w = _simpson(n_s)
+    pts = np.array([int(np.argmin(np.abs(s - 0.5))), n_s - 1])
+    fl = np.flatnonzero(carpet.flutter)
+    if fl.size > n_cilia:
+        js = np.sort(np.random.default_rng(seed).choice(fl, size=int(n_cilia), replace=False))
+    else:
+        js = fl
+    nj = js.size
+    periods = carpet.periods
+    T = float(np.median(periods[fl])) if fl.size else 1.0
+    instants = T * np.arange(int(n_instants)) / int(n_instants)
+    eta = float(carpet.table.eta)
+    a = float(carpet.blob) if carpet.blob is not None else BLOB
+    bases = carpet.bases
+    if carpet.n > 1:
+        from scipy.spatial import cKDTree
+
+        d_nn = float(np.median(cKDTree(bases).query(bases, k=2)[0][:, 1]))
+    else:
+        d_nn = math.nan
+
+    ratio = np.full((2, instants.size, nj), np.nan)
+    pointwise = np.full((2, instants.size, nj), np.nan)
+    err = 0.0
+    pushback = np.full(nj, np.nan)
+    mean_others = np.full(nj, np.nan)
+    exponent = spacing_10 = math.nan
+    if nj:
+        # r.m.s. beat speed at s = 1/2 and 1 over each cilium's own cycle (phases m / M)
+        xs, fs = carpet.cycle_samples(js)  # (nj, n_phase, n_s, 2): the table's phase samples
+        n_p = xs.shape[1]
+        M = 2 * n_p
+        ph0, Tj = carpet.phases[js], periods[js]
+        v2 = np.zeros((nj, 2))
+        for m in range(M):
+            v = carpet.beat_velocity((m / M - ph0) * Tj, js)[:, pts]
+            v2 += (v ** 2).sum(-1)
+        vrms = np.sqrt(v2 / M)  # (nj, 2)
+
+        spread = SPREAD if spacing and carpet.n > 1 else None
+        # the spread carpet needs every cilium's state: at most SPREAD_SOURCES sources x instants
+        n_spread = max(1, min(instants.size, SPREAD_SOURCES // (carpet.n * n_s))) if spread else 0
+        spread_k = set(np.unique(np.linspace(0, instants.size, n_spread, endpoint=False).astype(int)).tolist())
+        near, far = [], []
+        for k, t in enumerate(instants):
+            pos, frc, _ = carpet.state(t, js)
+            targets = _pad(pos[:, pts].reshape(-1, 2))  # (nj * 2, 3)
+            sample = carpet.evaluate(targets, t, tol)
+            src = _pad(pos.reshape(-1, 2))
+            force = _pad((frc * w[None, :, None]).reshape(-1, 2))
+            u = sample.velocity - _own(carpet, targets, src, force, 2, n_s)
+            ind = np.linalg.norm(u, axis=1).reshape(nj, 2)
+            ratio[:, k] = (ind / vrms).T
+            own = np.linalg.norm(carpet.beat_velocity(t, js)[:, pts], axis=-1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pointwise[:, k] = (ind / own).T
+            err = max(err, float(np.max(sample.error_bound.reshape(nj, 2) / vrms)))
+            if k in spread_k:  # the same carpet, bases spread by SPREAD: every pair resolved
+                shift = (spread - 1.0) * bases
+                p_all, f_all, _ = carpet.state(t)
+                all_src = _pad((p_all + shift[:, None, :]).reshape(-1, 2))
+                all_frc = _pad((f_all * w[None, :, None]).reshape(-1, 2))
+                tg = _pad((pos[:, pts] + shift[js][:, None, :]).reshape(-1, 2))
+                own_src = _pad((pos + shift[js][:, None, :]).reshape(-1, 2))
+                u2 = stokeslet_velocity(tg, all_src, all_frc, carpet.mu, kernel=carpet.kernel, backend=carpet.backend) \
+                    - _own(carpet, tg, own_src, force, 2, n_s)
+                far.append(np.linalg.norm(u2, axis=1).reshape(nj, 2)[:, 1] / vrms[:, 1])
+                near.append(ratio[1, k])
+        if far:
+            r1, r2 = float(np.median(np.concatenate(near))), float(np.median(np.concatenate(far)))
+            if r1 > 0 and r2 > 0 and r1 > r2:
+                exponent = math.log(r1 / r2) / math.log(spread)
+                spacing_10 = d_nn * max(1.0, (float(np.median(ratio[1])) / TARGET_RATIO) ** (1.0 / exponent))
+
+        # the others' mean flow at the force centres against the stream that cancels the thrust
+        cen = _pad(carpet.centres[js])
+        mean_src = _pad(xs.reshape(-1, 2))
+        mean_frc = _pad((fs * (w / n_p)[None, None, :, None]).reshape(-1, 2))
+        um = carpet.evaluate_mean(cen, tol, error=False).velocity - _own(carpet, cen, mean_src, mean_frc, 1, n_p * n_s)
+        mean_others = np.linalg.norm(um, axis=1)
+        fbar = np.linalg.norm(carpet.mean_thrust[js], axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pushback = np.where(fbar > 0, mean_others * eta / fbar, np.nan)
+
+    mid, tip = _stats(ratio[0].ravel()), _stats(ratio[1].ravel())
+    pw_mid, pw_tip = _stats(pointwise[0].ravel()), _stats(pointwise[1].ravel())
+    pb = _stats(pushback)
+    h = None if carpet.wall is None else float(carpet.wall)
+    par, perp = wall_drag_ratios(h, a)
+    if h is None:
+        regime = "no wall"
+    elif not math.isfinite(perp):
+        regime = "h within a few filament radii: lubrication, outside slender-body theory"
+    elif 5 * a <= h <= 0.5:
+        regime = "a << h << L"
+    elif h < 5 * a:
+        regime = "h only a few radii: the formula underestimates the drag"
+    else:
+        regime = "h comparable to L: the wall's effect is weak and only estimated"
+    mu_sbt = sbt_viscosity(eta, a)
+    return Omissions(
+        n_cilia=carpet.n, cilia=js, instants=instants, tol=tol, seed=int(seed),
+        ratio_mid=ratio[0], ratio_tip=ratio[1],
+        beat_speed_mid=vrms[:, 0] if nj else np.zeros(0), beat_speed_tip=vrms[:, 1] if nj else np.zeros(0),
+        mid_median=mid[0], mid_p90=mid[1], mid_max=mid[2], tip_median=tip[0], tip_p90=tip[1], tip_max=tip[2],
+        mid_pointwise_median=pw_mid[0], tip_pointwise_median=pw_tip[0], tip_pointwise_p90=pw_tip[1],
+        interaction_error=err if nj else math.nan,
+        pushback_median=pb[0], pushback_max=pb[2],
+        mean_flow_others_median=float(np.median(mean_others)) if nj else math.nan,
+        spacing=d_nn, spacing_exponent=exponent, spacing_10=spacing_10,
+        wall_height=h, filament_radius=a, wall_drag_parallel=par, wall_drag_normal=perp, wall_regime=regime,
+        mu=float(carpet.mu), mu_sbt=mu_sbt, flow_speed_error=mu_sbt / float(carpet.mu) - 1.0)

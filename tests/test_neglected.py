@@ -1,0 +1,125 @@
+"""What the carpet model leaves out, sized (ciliary_carpet/omissions.py; issues 26 and 27)."""
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ciliary_carpet.carpet import Carpet
+from ciliary_carpet.omissions import TARGET_RATIO, omissions, sbt_viscosity, wall_drag_ratios
+from single_cilium.table import ThrustTable
+
+ROOT = Path(__file__).resolve().parents[1]
+CHI_N = 92.0  # the uniform_deflection scene's curvature: a fluttering cilium
+
+
+@pytest.fixture(scope="module")
+def table():
+    return ThrustTable.default()
+
+
+def _pair(table, R, wall=None):
+    """Two cilia R apart along x, phases 0 and 0.3."""
+    return Carpet(np.array([[0.0, 0.0], [R, 0.0]]), CHI_N, table, np.array([0.0, 0.3]), wall=wall)
+
+
+def test_single_cilium_feels_nothing(table):
+    o = omissions(Carpet(np.zeros((1, 2)), CHI_N, table))
+    assert o.ratio_tip.shape == (6, 1)
+    # the carpet's flow minus the cilium's own resolved line: rounding only
+    assert np.max(o.ratio_mid) < 1e-12 and np.max(o.ratio_tip) < 1e-12
+    assert o.pushback_max < 1e-12
+    assert math.isnan(o.spacing) and math.isnan(o.spacing_10)
+    json.dumps(o.summary(), allow_nan=False)
+
+
+def test_far_pair_is_a_stokeslet(table):
+    """Cilium 1 far from cilium 0: the flow it induces at 0's tip is its instantaneous force's
+    Stokeslet, (I + e e^T) F_1(t) / (8 pi mu R) (the dipole term is a / R ~ 1 % here), so the
+    ratio falls as 1 / R; the others' mean flow at 0's force centre is Fbar_1's Stokeslet."""
+    out = {}
+    for R in (40.0, 80.0):
+        c = _pair(table, R)
+        o = omissions(c, tol=1e-4, spacing=False)
+        w = np.ones(c.s.size)
+        w[1:-1:2], w[2:-1:2] = 4.0, 2.0
+        w /= 3.0 * (c.s.size - 1)
+        est = []
+        for t in o.instants:
+            pos, frc, _ = c.state(t)
+            F1 = np.append((frc[1] * w[:, None]).sum(axis=0), 0.0)
+            d = np.append(c.centres[1] - pos[0, -1], 0.0)
+            e = d / np.linalg.norm(d)
+            est.append(np.linalg.norm(F1 + e * (e @ F1)) / (8 * math.pi * c.mu * np.linalg.norm(d)))
+        induced = o.ratio_tip[:, 0] * o.beat_speed_tip[0]
+        np.testing.assert_allclose(induced, est, rtol=0.02)  # measured: within 0.8 % at 40 L
+        Fbar = np.append(c.mean_thrust[1], 0.0)
+        d = np.append(c.centres[1] - c.centres[0], 0.0)
+        e = d / np.linalg.norm(d)
+        mono = np.linalg.norm(Fbar + e * (e @ Fbar)) / (8 * math.pi * c.mu * np.linalg.norm(d))
+        pushed = o.pushback_max / (c.table.eta / np.linalg.norm(c.mean_thrust[0]))  # cilia 0 and 1 alike
+        assert pushed == pytest.approx(mono, rel=0.05)
+        out[R] = o.ratio_tip[:, 0]
+    np.testing.assert_allclose(out[40.0] / out[80.0], 2.0, rtol=0.1)
+
+
+def test_wall_ratio_formula_and_limits():
+    a = 0.02
+    free = math.log(2 / a) - 0.5
+    par, perp = wall_drag_ratios(0.1, a)  # a << h << L: Katz, Blake & Paveri-Fontana (1975)
+    assert par == pytest.approx(free / math.log(2 * 0.1 / a), rel=1e-12)  # 1.78
+    assert perp == pytest.approx(free / (math.log(2 * 0.1 / a) - 0.5), rel=1e-12)  # 2.28
+    hs = np.geomspace(0.05, 5.0, 40)
+    r = np.array([wall_drag_ratios(h, a) for h in hs])
+    assert np.all(np.diff(r, axis=0) <= 0)  # the wall's effect falls as it recedes
+    assert np.all(r[hs >= 1.0] == 1.0)  # h >= L: both ratios 1 (the filament's length cuts off first)
+    assert wall_drag_ratios(None, a) == (1.0, 1.0)
+    assert all(math.isnan(v) for v in wall_drag_ratios(0.025, a))  # touching the wall: no slender theory
+
+
+def test_wall_and_viscosity_on_a_carpet(table):
+    o = omissions(_pair(table, 3.0, wall=0.1), spacing=False)
+    assert (o.wall_drag_parallel, o.wall_drag_normal) == wall_drag_ratios(0.1, 0.02)
+    assert o.wall_regime == "a << h << L"
+    assert o.mu_sbt == pytest.approx(sbt_viscosity(1.0, 0.02)) == pytest.approx(0.6534, abs=1e-4)
+    assert o.flow_speed_error == pytest.approx(-0.3466, abs=1e-4)  # issue 27: flows 35 % too slow
+    assert "too slow" in o.lines()[-1]
+    free = omissions(_pair(table, 3.0), spacing=False)
+    assert (free.wall_drag_parallel, free.wall_drag_normal, free.wall_height) == (1.0, 1.0, None)
+
+
+def test_subsampling_is_deterministic(table):
+    from ciliary_carpet import layout
+
+    c = Carpet(layout.square(4, 4, 2.0), CHI_N, table, layout.random_phases(16, 0))
+    a = omissions(c, n_cilia=5, n_instants=2, seed=7, spacing=False)
+    b = omissions(c, n_cilia=5, n_instants=2, seed=7, spacing=False)
+    other = omissions(c, n_cilia=5, n_instants=2, seed=8, spacing=False)
+    assert len(a.cilia) == 5 and np.array_equal(a.cilia, b.cilia) and not np.array_equal(a.cilia, other.cilia)
+    np.testing.assert_array_equal(a.ratio_tip, b.ratio_tip)
+    assert a.summary() == b.summary()
+
+
+def test_uniform_deflection_against_issue_27():
+    """Issue 27 measured a median 32 % at the tip and 18 % at mid-length (pointwise: the others'
+    flow over the instantaneous own speed; 12 cilia x 6 instants, tol 1e-4; its 90th percentile
+    66-69 %). Here (64 of 100 cilia, seed 0) the pointwise medians are 29.5 % and 18.9 % and the
+    tip's 90th percentile 65 %; the r.m.s.-normalised medians 28.0 % and 18.5 %. The band allows
+    for the sample (12 cilia, seed 0: 30.9 % pointwise) and the instants chosen."""
+    from ciliary_carpet.assembly import assemble
+    from ciliary_carpet.scene import load_scene
+
+    c = assemble(load_scene(ROOT / "designs" / "uniform_deflection.toml")).carpet()
+    o = omissions(c, tol=1e-4)
+    assert 0.26 <= o.tip_pointwise_median <= 0.38
+    assert 0.15 <= o.mid_pointwise_median <= 0.22
+    assert 0.22 <= o.tip_median <= 0.36
+    assert o.mid_median < o.tip_median < o.tip_p90 <= o.tip_max
+    assert o.interaction_error < 1e-3  # the evaluation's bound, in units of the ratio
+    assert 0.8 <= o.spacing_exponent <= 1.3  # the instantaneous coupling falls about like 1 / spacing
+    assert o.spacing_10 > 2.0 * (o.tip_median / TARGET_RATIO) ** 0.5
+    s = o.summary()
+    json.dumps(s, allow_nan=False)
+    assert s["interaction"]["tip"]["median"] == o.tip_median
+    assert len(s["lines"]) == 4
