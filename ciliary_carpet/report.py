@@ -175,14 +175,20 @@ def _design(s: dict, scene: dict) -> list:
             txt += (f"; a pattern that turns the flow both ways ({kind}) holds about {reach['pattern_max_deg']:.1f} "
                     f"deg away from its line")
             if tgt.get("angle") is not None:
-                txt += f" (asked {abs(tgt['angle']):.3g} deg)"
+                ask = abs(tgt["angle"])
+                txt += f" (asked {ask:.3g} deg: " + ("within that" if ask <= reach["pattern_max_deg"] else
+                                                      "beyond that, expect a larger residual") + ")"
             if reach.get("width") is not None:
                 wm = reach.get("width_min")
                 txt += (f"; the narrowest transition across the line at that angle is "
                         + ("wider than 8 spacings" if wm is None else f"about {wm:.3g} L")
                         + f" (asked {reach['width']:.3g} L)")
         elif tgt.get("angle") is not None:
-            txt += f"; asked {abs(tgt['angle']):.3g} deg"
+            ask = abs(tgt["angle"])
+            txt += f"; asked {ask:.3g} deg: " + (
+                "within reach" if ask <= reach["angle_floor_deg"] else
+                "within reach only of cilia that push less" if ask <= reach["angle_max_deg"] else
+                "beyond what one cilium can turn")
         out.append(txt + ".")
     tt = dd.get("tolerance")
     if tt is not None:
