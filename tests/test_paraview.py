@@ -122,3 +122,9 @@ def test_cilia_and_snapshots_beat_over_the_path_lines_time_range(tiny):
     assert len(set(files)) == n and files[n] == files[0] and np.isclose(cilia[n], beat)
     snaps = _pvd_times(tiny.out_dir / "snapshots.pvd")
     assert snaps[-1] >= end
+
+
+def test_summary_speaks_in_units_and_beats(tiny):
+    md = (tiny.out_dir / "summary.md").read_text()
+    assert "times in tau" in md and "L/tau" in md and "beats)" in md  # durations: tau and beats of the cilia
+    assert "fidelity" not in md and "pass 1" not in md  # the code's words are gone
