@@ -123,3 +123,10 @@ def test_uniform_deflection_against_issue_27():
     json.dumps(s, allow_nan=False)
     assert s["interaction"]["tip"]["median"] == o.tip_median
     assert len(s["lines"]) == 4
+
+
+def test_consistent_viscosity_is_said(table):
+    mu = sbt_viscosity(1.0, 0.02)
+    c = Carpet(np.array([[0.0, 0.0], [3.0, 0.0]]), CHI_N, table, mu=mu)
+    o = omissions(c, n_instants=1, spacing=False)
+    assert abs(o.flow_speed_error) < 1e-12 and "agree" in o.lines()[-1]
