@@ -59,8 +59,8 @@ def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     sc = ax.scatter(X[:, 0], X[:, 1], c=d.residual, cmap="magma_r", vmin=0, s=40, marker="s")
     ax.scatter(b[:, 0], b[:, 1], c="0.7", s=6)
     fig.colorbar(sc, ax=ax, label=f"residual [{unit}]", shrink=0.85)
-    ax.set_title(f"residual per control point\nrms {d.residual_rms:.3g} {unit} (+- {d.residual_error:.1g}), worst "
-                 f"{d.residual.max():.3g}", fontsize=10)
+    ax.set_title(f"residual per control point\nrms {d.residual_rms:.3g} {unit} (model error at most "
+                 f"{d.residual_error:.1g}), worst {d.residual.max():.3g}", fontsize=10)
     ax = axs[2]
     sc = ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=40)
     nc = list(d.near_cutoff)
@@ -69,13 +69,13 @@ def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
                    label=f"{len(nc)} near the flutter cutoff")
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8)
     fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.85)
-    ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g})\nreturned: the {d.returned} layout", fontsize=10)
+    ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g})", fontsize=10)
     for ax in axs:
         ax.set_aspect("equal")
         ax.set_xlabel("x / L")
         ax.set_ylabel("y / L")
-    fig.suptitle(f"{scene.name}: design ({d.kind} target, {len(X)} control points; local layout rms "
-                 f"{d.local_rms:.3g})", fontsize=11)
+    fig.suptitle(f"{scene.name}: design ({d.kind} target, {len(X)} control points; without the design, each "
+                 f"cilium curved for the target on its own: rms {d.local_rms:.3g} {unit})", fontsize=11)
     fig.tight_layout()
     _savefig(fig, path)
 
