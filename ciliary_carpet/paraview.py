@@ -6,13 +6,19 @@ run: ``paraview --script=DIR/open_in_paraview.py`` (the GUI runs the script's te
 
 What opens, readable at a glance (a 2D top view on the carpet, one legend per colour):
 
-- the mean speed as the background (``mean_field.vti``, colour map "Blues"),
-- a sparse lattice of mean-flow arrows (at most about 400, resampled from the mean field and
-  scaled so that the fastest is one lattice spacing long),
-- the path lines coloured by time ("Inferno"),
+- the mean speed as the background (``mean_field.vti``, white for slow to mid-grey for fast),
+- a sparse lattice of black mean-flow arrows (at most about 400, resampled from the mean field
+  and scaled by speed so that the fastest is 0.9 lattice spacings long),
+- the path lines coloured by time ("Viridis"),
 - the cilia (``cilia.pvd``, moving) and their bases (``layout.vtp``) coloured by chi_N
-  ("Cool to Warm"),
+  ("Cool to Warm"; symmetric about 0 when the layout has both signs),
 - the time, and a line saying what is shown.
+
+ParaView's clock plays through every data time step ("Snap To TimeSteps"): the cilia's frames
+(one beat, repeated over the path lines' time range by ``cilia.pvd``) and the moving tracers
+(``particles.pvd``) move together. The script does not move the animation itself: under
+``--script`` ParaView 5.11's GUI hangs on ``UpdateAnimationUsingDataTimeSteps`` or on setting
+``AnimationTime``.
 
 Loaded but hidden, ready to switch on with their eye icon: the instantaneous fields
 (``snapshots.pvd``), the FTLE field (``ftle.vti``), the design's control points
