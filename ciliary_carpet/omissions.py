@@ -69,31 +69,44 @@ density n ~ d^-2.
 (a) The wall's effect on each cilium's own drag
 -----------------------------------------------
 The limit cycles use free-space resistive coefficients, in slender-body form (Gray & Hancock
-1955; the model's, MODEL.md section 2, with the slender limit c_perp = 2 c_par)
+1955, with the filament's length as the cut-off, as issue 27 writes them; MODEL.md section 2
+takes the slender limit c_perp = 2 c_par)
 
     c_par = 2 pi mu / (ln(2 L / a) - 1/2),   c_perp = 2 c_par,
 
-for a filament of length L and radius a. A slender filament parallel to a no-slip plane at height
-h, with a << h << L, has instead (Katz, Blake & Paveri-Fontana 1975, J. Fluid Mech. 72, 529,
-eqs. for a slender body parallel to a plane; reviewed by Brennen & Winet 1977, Annu. Rev. Fluid
-Mech. 9, 339, section 4)
+for a filament of length L and radius a. A slender filament parallel to a no-slip plane at
+height h, a << h << L, has instead (Katz, Blake & Paveri-Fontana 1975, J. Fluid Mech. 72, 529;
+reviewed by Brennen & Winet 1977, Annu. Rev. Fluid Mech. 9, 339)
 
-    c_par = 2 pi mu / ln(2 h / a),   c_perp = 4 pi mu / (ln(2 h / a) - 1/2)
+    c_par = 2 pi mu / ln(2 h / a),   c_perp = 4 pi mu / ln(2 h / a)   (normal, parallel to the wall),
+    c_z = 4 pi mu / (ln(2 h / a) - 1)                                  (normal to the wall):
 
-(c_perp for motion normal to the filament and parallel to the wall, which is how a planar carpet
-beats: the wall's image system cuts the Stokeslet's logarithm off at 2 h instead of the filament's
-length). The ratios wall / free are
+the wall's image system cuts the Stokeslet's logarithm off at 2 h instead of the filament's
+length. These constants are checked against this package's Blake kernel (the velocity averaged
+round the surface of a long singular Stokeslet line, tests/test_neglected.py: to 0.2 % at
+h = 20 a, L = 1000 a). A planar carpet beats parallel to the wall, and its anisotropy stays 2,
+so the wall scales the model's eta by one factor, the **closed form**
 
-    par:  (ln(2 L / a) - 1/2) / ln(2 h / a),   perp: (ln(2 L / a) - 1/2) / (ln(2 h / a) - 1/2),
+    ratio = (ln(2 L / a) - 1/2) / ln(2 h / a)     (``wall_drag_formula``),
 
-taken as 1 where they fall below 1 (h >= L e^{-1/2} = 0.61 L for c_par, h >= L for c_perp: the
-wall then cuts the logarithm off no sooner than the filament's own length does, and its effect is
-of the order of the theory's O(1 / ln) error); ``wall_regime`` says whether the carpet's h lies in
-a << h << L (taken as 5 a <= h <= L / 2). For a planar carpet every filament point lies at the
-wall depth h = ``carpet.wall`` above the wall, so that is the cilia's mean height; with no wall
-both ratios are 1. A ratio of 1.5 means the filament near the wall is 1.5 times as hard to move as
-its cycle assumes: it beats more slowly than modelled, by what the single-cilium model with eta
-scaled by that factor gives (MODEL.md section 4: the frequency falls as eta grows).
+taken as 1 where it falls below 1 (h >= L e^{-1/2} = 0.61 L). Its O(1) constants matter at
+the modest logarithms of a real cilium (L / a = 50), so the reported ratios are the same theory
+evaluated for the finite filament (:func:`wall_drag_ratios`): a straight filament of length L
+at height h, uniform force density along it or across it (parallel to the wall), its velocity
+averaged round its surface (radius a) and along its length, with the singular Blake kernel, over
+the same in free space. They tend to the closed form for a << h << L and to 1 smoothly as
+h -> infinity (measured: a = 0.02 L, h = 0.05, 0.1, 0.2, 0.5, 1 L: along 2.12, 1.55, 1.28, 1.12,
+1.06, across 2.59, 1.85, 1.46, 1.19, 1.10; the closed form 2.55, 1.78, 1.37, 1.05, 1); the
+uniform force density (not a rigid rod's) makes them an O(1 / ln^2) estimate. NaN where
+ln(2 h / a) <= 1 (h < 1.36 a: the filament touches the wall, lubrication, outside the theory);
+``wall_regime`` says whether h lies in a << h << L (taken as 5 a <= h <= L / 2).
+
+For a planar carpet every filament point lies at the wall depth h = ``carpet.wall`` above the
+wall, so that is the cilia's mean height; with no wall the ratios are 1. (A standing carpet's
+filaments are not parallel to the wall: these formulas would not apply.) A ratio of 1.5 means
+the filament near the wall is 1.5 times as hard to move as its cycle assumes: it beats more
+slowly than modelled, by what the single-cilium model with eta scaled by that factor gives
+(MODEL.md section 4: the frequency falls as eta grows).
 
 The viscosity. The Stokeslets use the carpet's viscosity ``mu`` (in B tau / L^4, the model's
 unit: MODEL.md section 2 writes eta = mu_par L^4 / (tau B), so eta and mu are in the same units),
@@ -117,9 +130,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .carpet import BLOB, Carpet
+from .kernel import Wall, make_kernel
 from .stokeslet import stokeslet_velocity, stokeslet_velocity_ranges
 
-__all__ = ["Omissions", "omissions", "wall_drag_ratios", "sbt_viscosity", "N_CILIA", "N_INSTANTS",
+__all__ = ["Omissions", "omissions", "wall_drag_ratios", "wall_drag_formula", "sbt_viscosity", "N_CILIA", "N_INSTANTS",
            "TARGET_RATIO", "SPREAD", "SPREAD_SOURCES"]
 
 N_CILIA = 64
@@ -143,22 +157,51 @@ def sbt_viscosity(eta: float, a: float, length: float = 1.0) -> float:
     return float(eta) * (math.log(2.0 * length / a) - 0.5) / (2.0 * math.pi)
 
 
-def wall_drag_ratios(h: float | None, a: float, length: float = 1.0) -> tuple[float, float]:
-    """(parallel, perpendicular) ratios of a slender filament's resistive coefficients at height
-    ``h`` above a no-slip plane to the free-space ones the model uses (module docstring, Katz,
-    Blake & Paveri-Fontana 1975): (ln(2L/a) - 1/2) / ln(2h/a) and (ln(2L/a) - 1/2) /
-    (ln(2h/a) - 1/2), each at least 1; (1, 1) for ``h`` None (no wall). NaN where
-    ln(2 h / a) - 1/2 <= 1/2 (h < 1.36 a: the filament touches the wall, lubrication)."""
+def wall_drag_formula(h: float | None, a: float, length: float = 1.0) -> float:
+    """The closed-form ratio of a slender filament's resistive coefficients at height ``h``
+    above a no-slip plane (parallel to it, a << h << L) to the free-space ones the model uses,
+    (ln(2L/a) - 1/2) / ln(2h/a), at least 1 (module docstring; Katz, Blake & Paveri-Fontana
+    1975); 1 for ``h`` None (no wall); NaN where ln(2h/a) <= 1 (touching the wall)."""
     if h is None:
-        return 1.0, 1.0
+        return 1.0
     h, a = float(h), float(a)
     if not (h > 0 and a > 0):
         raise ValueError(f"need h > 0 and a > 0, got h = {h!r}, a = {a!r}")
     lg = math.log(2.0 * h / a)
-    if lg - 0.5 <= 0.5:
+    if lg <= 1.0:
+        return math.nan
+    return max(1.0, (math.log(2.0 * length / a) - 0.5) / lg)
+
+
+def wall_drag_ratios(h: float | None, a: float, length: float = 1.0) -> tuple[float, float]:
+    """(along, across) ratios of the resistance of a straight filament of length ``length`` and
+    radius ``a`` parallel to a no-slip plane at height ``h`` to its resistance in free space, for
+    motion along itself and across itself parallel to the wall (module docstring): a uniform
+    force density on a line of singular Stokeslets, the velocity averaged round the surface and
+    along the length, with and without Blake's image system. (1, 1) for ``h`` None; NaN where
+    ln(2h/a) <= 1 (touching the wall). About 10 ms for a = 0.02 L."""
+    if h is None:
+        return 1.0, 1.0
+    if math.isnan(wall_drag_formula(h, a, length)):
         return math.nan, math.nan
-    free = math.log(2.0 * length / a) - 0.5
-    return max(1.0, free / lg), max(1.0, free / (lg - 0.5))
+    h, a, L = float(h), float(a), float(length)
+    n = int(min(max(2001, 40 * L / a), 400_001)) | 1  # 40 sources per radius: the surface is resolved
+    x = np.linspace(0.0, L, n)
+    w = np.full(n, L / (n - 1))
+    w[[0, -1]] *= 0.5
+    src = np.stack([x, np.zeros(n), np.zeros(n)], axis=1)
+    phi = 2.0 * np.pi * np.arange(8) / 8
+    xs = L * (0.05 + 0.9 * np.arange(19) / 18)  # along the length, clear of the ends' 5 %
+    tg = np.stack([np.repeat(xs, phi.size), np.tile(a * np.cos(phi), xs.size), np.tile(a * np.sin(phi), xs.size)],
+                  axis=1)
+    free, wall = make_kernel(None, 0.0), make_kernel(Wall(z=-h), 0.0)
+    out = []
+    for e in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])):
+        f = w[:, None] * e[None]
+        uf = float((stokeslet_velocity(tg, src, f, kernel=free) @ e).mean())
+        uw = float((stokeslet_velocity(tg, src, f, kernel=wall) @ e).mean())
+        out.append(uf / uw)
+    return out[0], out[1]
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,7 +226,9 @@ class Omissions:
     :data:`TARGET_RATIO` (NaN when not measured).
 
     Wall: ``wall_height`` [L] (None without a wall), ``filament_radius`` a [L],
-    ``wall_drag_parallel``, ``wall_drag_normal`` (dimensionless, 1 without a wall),
+    ``wall_drag_along``, ``wall_drag_across`` (dimensionless, 1 without a wall): the filaments'
+    resistance near the wall over the free-space one the model uses, for motion along and across
+    them (:func:`wall_drag_ratios`), ``wall_drag_formula``: the closed form (:func:`wall_drag_formula`),
     ``wall_regime`` (text).
 
     Viscosity: ``mu`` (the carpet's, B tau / L^4), ``mu_sbt`` (slender-body theory's from eta and
@@ -220,8 +265,9 @@ class Omissions:
     spacing_10: float
     wall_height: float | None
     filament_radius: float
-    wall_drag_parallel: float
-    wall_drag_normal: float
+    wall_drag_along: float
+    wall_drag_across: float
+    wall_drag_formula: float
     wall_regime: str
     mu: float
     mu_sbt: float
@@ -254,8 +300,8 @@ class Omissions:
             "spacing": {"spacing_L": f(self.spacing), "exponent": f(self.spacing_exponent),
                         "spacing_for_10pct_L": f(self.spacing_10)},
             "wall": {"height_L": f(self.wall_height), "filament_radius_L": f(self.filament_radius),
-                     "drag_ratio_parallel": f(self.wall_drag_parallel),
-                     "drag_ratio_normal": f(self.wall_drag_normal), "regime": self.wall_regime},
+                     "drag_ratio_along": f(self.wall_drag_along), "drag_ratio_across": f(self.wall_drag_across),
+                     "drag_ratio_formula": f(self.wall_drag_formula), "regime": self.wall_regime},
             "viscosity": {"mu": f(self.mu), "mu_sbt": f(self.mu_sbt), "flow_speed_error": f(self.flow_speed_error)},
             "lines": self.lines(),
         }
@@ -293,15 +339,17 @@ class Omissions:
                        f"(|Fbar| / eta): {verdict}.")
         if self.wall_height is None:
             out.append("No wall: the filaments' free-space drag coefficients are the right ones.")
-        elif self.wall_drag_normal == 1.0 and self.wall_drag_parallel == 1.0:
-            out.append(f"The wall {self.wall_height:.3g} L below the filaments is about their length away or "
-                       "further: their free-space drag coefficients stand (slender-body theory).")
-        elif math.isfinite(self.wall_drag_normal):
+        elif max(self.wall_drag_along, self.wall_drag_across) < 1.05:
+            out.append(f"The wall {self.wall_height:.3g} L below the filaments changes their own drag by less than "
+                       f"5 % ({self.wall_drag_across:.3f} across, {self.wall_drag_along:.3f} along; slender-body "
+                       "theory): their free-space cycles stand.")
+        elif math.isfinite(self.wall_drag_across):
             out.append(f"The wall {self.wall_height:.3g} L below the filaments makes them "
-                       f"{self.wall_drag_normal:.2f} times as hard to move across and {self.wall_drag_parallel:.2f} "
+                       f"{self.wall_drag_across:.2f} times as hard to move across and {self.wall_drag_along:.2f} "
                        f"times along themselves as their free-space cycles assume (slender-body theory, "
-                       f"{self.wall_regime}): they beat more slowly than modelled (the single-cilium model with eta "
-                       f"scaled by about this factor says by how much).")
+                       f"{self.wall_regime}; the closed form gives {self.wall_drag_formula:.2f} for both): they beat "
+                       "more slowly than modelled (the single-cilium model with eta scaled by about this factor "
+                       "says by how much).")
         else:
             out.append(f"The wall {self.wall_height:.3g} L below the filaments is within a few radii of them: "
                        "slender-body theory does not apply (lubrication), their drag is far above the model's.")
@@ -453,10 +501,10 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
     pw_mid, pw_tip = _stats(pointwise[0].ravel()), _stats(pointwise[1].ravel())
     pb = _stats(pushback)
     h = None if carpet.wall is None else float(carpet.wall)
-    par, perp = wall_drag_ratios(h, a)
+    along, across = wall_drag_ratios(h, a)
     if h is None:
         regime = "no wall"
-    elif not math.isfinite(perp):
+    elif not math.isfinite(across):
         regime = "h within a few filament radii: lubrication, outside slender-body theory"
     elif 5 * a <= h <= 0.5:
         regime = "a << h << L"
@@ -475,5 +523,6 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         pushback_median=pb[0], pushback_max=pb[2],
         mean_flow_others_median=float(np.median(mean_others)) if nj else math.nan,
         spacing=d_nn, spacing_exponent=exponent, spacing_10=spacing_10,
-        wall_height=h, filament_radius=a, wall_drag_parallel=par, wall_drag_normal=perp, wall_regime=regime,
+        wall_height=h, filament_radius=a, wall_drag_along=along, wall_drag_across=across,
+        wall_drag_formula=wall_drag_formula(h, a), wall_regime=regime,
         mu=float(carpet.mu), mu_sbt=mu_sbt, flow_speed_error=mu_sbt / float(carpet.mu) - 1.0)
