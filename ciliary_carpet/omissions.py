@@ -509,7 +509,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
     elif 5 * a <= h <= 0.5:
         regime = "a << h << L"
     elif h < 5 * a:
-        regime = "h only a few radii: the formula underestimates the drag"
+        regime = "h only a few radii: slender-body theory at its edge, the drag likely higher still"
     else:
         regime = "h comparable to L: the wall's effect is weak and only estimated"
     mu_sbt = sbt_viscosity(eta, a)

@@ -158,3 +158,14 @@ def test_consistent_viscosity_is_said(table):
     c = Carpet(np.array([[0.0, 0.0], [3.0, 0.0]]), CHI_N, table, mu=mu)
     o = omissions(c, n_instants=1, spacing=False)
     assert abs(o.flow_speed_error) < 1e-12 and "agree" in o.lines()[-1]
+
+
+def test_still_carpet_has_nothing_to_size(table):
+    top = float(table.ds.chi_N.values[-1])  # the flutter cutoff: the filaments stand still
+    c = Carpet(np.array([[0.0, 0.0], [3.0, 0.0]]), top, table)
+    assert not c.flutter.any()
+    o = omissions(c)
+    assert len(o.cilia) == 0 and math.isnan(o.tip_median) and math.isnan(o.pushback_median)
+    s = o.summary()
+    json.dumps(s, allow_nan=False)
+    assert s["interaction"]["tip"]["median"] is None and s["lines"][0].startswith("No cilium flutters")
