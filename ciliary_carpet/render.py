@@ -3,31 +3,31 @@
 :func:`render` designs the layout (when the scene has a target), evaluates the flow at the
 scene's tolerance and writes, into ``out_dir``:
 
-==========================  ==================================================================
-``layout.nc``               the designed layout (chi_N per cilium, control points, residuals)
-``layout.vtp``              base points coloured by chi_N (and thrust angle, near_cutoff)
-``design.vtp``              control points: target and achieved flow, residual (with a target)
-``design.png``              the design at a glance: target vs achieved arrows, residual per
-                            control point, the layout coloured by chi_N (with a target)
-``mean_field.vti``          the time-averaged velocity (active vectors), speed, vorticity and the
-                            error bound on a grid around the carpet
-``snapshot_NNN.vti``        instantaneous fields over one beat of the cilia, tied by ``snapshots.pvd``
-``cilia_NNN.vtp``           filament shapes over one beat (arc length, drag density), ``cilia.pvd``;
-                            both .pvd repeat that beat over the path lines' time range (one clock)
-``pathlines.vtp``           tracer path lines (time, IntegrationTime, velocity, speed; SeedIds,
-                            TerminationReason with TerminationReasonNames), >= 16 points per beat
-``particles.pvd``           the tracers as moving points (``particles_NNNNN.vtp``), as ParticlePath gives
-``open_in_paraview.py``     ``paraview --script=DIR/open_in_paraview.py`` (or ``pvpython``/``pvbatch``
-                            with its path), from any working folder, opens the whole folder
-                            (:mod:`ciliary_carpet.paraview`: what shows, what is loaded hidden)
-``ftle.vti``                finite-time Lyapunov exponent over the carpet (mean flow, a quarter of
-                            the path-line duration); the mixing number is in the summary
-``preview.png``             the mean flow (streamlines) with the layout and path lines, a colour
-                            bar for each colour
-``summary.json``, ``.md``   residuals, timings, fidelity used, error bounds, path-line outcome
-                            (``.md``: the same in words, :mod:`ciliary_carpet.report`)
+===========================  ==================================================================
+``layout.nc``                the designed layout (chi_N per cilium, control points, residuals)
+``layout.vtp``               base points coloured by chi_N (and thrust angle, near_cutoff)
+``design.vtp``               control points: target and achieved flow, residual (with a target)
+``design.png``               the design at a glance: target vs achieved arrows, residual per
+                             control point, the layout coloured by chi_N (with a target)
+``mean_field.vti``           the time-averaged velocity (active vectors), speed, vorticity and the
+                             error bound on a grid around the carpet
+``snapshot_NNN.vti``         instantaneous fields over one beat of the cilia, tied by ``snapshots.pvd``
+``cilia_NNN.vtp``            filament shapes over one beat (arc length, drag density), ``cilia.pvd``;
+                             both .pvd repeat that beat over the path lines' time range (one clock)
+``pathlines.vtp``            tracer path lines (time, IntegrationTime, velocity, speed; SeedIds,
+                             TerminationReason with TerminationReasonNames), >= 16 points per beat
+``particles.pvd``            the tracers as moving points (``particles_NNNNN.vtp``), as ParticlePath gives
+``open_in_paraview.py``      ``paraview --script=DIR/open_in_paraview.py`` (or ``pvpython``/``pvbatch``
+                             with its path), from any working folder, opens the whole folder
+                             (:mod:`ciliary_carpet.paraview`: what shows, what is loaded hidden)
+``ftle.vti``                 finite-time Lyapunov exponent over the carpet (mean flow, a quarter of
+                             the path-line duration); the mixing number is in the summary
+``preview.png``              the mean flow (streamlines) with the layout and path lines, a colour
+                             bar for each colour
+``summary.json``, ``.md``    residuals, timings, fidelity used, error bounds, path-line outcome
+                             (``.md``: the same in words, :mod:`ciliary_carpet.report`)
 ``ciliary-carpet.manifest``  the names of the files above: what the toolkit wrote (JSON)
-==========================  ==================================================================
+===========================  ==================================================================
 
 Output-folder safety (:mod:`ciliary_carpet.outdir`, whose docstring states the guarantees).
 Everything is first written into a hidden staging folder on the output's own filesystem (beside

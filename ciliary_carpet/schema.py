@@ -36,16 +36,24 @@ class SceneError(ValueError):
 class Key:
     """What one TOML key accepts, and what it means (the metadata of a section field).
 
-    type : one of :data:`TYPES`: "float" (range ``lo``/``hi``, open ends ``lo_open``/``hi_open``),
+    Attributes
+    ----------
+    type : str
+        One of :data:`TYPES`: "float" (range ``lo``/``hi``, open ends ``lo_open``/``hi_open``),
         "int" (>= ``lo``), "bool", "str" (one of ``choices`` if given), "pair" ([x, y]), "pairs"
         ([[x, y], ...], or one of ``choices`` if given), "table" (a nested section, documented by
         its own class) or "custom" (read by the section's parser; the rest is documentation).
-    doc : the meaning (README table and docstring).
-    what : the accepted values as error messages say them (default: from type and range).
-    shown : the type column of the README (default: from type and range).
-    default_shown : the default column of the README (default: the field's default as TOML;
-        needed where the default is None, i.e. decided later).
-    kinds : ``[target]`` keys: the target kinds the key applies to (None: every kind).
+    doc : str
+        The meaning (README table and docstring).
+    what : str
+        The accepted values as error messages say them (default: from type and range).
+    shown : str
+        The type column of the README (default: from type and range).
+    default_shown : str
+        The default column of the README (default: the field's default as TOML; needed where the
+        default is None, i.e. decided later).
+    kinds : tuple of str or None
+        ``[target]`` keys: the target kinds the key applies to (None: every kind).
     """
 
     type: str

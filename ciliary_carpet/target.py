@@ -75,15 +75,23 @@ class UnreachableTargetError(TargetError):
 class Pattern:
     """One target kind of the registry :data:`PATTERNS`.
 
-    name : the value of ``target.kind``.
-    doc : what it asks, with its formula (README kinds table).
-    keys : the ``[target]`` keys of its own geometry (line, width, centre, file); the keys every
+    Attributes
+    ----------
+    name : str
+        The value of ``target.kind``.
+    doc : str
+        What it asks, with its formula (README kinds table).
+    keys : tuple of str
+        The ``[target]`` keys of its own geometry (line, width, centre, file); the keys every
         angle kind or every designed kind takes say so themselves (:class:`TargetSpec`).
-    deflection : ``f(target, points (P, 2), frame) -> delta (P,)`` [rad] for the angle kinds;
-        None for "none" and "points".
-    signed : ``target.angle`` is a signed deflection in [-180, 180] (else an amplitude in (0, 180]).
-    two_sided : the flow turns toward (or away from) a line from both sides: the design's
-        estimate of the reachable amplitude of such a pattern applies
+    deflection : callable or None
+        ``f(target, points (P, 2), frame) -> delta (P,)`` [rad] for the angle kinds; None for
+        "none" and "points".
+    signed : bool
+        ``target.angle`` is a signed deflection in [-180, 180] (else an amplitude in (0, 180]).
+    two_sided : bool
+        The flow turns toward (or away from) a line from both sides: the design's estimate of
+        the reachable amplitude of such a pattern applies
         (:func:`~ciliary_carpet.design.reachability`).
     """
 
@@ -361,7 +369,10 @@ def _as_in_spec(name: str):
 class Target:
     """A resolved target (from a scene's ``[target]`` by :meth:`from_spec` / :meth:`from_scene`).
 
-    kind : one of :data:`KINDS`.
+    Attributes
+    ----------
+    kind : str
+        One of :data:`KINDS`.
     amplitude : float or None
         RADIANS: the deflection (uniform, signed) or the pattern amplitude (> 0); None for
         "none" and "points".
@@ -370,9 +381,10 @@ class Target:
         centre None = ``frame.centre``; ``control`` see :func:`control_points`; the design
         settings go to :func:`~ciliary_carpet.design.design_layout` (``robust``: its
         ``robust_sigma``) and :func:`~ciliary_carpet.design.tolerance_study`.
-    data_points, data_velocities : (P, 2) arrays for kind "points" (else None); see
-        :meth:`velocities`.
-    source : the control-point file for kind "points" (for messages).
+    data_points, data_velocities : ndarray or None
+        (P, 2) arrays for kind "points" (else None); see :meth:`velocities`.
+    source : str or None
+        The control-point file for kind "points" (for messages).
     """
 
     kind: str

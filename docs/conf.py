@@ -68,7 +68,8 @@ _LITERAL = re.compile(r"(``.+?``)")
 
 
 def _escape_bars(line: str) -> str:
-    if line.lstrip().startswith(("|", "+")):
+    row = line.strip()
+    if row.startswith("+") or (len(row) > 1 and row[0] == row[-1] == "|"):  # a grid table's border or row
         return line
     return "".join(part if part.startswith("``") else part.replace("|", r"\|") for part in _LITERAL.split(line))
 
