@@ -323,8 +323,8 @@ def default_column(k: Key, default) -> str:
 
 def section(cls):
     """Class decorator of a section: appends the key list, made from the fields' metadata, to the
-    docstring (the same text as the README table)."""
-    lines = ["", "    Keys", "    ----"]
+    docstring as its numpydoc ``Attributes`` (one per TOML key; the same text as the README table)."""
+    lines = ["", "    Attributes", "    ----------"]
     for name, (k, default) in keys_of(cls).items():
         if k.type == "table":
             continue

@@ -60,8 +60,7 @@ html_static_path = []
 
 # ------------------------------------------------------------------------------ docstrings
 # The docstrings write absolute values and norms as plain text, |x|, which reStructuredText reads as
-# a substitution reference. Escape the bars outside inline literals and outside grid tables, and
-# show the scene classes' "Keys" sections (the TOML keys they read) as a rubric numpydoc accepts.
+# a substitution reference. Escape the bars outside inline literals and outside grid tables.
 import re  # noqa: E402
 
 _LITERAL = re.compile(r"(``.+?``)")
@@ -77,8 +76,6 @@ def _escape_bars(line: str) -> str:
 def _plain_text_docstrings(app, what, name, obj, options, lines):
     for i, line in enumerate(lines):
         lines[i] = _escape_bars(line)
-        if line.strip() == "Keys" and i + 1 < len(lines) and set(lines[i + 1].strip()) == {"-"}:
-            lines[i], lines[i + 1] = ".. rubric:: Keys", ""
 
 
 def setup(app):
