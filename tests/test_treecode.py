@@ -121,9 +121,9 @@ def test_regularised_wall_kernel_is_reciprocal(planar):
     """G_ij(x, y) = G_ji(y, x) for the regularised Blake tensor (Smith's corrected image system):
     random pairs above the wall, in one plane (the design's case) and anywhere in 3-d, at
     distances from 1e-3 to 10 L, through the compiled kernel and the numpy reference. The
-    tolerance is rounding: 64 ulps of the largest terms' size (_term_scale; measured: asymmetry at most 2.7, compiled against numpy 6.3), while a
-    non-reciprocal image system (the O(eps^2) the docstring used to claim) would differ by
-    about eps^2 / r^3 relative, 1e-4 here at r = 2."""
+    tolerance is rounding: 64 ulps of the largest terms' size (_term_scale; measured: asymmetry
+    at most 2.7, compiled against numpy 6.3), while a non-reciprocal image system (the O(eps^2)
+    the docstring used to claim) would differ by about eps^2 / r^3 relative, 1e-4 here at r = 2."""
     from ciliary_carpet.kernel import regularised_blake_tensor
 
     from ciliary_carpet.stokeslet import stokeslet_velocity_ranges
