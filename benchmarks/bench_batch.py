@@ -7,13 +7,27 @@ and every scene still queued), on the same small scenes; plus the cost of the up
     python benchmarks/bench_batch.py [--scenes 6] [--jobs 2] [--repeat 2] [--shape 3] [--field 12] [--out FILE]
 
 Writes ``benchmarks/results/bench_batch.md``.
+
+``--bundled``: the bundled scenes as a default batch against their solo renders, in the same run
+and as a user runs them (the command line, each in a fresh process): ``ciliary-carpet render``
+of each scene alone (every core for one render), ``ciliary-carpet batch`` of all at the default
+settings (each worker its share of the cores: processes), and the same batch with ``--jobs 1``
+(one render at a time on every core: threads); each render's stage times and the threads its
+summary reports, the machine's load average before and after (issue 23).
+
+    python benchmarks/bench_batch.py --bundled [designs/focusing.toml designs/shear_layer.toml] [--no-serial] [--limit S]
+
+Writes ``benchmarks/results/bench_batch_bundled.md``.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing as mp
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -23,8 +37,109 @@ SCENE = ('[carpet]\nshape = [{n}, {n}]\nseed = {k}\n[output]\nn_seeds = 4\nperio
          'snapshots = 1\nframes = 2\npreview = false\n')
 
 
+ROOT = Path(__file__).resolve().parent.parent
+BUNDLED = ("designs/focusing.toml", "designs/shear_layer.toml")
+
+
+def _cli(*args, limit: float | None = None) -> float | None:
+    """Run ``ciliary-carpet ARGS`` in a fresh process; its wall time (s), None past ``limit`` s."""
+    t = time.perf_counter()
+    try:
+        r = subprocess.run([sys.executable, "-m", "ciliary_carpet.cli", *map(str, args)], capture_output=True,
+                           text=True, cwd=ROOT, timeout=limit)
+    except subprocess.TimeoutExpired:
+        return None
+    took = time.perf_counter() - t
+    if r.returncode != 0:
+        raise SystemExit(f"ciliary-carpet {' '.join(map(str, args))} failed ({r.returncode}): {r.stderr[-2000:]}")
+    return took
+
+
+def _summary(folder: Path) -> dict | None:
+    f = folder / "summary.json"
+    return json.loads(f.read_text()) if f.is_file() else None
+
+
+def _load() -> str:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def bundled(scenes: list[str], serial: bool, out: str | None, limit: float | None) -> None:
+    """The bundled scenes: the default batch, the solo renders, the batch with --jobs 1; the
+    table is rewritten after each run (so a run stopped at ``limit`` s still leaves the others)."""
+    from ciliary_carpet.scene import load_scene
+    from single_cilium._threads import ThreadBudget, cores
+
+    names = [load_scene(ROOT / s).name for s in scenes]
+    root = Path(tempfile.mkdtemp(prefix="bench_batch_bundled."))
+    out = out or str(Path(__file__).parent / "results" / "bench_batch_bundled.md")
+    load_before = _load()
+    b = ThreadBudget.for_batch(len(scenes))
+    runs = [("`batch` at the default settings", "batch", [])]
+    runs += [(f"`render` {n} alone", "render", [s, n]) for s, n in zip(scenes, names)]
+    if serial:
+        runs.append(("`batch --jobs 1` (one render at a time, every core)", "batch", ["--jobs", "1"]))
+    wall: dict = {}
+    stages: list = []
+
+    def write() -> None:
+        solo = [wall.get(f"`render` {n} alone") for n in names]
+        total = sum(solo) if all(w is not None for w in solo) and len(solo) == len(names) else None
+        lines = [f"# bench_batch --bundled: {', '.join(scenes)}", "",
+                 f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {cores()} cores "
+                 f"({os.cpu_count()} in the machine), load average {load_before} before, {_load()} at the last run's "
+                 f"end (1, 5, 15 min; the machine was shared with other jobs while this ran, so absolute times are "
+                 f"inflated and noisy); the default batch here: {b.workers} workers x {b.numba} numba threads x "
+                 f"{b.blas} BLAS thread; a solo render uses every core.", "",
+                 "| run | wall s | ratio to the sum of the solo renders |", "|---|---|---|"]
+        for label, _, _ in runs:
+            if label not in wall:
+                continue
+            w = wall[label]
+            ws = f"> {limit:.0f} (stopped)" if w is None else f"{w:.1f}"
+            ratio = "" if w is None or total is None or label.startswith("`render`") else f"{w / total:.2f}"
+            lines.append(f"| {label} | {ws} | {ratio} |")
+        if total is not None:
+            lines.append(f"| sum of the solo renders | {total:.1f} | 1.00 |")
+        keys = sorted({k for _, sec, _ in stages for k in sec if k != "total"})
+        lines += ["", "Each render's stages (s, from its summary.json) and the threads it reports:", "",
+                  "| render | " + " | ".join(keys) + " | total | threads (numba, BLAS, workers) |",
+                  "|---" * (len(keys) + 3) + "|"]
+        for label, sec, th in stages:
+            t = "" if th is None else f"{th['numba']}, {th['blas']}, {th['workers']}"
+            lines.append(f"| {label} | " + " | ".join(f"{sec[k]:.1f}" if k in sec else "" for k in keys)
+                         + f" | {sec['total']:.1f} | {t} |")
+        text = "\n".join(lines) + "\n"
+        print(text, flush=True)
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(text)
+
+    try:
+        for k, (label, cmd, extra) in enumerate(runs):
+            folder = root / f"run{k}"
+            if cmd == "render":
+                wall[label] = _cli("render", extra[0], "-o", folder / extra[1], limit=limit)
+                done = [extra[1]]
+            else:
+                wall[label] = _cli("batch", *scenes, "-o", folder, *extra, limit=limit)
+                done = names
+            for n in done:
+                sm = _summary(folder / n)
+                if sm is not None:
+                    stages.append((f"{label.split('(')[0].strip()}: {n}" if cmd == "batch" else label, sm["seconds"],
+                                   sm.get("threads")))
+            write()
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--bundled", nargs="*", default=None, metavar="SCENE",
+                    help=f"the bundled scenes (default {' '.join(BUNDLED)}) as a default batch against their solo "
+                         f"renders")
+    ap.add_argument("--no-serial", dest="serial", action="store_false", help="with --bundled: skip the --jobs 1 batch")
+    ap.add_argument("--limit", type=float, default=None, help="with --bundled: stop a run after this many seconds")
     ap.add_argument("--scenes", type=int, default=6)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=2)
@@ -32,6 +147,9 @@ def main() -> None:
     ap.add_argument("--field", type=int, default=12, help="mean and snapshot fields of FIELD x FIELD points")
     ap.add_argument("--out", default=None, help="default results/bench_batch[_SHAPE_FIELD].md")
     a = ap.parse_args()
+    if a.bundled is not None:
+        bundled(a.bundled or list(BUNDLED), a.serial, a.out, a.limit)
+        return
 
     from ciliary_carpet.cli import batch
     from ciliary_carpet.render import check_resources, render

@@ -50,10 +50,16 @@ def test_batch_sets_each_workers_threads(tmp_path, monkeypatch):
     assert [r["status"] for r in recs] == ["done", "done"], recs
     for n in "ab":  # two workers, one numba thread and one BLAS thread each
         assert _threads(tmp_path / "out" / n) == {"numba": 1, "blas": 1, "workers": 2}
-    recs = batch(scenes[:1], tmp_path / "out2", jobs=1, threads=2, progress=False)
-    assert recs[0]["status"] == "done", recs
-    assert _threads(tmp_path / "out2" / "a") == {"numba": min(2, numba.config.NUMBA_NUM_THREADS), "blas": 1,
-                                                  "workers": 1}
+
+
+def test_budget_applied_sets_numba_and_blas_threads():
+    """--jobs 1 --threads 2: what a worker applies, and what the render then reports."""
+    b = ThreadBudget.for_batch(1, jobs=1, threads=2, n_cores=2)
+    before = numba.get_num_threads()
+    with b.applied():
+        assert threads_mod.threads_in_use() == {"numba": min(2, numba.config.NUMBA_NUM_THREADS), "blas": 1,
+                                                "workers": 1}
+    assert numba.get_num_threads() == before
 
 
 def test_dask_task_takes_its_workers_share(tmp_path, monkeypatch):
