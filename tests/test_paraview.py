@@ -8,8 +8,10 @@ test starts (Debian's ParaView renders through X only). Without them it is skipp
 from __future__ import annotations
 
 import os
+import random
 import shutil
 import subprocess
+import time
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -46,25 +48,34 @@ def tiny(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def display():
-    """``$DISPLAY``, else a virtual X server started here (Xvfb picks a free display number
-    itself, -displayfd: a fixed number such as xvfb-run's :99 can be held by a server that this
-    machine's /tmp does not show); skips without either."""
+    """``$DISPLAY``, else a virtual X server started here on a random display number (Xvfb's
+    -displayfd reports when it is ready). Not :99 (xvfb-run's) nor the lowest free one: a server
+    that this machine's /tmp does not show (another container sharing the network namespace,
+    hence the abstract X sockets) can hold those, and a client would reach it and be refused.
+    Skips without either."""
     if os.environ.get("DISPLAY"):
         yield os.environ["DISPLAY"]
         return
     xvfb = shutil.which("Xvfb")
     if xvfb is None:
         pytest.skip("no display for ParaView: no $DISPLAY and no Xvfb (Debian: apt-get install xvfb)")
-    r, w = os.pipe()
-    server = subprocess.Popen([xvfb, "-displayfd", str(w), "-screen", "0", "1280x1024x24", "-nolisten", "tcp"],
-                              pass_fds=(w,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.close(w)
-    with os.fdopen(r) as fh:
-        number = fh.readline().strip()  # written once the server accepts connections
+    rng = random.Random()
+    for _ in range(5):
+        number = rng.randrange(1000, 30000)
+        r, w = os.pipe()
+        server = subprocess.Popen([xvfb, f":{number}", "-displayfd", str(w), "-screen", "0", "1280x1024x24",
+                                   "-nolisten", "tcp"], pass_fds=(w,), stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)
+        os.close(w)
+        with os.fdopen(r) as fh:
+            ready = fh.readline().strip()  # written once the server accepts connections; "" if it died
+        if ready:
+            break
+        server.wait(timeout=30)
+    else:
+        pytest.skip("Xvfb did not start")
     try:
-        if not number:
-            pytest.skip("Xvfb did not start")
-        yield ":" + number
+        yield f":{ready}"
     finally:
         server.terminate()
         server.wait(timeout=30)
@@ -87,9 +98,13 @@ def test_script_opens_the_render_in_paraview_as_script_does(tiny, tmp_path, requ
     shot = tmp_path / "shot.png"
     elsewhere = tmp_path / "elsewhere"  # another working folder, with nothing of the render in it
     elsewhere.mkdir()
-    p = subprocess.run(cmd + [str(runner), str(tiny.out_dir / "open_in_paraview.py"), str(shot)], cwd=elsewhere,
-                       capture_output=True, text=True, timeout=120, env=env)
-    out = p.stdout + p.stderr
+    for attempt in range(4):  # on a busy machine a fresh Xvfb has refused ParaView's first connections
+        p = subprocess.run(cmd + [str(runner), str(tiny.out_dir / "open_in_paraview.py"), str(shot)], cwd=elsewhere,
+                           capture_output=True, text=True, timeout=120, env=env)
+        out = p.stdout + p.stderr
+        if "bad X server connection" not in out:
+            break
+        time.sleep(2.0 * (attempt + 1))
     assert p.returncode == 0, out
     lines = [ln for ln in out.splitlines() if ln.strip() and not ln.startswith("SOURCES")]
     assert not lines, out  # no error, no warning, nothing printed
