@@ -79,6 +79,7 @@ from .ftle import ftle_field
 from .outdir import MANIFEST, PACKAGE_VERSION, SUMMARY, OutputFolder, RenderError, is_complete, owned_files
 from .outdir import usual_mode as _usual_mode
 from .paraview import SCRIPT, write_script
+from .omissions import omissions
 from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
 from .report import _markdown
 from .scene import Scene, SceneError
@@ -542,6 +543,10 @@ def _render(scene: Scene, folder: OutputFolder, *, progress: Progress | None, ma
                                  "defined_fraction": float(np.mean(np.isfinite(f.ftle)))}
             done += 1
             progress.update(done)
+        # what the model leaves out (interaction between cilia, the wall's drag, the viscosity), sized
+        t1 = _time.perf_counter()
+        summary["omissions"] = omissions(carpet, tol=min(tol, 1e-3)).summary()
+        clock["omissions"] = _time.perf_counter() - t1
         if o.preview:
             t1 = _time.perf_counter()
             _preview(stage / "preview.png", scene, carpet, mean_field, pl, d)

@@ -103,6 +103,8 @@ def markdown(s: dict) -> str:
             txt += (f"; the cilia's own periods differ by up to {spread:.1%}, so after the first beat the "
                     "animated cilia keep the first beat's phases, not the drifting ones of the computed flow")
         lines.append(txt + ".")
+    if s.get("omissions", {}).get("lines"):
+        lines += ["", "## What the model leaves out", ""] + [f"- {t}" for t in s["omissions"]["lines"]]
     lines += ["", "## How it was computed", ""]
     lines.append(f"- Flow tolerance {s['tolerance']:g} (relative to the carpet's far-field flow); flow sums: "
                  f"{s['backend']}.")

@@ -169,3 +169,22 @@ def test_still_carpet_has_nothing_to_size(table):
     s = o.summary()
     json.dumps(s, allow_nan=False)
     assert s["interaction"]["tip"]["median"] is None and s["lines"][0].startswith("No cilium flutters")
+
+
+def test_render_summary_sizes_what_the_model_leaves_out(tmp_path):
+    """Every render's summary carries the omissions (JSON) and says them in words (summary.md)."""
+    import json
+
+    from ciliary_carpet.render import render
+    from ciliary_carpet.scene import scene_from_dict
+
+    data = {"name": "tiny", "carpet": {"lattice": "square", "shape": [3, 3], "spacing": 2.0, "chi_N": 3.0},
+            "output": {"n_seeds": 4, "periods": 1.0, "field_shape": [10, 10], "snapshots": 0, "frames": 0,
+                       "ftle": False, "preview": False}}
+    res = render(scene_from_dict(data), tmp_path / "tiny")
+    s = json.loads((res.out_dir / "summary.json").read_text())
+    om = s["omissions"]
+    assert om["interaction"]["sampled_cilia"] == 9 and 0 < om["interaction"]["tip"]["median"] < 1
+    assert om["viscosity"]["mu"] == 1.0 and 0.6 < om["viscosity"]["mu_sbt"] < 0.7
+    md = (res.out_dir / "summary.md").read_text()
+    assert "## What the model leaves out" in md and om["lines"][0] in md

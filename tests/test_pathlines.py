@@ -264,7 +264,7 @@ def test_render_writes_paraview_ready_path_lines(tmp_path):
     assert p["outcome"]["reached end time"] + p["outcome"]["left the domain"] == 6
     e = p["end_point_error"]  # 6 tracers re-integrated at rtol 1e-8, flow tol 1e-4
     assert e["tracers"] == 6 and "rtol 1e-8" in e["reference"] and 0 <= e["median"] <= e["max"] < 1e-2
-    assert "path-line end-point error (estimated" in (res.out_dir / "summary.md").read_text()
+    assert "Their end points are accurate to about" in (res.out_dir / "summary.md").read_text()
     assert {"particles.pvd", "open_in_paraview.py", "ftle.vti", "pathlines.vtp"} <= set(res.files)
     py_compile.compile(str(res.out_dir / "open_in_paraview.py"), doraise=True)
     assert "mixing_number" in s["mixing"] and 0 < s["mixing"]["defined_fraction"] <= 1
