@@ -125,10 +125,10 @@ def colour(source, display, association, array, preset, title, slot=None, symmet
         bar.ComponentTitle = ""
         bar.WindowLocation = "Any Location"
         bar.Orientation = "Vertical"
-        bar.Position = [0.90, 0.04 + 0.32 * slot]
+        bar.Position = [0.86, 0.04 + 0.31 * slot]  # room on the right for the labels and the title
         bar.ScalarBarLength = 0.27
-        bar.TitleFontSize = 13
-        bar.LabelFontSize = 11
+        bar.TitleFontSize = 8
+        bar.LabelFontSize = 7
         bar.RangeLabelFormat = "%-#.3g"
         display.SetScalarBarVisibility(view, True)
     return lut
@@ -218,12 +218,12 @@ clock = AnnotateTime(registrationName="time")
 clock.Format = "t = {time:.3f} " + TIME
 c = Show(clock, view)
 c.WindowLocation = "Lower Left Corner"
-c.FontSize = 12
+c.FontSize = 8
 label = Text(registrationName="legend")
-label.Text = SCENE + ": " + "; ".join(shown) + "\\nhidden (eye icon): snapshots, FTLE, design, particles"
+label.Text = SCENE + "\\n" + "\\n".join(shown) + "\\nhidden (eye icon): snapshots, FTLE, design, particles"
 t = Show(label, view)
 t.WindowLocation = "Upper Left Corner"
-t.FontSize = 12
+t.FontSize = 7
 t.Justification = "Left"
 
 # a 2D top view on the carpet (the mean field's box, else the layout's)
