@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from single_cilium._io import _usual_mode, write_bytes  # noqa: F401 -- _usual_mode: figures.py uses it from here
+from single_cilium._io import OutputFileError, _usual_mode, write_bytes  # noqa: F401 -- _usual_mode: figures.py uses it from here
 
 logger = logging.getLogger(__name__)
 
@@ -57,36 +57,10 @@ __all__ = [
 _INT32 = np.iinfo(np.int32)
 
 
-class OutputError(OSError):
-    """An output path that cannot be written.
-
-    Parameters
-    ----------
-    path : str or Path
-        The file that was to be written.
-    reason : str
-        Why it could not be (e.g. ``"Not a directory"``, ``"Permission denied"``).
-    errno : int, optional
-        The operating system's error number, when there is one.
-
-    Attributes
-    ----------
-    path : Path
-    reason : str
-    """
-
-    def __init__(self, path, reason: str, errno: int | None = None) -> None:
-        super().__init__(f"cannot write '{path}': {reason}")
-        self.path = Path(path)
-        self.reason = str(reason)
-        self.errno = errno
-        self.filename = str(path)
-
-    def __str__(self) -> str:
-        return f"cannot write '{self.path}': {self.reason}"
-
-    def __reduce__(self):  # picklable (e.g. raised on a dask worker)
-        return (type(self), (self.path, self.reason, self.errno))
+class OutputError(OutputFileError):
+    """An output path that cannot be written: :class:`single_cilium._io.OutputFileError` (one line
+    naming the file and the reason; ``path``, ``reason``, ``errno``; picklable) under the name the
+    carpet layer's callers catch."""
 
 
 @dataclass(frozen=True)
