@@ -63,10 +63,25 @@ def _scene(path: str, reduced: bool, backend: str | None = None) -> Scene:
     return s.reduced() if reduced else s
 
 
+def _positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return v
+
+
 def _cmd_render(a) -> int:
     scene = _scene(a.scene, a.reduced, a.backend)
-    res = render(scene, a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5),
-                 max_seconds=a.max_hours * 3600)
+    budget = ThreadBudget.for_task()  # every core, or this Dask worker's share
+    if a.threads is not None:
+        budget = replace(budget, numba=a.threads)
+    with budget.applied():
+        res = render(scene, a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5),
+                     max_seconds=a.max_hours * 3600)
     s = res.summary
     if a.json:
         print(strict_json({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
@@ -388,6 +403,9 @@ def main(argv=None) -> int:
                    help="replace the files an earlier render wrote there (never other files)")
     r.add_argument("--reduced", action="store_true", help="a small version of the scene (quick look)")
     r.add_argument("--json", action="store_true", help="print a JSON summary (strict JSON)")
+    r.add_argument("--threads", type=_positive_int, default=None,
+                   help="numba threads of the render (default: every core; fewer when other jobs share the "
+                        "machine, where many threads wait for each other); summary.json says what it used")
     d = sub.add_parser("design", help="write only the designed layout (NetCDF)")
     d.add_argument("scene")
     d.add_argument("-o", "--output", required=True, help="layout file (.nc)")

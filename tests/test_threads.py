@@ -70,3 +70,19 @@ def test_dask_task_takes_its_workers_share(tmp_path, monkeypatch):
         recs = batch(_scenes(tmp_path, "a"), tmp_path / "out", executor=client.get_executor(), progress=False)
     assert recs[0]["status"] == "done", recs
     assert _threads(tmp_path / "out" / "a") == {"numba": 1, "blas": 1, "workers": 2}
+
+
+def test_render_takes_threads_from_the_command_line(tmp_path, capsys):
+    """`ciliary-carpet render --threads 1` renders on one numba thread (summary.json says so) and
+    gives the threads back afterwards; --threads 0 is bad input (exit 2)."""
+    from ciliary_carpet.cli import main
+
+    before = numba.get_num_threads()
+    (scene,) = _scenes(tmp_path, ["solo"])
+    assert main(["render", str(scene), "-o", str(tmp_path / "out"), "--threads", "1", "--json"]) == 0
+    used = json.loads((tmp_path / "out" / "summary.json").read_text())["threads"]
+    assert used["numba"] == 1 and used["workers"] == 1
+    assert numba.get_num_threads() == before
+    with pytest.raises(SystemExit) as e:
+        main(["render", str(scene), "-o", str(tmp_path / "out2"), "--threads", "0"])
+    assert e.value.code == 2 and "must be an integer >= 1" in capsys.readouterr().err
