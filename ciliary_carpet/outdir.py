@@ -402,8 +402,11 @@ class _Lock:
             if same:  # the file is still the one at the path (its last holder may have removed it)
                 break
             os.close(fd)
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+        try:  # who holds it, for a second render's message; the lock itself does not need it
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()} {socket.gethostname()}\n".encode(), 0)
+        except OSError as exc:  # a full disk: the render goes on and fails naming what it cannot write
+            logger.debug("%s: cannot record the lock's holder (%s)", path, exc.strerror or exc)
         self.fd: int | None = fd
 
     def release(self) -> None:

@@ -107,9 +107,12 @@ def test_vtk_writes_on_a_full_disk(full_disk, capfd):
     assert capfd.readouterr().err == ""  # no VTK log lines
 
 
-def test_render_on_a_full_disk(full_disk, tmp_path):
-    """Two pages left: room for the output folder's lock file, not for the render."""
-    _free(full_disk, 8192)
+@pytest.mark.parametrize("free", [0, 8192])
+def test_render_on_a_full_disk(full_disk, tmp_path, free):
+    """Full to the last byte (the lock file cannot even record its holder), or two pages left
+    (room for the lock file, not for the render): one line, nothing left behind."""
+    if free:
+        _free(full_disk, free)
     scene = tmp_path / "s.toml"
     scene.write_text(TINY)
     r = subprocess.run([sys.executable, "-m", "ciliary_carpet.cli", "render", str(scene), "-o", str(full_disk / "out")],
