@@ -25,10 +25,10 @@ from ._numba_cache import ensure_writable_cache as _ensure_writable_cache
 _ensure_writable_cache(__path__[0])  # before any module compiles: a read-only install, an unwritable home
 
 from .params import CiliumParams, PhysicalCilium
-from .equilibrium import (NoLimitAngleError, SteadyState, equilibrium, equilibrium_shape, limit_angle,
-                          steady_state)
+from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
 from .mesh import Mesh
 from .filament import Filament
+from .steady import SteadyState, steady_state
 from .radau import ConvergenceError
 from .progress import Progress, TqdmProgress
 from .dynamics import Simulation, simulate
