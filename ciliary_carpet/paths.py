@@ -21,7 +21,7 @@ A scene file is input that may come from someone else, so the paths in it are co
   (:class:`~ciliary_carpet.outdir.OutputFolder`), and staging folders are created inside the
   output folder or beside it, never through a symbolic link.
 
-Every violation is a :class:`~ciliary_carpet.scene.SceneError` (exit status 2) naming the scene
+Every violation is a :class:`~ciliary_carpet.schema.SceneError` (exit status 2) naming the scene
 file, the key and the value; nothing is read or written before the check.
 """
 from __future__ import annotations
@@ -29,14 +29,14 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from .schema import SceneError
+
 __all__ = ["check_name", "check_input", "check_derived", "check_scene_paths", "table_parts", "ALLOW_ENV"]
 
 ALLOW_ENV = "CILIARY_CARPET_ALLOW_OUTSIDE_PATHS"
 
 
-def _error(msg: str):
-    from .scene import SceneError  # scene imports this module
-
+def _error(msg: str) -> SceneError:
     return SceneError(msg)
 
 
