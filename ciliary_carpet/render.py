@@ -69,6 +69,7 @@ from pathlib import Path
 import numpy as np
 
 from single_cilium._io import non_finite, strict_json, write_netcdf
+from single_cilium._threads import threads_in_use
 from single_cilium.progress import Progress
 
 from .assembly import check_table_range
@@ -78,10 +79,10 @@ from .figures import _design_picture, _preview
 from .ftle import ftle_field
 from .outdir import MANIFEST, PACKAGE_VERSION, SUMMARY, OutputFolder, RenderError, is_complete, owned_files
 from .outdir import usual_mode as _usual_mode
-from .paraview import SCRIPT, write_script
 from .omissions import omissions
+from .paraview import SCRIPT, write_script
 from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
-from .report import _markdown
+from .report import markdown
 from .scene import Scene, SceneError
 from .stokeslet import Auto, backend_named
 from .vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
@@ -559,15 +560,13 @@ def _render(scene: Scene, folder: OutputFolder, *, progress: Progress | None, ma
         clock["total"] = _time.perf_counter() - t0
         summary["seconds"] = clock
         summary["scene_resolved"] = scene.to_dict()
-        from single_cilium._threads import threads_in_use  # the numba and BLAS threads (and batch workers) used
-
-        summary["threads"] = threads_in_use()
+        summary["threads"] = threads_in_use()  # the numba and BLAS threads (and batch workers) used
         bad = non_finite(summary)
         if bad:
             listed = "; ".join(f"{k} = {v}" for k, v in list(bad.items())[:3])
             raise RenderError(f"{scene.source_name}: the render gave non-finite numbers ({listed}); nothing was "
                               f"written to {out_dir}")
-        (stage / "summary.md").write_text(_markdown(summary))
+        (stage / "summary.md").write_text(markdown(summary))
         (stage / SUMMARY).write_text(strict_json(summary, indent=2))
         folder.place()  # the manifest (sizes, hashes), then the swap
     finally:

@@ -231,5 +231,3 @@ def _pathlines(p: dict, dur, Lu: str, Vu: str) -> list:
                    "estimate, not a bound.")
     return out
 
-
-_markdown = markdown  # the name render used
