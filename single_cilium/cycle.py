@@ -85,8 +85,25 @@ def thrust_angle(Fx: float, Fy: float) -> float:
     return _wrap(math.atan2(-Fx, Fy) - math.pi)
 
 
+class _Thrust:
+    """The components and size of a result's mean thrust ``thrust`` (2,): ``Fbar``, the mean force
+    on the fluid in the field frame (DESIGN.md)."""
+
+    @property
+    def thrust_x(self) -> float:
+        return float(self.thrust[0])
+
+    @property
+    def thrust_y(self) -> float:
+        return float(self.thrust[1])
+
+    @property
+    def thrust_norm(self) -> float:
+        return float(np.hypot(*self.thrust))
+
+
 @dataclass(frozen=True)
-class LimitCycle:
+class LimitCycle(_Thrust):
     """A converged limit cycle, or the statement that there is none.
 
     Attributes
@@ -158,20 +175,8 @@ class LimitCycle:
     n_phase: int = 0
 
     @property
-    def thrust_norm(self) -> float:
-        return float(np.hypot(*self.thrust))
-
-    @property
     def thrust_angle(self) -> float:
         return thrust_angle(*self.thrust) if (self.flutter or self.thrust_norm > 0) else math.nan
-
-    @property
-    def thrust_x(self) -> float:
-        return float(self.thrust[0])
-
-    @property
-    def thrust_y(self) -> float:
-        return float(self.thrust[1])
 
     def as_dict(self) -> dict:
         e = self.errors
@@ -572,7 +577,7 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
 
 
 @dataclass(frozen=True)
-class MeanThrust:
+class MeanThrust(_Thrust):
     """The mean force of one cilium on the fluid, with its error (what :func:`mean_thrust` returns).
 
     Attributes
@@ -607,18 +612,6 @@ class MeanThrust:
     status: str
     message: str
     cycle: LimitCycle
-
-    @property
-    def thrust_x(self) -> float:
-        return float(self.thrust[0])
-
-    @property
-    def thrust_y(self) -> float:
-        return float(self.thrust[1])
-
-    @property
-    def thrust_norm(self) -> float:
-        return float(np.hypot(*self.thrust))
 
     @property
     def thrust_angle(self) -> float:

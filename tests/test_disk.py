@@ -43,22 +43,13 @@ def _free(mnt: Path, nbytes: int) -> None:
 
 
 @pytest.fixture
-def full_disk(tmp_path):
-    """A 1 MiB tmpfs under ``tmp_path``, holding a previous result, then filled up."""
-    if os.name != "posix" or os.geteuid() != 0:
-        pytest.skip("mounting a small tmpfs needs root (the full-disk tests run as root in CI)")
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
-    try:
-        for name in ("layout.nc", "sim.nc", "speed.vti", "s.pvd"):
-            (mnt / name).write_bytes(PREVIOUS)
-        _fill(mnt)
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+def full_disk(mount_tmpfs):
+    """A 1 MiB tmpfs, holding a previous result, then filled up."""
+    mnt = mount_tmpfs("small", "1m")
+    for name in ("layout.nc", "sim.nc", "speed.vti", "s.pvd"):
+        (mnt / name).write_bytes(PREVIOUS)
+    _fill(mnt)
+    return mnt
 
 
 def _check(mnt: Path, name: str) -> None:

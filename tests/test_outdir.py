@@ -139,20 +139,11 @@ def test_an_output_changed_since_the_render_is_the_users(tmp_path, capsys):
 
 # ------------------------------------------------------------------------------ 3: another filesystem
 @pytest.fixture
-def tmpfs(tmp_path):
+def tmpfs(tmp_path, mount_tmpfs):
     """A real tmpfs mounted at tmp_path/mnt (another filesystem than tmp_path)."""
-    if not hasattr(os, "geteuid") or os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root (the cross-device case runs where the tests run as root)")
-    mnt = tmp_path / "mnt"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=50m", "tmpfs", str(mnt)], capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.strip() or r.returncode})")
-    try:
-        assert os.stat(mnt).st_dev != os.stat(tmp_path).st_dev
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+    mnt = mount_tmpfs("mnt", "50m")
+    assert os.stat(mnt).st_dev != os.stat(tmp_path).st_dev
+    return mnt
 
 
 def test_outputs_on_another_filesystem(tmp_path, tmpfs, capsys, monkeypatch):
