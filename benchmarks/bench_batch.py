@@ -67,7 +67,7 @@ def _load() -> str:
 def bundled(scenes: list[str], serial: bool, out: str | None, limit: float | None) -> None:
     """The bundled scenes: the default batch, the solo renders, the batch with --jobs 1; the
     table is rewritten after each run (so a run stopped at ``limit`` s still leaves the others)."""
-    from ciliary_carpet.scene import load_scene
+    from ciliary_carpet.scenes.scene import load_scene
     from single_cilium._threads import ThreadBudget, cores
 
     names = [load_scene(ROOT / s).name for s in scenes]
@@ -153,7 +153,7 @@ def main() -> None:
 
     from ciliary_carpet.cli import batch
     from ciliary_carpet.render import check_resources, render
-    from ciliary_carpet.scene import load_scene
+    from ciliary_carpet.scenes.scene import load_scene
 
     root = Path(tempfile.mkdtemp(prefix="bench_batch."))
     try:

@@ -19,7 +19,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 from test_carpet import _grid, _inside_points, _scale  # noqa: E402
 
 from ciliary_carpet import layout  # noqa: E402
-from ciliary_carpet.carpet import Carpet  # noqa: E402
+from ciliary_carpet.carpet.carpet import Carpet  # noqa: E402
 from single_cilium.table import ThrustTable  # noqa: E402
 
 TOLS = (1e-2, 1e-3, 1e-4)

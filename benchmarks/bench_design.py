@@ -6,7 +6,7 @@
 
 Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also writes them to a file.
 
-1. ``ciliary_carpet.design.design_layout`` against carpet size: square lattices of N = 100 and
+1. ``ciliary_carpet.design.inverse.design_layout`` against carpet size: square lattices of N = 100 and
    1000 cilia (nx x ny = N, as square as N allows), spacing 2, random phases (seed 0), the
    shipped table, field along +y. Two angle targets: a uniform 30 degree deflection and the
    bundled focusing pattern, -A tanh(xi / w), A = 20 degrees, w = 4. Control points "cells".
@@ -17,7 +17,7 @@ Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also write
    the flutter cutoff, iterations, full-model checks, wall time, and the peak resident memory of
    the process (maxrss, in increasing order of size). At N = 10000 (``large``, table 1b) the
    whole focusing design is run once, and its design model's value-and-gradient timed through the
-   treecode (:mod:`ciliary_carpet.treecode`) and through the direct sums, with the treecode's
+   treecode (:mod:`ciliary_carpet.stokes.treecode`) and through the direct sums, with the treecode's
    error against them.
    The alternative: the design before this version (commit 98c3b54: angle-only objective,
    monopole design model, 4 defect-correction passes at the scene tolerance), run in the same
@@ -28,7 +28,7 @@ Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also write
    centre), free space; 12 x 12 cilia above a wall 0.5 L below the plane.
 3. ``ciliary_carpet.render.render`` of every ``designs/*.toml``: the per-stage seconds of
    ``summary["seconds"]`` and the design's figures.
-4. (``reach``) ``ciliary_carpet.design.reachability``'s estimate of the amplitude a two-sided
+4. (``reach``) ``ciliary_carpet.design.inverse.reachability``'s estimate of the amplitude a two-sided
    pattern can hold against focusing designs at amplitudes 20-40 degrees (width 4 L), on 10 x 10
    and 20 x 12 cilia; (4b) its estimate of the narrowest transition width (``width_min``, and the
    rms residual it expects at a width) against designs at widths 0.5-2 spacings, spacings 2 and
@@ -68,12 +68,12 @@ import scipy
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_flow import cpu_model  # one CPU probe for every benchmark
 
-from ciliary_carpet import layout
-from ciliary_carpet.carpet import Carpet
-from ciliary_carpet.design import DesignModel, cycle_moments, design_layout
+from ciliary_carpet.carpet import layout
+from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.design.inverse import DesignModel, cycle_moments, design_layout
 from ciliary_carpet.render import render
-from ciliary_carpet.scene import load_scene
-from ciliary_carpet.target import Frame, control_points
+from ciliary_carpet.scenes.scene import load_scene
+from ciliary_carpet.design.target import Frame, control_points
 from single_cilium.table import ThrustTable
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -407,8 +407,8 @@ def section_targets(emit, table: ThrustTable, cap: float, quick: bool = False):
 def section_reach(emit, table: ThrustTable, quick: bool = False):
     """reachability() against designs: focusing at several amplitudes (4), widths against the
     narrowest-width estimate at spacings 2 and 3 (4b)."""
-    from ciliary_carpet.design import reachability
-    from ciliary_carpet.target import Target
+    from ciliary_carpet.design.inverse import reachability
+    from ciliary_carpet.design.target import Target
 
     emit("## 4. Reachability estimate against designs")
     emit("")

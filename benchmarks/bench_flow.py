@@ -10,7 +10,7 @@ pathlines, longtime
     time-resolved path lines (docstrings of bench_pathlines and bench_longtime).
 kernel
     Throughput of the Stokeslet sum u_i = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j
-    (ciliary_carpet.stokeslet) for M = N random points in the unit cube, standard normal forces:
+    (ciliary_carpet.stokes.stokeslet) for M = N random points in the unit cube, standard normal forces:
     - Direct, free space and with a wall (numba, parallel over targets, all cores);
     - the plain-numpy reference (stokeslet_velocity_numpy), up to sizes where one run stays
       below about 20 s;
@@ -32,7 +32,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from ciliary_carpet.stokeslet import (
+from ciliary_carpet.stokes.stokeslet import (
     FMM,
     Direct,
     Wall,
@@ -242,8 +242,8 @@ def bench_kernel(quick: bool, emit) -> dict:
 
 # ----------------------------------------------------------------------------- carpet sections
 def _carpet(n_side=10):
-    from ciliary_carpet import layout
-    from ciliary_carpet.carpet import Carpet
+    from ciliary_carpet.carpet import layout
+    from ciliary_carpet.carpet.carpet import Carpet
     from single_cilium.table import ThrustTable
 
     rng = np.random.default_rng(1)
@@ -279,8 +279,8 @@ def bench_levels(quick: bool, emit) -> dict:
                 spent["kernel"] += time.perf_counter() - t0
         return wrapper
 
-    import ciliary_carpet.carpet as carpet_module
-    from ciliary_carpet.stokeslet import Direct as _Direct
+    import ciliary_carpet.carpet.carpet as carpet_module
+    from ciliary_carpet.stokes.stokeslet import Direct as _Direct
 
     orig = (_Direct.dense, _Direct.ranged)  # the evaluator's sums (their structure-of-arrays copies included)
     _Direct.dense, _Direct.ranged = timed(orig[0]), timed(orig[1])
@@ -452,10 +452,10 @@ def bench_longtime(quick: bool, emit) -> dict:
     seeds them, for the render's automatic duration."""
     import warnings
 
-    from ciliary_carpet.design import design
-    from ciliary_carpet.pathlines import MeanFlow
+    from ciliary_carpet.design.inverse import design
+    from ciliary_carpet.transport.pathlines import MeanFlow
     from ciliary_carpet.render import _field_box, _seeds, pathline_duration
-    from ciliary_carpet.scene import load_scene
+    from ciliary_carpet.scenes.scene import load_scene
 
     scene = load_scene(Path(__file__).parent.parent / "designs" / "uniform_deflection.toml")
     if quick:
@@ -512,7 +512,7 @@ def _stokes_drift(emit, table, quick: bool) -> dict:
     differences (h = 1e-3 L). Cilia of different periods add no cross terms to the long-time
     average, so in a carpet the drift is this single-cilium drift of the nearest cilia while the
     mean flow adds up over all of them: the ratios below bound the carpet's from above."""
-    from ciliary_carpet.carpet import Carpet
+    from ciliary_carpet.carpet.carpet import Carpet
 
     emit("### Stokes drift of one cilium's beat against its mean flow (what the long-time model omits)\n")
     emit("| chi_N | distance from the force centre [L] | max |u_S| / |ubar| | median | max |u'| / |ubar| |")

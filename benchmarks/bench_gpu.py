@@ -1,4 +1,4 @@
-"""Throughput of the velocity sums on an NVIDIA GPU (ciliary_carpet.cuda.Cuda) beside the CPU.
+"""Throughput of the velocity sums on an NVIDIA GPU (ciliary_carpet.stokes.cuda.Cuda) beside the CPU.
 
     python benchmarks/bench_gpu.py [--sizes 2e4 1e5 4e5] [--cpu-targets 20000] [--tune] [--out FILE]
 
@@ -32,9 +32,9 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from ciliary_carpet import cuda as cc
-from ciliary_carpet.kernel import Blake, Stokeslet, Wall
-from ciliary_carpet.stokeslet import _INV_8PI, Direct
+from ciliary_carpet.stokes import cuda as cc
+from ciliary_carpet.stokes.kernel import Blake, Stokeslet, Wall
+from ciliary_carpet.stokes.stokeslet import _INV_8PI, Direct
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_flow import best_time as best  # noqa: E402 -- one timing helper for every benchmark

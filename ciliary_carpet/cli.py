@@ -35,13 +35,13 @@ from single_cilium._threads import ThreadBudget
 from single_cilium.progress import TqdmProgress
 from single_cilium.table import TableError
 
-from .design import DesignError, design
-from .paths import ALLOW_ENV
-from .render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
-from .scene import Scene, SceneError, load_scene
-from .stokeslet import BACKENDS, CudaUnavailableError, backend_named
-from .target import TargetError, UnreachableTargetError
-from .vtkfiles import OutputError
+from ciliary_carpet.design.inverse import DesignError, design
+from ciliary_carpet.scenes.paths import ALLOW_ENV
+from ciliary_carpet.render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
+from ciliary_carpet.scenes.scene import Scene, SceneError, load_scene
+from ciliary_carpet.stokes.stokeslet import BACKENDS, CudaUnavailableError, backend_named
+from ciliary_carpet.design.target import TargetError, UnreachableTargetError
+from ciliary_carpet.output.vtkfiles import OutputError
 
 logger = logging.getLogger(__name__)
 
@@ -295,7 +295,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     is skipped; one interrupted while replacing an older render is rendered again; one with
     older results is kept unless ``overwrite``, and reported as failed; a folder holding files
     ciliary-carpet did not write is never changed (:func:`~ciliary_carpet.render.render`).
-    ``backend`` (a name of :data:`~ciliary_carpet.stokeslet.BACKENDS`) overrides the scenes'.
+    ``backend`` (a name of :data:`~ciliary_carpet.stokes.stokeslet.BACKENDS`) overrides the scenes'.
     ``scheduler_timeout`` bounds the wait for ``scheduler`` to answer as a Dask scheduler (default
     20 s, or ``CILIA_SCHEDULER_TIMEOUT``): an address that does not (e.g. the dashboard's HTTP port)
     is an OSError after that wait. Interrupted (Ctrl-C, or SIGTERM/SIGHUP under the command line),
@@ -312,7 +312,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     tasks = [(s, str(out_root), overwrite, reduced, max_seconds, backend) for s in scenes]
     budget = None
     if executor is None and scheduler is None:
-        from .render import _available_memory
+        from ciliary_carpet.render import _available_memory
 
         budget = ThreadBudget.for_batch(len(tasks), jobs=jobs, threads=threads,
                                         memory_per_task=_memory_per_task(scenes, reduced, backend) if jobs is None

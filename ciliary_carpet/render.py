@@ -19,17 +19,17 @@ scene's tolerance and writes, into ``out_dir``:
 ``particles.pvd``            the tracers as moving points (``particles_NNNNN.vtp``), as ParticlePath gives
 ``open_in_paraview.py``      ``paraview --script=DIR/open_in_paraview.py`` (or ``pvpython``/``pvbatch``
                              with its path), from any working folder, opens the whole folder
-                             (:mod:`ciliary_carpet.paraview`: what shows, what is loaded hidden)
+                             (:mod:`ciliary_carpet.output.paraview`: what shows, what is loaded hidden)
 ``ftle.vti``                 finite-time Lyapunov exponent over the carpet (mean flow, a quarter of
                              the path-line duration); the mixing number is in the summary
 ``preview.png``              the mean flow (streamlines) with the layout and path lines, a colour
                              bar for each colour
 ``summary.json``, ``.md``    residuals, timings, fidelity used, error bounds, path-line outcome
-                             (``.md``: the same in words, :mod:`ciliary_carpet.report`)
+                             (``.md``: the same in words, :mod:`ciliary_carpet.output.report`)
 ``ciliary-carpet.manifest``  the names of the files above: what the toolkit wrote (JSON)
 ===========================  ==================================================================
 
-Output-folder safety (:mod:`ciliary_carpet.outdir`, whose docstring states the guarantees).
+Output-folder safety (:mod:`ciliary_carpet.output.folder`, whose docstring states the guarantees).
 Everything is first written into a hidden staging folder on the output's own filesystem (beside
 a new ``out_dir``, inside an existing one) and swapped in when complete, or removed on failure.
 A render holds a lock on ``out_dir`` (a second render of it is refused at once). A non-empty
@@ -72,20 +72,20 @@ from single_cilium._io import non_finite, strict_json, write_netcdf
 from single_cilium._threads import threads_in_use
 from single_cilium.progress import Progress
 
-from .assembly import check_table_range
-from .carpet import BLOB, Carpet
-from .design import design
-from .figures import _design_picture, _preview
-from .ftle import ftle_field
-from .outdir import MANIFEST, PACKAGE_VERSION, SUMMARY, OutputFolder, RenderError, is_complete, owned_files
-from .outdir import usual_mode as _usual_mode
-from .omissions import omissions
-from .paraview import SCRIPT, write_script
-from .pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
-from .report import markdown
-from .scene import Scene, SceneError
-from .stokeslet import Auto, backend_named
-from .vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
+from ciliary_carpet.scenes.assembly import check_table_range
+from ciliary_carpet.carpet.carpet import BLOB, Carpet
+from ciliary_carpet.design.inverse import design
+from ciliary_carpet.output.figures import _design_picture, _preview
+from ciliary_carpet.transport.ftle import ftle_field
+from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, SUMMARY, OutputFolder, RenderError, is_complete, owned_files
+from ciliary_carpet.output.folder import usual_mode as _usual_mode
+from ciliary_carpet.carpet.omissions import omissions
+from ciliary_carpet.output.paraview import SCRIPT, write_script
+from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
+from ciliary_carpet.output.report import markdown
+from ciliary_carpet.scenes.scene import Scene, SceneError
+from ciliary_carpet.stokes.stokeslet import Auto, backend_named
+from ciliary_carpet.output.vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
 
 logger = logging.getLogger(__name__)
 
@@ -155,7 +155,7 @@ def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, s
 
 def pathline_model(scene: Scene) -> str:
     """The flow the tracers follow: ``[output] pathline_model``, "auto" resolved to "mean" when
-    the scene's tolerance is at least :data:`~ciliary_carpet.pathlines.MEAN_MODEL_ERROR`."""
+    the scene's tolerance is at least :data:`~ciliary_carpet.transport.pathlines.MEAN_MODEL_ERROR`."""
     m = scene.output.pathline_model
     if m == "auto":
         return "mean" if scene.tolerance >= MEAN_MODEL_ERROR else "resolved"
@@ -325,7 +325,7 @@ def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
     below the measured costs), so a scene is refused only when it certainly cannot finish:
     memory above what is available (MemAvailable, or RLIMIT_AS when set), time above
     ``max_seconds``, or more path-line steps (one per period at least) than the integrator
-    allows. Raises :class:`ResourceError` (or :class:`~ciliary_carpet.scene.SceneError` for a
+    allows. Raises :class:`ResourceError` (or :class:`~ciliary_carpet.scenes.scene.SceneError` for a
     coordinate or unit out of range) naming the scene file, the key and the estimate."""
     src = scene.source_name
     c, o = scene.carpet, scene.output
@@ -392,7 +392,7 @@ def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
 def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress | None = None,
            max_seconds: float = 86400.0, within=None) -> RenderResult:
     """Render ``scene`` into ``out_dir`` (see the module docstring for what is written and
-    :mod:`ciliary_carpet.outdir` for the output-folder rules). Raises SceneError, TargetError,
+    :mod:`ciliary_carpet.output.folder` for the output-folder rules). Raises SceneError, TargetError,
     TableError or DesignError for a scene that cannot be rendered, ResourceError when it
     certainly needs more memory than available or more than ``max_seconds``
     (:func:`check_resources`), and RenderError when ``out_dir`` holds files and ``overwrite`` is

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ciliary_carpet.carpet import Carpet
-from ciliary_carpet.vtkfiles import grid_points, write_field
+from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.output.vtkfiles import grid_points, write_field
 from single_cilium import CiliumParams, limit_angle
 from single_cilium.table import ThrustTable
 

@@ -3,9 +3,9 @@ import math
 import numpy as np
 import pytest
 
-from ciliary_carpet import layout
-from ciliary_carpet.carpet import C2_FREE, C2_WALL, Carpet
-from ciliary_carpet.stokeslet import Wall, stokeslet_velocity
+from ciliary_carpet.carpet import layout
+from ciliary_carpet.carpet.carpet import C2_FREE, C2_WALL, Carpet
+from ciliary_carpet.stokes.stokeslet import Wall, stokeslet_velocity
 from single_cilium.table import TableError, ThrustTable
 
 
@@ -86,7 +86,7 @@ def _sampled_taylor_constant(order: int, wall: bool, seed: int, n: int) -> float
     """max over n random unit in-plane h, f, targets x (above a wall at random depths) and blobs
     (none or 0.02 R) of |(h.grad)^order G f| R^(order + 1), by central differences in the source
     position (steps e R: first order +-e, third order -2, -1, 1, 2 e)."""
-    from ciliary_carpet.kernel import make_kernel
+    from ciliary_carpet.stokes.kernel import make_kernel
 
     rng = np.random.default_rng(seed)
     best = 0.0
@@ -112,7 +112,7 @@ def _sampled_taylor_constant(order: int, wall: bool, seed: int, n: int) -> float
 def test_first_order_taylor_constants(wall):
     """C1_FREE / C1_WALL bound the first in-plane source derivatives of the (regularised)
     kernels times R^2 (the free singular Stokeslet reaches 2 at h = f = e)."""
-    from ciliary_carpet.carpet import C1_FREE, C1_WALL
+    from ciliary_carpet.carpet.carpet import C1_FREE, C1_WALL
 
     best = _sampled_taylor_constant(1, wall, seed=5, n=1500)
     if not wall:  # attained: x along h and f
@@ -128,7 +128,7 @@ def test_phase_margin_covers_the_phases_between_samples(table):
     """The exact terms of the monopole and dipole bounds, nu(D) and nu(T - T_rep), over 2000
     random phases stay within PHASE_MARGIN of their maxima over the table's phase samples
     (measured: 0.5 % above at most, over chi_N in -160..160)."""
-    from ciliary_carpet.carpet import PHASE_MARGIN, _moments_at
+    from ciliary_carpet.carpet.carpet import PHASE_MARGIN, _moments_at
 
     rng = np.random.default_rng(1)
     c = Carpet(layout.square(5, 5, 2.0), rng.uniform(-160, 160, 25), table, layout.random_phases(25, 0))
@@ -259,7 +259,7 @@ def test_wall_flow_vanishes_on_the_wall(table):
 def test_third_order_taylor_constants(wall):
     """C3_FREE / C3_WALL bound the third in-plane source derivatives of the (regularised) kernels
     times R^4: the constants of the levels of detail."""
-    from ciliary_carpet.carpet import C3_FREE, C3_WALL
+    from ciliary_carpet.carpet.carpet import C3_FREE, C3_WALL
 
     best = _sampled_taylor_constant(3, wall, seed=7, n=300)
     assert 5.0 < best <= (C3_WALL if wall else C3_FREE)
@@ -312,7 +312,7 @@ def test_level_of_detail_calibration_margin(table, wall):
     sum at points in and around the carpet (measured: 0.16 with the dipole order at tol 1e-2,
     0.07 at 1e-3 and 1e-4; 0.01 with the wall), while the rigorous bound, up to LOD_SLACK times
     larger, still holds."""
-    from ciliary_carpet.carpet import LOD_SLACK
+    from ciliary_carpet.carpet.carpet import LOD_SLACK
 
     assert LOD_SLACK == 8.0
     rng = np.random.default_rng(1)
@@ -356,7 +356,7 @@ def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
     threshold its distance reaches (3-D distance from the force centre in the plane; the far
     cilia at the plan's far order), for each choice of the far order (forced by the price of a
     classification), points above/below the plane, beside the grid and far away."""
-    import ciliary_carpet.carpet as cm
+    import ciliary_carpet.carpet.carpet as cm
 
     monkeypatch.setattr(cm, "_CLASSIFY", classify)
     rng = np.random.default_rng(7)
@@ -396,7 +396,7 @@ def test_chunked_sums_match_one_sum(carpet, monkeypatch):
     """The near blocks summed in chunks of a few cilia (each chunk its own ranged sum; the first
     also carries the carriers) give the one-chunk velocities and the same work counters, for the
     instantaneous and the mean flow."""
-    import ciliary_carpet.carpet as cm
+    import ciliary_carpet.carpet.carpet as cm
 
     p = _inside_points(carpet, n=150)
     one = carpet.evaluate(p, 0.37, tol=1e-3), carpet.evaluate_mean(p, tol=1e-3)
@@ -427,7 +427,7 @@ def test_compiled_functions_have_their_own_cache_slot():
 
     seen = {}
     for pkg in (single_cilium, ciliary_carpet):
-        for info in pkgutil.iter_modules(pkg.__path__, pkg.__name__ + "."):
+        for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
             mod = importlib.import_module(info.name)
             for name, obj in vars(mod).items():
                 if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == mod.__name__:

@@ -1,4 +1,4 @@
-"""The CUDA evaluator (ciliary_carpet.cuda): its kernels under numba's CUDA simulator against the
+"""The CUDA evaluator (ciliary_carpet.stokes.cuda): its kernels under numba's CUDA simulator against the
 CPU kernels (dense and ranged, every kernel, fp64 to 1e-12, fp32 within its stated bound), and the
 clear error where no GPU is usable.
 
@@ -15,9 +15,9 @@ import sys
 import numpy as np
 import pytest
 
-from ciliary_carpet import cuda as cc
-from ciliary_carpet.kernel import Blake, RegularisedBlake, RegularisedStokeslet, Stokeslet, Wall
-from ciliary_carpet.stokeslet import (
+from ciliary_carpet.stokes import cuda as cc
+from ciliary_carpet.stokes.kernel import Blake, RegularisedBlake, RegularisedStokeslet, Stokeslet, Wall
+from ciliary_carpet.stokes.stokeslet import (
     Auto,
     Cuda,
     CudaUnavailableError,
@@ -105,7 +105,7 @@ def test_missing_numba_cuda_names_the_package(monkeypatch, fresh_probe):
 
 
 def test_scene_backend_key(tmp_path):
-    from ciliary_carpet.scene import SceneError, load_scene
+    from ciliary_carpet.scenes.scene import SceneError, load_scene
 
     p = tmp_path / "s.toml"
     p.write_text('backend = "cuda-fp32"\n')
@@ -255,8 +255,8 @@ if SIM:
     def test_carpet_flow_on_the_gpu_matches_the_cpu():
         """A 2 x 2 carpet above a wall (regularised Blake kernel, dense and ranged sums, point
         and resolved levels): instantaneous and mean flows on Cuda agree with Direct."""
-        from ciliary_carpet import layout
-        from ciliary_carpet.carpet import Carpet
+        from ciliary_carpet.carpet import layout
+        from ciliary_carpet.carpet.carpet import Carpet
         from single_cilium.table import ThrustTable
 
         rng = np.random.default_rng(7)

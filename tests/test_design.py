@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ciliary_carpet import layout
-from ciliary_carpet.carpet import Carpet
+from ciliary_carpet.carpet import layout
+from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.cli import main
-from ciliary_carpet.design import (
+from ciliary_carpet.design.inverse import (
     INSIDE_WEIGHT,
     NEAR_RADIUS,
     DesignError,
@@ -24,8 +24,8 @@ from ciliary_carpet.design import (
     floor_reference,
     tolerance_study,
 )
-from ciliary_carpet.scene import SceneError, load_scene
-from ciliary_carpet.target import Frame, TargetError, control_points
+from ciliary_carpet.scenes.scene import SceneError, load_scene
+from ciliary_carpet.design.target import Frame, TargetError, control_points
 from single_cilium.table import ThrustTable
 
 DESIGNS = Path(__file__).resolve().parents[1] / "designs"
@@ -343,7 +343,7 @@ def test_reachability_of_a_two_sided_pattern_matches_designs(table):
     """The estimated reachable amplitude of a focusing pattern (10 x 10 cilia, spacing 2) lies
     between an amplitude the design meets (20 deg) and one it misses (40 deg); the per-cilium
     range is the table's."""
-    from ciliary_carpet.design import reachability
+    from ciliary_carpet.design.inverse import reachability
 
     c = _carpet(table, 10)
     fr = Frame.from_bases(c.bases, 2.0, c.direction)
@@ -370,8 +370,8 @@ def test_narrowest_width_estimate_matches_designs(table):
     """reachability's narrowest transition width (focusing at 20 deg, threshold 0.05 rad): it grows
     with the spacing; on 10 x 10 cilia of spacing 2 a width it calls reachable (1.5 spacings)
     meets the threshold in a full design, and one well below it (half a spacing) misses."""
-    from ciliary_carpet.design import reachability
-    from ciliary_carpet.target import Target
+    from ciliary_carpet.design.inverse import reachability
+    from ciliary_carpet.design.target import Target
 
     tg = Target(kind="focus", amplitude=math.radians(20), width=1.0)
     r = {}
@@ -527,9 +527,9 @@ def test_mean_flow_inside_a_swept_region_is_resolved(table):
     error far below the design threshold (the issue measured about 3e-3)."""
     from scipy.interpolate import CubicSpline
 
-    from ciliary_carpet.carpet import _simpson
-    from ciliary_carpet.design import INSIDE_ACCURACY
-    from ciliary_carpet.stokeslet import stokeslet_velocity
+    from ciliary_carpet.carpet.carpet import _simpson
+    from ciliary_carpet.design.inverse import INSIDE_ACCURACY
+    from ciliary_carpet.stokes.stokeslet import stokeslet_velocity
 
     rng = np.random.default_rng(0)
     for chi, wall in ((60.0, None), (-120.0, 0.5)):

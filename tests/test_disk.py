@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ciliary_carpet.vtkfiles import OutputError, write_field, write_pvd
+from ciliary_carpet.output.vtkfiles import OutputError, write_field, write_pvd
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))

@@ -20,7 +20,7 @@ import ciliary_carpet.cli as carpet_cli
 from ciliary_carpet.cli import batch
 from ciliary_carpet.cli import main as carpet_main
 from ciliary_carpet.render import MANIFEST, ResourceError, check_resources, render
-from ciliary_carpet.scene import SceneError, load_scene, scene_from_dict
+from ciliary_carpet.scenes.scene import SceneError, load_scene, scene_from_dict
 from single_cilium import CiliumParams, equilibrium, equilibrium_shape
 from single_cilium.cli import main as cilium_main
 

@@ -1,4 +1,4 @@
-"""What the carpet model leaves out, sized (ciliary_carpet/omissions.py; issues 26 and 27)."""
+"""What the carpet model leaves out, sized (ciliary_carpet/carpet/omissions.py; issues 26 and 27)."""
 import json
 import math
 from pathlib import Path
@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ciliary_carpet.carpet import Carpet
-from ciliary_carpet.omissions import TARGET_RATIO, omissions, sbt_viscosity, wall_drag_formula, wall_drag_ratios
+from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.carpet.omissions import TARGET_RATIO, omissions, sbt_viscosity, wall_drag_formula, wall_drag_ratios
 from single_cilium.table import ThrustTable
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,8 +69,8 @@ def test_near_wall_coefficients_against_the_blake_kernel():
     a uniform line force, the velocity averaged round the surface at the middle of a long filament:
     2 pi mu u / f = ln(2h/a) along it, 4 pi mu u / f = ln(2h/a) across it parallel to the wall and
     ln(2h/a) - 1 normal to the wall."""
-    from ciliary_carpet.kernel import Wall, make_kernel
-    from ciliary_carpet.stokeslet import stokeslet_velocity
+    from ciliary_carpet.stokes.kernel import Wall, make_kernel
+    from ciliary_carpet.stokes.stokeslet import stokeslet_velocity
 
     a, h = 0.001, 0.02
     x = np.unique(np.concatenate([np.linspace(0, 0.49, 20000, endpoint=False), 0.5 + np.linspace(-0.01, 0.01, 40001),
@@ -118,7 +118,7 @@ def test_wall_and_viscosity_on_a_carpet(table):
 
 
 def test_subsampling_is_deterministic(table):
-    from ciliary_carpet import layout
+    from ciliary_carpet.carpet import layout
 
     c = Carpet(layout.square(4, 4, 2.0), CHI_N, table, layout.random_phases(16, 0))
     a = omissions(c, n_cilia=5, n_instants=2, seed=7, spacing=False)
@@ -135,8 +135,8 @@ def test_uniform_deflection_against_issue_27():
     66-69 %). Here (64 of 100 cilia, seed 0) the pointwise medians are 29.5 % and 18.9 % and the
     tip's 90th percentile 65 %; the r.m.s.-normalised medians 28.0 % and 18.5 %. The band allows
     for the sample (12 cilia, seed 0: 30.9 % pointwise) and the instants chosen."""
-    from ciliary_carpet.assembly import assemble
-    from ciliary_carpet.scene import load_scene
+    from ciliary_carpet.scenes.assembly import assemble
+    from ciliary_carpet.scenes.scene import load_scene
 
     c = assemble(load_scene(ROOT / "designs" / "uniform_deflection.toml")).carpet()
     o = omissions(c, tol=1e-4)
@@ -176,7 +176,7 @@ def test_render_summary_sizes_what_the_model_leaves_out(tmp_path):
     import json
 
     from ciliary_carpet.render import render
-    from ciliary_carpet.scene import scene_from_dict
+    from ciliary_carpet.scenes.scene import scene_from_dict
 
     data = {"name": "tiny", "carpet": {"lattice": "square", "shape": [3, 3], "spacing": 2.0, "chi_N": 3.0},
             "output": {"n_seeds": 4, "periods": 1.0, "field_shape": [10, 10], "snapshots": 0, "frames": 0,

@@ -17,7 +17,7 @@ import pytest
 from ciliary_carpet.cli import batch
 from ciliary_carpet.cli import main as carpet_main
 from ciliary_carpet.render import MANIFEST, RenderError, is_complete, owned_files, render
-from ciliary_carpet.scene import SceneError, load_scene
+from ciliary_carpet.scenes.scene import SceneError, load_scene
 
 ROOT = Path(__file__).resolve().parent.parent
 TINY = ('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\nsnapshots = 0\n'
@@ -221,7 +221,7 @@ def test_another_process_holding_the_folder_is_named(tmp_path):
     """The lock is between processes: a render is refused while another process holds the folder."""
     out = tmp_path / "o"
     out.mkdir()
-    code = ("import sys, time\nfrom ciliary_carpet.outdir import OutputFolder\n"
+    code = ("import sys, time\nfrom ciliary_carpet.output.folder import OutputFolder\n"
             "with OutputFolder(sys.argv[1], overwrite=True):\n    print('held', flush=True)\n    time.sleep(60)\n")
     proc = subprocess.Popen([sys.executable, "-c", code, str(out)], env=dict(os.environ, PYTHONPATH=str(ROOT)),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -254,7 +254,7 @@ def pausing(name):
 
 os.rename, os.replace = pausing("rename"), pausing("replace")
 from ciliary_carpet.render import render
-from ciliary_carpet.scene import load_scene
+from ciliary_carpet.scenes.scene import load_scene
 render(load_scene(scene), out, overwrite=True)
 """
 

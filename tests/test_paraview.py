@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from ciliary_carpet.render import render
-from ciliary_carpet.scene import scene_from_dict
+from ciliary_carpet.scenes.scene import scene_from_dict
 
 TINY = {"name": "tiny", "carpet": {"lattice": "square", "shape": [2, 2], "spacing": 2.0, "chi_N": 3.0},
         "output": {"n_seeds": 4, "periods": 2.0, "field_shape": [10, 10], "snapshots": 2, "frames": 8}}

@@ -1,4 +1,4 @@
-"""Path lines (ciliary_carpet.pathlines): analytic flows, convergence in the tolerance, dense
+"""Path lines (ciliary_carpet.transport.pathlines): analytic flows, convergence in the tolerance, dense
 output, termination reasons, tracers passing a filament, the long-time model, bad input."""
 import math
 import warnings
@@ -8,8 +8,8 @@ import pytest
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
-from ciliary_carpet.carpet import Carpet
-from ciliary_carpet.pathlines import (
+from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.transport.pathlines import (
     DOMAIN,
     END,
     MEAN_MODEL_ERROR,
@@ -224,7 +224,7 @@ def test_bad_input_named_before_any_work(one, table):
 
 
 def test_ftle_of_a_linear_hyperbolic_flow(one):
-    from ciliary_carpet.ftle import FTLEError, ftle_field
+    from ciliary_carpet.transport.ftle import FTLEError, ftle_field
 
     class Saddle:  # u = (a x, -a y): stretching rate a everywhere
         def velocity(self, x, t):
@@ -253,7 +253,7 @@ def test_render_writes_paraview_ready_path_lines(tmp_path):
     import py_compile
 
     from ciliary_carpet.render import render
-    from ciliary_carpet.scene import SceneError, scene_from_dict
+    from ciliary_carpet.scenes.scene import SceneError, scene_from_dict
 
     data = {"name": "tiny", "carpet": {"lattice": "square", "shape": [2, 2], "spacing": 2.0, "chi_N": 3.0},
             "output": {"n_seeds": 6, "periods": 2.0, "field_shape": [12, 12], "snapshots": 1, "frames": 2}}
@@ -281,7 +281,7 @@ def test_render_writes_paraview_ready_path_lines(tmp_path):
 def test_render_error_estimate_of_the_long_time_model(table):
     """For the long-time model the render's estimate is its error against the time-resolved flow:
     positive (the models differ), below the distance travelled, and named as the model's error."""
-    from ciliary_carpet.pathlines import MeanFlow
+    from ciliary_carpet.transport.pathlines import MeanFlow
     from ciliary_carpet.render import pathline_error
 
     c = Carpet(np.array([[0.0, 0.0], [2.0, 0.0]]), [4.0, -4.0], table, phases=[0.3, 0.8])

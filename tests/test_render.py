@@ -8,13 +8,13 @@ import pytest
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
-from ciliary_carpet import layout
-from ciliary_carpet.carpet import Carpet
+from ciliary_carpet.carpet import layout
+from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.cli import batch, main
-from ciliary_carpet.design import DesignError, design, design_layout
+from ciliary_carpet.design.inverse import DesignError, design, design_layout
 from ciliary_carpet.render import RenderError, render
-from ciliary_carpet.scene import load_scene
-from ciliary_carpet.target import TargetError
+from ciliary_carpet.scenes.scene import load_scene
+from ciliary_carpet.design.target import TargetError
 from single_cilium.table import ThrustTable
 
 DESIGNS = sorted((Path(__file__).parent.parent / "designs").glob("*.toml"))

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ciliary_carpet import scene as scene_mod
-from ciliary_carpet.scene import (
+from ciliary_carpet.scenes import scene as scene_mod
+from ciliary_carpet.scenes.scene import (
     CarpetSpec,
     OutputSpec,
     Scene,
@@ -325,8 +325,8 @@ def test_scene_is_frozen():
 
 def test_robust_needs_a_fabrication_tolerance(tmp_path):
     """[target] robust = true without sigma > 0 is a named error; with sigma it reaches the Target."""
-    from ciliary_carpet.scene import SceneError, load_scene
-    from ciliary_carpet.target import Target
+    from ciliary_carpet.scenes.scene import SceneError, load_scene
+    from ciliary_carpet.design.target import Target
 
     base = '[carpet]\nshape = [3, 3]\n[target]\nkind = "uniform"\nangle = 10\nrobust = true\n'
     p = tmp_path / "r.toml"
@@ -351,8 +351,8 @@ def resolved_now() -> dict:
     """What the bundled designs resolve to through the one builder (scene keys with defaults
     filled, target, frame, carpet, control points and target deflections), and the defaults of
     an empty scene, of each angle kind and of a Target made in code."""
-    from ciliary_carpet.assembly import assemble
-    from ciliary_carpet.target import ANGLE_KINDS, Target, control_points
+    from ciliary_carpet.scenes.assembly import assemble
+    from ciliary_carpet.design.target import ANGLE_KINDS, Target, control_points
 
     out = {}
     for path in DESIGN_FILES:
@@ -408,8 +408,8 @@ def test_readme_key_reference_is_the_schema():
 def test_target_defaults_have_one_home():
     """A Target made in code takes the [target] defaults of TargetSpec; the carpet's blob default
     is the flow model's."""
-    from ciliary_carpet.carpet import BLOB
-    from ciliary_carpet.target import Target
+    from ciliary_carpet.carpet.carpet import BLOB
+    from ciliary_carpet.design.target import Target
 
     t, spec = Target("focus", 0.2), TargetSpec()
     shared = [f.name for f in dataclasses.fields(Target) if f.name in {g.name for g in dataclasses.fields(spec)}]
@@ -423,8 +423,8 @@ def test_one_builder_from_scene_to_table_carpet_and_target(tmp_path):
     """assembly.assemble is the path from a scene to its table, carpet and target: design()
     (and through it render and the command line) builds its carpet there, and a chi_N outside
     the table is refused there, naming the key."""
-    from ciliary_carpet.assembly import assemble
-    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.assembly import assemble
+    from ciliary_carpet.design.inverse import design
 
     s = scene_from_dict({"carpet": {"shape": [3, 2], "chi_N": 40, "phases": "synchronous"},
                          "field": {"direction": 30}})

@@ -1,12 +1,12 @@
-"""Stokeslet kernels (ciliary_carpet.stokeslet): numba direct sums against the numpy reference,
+"""Stokeslet kernels (ciliary_carpet.stokes.stokeslet): numba direct sums against the numpy reference,
 identities of the Stokeslet and of the Blake tensor, the FMM backend, the sparse ranges kernel."""
 import math
 
 import numpy as np
 import pytest
 
-from ciliary_carpet import stokeslet as sk
-from ciliary_carpet.stokeslet import (
+from ciliary_carpet.stokes import stokeslet as sk
+from ciliary_carpet.stokes.stokeslet import (
     FMM,
     Auto,
     Backend,
@@ -16,7 +16,7 @@ from ciliary_carpet.stokeslet import (
     stokeslet_velocity_numpy,
     stokeslet_velocity_ranges,
 )
-from ciliary_carpet.kernel import (
+from ciliary_carpet.stokes.kernel import (
     C2_FREE,
     Blake,
     RegularisedBlake,

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from ciliary_carpet.scene import load_scene, scene_from_dict
-from ciliary_carpet.target import (
+from ciliary_carpet.scenes.scene import load_scene, scene_from_dict
+from ciliary_carpet.design.target import (
     DEFAULT_ANGLE_FRACTION,
     Frame,
     Target,
@@ -187,7 +187,7 @@ def test_netcdf_read_and_errors(tmp_path):
 
 
 def test_control_points():
-    from ciliary_carpet import layout
+    from ciliary_carpet.carpet import layout
 
     b = layout.square(4, 3, spacing=2.0)
     fr = Frame.from_bases(b, 2.0, 0.0)  # d0 = -y, cross = +x
@@ -241,7 +241,7 @@ def test_reachable_check_lists_and_clips():
 
 def test_design_targets_are_reachable_and_patterns_right():
     """The shipped designs ask only for what the shipped table can do, at their control points."""
-    from ciliary_carpet.scene import load_scene
+    from ciliary_carpet.scenes.scene import load_scene
 
     for path in sorted(DESIGNS.glob("*.toml")):
         s = load_scene(path)
@@ -262,8 +262,8 @@ def test_registry_drives_the_schema_and_the_readme():
     registry entry (designs/README.md against both: tests/test_scene.py)."""
     from dataclasses import fields
 
-    from ciliary_carpet.scene import SceneError, TargetSpec, scene_from_dict
-    from ciliary_carpet.target import ANGLE_KINDS, KIND_KEYS, KINDS, PATTERNS, applies_to
+    from ciliary_carpet.scenes.scene import SceneError, TargetSpec, scene_from_dict
+    from ciliary_carpet.design.target import ANGLE_KINDS, KIND_KEYS, KINDS, PATTERNS, applies_to
 
     assert KINDS == tuple(p.name for p in PATTERNS) and set(KIND_KEYS) == set(KINDS)
     keys = {k for v in KIND_KEYS.values() for k in v}

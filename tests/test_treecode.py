@@ -5,11 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from ciliary_carpet import design as design_mod
-from ciliary_carpet import layout
-from ciliary_carpet.kernel import RegularisedBlake, Wall, make_kernel
-from ciliary_carpet.stokeslet import Direct, stokeslet_velocity
-from ciliary_carpet.treecode import Treecode
+from ciliary_carpet.design import inverse as design_mod
+from ciliary_carpet.carpet import layout
+from ciliary_carpet.stokes.kernel import RegularisedBlake, Wall, make_kernel
+from ciliary_carpet.stokes.stokeslet import Direct, stokeslet_velocity
+from ciliary_carpet.stokes.treecode import Treecode
 from single_cilium.table import ThrustTable
 
 _E = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
@@ -69,7 +69,7 @@ def test_design_model_gradient_through_the_treecode(monkeypatch, table, wall):
     """With the treecode forced on, the design model's gradient is still exact for its velocity,
     free and above a wall, with the near field's exact pairs (points on and between cilia)."""
     monkeypatch.setattr(design_mod, "TREE_PAIRS", 0)
-    from ciliary_carpet.carpet import Carpet
+    from ciliary_carpet.carpet.carpet import Carpet
 
     b = layout.square(8, 6, 2.0)
     c = Carpet(b, np.zeros(len(b)), table, layout.random_phases(len(b), 0), wall=wall)
@@ -124,9 +124,9 @@ def test_regularised_wall_kernel_is_reciprocal(planar):
     tolerance is rounding: 64 ulps of the largest terms' size (_term_scale; measured: asymmetry
     at most 2.7, compiled against numpy 6.3), while a non-reciprocal image system (the O(eps^2)
     the docstring used to claim) would differ by about eps^2 / r^3 relative, 1e-4 here at r = 2."""
-    from ciliary_carpet.kernel import regularised_blake_tensor
+    from ciliary_carpet.stokes.kernel import regularised_blake_tensor
 
-    from ciliary_carpet.stokeslet import stokeslet_velocity_ranges
+    from ciliary_carpet.stokes.stokeslet import stokeslet_velocity_ranges
 
     rng = np.random.default_rng(7)
     eps, zw, n = 0.02, -0.5, 200

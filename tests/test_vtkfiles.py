@@ -11,8 +11,8 @@ import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
 import single_cilium._io as single_cilium_io
-from ciliary_carpet import vtkfiles
-from ciliary_carpet.vtkfiles import (
+from ciliary_carpet.output import vtkfiles
+from ciliary_carpet.output.vtkfiles import (
     OutputError,
     PvdEntry,
     grid_points,

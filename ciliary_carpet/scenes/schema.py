@@ -7,10 +7,10 @@ are made by :func:`key`: the field's default is the key's default, and its metad
 
 * :func:`read` checks a TOML table (unknown keys with a close match, types, NaN/inf, ranges)
   and returns the values of the plain keys; the section's parser adds the rules that tie keys
-  together (:mod:`ciliary_carpet.scene`);
+  together (:mod:`ciliary_carpet.scenes.scene`);
 * :func:`section` writes the key list into the class docstring;
 * :func:`markdown_table` writes the key reference of ``designs/README.md`` (a test checks the
-  README against it: ``python -m ciliary_carpet.scene --reference`` prints the tables).
+  README against it: ``python -m ciliary_carpet.scenes.scene --reference`` prints the tables).
 
 Every error is a :class:`SceneError` whose message names the file and the dotted key.
 """

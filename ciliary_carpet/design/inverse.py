@@ -3,7 +3,7 @@
 Design model
 ------------
 The design works on the steady (cycle-averaged) flow at control points x_k. Each cilium j is
-represented exactly as the ``mean`` level of :mod:`ciliary_carpet.carpet` represents it: three
+represented exactly as the ``mean`` level of :mod:`ciliary_carpet.carpet.carpet` represents it: three
 point forces at c_j + delta_j e_m (e_m at 0, 120, 240 degrees, delta_j = a_j / 2) that carry the
 cycle-mean force Fbar(chi_j) and its first moment Dbar(chi_j) about the force centre c_j,
 
@@ -120,12 +120,12 @@ from scipy.optimize import minimize
 
 from single_cilium.table import ThrustTable
 
-from .assembly import assemble
-from .carpet import Carpet
-from .kernel import make_kernel
-from .stokeslet import Wall, stokeslet_velocity, stokeslet_velocity_ranges
-from .target import Frame, TargetError, _as_in_spec, control_points, reachable_check
-from .treecode import Treecode
+from ciliary_carpet.scenes.assembly import assemble
+from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.stokes.kernel import make_kernel
+from ciliary_carpet.stokes.stokeslet import Wall, stokeslet_velocity, stokeslet_velocity_ranges
+from ciliary_carpet.design.target import Frame, TargetError, _as_in_spec, control_points, reachable_check
+from ciliary_carpet.stokes.treecode import Treecode
 
 logger = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ the control point (``floor_radius`` of :func:`design_layout`; see the module doc
 SERIAL_PAIRS = 200_000
 """Kernel sums with fewer (target, source) pairs than this run on one numba thread in the design."""
 TREE_PAIRS = 3e7
-"""The design model sums through a :class:`~ciliary_carpet.treecode.Treecode` (opening angle
+"""The design model sums through a :class:`~ciliary_carpet.stokes.treecode.Treecode` (opening angle
 0.3: velocity error below 2e-4 relative, 1.5e-4 rad in angle; tests/test_treecode.py) from this
 many control-point x carrier pairs on (about 3,000 cilia); below it directly (measured on 2
 cores: equal cost at 1.8e7 pairs, the treecode 2x faster at 7e7 and 5-7x at 3e8)."""
@@ -192,7 +192,7 @@ class CycleMoments:
     ``F`` (2,): the mean force on the fluid, ``D`` (2, 2): its first moment about the force
     centre (D_ab = <int (r - c)_a f_b ds>), ``offset`` (2,): the force centre relative to the
     base, ``radius``: the largest distance of a swept sample from the centre -- exactly the
-    quantities :class:`~ciliary_carpet.carpet.Carpet` computes per cilium for its ``mean`` level
+    quantities :class:`~ciliary_carpet.carpet.carpet.Carpet` computes per cilium for its ``mean`` level
     (centroid of the samples, composite Simpson over s, mean over the phase samples). They are
     sampled at ``n`` values of |chi_N| on the flutter branch [0, chi_c] and extended to negative
     chi_N by the mirror symmetry (x -> -x: F_x, D_xy, D_yx, offset_x odd, the rest even), then
@@ -1212,7 +1212,7 @@ WIDTH_GRID = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)
 pattern's residual (the narrowest is a step on the lattice: tanh(4) = 0.9993 one spacing from
 the line)."""
 WIDTH_PATTERNS = ("focus", "spread", "shear")
-"""The target kinds with a transition width (:mod:`ciliary_carpet.target`)."""
+"""The target kinds with a transition width (:mod:`ciliary_carpet.design.target`)."""
 
 
 @dataclass(frozen=True)
@@ -1550,7 +1550,7 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     """Design the scene's carpet for its target: returns (Design, the designed Carpet), or
     (None, the scene's carpet) when the scene has no target.
 
-    The target's control points and angles (or velocities) come from :mod:`ciliary_carpet.target`;
+    The target's control points and angles (or velocities) come from :mod:`ciliary_carpet.design.target`;
     the per-cilium request is the pattern evaluated at each cilium's force centre. A design whose
     rms residual exceeds ``[target] residual`` returns the closest flow the cilia can make, with
     a warning naming the worst control points; with ``[target] strict = true`` it is a

@@ -1,13 +1,13 @@
 """The velocity sums on an NVIDIA GPU: the :class:`Cuda` evaluator (numba-cuda kernels).
 
-:class:`Cuda` is a :class:`~ciliary_carpet.stokeslet.Backend`: it evaluates the dense sum and the
-ranged (near-field) sum of :mod:`ciliary_carpet.stokeslet`,
+:class:`Cuda` is a :class:`~ciliary_carpet.stokes.stokeslet.Backend`: it evaluates the dense sum and the
+ranged (near-field) sum of :mod:`ciliary_carpet.stokes.stokeslet`,
 ``u(x_i) = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j``, for every
-:class:`~ciliary_carpet.kernel.Kernel` (free space, Blake's wall, regularised, regularised with
+:class:`~ciliary_carpet.stokes.kernel.Kernel` (free space, Blake's wall, regularised, regularised with
 wall), with the same conventions (coincident singular pairs skipped, heights above the wall).
 
 The physics is not written twice. The per-pair formulas are the scalar functions
-``_pair_free``, ``_pair_wall`` and ``_pair_regwall`` of :mod:`ciliary_carpet.stokeslet`, which
+``_pair_free``, ``_pair_wall`` and ``_pair_regwall`` of :mod:`ciliary_carpet.stokes.stokeslet`, which
 the CPU loops inline; here their Python source (``.py_func``) is compiled a second time, by
 ``numba.cuda.jit(device=True)``, into the device functions of the kernels below. For fp32 the
 copy is compiled with the module constants (``stokeslet.PAIR_CONSTANTS``) retyped to float32, so
@@ -30,7 +30,7 @@ Kernels
 Precision (:data:`PRECISIONS`)
 ------------------------------
 ``"fp64"`` (default) evaluates and sums in fp64: the same result as
-:class:`~ciliary_carpet.stokeslet.Direct` up to the order of the sums (tested to 1e-12 relative
+:class:`~ciliary_carpet.stokes.stokeslet.Direct` up to the order of the sums (tested to 1e-12 relative
 to ``max |u|``). ``"fp32"`` evaluates and sums in fp32; ``"fp32-acc64"`` evaluates each pair in
 fp32 and sums in fp64. Coordinates are shifted first (x, y and, in free space, z) to the centre
 of the bounding box of targets and sources, then rounded to fp32. With ``u = 2^-24``,
@@ -57,7 +57,7 @@ summation term is a worst case): under the simulator, 70 targets and 75 sources 
 On a GPU the reciprocal square root of the pair formulas is libdevice's (``rsqrt``: 1 ulp in
 fp64; ``rsqrtf``, with fast math in fp32: ``rsqrt.approx``, relative error below 2^-22.9), not
 the CPU's correctly rounded ``1 / sqrt``: fp64 results then differ from
-:class:`~ciliary_carpet.stokeslet.Direct` by a few ulps per pair, far inside 1e-12 (the simulator,
+:class:`~ciliary_carpet.stokes.stokeslet.Direct` by a few ulps per pair, far inside 1e-12 (the simulator,
 which has no libdevice, uses ``1 / sqrt``).
 
 The kernels run on a GPU when numba's CUDA target finds one, and under numba's CUDA simulator
@@ -77,9 +77,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernel import Kernel
-from .stokeslet import _INV_8PI, PAIR_CONSTANTS, PAIRS, Backend, _shift
-from .stokeslet import _rsqrt as _rsqrt_cpu
+from ciliary_carpet.stokes.kernel import Kernel
+from ciliary_carpet.stokes.stokeslet import _INV_8PI, PAIR_CONSTANTS, PAIRS, Backend, _shift
+from ciliary_carpet.stokes.stokeslet import _rsqrt as _rsqrt_cpu
 
 __all__ = ["Cuda", "CudaUnavailableError", "PRECISIONS", "FP32_PAIR_CONSTANT", "cuda_available",
            "cuda_status", "fp32_error_bound"]
@@ -356,7 +356,7 @@ class Cuda(Backend):
     Parameters
     ----------
     precision : "fp64" | "fp32" | "fp32-acc64", default "fp64"
-        Arithmetic (:data:`PRECISIONS`): fp64 agrees with :class:`~ciliary_carpet.stokeslet.Direct`
+        Arithmetic (:data:`PRECISIONS`): fp64 agrees with :class:`~ciliary_carpet.stokes.stokeslet.Direct`
         to rounding; the fp32 variants within :func:`fp32_error_bound`.
     threads : int, default 128
         Threads per block (a multiple of 32, at most 1024): the source tile of the dense kernel,

@@ -2,7 +2,7 @@
 
 Base points are in the lab frame, in the plane z = 0, in units of the filament length L.
 Phases are fractions of a cycle in [0, 1): cilium j is at phase ``phases[j]`` at t = 0 and
-advances at its own rate 1/T(chi_N_j) (see :class:`~ciliary_carpet.carpet.Carpet`).
+advances at its own rate 1/T(chi_N_j) (see :class:`~ciliary_carpet.carpet.carpet.Carpet`).
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The objects a scene describes: its thrust table, base points, target frame, target and carpet.
 
-:func:`assemble` is the one path from a :class:`~ciliary_carpet.scene.Scene` to them: the design
-(:func:`ciliary_carpet.design.design`), and through it the render and the command line, build
+:func:`assemble` is the one path from a :class:`~ciliary_carpet.scenes.scene.Scene` to them: the design
+(:func:`ciliary_carpet.design.inverse.design`), and through it the render and the command line, build
 what they need here. The table is the scene's (``scene.load_table()``, cached) and is checked
 against ``carpet.chi_N``; the target is resolved against the table (its default angle) and the
 carpet's frame; the carpet is built on demand with the curvatures asked for (the design's
@@ -16,13 +16,13 @@ import numpy as np
 
 from single_cilium.table import ThrustTable
 
-from .carpet import Carpet
-from .schema import SceneError
-from .stokeslet import backend_named
-from .target import Frame, Target
+from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.scenes.schema import SceneError
+from ciliary_carpet.stokes.stokeslet import backend_named
+from ciliary_carpet.design.target import Frame, Target
 
 if TYPE_CHECKING:
-    from .scene import Scene
+    from ciliary_carpet.scenes.scene import Scene
 
 __all__ = ["Assembly", "assemble", "check_table_range"]
 
@@ -41,8 +41,8 @@ class Assembly:
     """What :func:`assemble` builds from ``scene``.
 
     table : the scene's thrust table; bases : (N, 2) base points; frame : the
-    target's :class:`~ciliary_carpet.target.Frame` of those bases; target : the resolved
-    :class:`~ciliary_carpet.target.Target` (kind "none" without a target).
+    target's :class:`~ciliary_carpet.design.target.Frame` of those bases; target : the resolved
+    :class:`~ciliary_carpet.design.target.Target` (kind "none" without a target).
     """
 
     scene: "Scene"

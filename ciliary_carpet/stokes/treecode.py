@@ -1,6 +1,6 @@
 """A treecode for repeated Stokeslet sums over fixed points: a linear operator and its exact transpose.
 
-The design model (:mod:`ciliary_carpet.design`) evaluates, hundreds of times per solve, the
+The design model (:mod:`ciliary_carpet.design.inverse`) evaluates, hundreds of times per solve, the
 velocity at P fixed control points x_k of point forces f_s at S fixed source points y_s in the
 plane z = 0,
 
@@ -8,7 +8,7 @@ plane z = 0,
 
 and the adjoint sum g_s = sum_k G(y_s, x_k) w_k (A^T w for a reciprocal G, G_ij(x, y) =
 G_ji(y, x): the free Stokeslet, Blake's tensor and their regularised versions, the wall's
-included, :attr:`~ciliary_carpet.kernel.Kernel.symmetric`), with only the forces changing.
+included, :attr:`~ciliary_carpet.stokes.kernel.Kernel.symmetric`), with only the forces changing.
 Direct, both cost P S kernel evaluations; at 10,000 cilia (S = 30,000 carriers) 3e8 per sum.
 
 Barnes-Hut in the plane: the sources are sorted into a quadtree (cells of at most ``leaf``
@@ -16,14 +16,14 @@ sources, contiguous after sorting). A cell of centre c (its sources' centroid) a
 largest |y_s - c|) is *far* from x_k when |x_k - c| >= r / theta; its sources are then replaced
 by six carriers at c + (r/2) u_m (u_m: the centre and a regular pentagon) whose forces
 reproduce the cell's force, first and second moments about c exactly (the carriers of
-:mod:`ciliary_carpet.carpet`; a fixed linear map W of the source forces). Otherwise the cell is
+:mod:`ciliary_carpet.carpet.carpet`; a fixed linear map W of the source forces). Otherwise the cell is
 opened, down to the leaves, which are summed directly. By Taylor's theorem the error of one far
 cell is O((r/R)^3) of its monopole; ``theta`` sets it (measured in the tests and in
 benchmarks/bench_design.py: relative velocity error about 1e-4 at the default 0.3 on lattices
 of 1,000 and 10,000 cilia).
 
 The interaction lists are built once per geometry (vectorised level by level); both sums are
-then one call of :func:`~ciliary_carpet.stokeslet.stokeslet_velocity_ranges` each (any
+then one call of :func:`~ciliary_carpet.stokes.stokeslet.stokeslet_velocity_ranges` each (any
 evaluator). The adjoint uses the same lists transposed: each leaf and each far cell gathers the
 control points that see it into a contiguous block, so that A^T is the exact transpose of the
 approximate A (what L-BFGS-B needs: its gradient is that of the objective it minimises).
@@ -36,8 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .kernel import Kernel
-from .stokeslet import Backend, stokeslet_velocity_ranges
+from ciliary_carpet.stokes.kernel import Kernel
+from ciliary_carpet.stokes.stokeslet import Backend, stokeslet_velocity_ranges
 
 __all__ = ["Treecode", "THETA", "LEAF"]
 
@@ -109,7 +109,7 @@ class Treecode:
     ----------
     targets : (P, 3) control points x_k (z = 0).
     sources : (S, 3) source points y_s (z = 0).
-    kernel : a reciprocal Green's function (:mod:`ciliary_carpet.kernel`: every kernel there,
+    kernel : a reciprocal Green's function (:mod:`ciliary_carpet.stokes.kernel`: every kernel there,
         singular or regularised, free or with the wall; one whose ``symmetric`` is False is refused).
     mu : viscosity.
     backend : the evaluator of the sums.

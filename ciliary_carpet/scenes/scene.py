@@ -2,8 +2,8 @@
 
 :func:`load_scene` reads a scene file (``tomllib``) into a frozen, validated :class:`Scene`.
 Every key has one home: a field of its section class below, whose metadata holds its default,
-accepted values and meaning (:mod:`ciliary_carpet.schema`; the ``[target]`` section and the
-registry of target kinds are in :mod:`ciliary_carpet.target`). The section docstrings and the
+accepted values and meaning (:mod:`ciliary_carpet.scenes.schema`; the ``[target]`` section and the
+registry of target kinds are in :mod:`ciliary_carpet.design.target`). The section docstrings and the
 key reference of ``designs/README.md`` (:func:`reference`, checked by the tests) are made from
 them. Anything the file gets wrong is a :class:`SceneError` whose message names the file and the
 dotted key: unknown keys at any level (with the known ones and a close match), wrong types, NaN
@@ -12,15 +12,15 @@ or inf, out-of-range values, keys that do not apply (e.g. ``carpet.wave_vector``
 
 Conventions (MODEL.md, DESIGN.md): lab frame (x, y) in the plane z = 0, lengths in filament
 lengths L. ``field.direction`` is in DEGREES, anticlockwise from +y (the flow model,
-:class:`~ciliary_carpet.carpet.Carpet`, takes radians: use :attr:`FieldSpec.direction_rad`). A
+:class:`~ciliary_carpet.carpet.carpet.Carpet`, takes radians: use :attr:`FieldSpec.direction_rad`). A
 straight filament pushes fluid along ``d0 = -field direction`` (:attr:`FieldSpec.flow_direction`).
 
 Sections (all optional): top level (name, description, tolerance, backend), ``[field]``, ``[table]``
 (+ ``[table.build]``), ``[carpet]``, ``[target]``, ``[output]``, ``[units]``.
 
 Values that depend on the thrust table or on the carpet's geometry (the default target angle,
-width and centre) are stored as ``None`` here and resolved by :mod:`ciliary_carpet.target`; the
-objects a scene describes (table, carpet, target) are built by :mod:`ciliary_carpet.assembly`.
+width and centre) are stored as ``None`` here and resolved by :mod:`ciliary_carpet.design.target`; the
+objects a scene describes (table, carpet, target) are built by :mod:`ciliary_carpet.scenes.assembly`.
 """
 from __future__ import annotations
 
@@ -37,13 +37,13 @@ import numpy as np
 import single_cilium.table as _table
 from single_cilium.table import TableError, ThrustTable
 
-from . import layout
-from .carpet import BLOB
-from .paths import _inside, check_derived, check_name, check_scene_paths, table_parts
-from .pathlines import MEAN_MODEL_ERROR
-from .schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
-from .stokeslet import BACKENDS
-from .target import KINDS, TargetSpec, kinds_table
+from ciliary_carpet.carpet import layout
+from ciliary_carpet.carpet.carpet import BLOB
+from ciliary_carpet.scenes.paths import _inside, check_derived, check_name, check_scene_paths, table_parts
+from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR
+from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
+from ciliary_carpet.stokes.stokeslet import BACKENDS
+from ciliary_carpet.design.target import KINDS, TargetSpec, kinds_table
 
 logger = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ class FieldSpec(Section):
 
     @property
     def direction_rad(self) -> float:
-        """The field direction in radians (what :class:`~ciliary_carpet.carpet.Carpet` takes)."""
+        """The field direction in radians (what :class:`~ciliary_carpet.carpet.carpet.Carpet` takes)."""
         return math.radians(self.direction)
 
     @property
@@ -198,7 +198,7 @@ class TableSpec(Section):
 
     def _check_build_paths(self, scene: "Scene", p: Path) -> None:
         """Just before a build: when ``table.file`` lies below the scene's folder, the row folder
-        the build derives from it must too (:func:`~ciliary_carpet.paths.check_derived`; it may
+        the build derives from it must too (:func:`~ciliary_carpet.scenes.paths.check_derived`; it may
         have become a symbolic link since the scene was read)."""
         if not _inside(p, scene.base_dir)[0]:
             return  # table.file itself was allowed outside (allow_outside): so is its row folder
@@ -222,7 +222,7 @@ class TableSpec(Section):
 @dataclass(frozen=True)
 class CarpetSpec(Section):
     """``[carpet]``: where the cilia stand, their curvature without a target, and their phases
-    (lattices: :mod:`ciliary_carpet.layout`)."""
+    (lattices: :mod:`ciliary_carpet.carpet.layout`)."""
 
     SECTION = "carpet"
 
@@ -391,8 +391,8 @@ class Units(Section):
         return values(r, Units)
 
     def scales(self):
-        """The :class:`~ciliary_carpet.carpet.Scales` of these units."""
-        from .carpet import Scales
+        """The :class:`~ciliary_carpet.carpet.carpet.Scales` of these units."""
+        from ciliary_carpet.carpet.carpet import Scales
 
         return Scales(self.length_m, self.time_s, self.viscosity_Pa_s)
 
@@ -419,7 +419,7 @@ class Scene:
                            "far-field magnitudes", lo=0, hi=1, lo_open=True, hi_open=True)
     backend: str = key("auto", "evaluator of the flow sums: `\"auto\"` the GPU when one is usable, else the CPU; "
                        "`\"cuda\"` an NVIDIA GPU (`pip install cilia-flow[gpu]`; fp64, or fp32 within the bound of "
-                       "`ciliary_carpet.cuda`), checked when a render starts; `--backend` on the command line "
+                       "`ciliary_carpet.stokes.cuda`), checked when a render starts; `--backend` on the command line "
                        "overrides it", "str", choices=BACKENDS)
     units: Units | None = None
     source: Path | None = None
@@ -526,7 +526,7 @@ def reference() -> dict[str, str]:
 def load_scene(path, *, allow_outside: bool = False) -> Scene:
     """Read and validate the scene file ``path`` (TOML). Raises :class:`SceneError` naming the
     file (and the dotted key, or tomllib's line and column). ``table.file`` and ``target.file``
-    must lie below the scene's folder unless ``allow_outside`` (:mod:`ciliary_carpet.paths`)."""
+    must lie below the scene's folder unless ``allow_outside`` (:mod:`ciliary_carpet.scenes.paths`)."""
     path = Path(path)
     try:
         text = path.read_bytes()

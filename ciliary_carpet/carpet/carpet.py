@@ -13,7 +13,7 @@ is the superposition of the filaments' line distributions of Stokeslets,
     u(x, t) = 1/(8 pi mu) sum_j int_0^1 G(x, r_j(s, t)) f_j(s, t) ds,
 
 with f = -d the force per length on the fluid (the table's fx, fy) and G the regularised
-Stokeslet of blob size ``blob`` (the filament radius; :mod:`ciliary_carpet.kernel`), so that the
+Stokeslet of blob size ``blob`` (the filament radius; :mod:`ciliary_carpet.stokes.kernel`), so that the
 velocity stays bounded on and between the filaments and tracers pass through the carpet; away
 from a filament it differs from the singular Stokeslet I/|R| + R R^T/|R|^3 by O(blob^2/|R|^3). The arc length integral is
 the composite Simpson rule on the table's uniform s grid; the phase dependence is the
@@ -46,7 +46,7 @@ moments below order k) err by the order-k term they miss plus a remainder:
     quadrupole:  8 pi mu |u - u_resolved| <= C3 (Q3 + Q3_rep) / (6 (R - a)^4)
 
 with Ck the supremum of |(h.grad)^k G f| over unit in-plane h, f at unit distance (times R^(k+1)
-with a wall; :attr:`Kernel.c1 <ciliary_carpet.kernel.Kernel.c1>`, ``c2``, ``c3``: 2, 4, 16 free
+with a wall; :attr:`Kernel.c1 <ciliary_carpet.stokes.kernel.Kernel.c1>`, ``c2``, ``c3``: 2, 4, 16 free
 and 4, 16, 64 with a wall; sampled maxima 2, 4, 12.3 free, 1.98 for C1 and 12.9 for C3 with a
 wall, tests/test_carpet.py), T_rep and
 Q3_rep = delta^3 sum_m |f_m| the carriers' own second and third moments, and nu the sum of the
@@ -95,8 +95,8 @@ from single_cilium.equilibrium import equilibrium_shape
 from single_cilium.params import CiliumParams
 from single_cilium.table import ThrustTable
 
-from .kernel import C1_FREE, C1_WALL, C2_FREE, C2_WALL, C3_FREE, C3_WALL, Kernel, Wall, make_kernel
-from .stokeslet import Auto, Backend, stokeslet_velocity
+from ciliary_carpet.stokes.kernel import C1_FREE, C1_WALL, C2_FREE, C2_WALL, C3_FREE, C3_WALL, Kernel, Wall, make_kernel
+from ciliary_carpet.stokes.stokeslet import Auto, Backend, stokeslet_velocity
 
 logger = logging.getLogger(__name__)
 
@@ -737,15 +737,15 @@ class Carpet:
 
     Parameters
     ----------
-    bases : (N, 2) base points in the plane z = 0 (units of L); see :mod:`ciliary_carpet.layout`.
+    bases : (N, 2) base points in the plane z = 0 (units of L); see :mod:`ciliary_carpet.carpet.layout`.
     chi_N : (N,) signed natural curvatures, each within the table's range.
     table : the ThrustTable of the field (chi_E, eta).
-    phases : (N,) phases at t = 0 in [0, 1) (default all 0); see :mod:`ciliary_carpet.layout`.
+    phases : (N,) phases at t = 0 in [0, 1) (default all 0); see :mod:`ciliary_carpet.carpet.layout`.
     direction : field direction, radians anticlockwise from +y (the scene rotates with it).
     mu : fluid viscosity in model units (B tau / L^4); 1 by default.
     wall : distance h > 0 of a no-slip wall z = -h below the plane, or None (free space).
     scales : optional :class:`Scales` for output in SI units.
-    backend : evaluator of the sums (:mod:`ciliary_carpet.stokeslet`); default Auto.
+    backend : evaluator of the sums (:mod:`ciliary_carpet.stokes.stokeslet`); default Auto.
     blob : regularisation length eps of the Stokeslets (:data:`BLOB`, the filament radius), > 0
         and at most half the smallest distance between base points; None: singular Stokeslets
         (the flow is then unbounded at the filaments).
@@ -1315,7 +1315,7 @@ class Carpet:
 
     def pathlines(self, seeds, t_span, **kwargs):
         """Path lines of tracers from ``seeds`` over ``t_span``: see
-        :func:`ciliary_carpet.pathlines.pathlines` for the keywords and the result."""
-        from .pathlines import pathlines
+        :func:`ciliary_carpet.transport.pathlines.pathlines` for the keywords and the result."""
+        from ciliary_carpet.transport.pathlines import pathlines
 
         return pathlines(self, seeds, t_span, **kwargs)

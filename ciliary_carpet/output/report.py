@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from .target import PATTERNS
+from ciliary_carpet.design.target import PATTERNS
 
 __all__ = ["markdown"]
 

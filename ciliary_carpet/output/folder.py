@@ -289,7 +289,7 @@ def write_manifest(folder: Path) -> None:
         if e.name != MANIFEST and not is_toolkit_name(e.name) and _is_regular(e):
             if not _OUTPUT_NAME.match(e.name):  # a later render could never replace it: a bug, caught here
                 raise RenderError(f"internal error: the render wrote {e.name}, which is not one of its output names "
-                                  f"(ciliary_carpet.outdir._OUTPUT_NAME); nothing was placed")
+                                  f"(ciliary_carpet.output.folder._OUTPUT_NAME); nothing was placed")
             r = FileRecord.of(e)
             files[e.name] = {"size": r.size, "sha256": r.sha256}
     _write_json(folder / MANIFEST, {"written_by": "ciliary-carpet", "format": MANIFEST_FORMAT,
@@ -524,7 +524,7 @@ class OutputFolder:
     within : Path, optional
         A folder the output folder must resolve below (a batch's output root, for a folder
         named from the scene's ``name``), unless outside paths are allowed
-        (:data:`~ciliary_carpet.paths.ALLOW_ENV`).
+        (:data:`~ciliary_carpet.scenes.paths.ALLOW_ENV`).
 
     Use it as a context manager: entering checks the folder, takes its lock, completes an
     interrupted swap and removes leftovers of killed renders (RenderError when the folder must be
@@ -605,7 +605,7 @@ class OutputFolder:
             raise RenderError(f"cannot write '{self.path}': {exc.strerror or exc}") from None
 
     def _check_within(self) -> None:
-        from .paths import ALLOW_ENV
+        from ciliary_carpet.scenes.paths import ALLOW_ENV
 
         if self.within is None or os.environ.get(ALLOW_ENV, "") == "1":
             return

@@ -1,7 +1,7 @@
 """Green's functions of Stokes flow: which tensor ``G`` a velocity sum uses.
 
 A :class:`Kernel` says *what* is summed, ``u(x) = 1/(8 pi mu) sum_j G(x, xi_j) f_j``; an
-evaluator (:class:`ciliary_carpet.stokeslet.Backend`: numba CPU, FMM) says *how*. Four kernels:
+evaluator (:class:`ciliary_carpet.stokes.stokeslet.Backend`: numba CPU, FMM) says *how*. Four kernels:
 
 * :class:`Stokeslet`: the singular free-space Stokeslet ``G^S(R) = I/r + R R^T/r^3``;
 * :class:`Blake`: ``G^S`` with Blake's (1971) image system of a no-slip plane wall;
@@ -23,7 +23,7 @@ evaluator (:class:`ciliary_carpet.stokeslet.Backend`: numba CPU, FMM) says *how*
 
 Every kernel carries the facts its users need: :attr:`Kernel.c1`, :attr:`Kernel.c2` and
 :attr:`Kernel.c3`, the Taylor constants of the levels of detail (``sup |(h . grad)^k G f|`` over
-unit vectors at unit distance, times ``R^(k+1)`` with a wall; see :mod:`ciliary_carpet.carpet`), and :attr:`Kernel.symmetric`, whether the reciprocity
+unit vectors at unit distance, times ``R^(k+1)`` with a wall; see :mod:`ciliary_carpet.carpet.carpet`), and :attr:`Kernel.symmetric`, whether the reciprocity
 ``G_ij(x, y) = G_ji(y, x)`` holds (an adjoint may then swap targets and sources): it does for
 all four (Lorentz's reciprocal theorem; for the regularised image system of the wall see
 :class:`RegularisedBlake`; tested to rounding).

@@ -1,7 +1,7 @@
 """Mixing: the finite-time Lyapunov exponent (FTLE) field of a carpet's flow, and a mixing number.
 
 Tracers start on a regular grid of the plane, ``X0``, and are advected for a time ``T`` by the
-flow (:mod:`ciliary_carpet.pathlines`: the time-resolved beat or the long-time mean flow). With
+flow (:mod:`ciliary_carpet.transport.pathlines`: the time-resolved beat or the long-time mean flow). With
 the flow map ``Phi(X0) = x(T)`` and its gradient ``J = dPhi/dX0`` (second-order differences on
 the grid), the right Cauchy-Green tensor ``C = J^T J`` and its largest eigenvalue
 ``lambda_max``, the FTLE is
@@ -30,10 +30,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .pathlines import END, pathlines
+from ciliary_carpet.transport.pathlines import END, pathlines
 
 if TYPE_CHECKING:
-    from .carpet import Carpet
+    from ciliary_carpet.carpet.carpet import Carpet
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ class FTLEField:
 
     def write(self, path, scales=None) -> Path:
         """Write as a ``.vti`` (point data "FTLE", in 1/s with ``scales``)."""
-        from .vtkfiles import write_field
+        from ciliary_carpet.output.vtkfiles import write_field
 
         L, T = (scales.length_m, scales.time_s) if scales is not None else (1.0, 1.0)
         nx, ny = self.shape
@@ -78,7 +78,7 @@ def ftle_field(carpet: "Carpet", box, shape, duration: float, *, model="mean", t
                rtol: float = 1e-6, atol: float = 1e-6, t0: float = 0.0) -> FTLEField:
     """FTLE of ``carpet``'s flow on the ``shape = (nx, ny)`` grid spanning ``box = (xmin, xmax,
     ymin, ymax)``, over ``duration`` (> 0) from ``t0``; ``model`` as in
-    :func:`ciliary_carpet.pathlines.pathlines`. Raises :class:`FTLEError` before any work for a
+    :func:`ciliary_carpet.transport.pathlines.pathlines`. Raises :class:`FTLEError` before any work for a
     grid with fewer than 3 points per side, an empty box or a duration that is not positive."""
     try:
         nx, ny = (int(v) for v in shape)

@@ -40,7 +40,7 @@ Conventions shared by every function here:
 Evaluation strategies (:class:`Backend`): :class:`Direct`, the O(MN) sum compiled with numba
 (parallel over targets, vectorised over sources; free space and wall); :class:`FMM`, the Stokes
 fast multipole method of ``fmm3dpy`` (free space only; optional dependency
-``pip install cilia-flow[fmm]``); :class:`~ciliary_carpet.cuda.Cuda`, both sums on an NVIDIA GPU
+``pip install cilia-flow[fmm]``); :class:`~ciliary_carpet.stokes.cuda.Cuda`, both sums on an NVIDIA GPU
 (optional dependency ``pip install cilia-flow[gpu]``); :class:`Auto` (the default), which picks
 the GPU when one is usable, else one of the first two. :func:`backend_named` maps the names a
 scene or the command line gives (:data:`BACKENDS`) to these objects.
@@ -69,7 +69,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .kernel import Kernel, Stokeslet, Wall, make_kernel, regularised_blake_tensor
+from ciliary_carpet.stokes.kernel import Kernel, Stokeslet, Wall, make_kernel, regularised_blake_tensor
 
 __all__ = [
     "Wall",
@@ -165,7 +165,7 @@ def _validate(targets: Any, sources: Any, forces: Any, mu: Any, wall: Any
 
 # --------------------------------------------------------------------------- numba kernels
 # The per-pair formulas are written once, below, as scalar functions of one (target, source) pair:
-# the CPU loops (_acc_*) inline them, and ciliary_carpet.cuda compiles the same Python source
+# the CPU loops (_acc_*) inline them, and ciliary_carpet.stokes.cuda compiles the same Python source
 # (``.py_func``) into CUDA device functions. Their constants are module globals, not literals, so
 # that the CUDA evaluator can compile an fp32 copy with fp32 constants (a float literal would
 # promote every fp32 operation it touches to fp64 under numba's typing), and their one special
@@ -238,7 +238,7 @@ def _pair_wall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - compil
 
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
 def _pair_regwall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - compiled
-    """The regularised Blake tensor (:func:`ciliary_carpet.kernel.regularised_blake_tensor`)
+    """The regularised Blake tensor (:func:`ciliary_carpet.stokes.kernel.regularised_blake_tensor`)
     times ``f`` for one pair, wall at z = 0, ``e2 = eps^2`` (no 1/(8 pi mu)).
 
     With ``r = x - xi``, ``R = x - xi*``, ``g = (f_x, f_y, -f_z)`` the tensor's terms collect to
@@ -271,7 +271,7 @@ def _pair_regwall(xi, yi, zt, sx, sy, h, a, b, c, e2):  # pragma: no cover - com
 
 
 PAIRS = {0: _pair_free, 1: _pair_wall, 2: _pair_regwall}
-"""The pair function of each :attr:`Kernel.code <ciliary_carpet.kernel.Kernel.code>`."""
+"""The pair function of each :attr:`Kernel.code <ciliary_carpet.stokes.kernel.Kernel.code>`."""
 
 
 @njit(cache=True, fastmath=_FASTMATH, inline="always")
@@ -417,7 +417,7 @@ def _soa(a: np.ndarray, z_shift: float = 0.0) -> np.ndarray:
 
 # --------------------------------------------------------------------------- backends
 class Backend:
-    """Evaluator of velocity sums for any :class:`~ciliary_carpet.kernel.Kernel` (base class).
+    """Evaluator of velocity sums for any :class:`~ciliary_carpet.stokes.kernel.Kernel` (base class).
 
     One interface for the two sums a flow model needs: :meth:`dense` (every source for every
     target) and :meth:`ranged` (per target, a CSR list of source index ranges: near-field
@@ -519,7 +519,7 @@ class FMM(Backend):
     ImportError
         From :meth:`dense`, if fmm3dpy is not installed (``pip install cilia-flow[fmm]``).
     ValueError
-        From :meth:`dense`, for a kernel other than :class:`~ciliary_carpet.kernel.Stokeslet`
+        From :meth:`dense`, for a kernel other than :class:`~ciliary_carpet.stokes.kernel.Stokeslet`
         (the FMM has no image system and no blob: use :class:`Direct`).
     """
 
@@ -557,9 +557,9 @@ class FMM(Backend):
 
 @functools.cache
 def _gpu() -> Backend | None:
-    """:class:`~ciliary_carpet.cuda.Cuda` () when a GPU can run it here, else None (asked once
+    """:class:`~ciliary_carpet.stokes.cuda.Cuda` () when a GPU can run it here, else None (asked once
     per process: every flow evaluation asks)."""
-    from .cuda import Cuda, cuda_available
+    from ciliary_carpet.stokes.cuda import Cuda, cuda_available
 
     return Cuda() if cuda_available() else None
 
@@ -569,8 +569,8 @@ class Auto(Backend):
     """The GPU when one is usable, else :class:`Direct` or :class:`FMM`, whichever is expected
     to be faster.
 
-    :class:`~ciliary_carpet.cuda.Cuda` (fp64) for every sum, dense and ranged, when
-    :func:`ciliary_carpet.cuda.cuda_available` (numba-cuda, an NVIDIA driver and GPU). Otherwise,
+    :class:`~ciliary_carpet.stokes.cuda.Cuda` (fp64) for every sum, dense and ranged, when
+    :func:`ciliary_carpet.stokes.cuda.cuda_available` (numba-cuda, an NVIDIA driver and GPU). Otherwise,
     for the dense sum, :class:`Direct` when ``M * N < threshold``, or the kernel is not the
     singular free-space Stokeslet, or fmm3dpy is not installed; :class:`FMM` (precision ``eps``)
     otherwise; ranged sums run :class:`Direct`.
@@ -629,15 +629,15 @@ BACKENDS = ("auto", "direct", "fmm", "cuda", "cuda-fp32", "cuda-fp32-acc64")
 
 def backend_named(name: str) -> Backend:
     """The evaluator called ``name`` (:data:`BACKENDS`): ``"auto"`` :class:`Auto`, ``"direct"``
-    :class:`Direct`, ``"fmm"`` :class:`FMM`, ``"cuda"`` :class:`~ciliary_carpet.cuda.Cuda` in fp64,
+    :class:`Direct`, ``"fmm"`` :class:`FMM`, ``"cuda"`` :class:`~ciliary_carpet.stokes.cuda.Cuda` in fp64,
     ``"cuda-fp32"`` / ``"cuda-fp32-acc64"`` the same in fp32 / fp32 summed in fp64 (error bound:
-    :mod:`ciliary_carpet.cuda`).
+    :mod:`ciliary_carpet.stokes.cuda`).
 
     Raises
     ------
     ValueError
         For an unknown name (the message lists the known ones).
-    ciliary_carpet.cuda.CudaUnavailableError
+    ciliary_carpet.stokes.cuda.CudaUnavailableError
         For a ``cuda`` name where no GPU can run it (the message names what is missing), before
         any work.
     """
@@ -648,7 +648,7 @@ def backend_named(name: str) -> Backend:
     if name == "fmm":
         return FMM()
     if name in ("cuda", "cuda-fp32", "cuda-fp32-acc64"):
-        from .cuda import Cuda
+        from ciliary_carpet.stokes.cuda import Cuda
 
         return Cuda("fp64" if name == "cuda" else name[len("cuda-"):])
     raise ValueError(f"unknown backend {name!r} (known: {', '.join(BACKENDS)})")
@@ -672,7 +672,7 @@ def stokeslet_velocity(targets: Any, sources: Any, forces: Any, mu: float = 1.0,
                        kernel: Kernel | None = None) -> np.ndarray:
     """Velocity of point forces in Stokes flow, ``u(x_i) = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j``.
 
-    ``G`` is the ``kernel`` (:mod:`ciliary_carpet.kernel`); by default the Stokeslet
+    ``G`` is the ``kernel`` (:mod:`ciliary_carpet.stokes.kernel`); by default the Stokeslet
     ``I/|R| + R R^T/|R|^3`` (``R = x - xi``) in free space, the Blake tensor with a no-slip
     ``wall`` (module docstring). The singular term of a target that coincides with a source is
     skipped (contributes zero).
@@ -817,7 +817,7 @@ def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float 
     Vectorised over all pairs of a chunk of targets (about ``chunk_pairs`` pairs at a time, which
     bounds the memory: a few hundred bytes per pair of the chunk); free space in the vector form
     ``(f (r^2 + 2 eps^2) + R (R.f)) / (r^2 + eps^2)^{3/2}``, the walls as full 3x3 tensors written
-    term by term (Blake; :func:`ciliary_carpet.kernel.regularised_blake_tensor`), independent of
+    term by term (Blake; :func:`ciliary_carpet.stokes.kernel.regularised_blake_tensor`), independent of
     the algebra of the numba kernels. Same arguments, conventions and validation as
     :func:`stokeslet_velocity`; always exact (no FMM).
     """
@@ -868,8 +868,8 @@ def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float 
 
 
 def __getattr__(name: str):
-    """The GPU evaluator, re-exported beside the others (``from ciliary_carpet.stokeslet import
-    Cuda``); imported on first use, as :mod:`ciliary_carpet.cuda` builds on this module."""
+    """The GPU evaluator, re-exported beside the others (``from ciliary_carpet.stokes.stokeslet import
+    Cuda``); imported on first use, as :mod:`ciliary_carpet.stokes.cuda` builds on this module."""
     if name in ("Cuda", "CudaUnavailableError"):
         from . import cuda
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .carpet import Carpet
-from .scene import Scene
-from .vtkfiles import _usual_mode
+from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.scenes.scene import Scene
+from ciliary_carpet.output.vtkfiles import _usual_mode
 
 
 def _savefig(fig, path: Path) -> None:

@@ -2,7 +2,7 @@
 
 The carpet's flow superposes filaments that each beat on their own limit cycle, computed for a
 single filament in fluid at rest, far from any wall, with resistive coefficients that fix a
-viscosity of their own. :func:`omissions` measures, for any :class:`~ciliary_carpet.carpet.Carpet`,
+viscosity of their own. :func:`omissions` measures, for any :class:`~ciliary_carpet.carpet.carpet.Carpet`,
 how large the three neglected effects are, and :class:`Omissions` says it in numbers (with units)
 and in one plain sentence each (:meth:`Omissions.lines`, :meth:`Omissions.summary`).
 
@@ -13,7 +13,7 @@ For a sampled cilium j, a point s on it (mid-length s = 1/2 and the tip s = 1) a
     induced_j(s, t) = |u_others(x_j(s, t), t)|,   u_others = u_carpet - u_j,
 
 the flow that all the *other* cilia make at the filament point: the carpet's flow
-(:meth:`Carpet.evaluate <ciliary_carpet.carpet.Carpet.evaluate>` at tolerance ``tol``) minus
+(:meth:`Carpet.evaluate <ciliary_carpet.carpet.carpet.Carpet.evaluate>` at tolerance ``tol``) minus
 cilium j's own resolved line of Stokeslets (the same kernel, blob, wall and Simpson weights as the
 carpet's sum, at the same phase; the carpet resolves a cilium at its own points, so the
 subtraction removes exactly that term, to rounding). Its error is the evaluation's
@@ -22,7 +22,7 @@ sum of the cilia's far fields), reported as ``interaction_error`` in the units o
 
 The cilium's own speed there is |dx_j/dt (s, t)|, the exact time derivative of the phase
 interpolant the carpet evaluates (:meth:`Carpet.beat_velocity
-<ciliary_carpet.carpet.Carpet.beat_velocity>`). It passes through (nearly) zero twice a beat, at
+<ciliary_carpet.carpet.carpet.Carpet.beat_velocity>`). It passes through (nearly) zero twice a beat, at
 the stroke's turning points, where a pointwise ratio is meaningless; the reported ratio is
 therefore normalised by the cilium's **r.m.s. beat speed at that s over its cycle**,
 
@@ -119,7 +119,7 @@ free-space c_par above,
 mu_sbt / mu - 1 too fast (negative: too slow) against the filaments' own drag
 (``flow_speed_error``; -35 % for the default mu = 1 = eta, issue 27).
 
-The filament radius a is the carpet's blob (its filament radius, :data:`~ciliary_carpet.carpet.BLOB`
+The filament radius a is the carpet's blob (its filament radius, :data:`~ciliary_carpet.carpet.carpet.BLOB`
 when the carpet uses singular Stokeslets).
 """
 from __future__ import annotations
@@ -129,9 +129,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .carpet import BLOB, Carpet
-from .kernel import Wall, make_kernel
-from .stokeslet import stokeslet_velocity, stokeslet_velocity_ranges
+from ciliary_carpet.carpet.carpet import BLOB, Carpet
+from ciliary_carpet.stokes.kernel import Wall, make_kernel
+from ciliary_carpet.stokes.stokeslet import stokeslet_velocity, stokeslet_velocity_ranges
 
 __all__ = ["Omissions", "omissions", "wall_drag_ratios", "wall_drag_formula", "sbt_viscosity", "N_CILIA", "N_INSTANTS",
            "TARGET_RATIO", "SPREAD", "SPREAD_SOURCES"]

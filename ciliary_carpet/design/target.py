@@ -17,7 +17,7 @@ Kinds
 the amplitude in rad, ``w`` the width, ``xi = (x - centre) . cross - line`` the cross-stream
 coordinate measured from the line), its deflection function and the geometry keys it reads.
 The ``[target]`` section of a scene file is :class:`TargetSpec`, whose fields hold each key's
-default, range and the kinds it applies to (:mod:`ciliary_carpet.schema`); the scene parser, the
+default, range and the kinds it applies to (:mod:`ciliary_carpet.scenes.schema`); the scene parser, the
 key reference of ``designs/README.md`` and the kinds table there are made from these two (a test
 checks the README). Adding a pattern means adding a :class:`Pattern` here (and a key to
 :class:`TargetSpec` if it needs one). The shear pattern is not antisymmetric about its line
@@ -45,12 +45,12 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
-from .schema import Key, SceneError, Section, key, keys_of, reader, section, values
+from ciliary_carpet.scenes.schema import Key, SceneError, Section, key, keys_of, reader, section, values
 
 if TYPE_CHECKING:
     from single_cilium.table import ThrustTable
 
-    from .scene import Scene
+    from ciliary_carpet.scenes.scene import Scene
 
 __all__ = ["TargetError", "UnreachableTargetError", "Target", "TargetSpec", "Frame", "Pattern", "PATTERNS",
            "control_points", "reachable_check", "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS",
@@ -92,7 +92,7 @@ class Pattern:
     two_sided : bool
         The flow turns toward (or away from) a line from both sides: the design's estimate of
         the reachable amplitude of such a pattern applies
-        (:func:`~ciliary_carpet.design.reachability`).
+        (:func:`~ciliary_carpet.design.inverse.reachability`).
     """
 
     name: str
@@ -379,8 +379,8 @@ class Target:
     line, width, centre, control, residual, strict, speed_floor, inside_swept, smoothness, sigma, samples, robust :
         as the keys of :class:`TargetSpec` (same defaults): width None = ``frame.spacing``,
         centre None = ``frame.centre``; ``control`` see :func:`control_points`; the design
-        settings go to :func:`~ciliary_carpet.design.design_layout` (``robust``: its
-        ``robust_sigma``) and :func:`~ciliary_carpet.design.tolerance_study`.
+        settings go to :func:`~ciliary_carpet.design.inverse.design_layout` (``robust``: its
+        ``robust_sigma``) and :func:`~ciliary_carpet.design.inverse.tolerance_study`.
     data_points, data_velocities : ndarray or None
         (P, 2) arrays for kind "points" (else None); see :meth:`velocities`.
     source : str or None

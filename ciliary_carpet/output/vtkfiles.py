@@ -304,7 +304,7 @@ def write_pathlines(path, points: Sequence[np.ndarray], times: Sequence[np.ndarr
         Why each tracer stopped: a code ``0 <= c < len(reason_names)``.
     reason_names : sequence of str
         ``reason_names[c]`` names code ``c`` (ASCII, non-empty), e.g.
-        ``ciliary_carpet.pathlines.REASONS``.
+        ``ciliary_carpet.transport.pathlines.REASONS``.
 
     Returns
     -------

@@ -3,9 +3,9 @@
 Two flow models (strategies with one method, ``velocity(x, t)``):
 
 * :class:`ResolvedFlow`: the time-resolved flow of the beating cilia at the tolerance ``tol`` of
-  the levels of detail (:meth:`Carpet.velocity <ciliary_carpet.carpet.Carpet.velocity>`);
+  the levels of detail (:meth:`Carpet.velocity <ciliary_carpet.carpet.carpet.Carpet.velocity>`);
 * :class:`MeanFlow`: the long-time model, the steady time-averaged (Eulerian mean) flow
-  (:meth:`Carpet.mean_velocity <ciliary_carpet.carpet.Carpet.mean_velocity>`) sampled once on a
+  (:meth:`Carpet.mean_velocity <ciliary_carpet.carpet.carpet.Carpet.mean_velocity>`) sampled once on a
   grid of the plane and interpolated by bicubic splines. It neglects the Stokes drift of the beat
   (the difference between the Lagrangian and the Eulerian mean): measured for one cilium, at most
   1.9 % of its mean flow 1 L from its force centre, 0.3 % at 2 L, 0.04 % at 4 L (cilia of other
@@ -55,7 +55,7 @@ import numpy as np
 from single_cilium.progress import Progress
 
 if TYPE_CHECKING:
-    from .carpet import Carpet
+    from ciliary_carpet.carpet.carpet import Carpet
 
 logger = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ class PathLines:
         """Write as a .vtp (one polyline per tracer; point data time, IntegrationTime, velocity,
         speed; cell data SeedIds, TerminationReason with its names in field data), in SI units
         when ``scales`` (a Scales) is given."""
-        from .vtkfiles import write_pathlines
+        from ciliary_carpet.output.vtkfiles import write_pathlines
 
         L, T = (scales.length_m, scales.time_s) if scales is not None else (1.0, 1.0)
         return write_pathlines(path, [p * L for p in self.points], [t * T for t in self.times],
@@ -218,7 +218,7 @@ class PathLines:
         velocity, speed), at most ``max_frames`` of the dense output times (evenly strided). The
         frames sit in the same folder (no subfolder), like the other time series of a render, so
         that a render's manifest lists every file it wrote."""
-        from .vtkfiles import write_points, write_pvd
+        from ciliary_carpet.output.vtkfiles import write_points, write_pvd
 
         path = Path(path)
         folder = path.parent
@@ -459,7 +459,7 @@ def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: floa
     rtol, atol : float
         Local error tolerances of the positions (units of L).
     tol : float
-        The flow model's tolerance (levels of detail, :mod:`ciliary_carpet.carpet`).
+        The flow model's tolerance (levels of detail, :mod:`ciliary_carpet.carpet.carpet`).
     model : "resolved", "mean" or a flow object with ``velocity(x, t)``
         "resolved": :class:`ResolvedFlow`; "mean": :class:`MeanFlow` on a 0.25 L grid over the
         domain (the long-time model, module docstring).

@@ -9,7 +9,7 @@ A scene file is input that may come from someone else, so the paths in it are co
   file's own folder (:func:`check_input`). ``table.file`` with ``[table.build]`` is where the
   table is *written*, so the same rule keeps that write below the scene's folder. A user who
   trusts the scene file can lift the rule: ``allow_outside=True`` in
-  :func:`~ciliary_carpet.scene.load_scene`, or ``--allow-outside-paths`` on the command line, or
+  :func:`~ciliary_carpet.scenes.scene.load_scene`, or ``--allow-outside-paths`` on the command line, or
   the environment variable ``CILIARY_CARPET_ALLOW_OUTSIDE_PATHS=1`` (read by the command line, so
   that batch workers inherit it).
 * Paths the toolkit *derives* obey the same rule, symbolic links resolved: the row folder
@@ -18,10 +18,10 @@ A scene file is input that may come from someone else, so the paths in it are co
   (:func:`check_derived`; at build time the rule applies whenever ``table.file`` itself lies
   below the scene's folder, unless the environment variable lifts it). The output folder of a
   scene in a batch, ``OUTPUT/NAME``, must resolve below ``OUTPUT``
-  (:class:`~ciliary_carpet.outdir.OutputFolder`), and staging folders are created inside the
+  (:class:`~ciliary_carpet.output.folder.OutputFolder`), and staging folders are created inside the
   output folder or beside it, never through a symbolic link.
 
-Every violation is a :class:`~ciliary_carpet.schema.SceneError` (exit status 2) naming the scene
+Every violation is a :class:`~ciliary_carpet.scenes.schema.SceneError` (exit status 2) naming the scene
 file, the key and the value; nothing is read or written before the check.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .schema import SceneError
+from ciliary_carpet.scenes.schema import SceneError
 
 __all__ = ["check_name", "check_input", "check_derived", "check_scene_paths", "table_parts", "ALLOW_ENV"]
 

@@ -1,0 +1,1 @@
+"""Inverse design: target flows and the curvature layouts that make them."""

@@ -1,0 +1,1 @@
+"""Transport in a carpet's flow: path lines of massless tracers and mixing (FTLE)."""
