@@ -68,7 +68,7 @@ def bundled(scenes: list[str], serial: bool, out: str | None, limit: float | Non
     """The bundled scenes: the default batch, the solo renders, the batch with --jobs 1; the
     table is rewritten after each run (so a run stopped at ``limit`` s still leaves the others)."""
     from ciliary_carpet.scenes.scene import load_scene
-    from single_cilium._threads import ThreadBudget, cores
+    from single_cilium.threads import ThreadBudget, cores
 
     names = [load_scene(ROOT / s).name for s in scenes]
     root = Path(tempfile.mkdtemp(prefix="bench_batch_bundled."))

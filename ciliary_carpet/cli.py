@@ -29,9 +29,9 @@ from concurrent.futures import Executor
 from dataclasses import replace
 from pathlib import Path
 
-from single_cilium._io import strict_json, write_netcdf
-from single_cilium._signals import Terminated, exit_status, terminate_as_interrupt
-from single_cilium._threads import ThreadBudget
+from single_cilium.files import strict_json, write_netcdf
+from single_cilium.signals import Terminated, exit_status, terminate_as_interrupt
+from single_cilium.threads import ThreadBudget
 from single_cilium.progress import TqdmProgress
 from single_cilium.table import TableError
 
@@ -284,7 +284,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
 
     Default: each scene in a fresh worker process, ``jobs`` at a time, so that a worker that
     dies (killed, out of memory) fails only its own scene. Each worker gets its share of the
-    cores (:class:`~single_cilium._threads.ThreadBudget`): ``jobs`` (default: as many as there
+    cores (:class:`~single_cilium.threads.ThreadBudget`): ``jobs`` (default: as many as there
     are scenes and cores, and as fit the available memory) times ``threads`` numba threads
     (default: the cores divided among the workers) times one BLAS thread; on Dask each task
     gets the cores of its worker divided among the worker's threads. Each render's summary
@@ -335,7 +335,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
             _run_local(tasks, budget.workers, on_done)
         else:
             if executor is None:
-                from single_cilium._scheduler import connect
+                from single_cilium.scheduler import connect
 
                 client = connect(scheduler, scheduler_timeout)
                 executor = client.get_executor()

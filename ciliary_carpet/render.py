@@ -68,8 +68,8 @@ from pathlib import Path
 
 import numpy as np
 
-from single_cilium._io import non_finite, strict_json, write_netcdf
-from single_cilium._threads import threads_in_use
+from single_cilium.files import non_finite, strict_json, write_netcdf
+from single_cilium.threads import threads_in_use
 from single_cilium.progress import Progress
 
 from ciliary_carpet.scenes.assembly import check_table_range
@@ -78,7 +78,6 @@ from ciliary_carpet.design.inverse import design
 from ciliary_carpet.output.figures import _design_picture, _preview
 from ciliary_carpet.transport.ftle import ftle_field
 from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, SUMMARY, OutputFolder, RenderError, is_complete, owned_files
-from ciliary_carpet.output.folder import usual_mode as _usual_mode
 from ciliary_carpet.carpet.omissions import omissions
 from ciliary_carpet.output.paraview import SCRIPT, write_script
 from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines

@@ -20,7 +20,7 @@ limit_cycle       periodic orbit by shooting with the exact monodromy (single_ci
 """
 __version__ = "0.1.0"
 
-from ._numba_cache import ensure_writable_cache as _ensure_writable_cache
+from .numba_cache import ensure_writable_cache as _ensure_writable_cache
 
 _ensure_writable_cache(__path__[0])  # before any module compiles: a read-only install, an unwritable home
 

@@ -16,8 +16,8 @@ import sys
 import numpy as np
 
 from . import __version__
-from ._io import strict_json
-from ._signals import Terminated, exit_status, terminate_as_interrupt
+from .files import strict_json
+from .signals import Terminated, exit_status, terminate_as_interrupt
 from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
 from .dynamics import simulate
 from .mesh import Mesh
@@ -100,7 +100,7 @@ def cmd_cutoff(args) -> dict:
 
 
 def cmd_map(args) -> dict:
-    from ._io import write_netcdf
+    from .files import write_netcdf
 
     ds = stability_map(args.chi_N, chi_E=args.chi_E, eta=args.eta, degree=args.degree,
                        progress=None if args.quiet else TqdmProgress(delay=0.5))
@@ -137,7 +137,7 @@ def cmd_cycle(args) -> dict:
     c = limit_cycle(_params(args), degree=args.degree, n_phase=args.n_phase, rtol=args.rtol,
                     method=args.method, error_estimate=not args.no_error_estimate)
     if args.output and c.data is not None:
-        from ._io import write_netcdf
+        from .files import write_netcdf
 
         write_netcdf(c.data, args.output)
     out = c.as_dict()

@@ -168,7 +168,7 @@ class Simulation:
 
     def save(self, path) -> None:
         """Write the dataset as NetCDF4/HDF5 (engine h5netcdf), atomically."""
-        from ._io import write_netcdf
+        from .files import write_netcdf
 
         write_netcdf(self.data, path)
 

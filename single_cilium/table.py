@@ -53,7 +53,7 @@ from scipy.interpolate import CubicSpline, make_interp_spline
 from scipy.optimize import brentq
 
 from . import __version__
-from ._io import write_netcdf
+from .files import write_netcdf
 from .cycle import CycleError, LimitCycle, limit_cycle
 from .equilibrium import NoLimitAngleError, limit_angle
 from .params import CiliumParams
@@ -201,9 +201,9 @@ def _chunk(args):
     steps, chi_N = 0 and 100 at chi_E = 200; 0.36-0.40 s unseeded). Rows at a field's own cutoff
     are left to the caller; coiled rows are only marked. Each row is written to ``parts`` if
     given. Runs with the thread budget in ``args`` (the pool's share of the cores per worker),
-    or its Dask worker's share (:meth:`~single_cilium._threads.ThreadBudget.for_task`).
+    or its Dask worker's share (:meth:`~single_cilium.threads.ThreadBudget.for_task`).
     Returns ``[(chi_E, chi_N, row)]``."""
-    from ._threads import ThreadBudget
+    from .threads import ThreadBudget
 
     budget = args[7] if len(args) > 7 and args[7] is not None else ThreadBudget.for_task()
     with budget.applied():
@@ -311,7 +311,7 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
     scheduler_timeout : float, optional
         Seconds to wait for ``scheduler`` to answer as a Dask scheduler (default 20, or the
         environment's ``CILIA_SCHEDULER_TIMEOUT``); an address that does not is an OSError
-        (:class:`~single_cilium._scheduler.SchedulerError`) after that wait, never a hang.
+        (:class:`~single_cilium.scheduler.SchedulerError`) after that wait, never a hang.
     path : path-like, optional
         Where the table is written; finished rows are kept in ``<path>.parts/`` while building,
         so a rerun after an interruption computes only the missing rows (rows of another field,
@@ -375,14 +375,14 @@ def build_table(chi_E, eta: float, chi_N, *, degree: int = 8, n_phase: int = 64,
     budget = None  # a Dask worker's task takes its worker's share; another executor's, the cores
     if executor is None:
         if scheduler is not None:
-            from ._scheduler import connect
+            from .scheduler import connect
 
             own = connect(scheduler, scheduler_timeout)
             executor = own.get_executor()
         else:
             from concurrent.futures import ProcessPoolExecutor
 
-            from ._threads import ThreadBudget, cores
+            from .threads import ThreadBudget, cores
 
             own = executor = ProcessPoolExecutor(max_workers=cores())
             budget = ThreadBudget(workers=cores(), numba=1, blas=1)  # a process per core, one thread each

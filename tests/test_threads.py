@@ -5,9 +5,9 @@ import json
 import numba
 import pytest
 
-import single_cilium._threads as threads_mod
+import single_cilium.threads as threads_mod
 from ciliary_carpet.cli import batch
-from single_cilium._threads import ThreadBudget
+from single_cilium.threads import ThreadBudget
 
 TINY = ('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\nsnapshots = 0\n'
         'frames = 1\npreview = false\n')

@@ -10,7 +10,7 @@ import pyvista as pv
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
-import single_cilium._io as single_cilium_io
+import single_cilium.files as single_cilium_files
 from ciliary_carpet.output import vtkfiles
 from ciliary_carpet.output.vtkfiles import (
     OutputError,
@@ -320,7 +320,7 @@ def test_failed_save_leaves_target_and_no_temporary(tmp_path, tracers, monkeypat
         seen.append(os.path.basename(os.readlink(f"/proc/self/fd/{fd}")) if os.path.isdir("/proc/self/fd") else ".")
         raise RuntimeError("disk on fire")  # ... and then the write fails
 
-    monkeypatch.setattr(single_cilium_io.os, "write", broken_write)
+    monkeypatch.setattr(single_cilium_files.os, "write", broken_write)
     with pytest.raises(RuntimeError, match="disk on fire"):
         write_pathlines(target, **tracers)
     assert seen and seen[0].startswith(".")  # hidden
@@ -339,7 +339,7 @@ def test_failed_pvd_write_leaves_target(tmp_path, monkeypatch):
         real_write(fd, b"<VTKFile")
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(single_cilium_io.os, "write", broken_write)
+    monkeypatch.setattr(single_cilium_files.os, "write", broken_write)
     with pytest.raises(OutputError, match="s.pvd.*no space left on device"):
         write_pvd(target, [(0.0, f)])
     assert target.read_text() == "old"
@@ -408,7 +408,7 @@ def test_permission_denied_is_output_error(tmp_path, tracers, monkeypatch):
     def denied(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(single_cilium_io.tempfile, "mkstemp", denied)
+    monkeypatch.setattr(single_cilium_files.tempfile, "mkstemp", denied)
     with pytest.raises(OutputError, match=r"paths\.vtp.*Permission denied") as info:
         write_pathlines(tmp_path / "paths.vtp", **tracers)
     assert info.value.errno == 13

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
+from single_cilium.files import usual_mode
+
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.scenes.scene import Scene
-from ciliary_carpet.output.vtkfiles import _usual_mode
 
 
 def _savefig(fig, path: Path) -> None:
@@ -19,7 +20,7 @@ def _savefig(fig, path: Path) -> None:
     os.close(fd)
     try:
         fig.savefig(tmp, dpi=110)
-        os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; the usual permissions, like the other files
+        os.chmod(tmp, usual_mode())  # mkstemp creates 0600; the usual permissions, like the other files
         os.replace(tmp, path)
     finally:
         plt.close(fig)

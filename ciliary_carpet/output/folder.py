@@ -76,10 +76,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from single_cilium.files import strict_json, usual_mode
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["RenderError", "SUMMARY", "MANIFEST", "OutputFolder", "FileRecord", "owned_files", "is_complete",
-           "settings_differ", "is_toolkit_name", "usual_mode", "PACKAGE_VERSION"]
+           "settings_differ", "is_toolkit_name", "PACKAGE_VERSION"]
 
 SUMMARY = "summary.json"
 MANIFEST = "ciliary-carpet.manifest"
@@ -130,13 +132,6 @@ class FileRecord:
                 h.update(block)
                 size += len(block)
         return cls(size, h.hexdigest())
-
-
-def usual_mode(executable: bool = False) -> int:
-    """The permissions a new file (or, ``executable``, folder) gets under the current umask."""
-    umask = os.umask(0)
-    os.umask(umask)
-    return (0o777 if executable else 0o666) & ~umask
 
 
 def is_toolkit_name(name: str) -> bool:
@@ -219,8 +214,6 @@ def owned_files(out_dir) -> set[str] | None:
 
 def _normal(obj):
     """``obj`` as it reads back from summary.json (plain JSON types)."""
-    from single_cilium._io import strict_json
-
     return json.loads(strict_json(obj))
 
 

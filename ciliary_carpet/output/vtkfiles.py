@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
-from single_cilium._io import OutputFileError, _usual_mode, write_bytes  # noqa: F401 -- _usual_mode: figures.py uses it from here
+from single_cilium.files import OutputFileError, write_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ _INT32 = np.iinfo(np.int32)
 
 
 class OutputError(OutputFileError):
-    """An output path that cannot be written: :class:`single_cilium._io.OutputFileError` (one line
+    """An output path that cannot be written: :class:`single_cilium.files.OutputFileError` (one line
     naming the file and the reason; ``path``, ``reason``, ``errno``; picklable) under the name the
     carpet layer's callers catch."""
 
@@ -201,7 +201,7 @@ def _check_suffix(path, ext: str) -> Path:
 
 def _atomic_write(path: Path, make: Callable[[], bytes]) -> Path:
     """Write the bytes ``make()`` returns to ``path`` atomically
-    (:func:`single_cilium._io.write_bytes`: a hidden temporary in ``path``'s folder, plain
+    (:func:`single_cilium.files.write_bytes`: a hidden temporary in ``path``'s folder, plain
     :func:`os.write`, then a rename).
 
     Raises OutputError (naming ``path``) when the folder or the file cannot be written (a full

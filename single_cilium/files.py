@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-__all__ = ["write_netcdf", "write_bytes", "OutputFileError", "strict_json", "non_finite"]
+__all__ = ["write_netcdf", "write_bytes", "OutputFileError", "strict_json", "non_finite", "usual_mode"]
 
 _FULL = (_errno.ENOSPC, getattr(_errno, "EDQUOT", _errno.ENOSPC), _errno.EFBIG)
 
@@ -57,10 +57,12 @@ def reason(err: OSError) -> str:
     return err.strerror or " ".join(str(err).split()) or type(err).__name__
 
 
-def _usual_mode() -> int:
+def usual_mode(executable: bool = False) -> int:
+    """The permissions a new file (or, ``executable``, folder) gets under the current umask
+    (:func:`tempfile.mkstemp` and :func:`tempfile.mkdtemp` make them private: 0600, 0700)."""
     umask = os.umask(0)
     os.umask(umask)
-    return 0o666 & ~umask
+    return (0o777 if executable else 0o666) & ~umask
 
 
 def write_bytes(path, data) -> Path:
@@ -82,7 +84,7 @@ def write_bytes(path, data) -> Path:
                 view = view[n:]
         finally:
             os.close(fd)
-        os.chmod(tmp, _usual_mode())  # mkstemp creates 0600; give the file the usual permissions
+        os.chmod(tmp, usual_mode())  # mkstemp creates 0600; give the file the usual permissions
         os.replace(tmp, path)
     except OSError as err:
         Path(tmp).unlink(missing_ok=True)
