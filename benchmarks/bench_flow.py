@@ -454,7 +454,7 @@ def bench_longtime(quick: bool, emit) -> dict:
 
     from ciliary_carpet.design.inverse import design
     from ciliary_carpet.transport.pathlines import MeanFlow
-    from ciliary_carpet.render import _field_box, _seeds, pathline_duration
+    from ciliary_carpet.output.plan import FieldGrid, pathline_duration, seed_points
     from ciliary_carpet.scenes.scene import load_scene
 
     scene = load_scene(Path(__file__).parent.parent / "designs" / "uniform_deflection.toml")
@@ -465,8 +465,8 @@ def bench_longtime(quick: bool, emit) -> dict:
         _, c = design(scene)
     T0 = float(np.nanmin(c.periods))
     duration, how = pathline_duration(scene, c, T0)
-    seeds = _seeds(scene, c)[:: (1 if quick else 5)]
-    box = _field_box(scene, c)
+    seeds = seed_points(scene, c)[:: (1 if quick else 5)]
+    box = FieldGrid.around(scene, c).box
     emit(f"## Long-time model vs time-resolved path lines ({scene.name}, {c.n} cilia, {seeds.shape[0]} tracers, "
          f"{duration / T0:.0f} beats; {how})\n")
     t0 = time.perf_counter()

@@ -30,18 +30,19 @@ from dataclasses import replace
 from pathlib import Path
 
 from single_cilium.files import strict_json, write_netcdf
-from single_cilium.signals import Terminated, exit_status, terminate_as_interrupt
-from single_cilium.threads import ThreadBudget
 from single_cilium.progress import TqdmProgress
+from single_cilium.signals import Terminated, exit_status, terminate_as_interrupt
 from single_cilium.table import TableError
+from single_cilium.threads import ThreadBudget
 
 from ciliary_carpet.design.inverse import DesignError, design
-from ciliary_carpet.scenes.paths import ALLOW_ENV
+from ciliary_carpet.design.target import TargetError, UnreachableTargetError
+from ciliary_carpet.output.resources import available_memory
+from ciliary_carpet.output.vtkfiles import OutputError
 from ciliary_carpet.render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
+from ciliary_carpet.scenes.paths import ALLOW_ENV
 from ciliary_carpet.scenes.scene import Scene, SceneError, load_scene
 from ciliary_carpet.stokes.stokeslet import BACKENDS, CudaUnavailableError, backend_named
-from ciliary_carpet.design.target import TargetError, UnreachableTargetError
-from ciliary_carpet.output.vtkfiles import OutputError
 
 logger = logging.getLogger(__name__)
 
@@ -312,11 +313,9 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     tasks = [(s, str(out_root), overwrite, reduced, max_seconds, backend) for s in scenes]
     budget = None
     if executor is None and scheduler is None:
-        from ciliary_carpet.render import _available_memory
-
         budget = ThreadBudget.for_batch(len(tasks), jobs=jobs, threads=threads,
                                         memory_per_task=_memory_per_task(scenes, reduced, backend) if jobs is None
-                                        else None, memory_available=_available_memory())
+                                        else None, memory_available=available_memory())
         logger.info("batch: %d workers x %d numba threads x %d BLAS threads", budget.workers, budget.numba,
                     budget.blas)
         tasks = [t + (budget,) for t in tasks]

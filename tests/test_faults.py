@@ -367,7 +367,7 @@ def test_9_periods_1e12_refused_not_a_misleading_success(tmp_path, capsys):
 
 
 def test_9_non_finite_summary_is_not_a_success(tmp_path, monkeypatch):
-    import ciliary_carpet.render as R
+    import ciliary_carpet.output.outputs as R
 
     monkeypatch.setattr(R, "non_finite", lambda s: {"mean_field.max_speed": "+inf"})
     p = _scene(tmp_path, TINY)

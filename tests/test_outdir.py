@@ -161,7 +161,7 @@ def test_outputs_on_another_filesystem(tmp_path, tmpfs, capsys, monkeypatch):
     assert carpet_main(["render", str(p), "-o", str(link)]) == 0, capsys.readouterr().err
     _whole(link, 3)
     # a failure never deletes the previous render's files
-    import ciliary_carpet.render as R
+    import ciliary_carpet.output.outputs as R
 
     before = _tree(link)
     monkeypatch.setattr(R, "non_finite", lambda s: {"mean_field.max_speed": "+inf"})
@@ -175,7 +175,7 @@ def test_outputs_on_another_filesystem(tmp_path, tmpfs, capsys, monkeypatch):
 # ------------------------------------------------------------------------------ 4: one render per folder
 @pytest.mark.parametrize("existing", [False, True])
 def test_a_second_render_of_the_same_folder_is_refused_at_once(tmp_path, monkeypatch, existing):
-    import ciliary_carpet.render as R
+    import ciliary_carpet.output.outputs as R
 
     p = _scene(tmp_path, TINY)
     out = tmp_path / "o"

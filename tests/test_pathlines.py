@@ -282,7 +282,7 @@ def test_render_error_estimate_of_the_long_time_model(table):
     """For the long-time model the render's estimate is its error against the time-resolved flow:
     positive (the models differ), below the distance travelled, and named as the model's error."""
     from ciliary_carpet.transport.pathlines import MeanFlow
-    from ciliary_carpet.render import pathline_error
+    from ciliary_carpet.output.outputs import pathline_error
 
     c = Carpet(np.array([[0.0, 0.0], [2.0, 0.0]]), [4.0, -4.0], table, phases=[0.3, 0.8])
     T = float(np.nanmin(c.periods))

@@ -1,4 +1,5 @@
-"""The render's pictures: ``design.png`` and ``preview.png`` (matplotlib, Agg)."""
+"""The render's pictures: ``design.png`` and ``preview.png`` (matplotlib, Agg), written atomically
+with the usual permissions."""
 from __future__ import annotations
 
 import os
@@ -11,6 +12,8 @@ from single_cilium.files import usual_mode
 
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.scenes.scene import Scene
+
+__all__ = ["design_picture", "preview"]
 
 
 def _savefig(fig, path: Path) -> None:
@@ -27,10 +30,10 @@ def _savefig(fig, path: Path) -> None:
         Path(tmp).unlink(missing_ok=True)
 
 
-def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
+def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     """Three panels: target (grey) and achieved (blue) flow directions at the control points over
     the layout coloured by chi_N; the residual per control point; the layout with the cilia
-    near the flutter cutoff ringed."""
+    near the flutter cutoff ringed. ``d`` is the :class:`~ciliary_carpet.design.inverse.Design`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -81,10 +84,13 @@ def _design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     _savefig(fig, path)
 
 
-def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None:
+def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None:
     """The render at a glance: the mean flow's streamlines (coloured by mean speed), the path
     lines (coloured by time, their end points in black) and the cilia at t = 0 with their bases
-    (coloured by chi_N); a colour bar for each colour. In the model's units (L, tau)."""
+    (coloured by chi_N); a colour bar for each colour. In the model's units (L, tau).
+
+    ``mean_field`` is the render's :class:`~ciliary_carpet.output.outputs.MeanField`, ``pl`` its
+    path lines and ``d`` its design, each None when the render has none."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -95,7 +101,7 @@ def _preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> Non
     ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
     bars = []
     if mean_field is not None:
-        origin, spacing, shape, pts, u = mean_field
+        shape, pts, u = mean_field.grid.shape, mean_field.points, mean_field.velocity
         X = pts[:, 0].reshape(shape[1], shape[0])
         Y = pts[:, 1].reshape(shape[1], shape[0])
         U = np.nan_to_num(u[:, 0]).reshape(X.shape)

@@ -7,7 +7,8 @@ second render at the same time. :class:`OutputFolder` gives these guarantees (te
 
 Ownership (the manifest decides nothing alone). ``ciliary-carpet.manifest`` records, for every
 file a render wrote, its size and SHA-256. A file may be replaced or removed only if all hold:
-its name is one of the render's own output names (:data:`_OUTPUT_NAME`), it is a regular file
+its name is one of the render's own output names (:data:`_OUTPUT_NAME`: the ``files`` of the
+outputs in :data:`~ciliary_carpet.output.outputs.OUTPUTS`), it is a regular file
 (not a symbolic link, not a folder), and its size and hash match the manifest. A manifest that
 someone edited to list ``thesis.tex`` therefore deletes nothing: ``thesis.tex`` is not an output
 name. A listed output whose content changed since the render (an edited ``summary.md``) is the
@@ -55,6 +56,9 @@ files are untouched, and the staging folder is removed.
 Up to date (:func:`is_complete` with ``scene``). A complete folder counts as the result of a
 scene only when the settings it was made with match: the resolved scene (``scene_resolved`` in
 ``summary.json``: reduced or not, backend, tolerance, every key) and the package version.
+
+The module is longer than most (about 740 lines) because these guarantees are one mechanism:
+ownership, staging, the lock, the journal and the swap rely on each other and are tested together.
 """
 from __future__ import annotations
 
@@ -78,22 +82,22 @@ from pathlib import Path
 
 from single_cilium.files import strict_json, usual_mode
 
+from ciliary_carpet.output import RenderError
+from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY
+
 logger = logging.getLogger(__name__)
 
-__all__ = ["RenderError", "SUMMARY", "MANIFEST", "OutputFolder", "FileRecord", "owned_files", "is_complete",
+__all__ = ["MANIFEST", "OutputFolder", "FileRecord", "owned_files", "is_complete",
            "settings_differ", "is_toolkit_name", "PACKAGE_VERSION"]
 
-SUMMARY = "summary.json"
 MANIFEST = "ciliary-carpet.manifest"
 MANIFEST_FORMAT = 2
 LOCK = ".ciliary-carpet.lock"
 JOURNAL = ".ciliary-carpet.journal"
 _STAGE_IN = ".ciliary-carpet.stage-"
 _ASIDE_IN = ".ciliary-carpet.aside-"
-# the names a render writes: only files with these names are ever replaced or removed
-_OUTPUT_NAME = re.compile(r"(layout\.(nc|vtp)|design\.(png|vtp)|mean_field\.vti|snapshot_\d+\.vti|snapshots\.pvd|"
-                          r"cilia_\d+\.vtp|cilia\.pvd|pathlines\.vtp|particles_\d+\.vtp|particles\.pvd|ftle\.vti|"
-                          r"open_in_paraview\.py|preview\.png|summary\.(json|md))\Z")
+# the names a render writes (its outputs' files): only files with these names are ever replaced or removed
+_OUTPUT_NAME = re.compile("(" + "|".join(f for o in OUTPUTS.values() for f in o.files) + r")\Z")
 # the toolkit's own hidden entries inside an output folder (lock, journal, staging, aside, temporary files)
 _HIDDEN = re.compile(r"\.ciliary-carpet\.(lock|journal|(stage|aside)-[A-Za-z0-9_]+|(journal|manifest)\.[A-Za-z0-9_]+"
                      r"\.part)\Z|\.ciliary-carpet\.manifest\.[A-Za-z0-9_]+\.part\Z")
@@ -108,10 +112,6 @@ def _package_version() -> str:
 
 
 PACKAGE_VERSION = _package_version()
-
-
-class RenderError(RuntimeError):
-    """The output folder cannot be (re)written as asked, or the result is not finite."""
 
 
 @dataclass(frozen=True)
@@ -282,7 +282,7 @@ def write_manifest(folder: Path) -> None:
         if e.name != MANIFEST and not is_toolkit_name(e.name) and _is_regular(e):
             if not _OUTPUT_NAME.match(e.name):  # a later render could never replace it: a bug, caught here
                 raise RenderError(f"internal error: the render wrote {e.name}, which is not one of its output names "
-                                  f"(ciliary_carpet.output.folder._OUTPUT_NAME); nothing was placed")
+                                  f"(no output in ciliary_carpet.output.outputs.OUTPUTS names it); nothing was placed")
             r = FileRecord.of(e)
             files[e.name] = {"size": r.size, "sha256": r.sha256}
     _write_json(folder / MANIFEST, {"written_by": "ciliary-carpet", "format": MANIFEST_FORMAT,

@@ -25,6 +25,9 @@ file in the target folder and renames it onto the target with :func:`os.replace`
 see a half-written file, and on any failure the temporary is removed and an existing target is
 left untouched. A folder or file that cannot be written -- a full disk included -- raises
 :class:`OutputError`, one line naming the file and the reason ("no space left on device").
+
+The module is longer than most (about 610 lines): one writer per kind of VTK data set, each with the
+validation of its arguments, sharing the checks and the atomic write above.
 """
 from __future__ import annotations
 

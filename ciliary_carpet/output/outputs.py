@@ -1,0 +1,457 @@
+"""The outputs of a render: the contract, one class per output, and their registry.
+
+The contract
+------------
+An output is a subclass of :class:`Output`, registered in :data:`OUTPUTS` under its ``name``.
+The registry's order is the order a render writes them in (an output may use what an earlier
+one left on the context; the summary is last). An output provides
+
+``name`` : str
+    Its key in :data:`OUTPUTS`.
+``files`` : tuple of str
+    Regular expressions (matched in full) of the names of the files it may write into the render
+    folder. Their union over the registry is what the output folder counts as the toolkit's
+    (:mod:`ciliary_carpet.output.folder`): only files with such names are ever replaced or
+    removed by a later render, and a render that writes any other name fails before placing it.
+``wanted(plan) -> bool``
+    Whether a render with this :class:`~ciliary_carpet.output.plan.RenderPlan` writes it
+    (usually a key of the scene's ``[output]``).
+``write(ctx) -> None``
+    Write its files into ``ctx.stage`` (the staging folder, in the units ``ctx.plan.units``) and
+    its section of ``ctx.summary``; time its stages with ``ctx.timed(key)``. It may use
+    ``ctx.mean_field`` (left by :class:`MeanFieldOutput`), ``ctx.pathlines`` (left by
+    :class:`PathLinesOutput`) and the long-time flow model ``ctx.mean_flow()``.
+
+:func:`~ciliary_carpet.render.render` does everything else once: the resource check, the design,
+the plan, the progress bar, the output folder and its manifest.
+
+Outputs
+-------
+===========================  ==================================================================
+``layout``                   ``layout.vtp``: base points coloured by chi_N (and thrust angle,
+                             near_cutoff)
+``design``                   with a target: ``layout.nc`` (the designed layout: chi_N per cilium,
+                             control points, residuals), ``design.vtp`` (control points: target and
+                             achieved flow, residual), ``design.png`` (target vs achieved arrows,
+                             residual per control point, the layout coloured by chi_N)
+``mean_field``               ``mean_field.vti``: the time-averaged velocity (active vectors),
+                             speed, vorticity and the error bound on the field grid
+``snapshots``                ``snapshot_NNN.vti``: instantaneous fields over one beat of the cilia,
+                             tied by ``snapshots.pvd``
+``frames``                   ``cilia_NNN.vtp``: filament shapes over one beat (arc length, drag
+                             density), ``cilia.pvd``; both .pvd repeat that beat over the path
+                             lines' time range (one clock)
+``pathlines``                ``pathlines.vtp``: tracer path lines (time, IntegrationTime, velocity,
+                             speed; SeedIds, TerminationReason with TerminationReasonNames), >= 16
+                             points per beat; ``particles.pvd``: the tracers as moving points
+                             (``particles_NNNNN.vtp``), as ParticlePath gives
+``ftle``                     ``ftle.vti``: finite-time Lyapunov exponent over the carpet (mean
+                             flow, a quarter of the path-line duration); the mixing number is in
+                             the summary
+``preview``                  ``preview.png``: the mean flow (streamlines) with the layout and path
+                             lines, a colour bar for each colour
+``paraview``                 ``open_in_paraview.py`` (:mod:`ciliary_carpet.output.paraview`)
+``summary``                  ``summary.json``, ``summary.md``: residuals, timings, fidelity used,
+                             error bounds, path-line outcome, what the model leaves out (``.md``:
+                             the same in words, :mod:`ciliary_carpet.output.report`)
+===========================  ==================================================================
+"""
+from __future__ import annotations
+
+import logging
+import math
+import re
+import time as _time
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from single_cilium.files import non_finite, strict_json, write_netcdf
+from single_cilium.threads import threads_in_use
+
+from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.carpet.omissions import omissions
+from ciliary_carpet.design.inverse import Design
+from ciliary_carpet.output import RenderError
+from ciliary_carpet.output.figures import design_picture, preview
+from ciliary_carpet.output.paraview import SCRIPT, write_script
+from ciliary_carpet.output.plan import FieldGrid, RenderPlan
+from ciliary_carpet.output.report import markdown
+from ciliary_carpet.output.vtkfiles import write_cilia, write_field, write_points, write_pvd
+from ciliary_carpet.transport.ftle import ftle_field
+from ciliary_carpet.transport.pathlines import UNDERFLOW, MeanFlow, PathLines
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Output", "OUTPUTS", "RenderContext", "MeanField", "SUMMARY", "pathline_error", "ERROR_SAMPLE",
+           "LayoutOutput", "DesignOutput", "MeanFieldOutput", "SnapshotsOutput", "FramesOutput",
+           "PathLinesOutput", "FtleOutput", "PreviewOutput", "ParaViewOutput", "SummaryOutput"]
+
+SUMMARY = "summary.json"
+"""The summary's name in a render folder (with the manifest, what makes a folder complete)."""
+
+
+@dataclass(frozen=True, eq=False)
+class MeanField:
+    """The time-averaged velocity on the field grid: ``points`` (n, 3) in VTK order [L] and
+    ``velocity`` (n, 3) [L/tau], n = nx ny."""
+
+    grid: FieldGrid
+    points: np.ndarray
+    velocity: np.ndarray
+
+
+@dataclass(eq=False)
+class RenderContext:
+    """What the outputs of one render share, handed to each :meth:`Output.write` in turn.
+
+    ``plan``, ``carpet`` (designed) and ``design`` (None without a target) are fixed; ``stage`` is
+    the staging folder to write into and ``out_dir`` the folder as it will be once placed;
+    ``summary`` and ``clock`` (seconds by stage, from ``started``) grow as outputs are written;
+    ``mean_field`` and ``pathlines`` are left by their outputs for later ones.
+    """
+
+    plan: RenderPlan
+    carpet: Carpet
+    design: Design | None
+    stage: Path
+    out_dir: Path
+    summary: dict
+    clock: dict
+    started: float
+    mean_field: MeanField | None = None
+    pathlines: PathLines | None = None
+    _mean_flow: MeanFlow | None = field(default=None, init=False, repr=False)
+
+    @contextmanager
+    def timed(self, key: str) -> Iterator[None]:
+        """Record the seconds the block takes as ``clock[key]``."""
+        t = _time.perf_counter()
+        yield
+        self.clock[key] = _time.perf_counter() - t
+
+    def mean_flow(self) -> MeanFlow:
+        """The long-time flow model (made once): from the render's mean field, or the carpet's
+        mean flow evaluated on a grid of the same box and spacing."""
+        if self._mean_flow is None:
+            mf, tol = self.mean_field, self.plan.scene.tolerance
+            if mf is not None:
+                nx, ny = mf.grid.shape[:2]
+                self._mean_flow = MeanFlow.from_grid(*mf.grid.lines(), mf.velocity.reshape(ny, nx, 3))
+            else:
+                g = self.plan.grid
+                self._mean_flow = MeanFlow.from_carpet(self.carpet, g.box, spacing=min(g.spacing[:2]),
+                                                       tol=max(tol, 1e-6))
+        return self._mean_flow
+
+
+class Output(ABC):
+    """Base class of the outputs (see the module docstring for the contract)."""
+
+    name = ""
+    files: tuple[str, ...] = ()
+
+    @abstractmethod
+    def wanted(self, plan: RenderPlan) -> bool:
+        """Whether a render with ``plan`` writes this output."""
+
+    @abstractmethod
+    def write(self, ctx: RenderContext) -> None:
+        """Write the files into ``ctx.stage`` and the summary's section."""
+
+
+def _vorticity(u: np.ndarray, spacing, shape) -> np.ndarray:
+    """(n, 3) vorticity (0, 0, dv/dx - du/dy) of an in-plane field on the (nx, ny, 1) grid
+    (second-order differences; the plane's own derivatives only)."""
+    nx, ny = shape[0], shape[1]
+    U = u[:, 0].reshape(ny, nx)
+    W = u[:, 1].reshape(ny, nx)
+    w = np.zeros((u.shape[0], 3))
+    w[:, 2] = (np.gradient(W, spacing[0], axis=1) - np.gradient(U, spacing[1], axis=0)).ravel()
+    return w
+
+
+def _write_flow(path: Path, grid: FieldGrid, sample, plan: RenderPlan, time: float | None = None) -> Path:
+    """A field file of a flow ``sample`` on ``grid``: velocity, speed, vorticity, error bound."""
+    L, T, V = plan.units
+    u = sample.velocity
+    return write_field(path, np.asarray(grid.origin) * L, np.asarray(grid.spacing) * L, grid.shape,
+                       {"velocity": u * V, "speed": np.linalg.norm(u, axis=1) * V,
+                        "vorticity": _vorticity(u, grid.spacing, grid.shape) / T,
+                        "error_bound": sample.error_bound * V}, time=time)
+
+
+def _looped(files: list, beat: float, span: float) -> list:
+    """(time, file) entries that repeat one beat's ``files`` (at k beat / n) from 0 until
+    ``span`` is covered: a .pvd of them plays the beat on over the whole time range."""
+    n = len(files)
+    count = max(n + 1, int(math.ceil(span / beat * n - 1e-9)) + 1)
+    return [(k * beat / n, files[k % n]) for k in range(count)]
+
+
+class LayoutOutput(Output):
+    """``layout.vtp``: the cilia's base points with chi_N, thrust angle, flutter and near_cutoff."""
+
+    name = "layout"
+    files = (r"layout\.vtp",)
+
+    def wanted(self, plan):
+        return True
+
+    def write(self, ctx):
+        c, d = ctx.carpet, ctx.design
+        L = ctx.plan.units[0]
+        near = np.zeros(c.n, np.uint8)
+        if d is not None:
+            near[list(d.near_cutoff)] = 1
+        write_points(ctx.stage / "layout.vtp", np.column_stack([c.bases * L, np.zeros(c.n)]),
+                     {"chi_N": c.chi_N, "thrust_angle": c.table.scalar("thrust_angle", c.chi_N),
+                      "cilium_id": np.arange(c.n), "flutter": c.flutter.astype(np.uint8), "near_cutoff": near})
+        ctx.summary["layout"] = {"chi_N_min": float(c.chi_N.min()), "chi_N_max": float(c.chi_N.max())}
+
+
+class DesignOutput(Output):
+    """With a target: ``layout.nc``, ``design.vtp`` (control points: target, achieved flow,
+    residual) and ``design.png``."""
+
+    name = "design"
+    files = (r"layout\.nc", r"design\.vtp", r"design\.png")
+
+    def wanted(self, plan):
+        return plan.designed
+
+    def write(self, ctx):
+        d, stage = ctx.design, ctx.stage
+        L, _, V = ctx.plan.units
+        write_netcdf(d.to_dataset(ctx.carpet), stage / "layout.nc")
+        z = np.zeros((d.control.shape[0], 1))
+        write_points(stage / "design.vtp", np.column_stack([d.control * L, z]),
+                     {"target": np.concatenate([d.target * (V if d.kind == "velocity" else 1.0), z], axis=1),
+                      "achieved": np.concatenate([d.achieved * V, z], axis=1), "residual": d.residual,
+                      **({"speed_ratio": d.speed_ratio} if d.speed_ratio is not None else {})})
+        design_picture(stage / "design.png", ctx.plan.scene, ctx.carpet, d)
+        ctx.summary["design"] = d.summary()
+
+
+class MeanFieldOutput(Output):
+    """``mean_field.vti``: the time-averaged flow on the field grid (leaves ``ctx.mean_field``)."""
+
+    name = "mean_field"
+    files = (r"mean_field\.vti",)
+
+    def wanted(self, plan):
+        return bool(plan.scene.output.field)
+
+    def write(self, ctx):
+        grid, V = ctx.plan.grid, ctx.plan.units[2]
+        with ctx.timed("mean_field"):
+            pts = grid.points()
+            s = ctx.carpet.evaluate_mean(pts, tol=ctx.plan.scene.tolerance)
+            ctx.mean_field = MeanField(grid, pts, s.velocity)
+            _write_flow(ctx.stage / "mean_field.vti", grid, s, ctx.plan)
+        ctx.summary["mean_field"] = {"points": int(pts.shape[0]), "fidelity": s.fidelity,
+                                     "max_error_bound": float(s.error_bound.max()),
+                                     "max_speed": float(np.nanmax(np.linalg.norm(s.velocity, axis=1))) * V}
+
+
+class SnapshotsOutput(Output):
+    """``snapshot_NNN.vti`` over one beat of the cilia, ``snapshots.pvd`` repeating it."""
+
+    name = "snapshots"
+    files = (r"snapshot_\d+\.vti", r"snapshots\.pvd")
+
+    def wanted(self, plan):
+        return plan.scene.output.snapshots > 0
+
+    def write(self, ctx):
+        plan = ctx.plan
+        n, Tb, T = plan.scene.output.snapshots, plan.beat.period, plan.units[1]
+        with ctx.timed("snapshots"):
+            pts = plan.grid.points()
+            entries, fid = [], []
+            for k in range(n):
+                t = k * Tb / n
+                s = ctx.carpet.evaluate(pts, t, tol=plan.scene.tolerance)
+                entries.append(_write_flow(ctx.stage / f"snapshot_{k:03d}.vti", plan.grid, s, plan, time=t * T))
+                fid.append(s.fidelity)
+            write_pvd(ctx.stage / "snapshots.pvd", _looped(entries, Tb * T, plan.span * T))
+        ctx.summary["snapshots"] = {"count": n, "fidelity": fid[0]}
+
+
+class FramesOutput(Output):
+    """``cilia_NNN.vtp``: the filaments over one beat (arc length, drag density), ``cilia.pvd``."""
+
+    name = "frames"
+    files = (r"cilia_\d+\.vtp", r"cilia\.pvd")
+
+    def wanted(self, plan):
+        return plan.scene.output.frames > 0
+
+    def write(self, ctx):
+        plan, c = ctx.plan, ctx.carpet
+        n, Tb, (L, T, V), sc = plan.scene.output.frames, plan.beat.period, plan.units, plan.scales
+        f_scale = sc.viscosity_Pa_s * V / c.mu if sc is not None else 1.0
+        with ctx.timed("frames"):
+            entries = []
+            for k in range(n):
+                t = k * Tb / n
+                pos, f, ph = c.state(t)
+                z = np.zeros(pos.shape[:2] + (1,))
+                entries.append(write_cilia(ctx.stage / f"cilia_{k:03d}.vtp", np.concatenate([pos * L, z], -1), c.s * L,
+                                           np.arange(c.n), c.chi_N, ph, drag=np.concatenate([f * f_scale, z], -1),
+                                           time=t * T))
+            write_pvd(ctx.stage / "cilia.pvd", _looped(entries, Tb * T, plan.span * T))
+
+
+ERROR_SAMPLE = 8
+"""Tracers of a render re-integrated to estimate its path lines' end-point error (:func:`pathline_error`)."""
+
+
+def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model: str, flow, tol: float,
+                   spacing: float) -> dict:
+    """End-point error estimate of rendered path lines ``pl``: :data:`ERROR_SAMPLE` of its tracers
+    (spread evenly over the seeds) integrated again, against a more accurate run.
+
+    For the time-resolved flow the reference is rtol = 1e-8 (atol 1e-6 spacing) with the flow
+    tolerance ten times tighter: the estimate covers the integration and the levels of detail.
+    For the long-time model (``model == "mean"``, ``flow`` its :class:`MeanFlow`) the reference
+    is the time-resolved flow at the render's settings in the same domain (the flow's box): the
+    estimate is the model's error. Returns max and median of the end-point distances [L], the
+    tracers used and the reference in words."""
+    k = min(ERROR_SAMPLE, seeds.shape[0])
+    idx = np.unique(np.linspace(0, seeds.shape[0] - 1, k).round().astype(int))
+    if model == "mean":
+        ref = carpet.pathlines(seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing, tol=tol,
+                               samples_per_period=1, domain=tuple(float(v) for v in flow.box))
+        what = f"the time-resolved flow (rtol 1e-6, flow tol {tol:g}): the long-time model's error"
+    else:
+        t_ref = max(tol / 10, 1e-6)
+        ref = carpet.pathlines(seeds[idx], (0.0, duration), rtol=1e-8, atol=1e-6 * spacing, tol=t_ref,
+                               samples_per_period=1)
+        what = f"rtol 1e-8 and flow tol {t_ref:g}: integration and levels of detail"
+    e = np.linalg.norm(pl.end_points[idx] - ref.end_points, axis=1)
+    return {"max": float(e.max()), "median": float(np.median(e)), "tracers": int(idx.size), "reference": what}
+
+
+class PathLinesOutput(Output):
+    """``pathlines.vtp`` and ``particles.pvd`` (``particles_NNNNN.vtp``): the tracers from the plan's
+    seeds in the plan's path-line model, with an end-point error estimate (leaves ``ctx.pathlines``)."""
+
+    name = "pathlines"
+    files = (r"pathlines\.vtp", r"particles_\d+\.vtp", r"particles\.pvd")
+
+    def wanted(self, plan):
+        return bool(plan.scene.output.pathlines)
+
+    def write(self, ctx):
+        plan, c = ctx.plan, ctx.carpet
+        o, tol, spacing = plan.scene.output, plan.scene.tolerance, plan.scene.carpet.spacing
+        seeds, duration, model = plan.seeds, plan.duration, plan.pathline_model
+        L, T, _ = plan.units
+        with ctx.timed("pathlines"):
+            flow = ctx.mean_flow() if model == "mean" else "resolved"
+            pl = c.pathlines(seeds, (0.0, duration), rtol=1e-6, atol=1e-4 * spacing, tol=tol, model=flow,
+                             samples_per_period=o.samples_per_period)
+            pl.write(ctx.stage / "pathlines.vtp", scales=plan.scales)
+            pl.write_particles(ctx.stage / "particles.pvd", scales=plan.scales)
+        with ctx.timed("pathline_error"):
+            err = pathline_error(c, seeds, duration, pl, model, flow, tol, spacing)
+        ctx.pathlines = pl
+        ctx.summary["pathlines"] = {
+            "tracers": int(seeds.shape[0]), "duration": duration * T, "duration_from": plan.duration_from,
+            "periods": duration / plan.T0, "beats": duration / plan.beat.period, "model": model,
+            "samples_per_period": o.samples_per_period, "outcome": pl.counts(),
+            "stopped_early": int(np.sum(pl.reason == UNDERFLOW)), "status": pl.status, "message": pl.message,
+            "work": pl.stats, "end_point_error": dict(err, max=err["max"] * L, median=err["median"] * L)}
+
+
+class FtleOutput(Output):
+    """``ftle.vti``: the FTLE over the carpet in the long-time flow, for a quarter of the path-line
+    duration; the mixing number in the summary."""
+
+    name = "ftle"
+    files = (r"ftle\.vti",)
+
+    def wanted(self, plan):
+        return bool(plan.scene.output.ftle)
+
+    def write(self, ctx):
+        plan, b = ctx.plan, ctx.carpet.bases
+        fs, T = plan.scene.output.field_shape, plan.units[1]
+        nx, ny = max(3, fs[0] // 2), max(3, fs[1] // 2)
+        with ctx.timed("ftle"):
+            f = ftle_field(ctx.carpet, (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
+                           0.25 * plan.duration, model=ctx.mean_flow(), rtol=1e-6,
+                           atol=1e-4 * plan.scene.carpet.spacing)
+            f.write(ctx.stage / "ftle.vti", scales=plan.scales)
+        defined = np.isfinite(f.ftle)
+        ctx.summary["mixing"] = {"mixing_number": f.mixing_number,
+                                 "ftle_max": float(np.nanmax(f.ftle)) / T if np.any(defined) else None,
+                                 "duration": f.duration * T, "grid": [nx, ny], "model": f.model,
+                                 "defined_fraction": float(np.mean(defined))}
+
+
+class PreviewOutput(Output):
+    """``preview.png``: the mean flow's streamlines, the path lines and the layout."""
+
+    name = "preview"
+    files = (r"preview\.png",)
+
+    def wanted(self, plan):
+        return bool(plan.scene.output.preview)
+
+    def write(self, ctx):
+        with ctx.timed("preview"):
+            preview(ctx.stage / "preview.png", ctx.plan.scene, ctx.carpet, ctx.mean_field, ctx.pathlines, ctx.design)
+
+
+class ParaViewOutput(Output):
+    """``open_in_paraview.py``: the script that opens the render folder in ParaView."""
+
+    name = "paraview"
+    files = (re.escape(SCRIPT),)
+
+    def wanted(self, plan):
+        return True
+
+    def write(self, ctx):
+        write_script(ctx.stage / SCRIPT, ctx.out_dir, si=ctx.plan.scales is not None, scene=ctx.plan.scene.name)
+
+
+class SummaryOutput(Output):
+    """``summary.json`` (strict JSON) and ``summary.md``: the summary, with what the model leaves
+    out, the seconds by stage, the resolved scene and the threads used. Last: a summary with a
+    NaN or an infinity is a :class:`~ciliary_carpet.output.RenderError` (nothing is placed)."""
+
+    name = "summary"
+    files = (re.escape(SUMMARY), r"summary\.md")
+
+    def wanted(self, plan):
+        return True
+
+    def write(self, ctx):
+        scene, summary = ctx.plan.scene, ctx.summary
+        # what the model leaves out (interaction between cilia, the wall's drag, the viscosity), sized
+        with ctx.timed("omissions"):
+            summary["omissions"] = omissions(ctx.carpet, tol=min(scene.tolerance, 1e-3)).summary()
+        ctx.clock["total"] = _time.perf_counter() - ctx.started
+        summary["seconds"] = ctx.clock
+        summary["scene_resolved"] = scene.to_dict()
+        summary["threads"] = threads_in_use()  # the numba and BLAS threads (and batch workers) used
+        bad = non_finite(summary)
+        if bad:
+            listed = "; ".join(f"{k} = {v}" for k, v in list(bad.items())[:3])
+            raise RenderError(f"{scene.source_name}: the render gave non-finite numbers ({listed}); nothing was "
+                              f"written to {ctx.out_dir}")
+        (ctx.stage / "summary.md").write_text(markdown(summary))
+        (ctx.stage / SUMMARY).write_text(strict_json(summary, indent=2))
+
+
+OUTPUTS: dict[str, type[Output]] = {o.name: o for o in (
+    LayoutOutput, DesignOutput, MeanFieldOutput, SnapshotsOutput, FramesOutput, PathLinesOutput, FtleOutput,
+    PreviewOutput, ParaViewOutput, SummaryOutput)}
+"""The outputs by name, in the order a render writes them."""

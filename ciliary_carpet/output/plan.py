@@ -1,0 +1,227 @@
+"""The render plan: what a render of a scene does, decided once, before any output is written.
+
+:meth:`RenderPlan.decide` takes the scene and its designed carpet and settles what the outputs
+(:mod:`ciliary_carpet.output.outputs`) share: the field grid (:class:`FieldGrid`), the cilia's
+beat (:class:`Beat`, the time base of what moves), the tracers' seeds (:func:`seed_points`), the
+flow they follow (:func:`pathline_model`) and for how long (:func:`pathline_duration`: computed
+here once, since it probes the carpet's mean flow), the units of the files and the resource
+estimate (:func:`~ciliary_carpet.output.resources.check_resources`, made before the design). It
+comes after the design because the path-line duration and the seeds depend on the designed
+layout. What the scene's settings make impossible fails here, before any output: seeds inside a
+filament (``SeedError``), path lines too large for memory (``PathLineError``), a carpet that makes
+no mean flow while the duration is automatic (:class:`~ciliary_carpet.output.RenderError`).
+
+Path lines: unless the scene sets ``[output] periods``, the duration is long enough for a tracer
+to cross the whole carpet at the carpet's median mean speed (1.25 times the carpet's extent along
+the flow plus three spacings, divided by that speed). The flow they follow is the time-resolved
+beat or the long-time mean flow (``[output] pathline_model``; "auto" takes the mean flow when the
+scene's tolerance allows its measured error). ``[output] periods`` counts periods of the straight
+filament, T0 = T(chi_N = 0); the snapshots and frames sample one beat of the cilia themselves
+(each beats with its own period T(chi_N): their median, :class:`Beat`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ciliary_carpet.carpet.carpet import BLOB, Carpet, Scales
+from ciliary_carpet.output import RenderError
+from ciliary_carpet.output.resources import Estimate
+from ciliary_carpet.output.vtkfiles import grid_points
+from ciliary_carpet.scenes.scene import Scene
+from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR, check_output_size, check_seeds
+
+__all__ = ["RenderPlan", "FieldGrid", "Beat", "seed_points", "pathline_duration", "pathline_model"]
+
+
+@dataclass(frozen=True)
+class FieldGrid:
+    """The grid of the field outputs, in the plane z = 0: the bounding box of the carpet's bases
+    widened by ``[output] field_margin`` + 1 L on each side, with ``[output] field_shape`` points.
+
+    Attributes
+    ----------
+    origin, spacing : tuple of 3 float
+        The first point and the steps along x, y (and 1 along z) [L].
+    shape : tuple of 3 int
+        ``(nx, ny, 1)``: VTK's point order, x fastest (:func:`~ciliary_carpet.output.vtkfiles.grid_points`).
+    box : tuple of 4 float
+        ``(x_min, x_max, y_min, y_max)`` [L], the region the grid covers.
+    """
+
+    origin: tuple[float, float, float]
+    spacing: tuple[float, float, float]
+    shape: tuple[int, int, int]
+    box: tuple[float, float, float, float]
+
+    @classmethod
+    def around(cls, scene: Scene, carpet: Carpet) -> "FieldGrid":
+        """The field grid of ``scene`` around ``carpet``'s bases."""
+        b = carpet.bases
+        m = scene.output.field_margin
+        lo, hi = b.min(0) - m - 1.0, b.max(0) + m + 1.0
+        nx, ny = scene.output.field_shape
+        return cls(origin=(lo[0], lo[1], 0.0),
+                   spacing=((hi[0] - lo[0]) / max(nx - 1, 1), (hi[1] - lo[1]) / max(ny - 1, 1), 1.0),
+                   shape=(nx, ny, 1), box=(lo[0], hi[0], lo[1], hi[1]))
+
+    def points(self) -> np.ndarray:
+        """(nx ny, 3) the grid's points in VTK order [L]."""
+        return grid_points(self.origin, self.spacing, self.shape)
+
+    def lines(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grid lines: (nx,) x and (ny,) y [L]."""
+        return (self.origin[0] + self.spacing[0] * np.arange(self.shape[0]),
+                self.origin[1] + self.spacing[1] * np.arange(self.shape[1]))
+
+
+@dataclass(frozen=True)
+class Beat:
+    """The cilia's beat: the median ``period`` of the beating cilia (each beats with the period of
+    its own limit cycle, T(chi_N)), their range ``period_min``, ``period_max`` [tau], and how many
+    are ``beating``; T0 (the straight filament's period) when none does."""
+
+    period: float
+    period_min: float
+    period_max: float
+    beating: int
+
+    @classmethod
+    def of(cls, carpet: Carpet, T0: float) -> "Beat":
+        p = carpet.periods
+        p = p[np.isfinite(p)]
+        if p.size == 0:
+            return cls(T0, T0, T0, 0)
+        return cls(float(np.median(p)), float(p.min()), float(p.max()), int(p.size))
+
+
+def seed_points(scene: Scene, carpet: Carpet) -> np.ndarray:
+    """(k, 2) the tracers' start points [L]: ``[output] seeds`` as given, or "line" (``n_seeds``
+    across the carpet, one spacing upstream of it) or "grid" (about ``n_seeds`` between the
+    cilia); a seed inside a filament is nudged across the flow until two blob sizes clear."""
+    o = scene.output
+    if not isinstance(o.seeds, str):
+        return np.asarray(o.seeds, dtype=float)
+    b = carpet.bases
+    d0 = scene.field.flow_direction
+    cross = np.array([-d0[1], d0[0]])
+    c = 0.5 * (b.min(0) + b.max(0))
+    along = (b - c) @ d0
+    across = (b - c) @ cross
+    if o.seeds == "line":  # across the carpet, one spacing upstream of it
+        s = np.linspace(across.min(), across.max(), o.n_seeds)
+        seeds = c + (along.min() - scene.carpet.spacing) * d0 + s[:, None] * cross
+    else:
+        n = max(2, int(round(math.sqrt(o.n_seeds))))  # grid: between the cilia
+        a = np.linspace(along.min(), along.max(), n) + 0.5 * scene.carpet.spacing
+        s = np.linspace(across.min(), across.max(), n) + 0.5 * scene.carpet.spacing
+        A, S = np.meshgrid(a, s)
+        seeds = c + A.ravel()[:, None] * d0 + S.ravel()[:, None] * cross
+    # never inside a filament: nudge a seed across the flow until it is two blob sizes clear
+    clear = 2.0 * (carpet.blob or BLOB)
+    for _ in range(100):
+        bad = carpet.filament_distance(seeds, 0.0) < clear
+        if not bad.any():
+            break
+        seeds[bad] += clear * cross
+    return seeds
+
+
+def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, str]:
+    """Path-line duration and how it was chosen: ``[output] periods * T0`` when the scene sets
+    it, else long enough to cross the carpet: 1.25 (extent along the flow + 3 spacings) / U, with
+    U the median speed of the mean flow at points between the cilia."""
+    o = scene.output
+    if o.periods is not None:
+        return float(o.periods) * T0, "scene"
+    b = carpet.bases
+    d0 = np.asarray(scene.field.flow_direction, dtype=float)
+    sp = scene.carpet.spacing
+    travel = float(np.ptp(b @ d0)) + 3.0 * sp
+    probe = b[:: max(1, b.shape[0] // 200)] + 0.5 * sp * (d0 + np.array([-d0[1], d0[0]]))
+    speed = float(np.median(np.linalg.norm(carpet.mean_velocity(probe, max(scene.tolerance, 1e-3))[:, :2], axis=1)))
+    if not (math.isfinite(speed) and speed > 0):
+        raise RenderError(f"{scene.source_name}: the carpet makes no mean flow (median speed {speed:g}): set "
+                          "[output] periods for the path lines")
+    return 1.25 * travel / speed, f"auto: crossing {travel:.3g} L at the median mean speed {speed:.3g} L/tau"
+
+
+def pathline_model(scene: Scene) -> str:
+    """The flow the tracers follow: ``[output] pathline_model``, "auto" resolved to "mean" when
+    the scene's tolerance is at least :data:`~ciliary_carpet.transport.pathlines.MEAN_MODEL_ERROR`."""
+    m = scene.output.pathline_model
+    if m == "auto":
+        return "mean" if scene.tolerance >= MEAN_MODEL_ERROR else "resolved"
+    return m
+
+
+@dataclass(frozen=True, eq=False)
+class RenderPlan:
+    """What a render of ``scene`` does (see the module docstring); made by :meth:`decide`.
+
+    Attributes
+    ----------
+    scene : Scene
+        The scene (its ``[output]`` says which outputs are wanted).
+    estimate : Estimate
+        The resource estimate the render was admitted with.
+    designed : bool
+        Whether the carpet was designed for a target (the design's outputs).
+    T0 : float
+        The straight filament's period [tau] (``[output] periods`` counts it).
+    beat : Beat
+        The cilia's beat: snapshots and frames sample one beat.
+    grid : FieldGrid
+        The grid of the mean field and the snapshots (and of the long-time flow model).
+    scales : Scales or None
+        The SI scales of the files (``[units]``), or None for L and tau.
+    seeds : (k, 2) array or None
+        The tracers' start points (with path lines).
+    pathline_model : str or None
+        "mean" or "resolved" (with path lines).
+    duration : float or None
+        The path lines' duration [tau] (with path lines or the FTLE, which runs for a quarter of it).
+    duration_from : str or None
+        How ``duration`` was chosen, in words.
+    """
+
+    scene: Scene
+    estimate: Estimate
+    designed: bool
+    T0: float
+    beat: Beat
+    grid: FieldGrid
+    scales: Scales | None
+    seeds: np.ndarray | None
+    pathline_model: str | None
+    duration: float | None
+    duration_from: str | None
+
+    @classmethod
+    def decide(cls, scene: Scene, carpet: Carpet, *, designed: bool, estimate: Estimate) -> "RenderPlan":
+        """The plan of a render of ``scene`` with its designed ``carpet``; raises what the scene's
+        settings make impossible (see the module docstring) before any output."""
+        o = scene.output
+        seeds = check_seeds(carpet, seed_points(scene, carpet)) if o.pathlines else None  # SeedError
+        T0 = float(carpet.table.scalar("period", 0.0))
+        duration, how = pathline_duration(scene, carpet, T0) if (o.pathlines or o.ftle) else (None, None)
+        if o.pathlines:  # PathLineError (output too large for memory)
+            check_output_size(carpet, seeds.shape[0], duration, o.samples_per_period)
+        return cls(scene=scene, estimate=estimate, designed=designed, T0=T0, beat=Beat.of(carpet, T0),
+                   grid=FieldGrid.around(scene, carpet), scales=carpet.scales, seeds=seeds,
+                   pathline_model=pathline_model(scene) if o.pathlines else None, duration=duration,
+                   duration_from=how)
+
+    @property
+    def units(self) -> tuple[float, float, float]:
+        """The files' (length, time, velocity) units in L, tau, L/tau: the SI scales, or ones."""
+        sc = self.scales
+        return (sc.length_m, sc.time_s, sc.velocity) if sc is not None else (1.0, 1.0, 1.0)
+
+    @property
+    def span(self) -> float:
+        """The time range of what moves [tau]: the path lines' duration, or one beat without them.
+        The snapshots' and frames' collections repeat one beat until then (one clock)."""
+        return self.duration if self.scene.output.pathlines else self.beat.period
