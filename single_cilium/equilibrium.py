@@ -151,9 +151,13 @@ def _canonical(
     a = chi_E * cp
     # 4 lambda^2 = (chi_E - chi_N)(chi_E + chi_N), factored (no cancellation); its sign is that of
     # |chi_E| - |chi_N| exactly, and its square root is taken factor by factor (halved), so that
-    # nothing overflows for |chi| up to the largest double
-    dm, dp = 0.5 * chi_E - 0.5 * chi_N, 0.5 * chi_E + 0.5 * chi_N
-    root = 2.0 * math.sqrt(abs(dm)) * math.sqrt(abs(dp))  # sqrt(|4 lambda^2|)
+    # nothing overflows for |chi| up to the largest double; below 2^-1000 halving would round
+    # subnormals to 0 (w = 0 for chi_E = 0, chi_N = 5e-324), and there nothing can overflow
+    if max(abs(chi_E), chi_N) >= 2.0 ** -1000:
+        dm, dp = 0.5 * chi_E - 0.5 * chi_N, 0.5 * chi_E + 0.5 * chi_N
+        root = 2.0 * math.sqrt(abs(dm)) * math.sqrt(abs(dp))  # sqrt(|4 lambda^2|)
+    else:
+        root = math.sqrt(abs(chi_E - chi_N)) * math.sqrt(abs(chi_E + chi_N))
     x = y = None
     if abs(chi_E) >= chi_N:
         # a fixed point exists: |theta - phi| < 2 pi, one atan2 suffices. (chi_E != 0 here:

@@ -393,3 +393,18 @@ def test_bad_input(func):
         func(p, [0.1], float("nan"))
     with pytest.raises(ValueError, match="phi"):
         func(p, [0.1], "a")
+
+
+@pytest.mark.parametrize("chi_E", [0.0, 5e-324, -5e-324])
+@pytest.mark.parametrize("chi_N", [5e-324, -5e-324, 1e-310])
+def test_subnormal_curvatures_are_finite(chi_E, chi_N):
+    """Halving a subnormal chi_N rounds it to 0, which made the coiled branch divide by w = 0
+    (hypothesis found chi_E = 0, chi_N = 5e-324). Such a filament is straight to within a
+    subnormal: theta = chi_N s, and the shape is finite."""
+    s = np.linspace(0.0, 1.0, 5)
+    params = CiliumParams(chi_E, 1.0, chi_N)
+    theta = equilibrium(params, s)
+    shape = equilibrium_shape(params, s)
+    assert np.all(np.isfinite(theta))
+    assert all(np.all(np.isfinite(v)) for v in shape)
+    assert np.max(np.abs(theta - chi_N * s)) <= 1e-323
