@@ -39,7 +39,7 @@ from ciliary_carpet.design.inverse import DesignError, design
 from ciliary_carpet.scenes.paths import ALLOW_ENV
 from ciliary_carpet.render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
 from ciliary_carpet.scenes.scene import Scene, SceneError, load_scene
-from ciliary_carpet.stokes.stokeslet import BACKENDS, CudaUnavailableError, backend_named
+from ciliary_carpet.stokes import BACKENDS, CudaUnavailableError, backend_named
 from ciliary_carpet.design.target import TargetError, UnreachableTargetError
 from ciliary_carpet.output.vtkfiles import OutputError
 

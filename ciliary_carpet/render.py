@@ -84,7 +84,7 @@ from ciliary_carpet.output.paraview import SCRIPT, write_script
 from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
 from ciliary_carpet.output.report import markdown
 from ciliary_carpet.scenes.scene import Scene, SceneError
-from ciliary_carpet.stokes.stokeslet import Auto, backend_named
+from ciliary_carpet.stokes import Auto, backend_named
 from ciliary_carpet.output.vtkfiles import grid_points, write_cilia, write_field, write_points, write_pvd
 
 logger = logging.getLogger(__name__)

@@ -95,8 +95,8 @@ from single_cilium.equilibrium import equilibrium_shape
 from single_cilium.params import CiliumParams
 from single_cilium.table import ThrustTable
 
-from ciliary_carpet.stokes.kernel import C1_FREE, C1_WALL, C2_FREE, C2_WALL, C3_FREE, C3_WALL, Kernel, Wall, make_kernel
-from ciliary_carpet.stokes.stokeslet import Auto, Backend, stokeslet_velocity
+from ciliary_carpet.stokes import (C1_FREE, C1_WALL, C2_FREE, C2_WALL, C3_FREE, C3_WALL, Auto, Backend, Kernel, Wall,
+                                   make_kernel, stokeslet_velocity)
 
 logger = logging.getLogger(__name__)
 
