@@ -10,7 +10,7 @@ pathlines, longtime
     time-resolved path lines (docstrings of bench_pathlines and bench_longtime).
 kernel
     Throughput of the Stokeslet sum u_i = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j
-    (ciliary_carpet.stokes.stokeslet) for M = N random points in the unit cube, standard normal forces:
+    (ciliary_carpet.stokes) for M = N random points in the unit cube, standard normal forces:
     - Direct, free space and with a wall (numba, parallel over targets, all cores);
     - the plain-numpy reference (stokeslet_velocity_numpy), up to sizes where one run stays
       below about 20 s;
@@ -32,14 +32,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from ciliary_carpet.stokes.stokeslet import (
-    FMM,
-    Direct,
-    Wall,
-    _fmm_available,
-    stokeslet_velocity,
-    stokeslet_velocity_numpy,
-)
+from ciliary_carpet.stokes import FMM, Direct, Wall, stokeslet_velocity, stokeslet_velocity_numpy
+from ciliary_carpet.stokes.fmm import fmm_available
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -148,7 +142,7 @@ def bench_kernel(quick: bool, emit) -> dict:
     """Kernel throughput table; returns the measurements and the crossover estimate."""
     sizes = (1000, 3000, 10000) if quick else (1000, 3000, 10000, 30000, 100000)
     numpy_budget = 2.0 if quick else 20.0
-    fmm = _fmm_available()
+    fmm = fmm_available()
     emit("## Stokeslet kernel throughput (M = N random points in the unit cube, mu = 1)")
     emit("")
     emit("Direct: numba, parallel over targets; wall: Blake image system, wall z = -0.1. numpy: the "
@@ -280,7 +274,7 @@ def bench_levels(quick: bool, emit) -> dict:
         return wrapper
 
     import ciliary_carpet.carpet.carpet as carpet_module
-    from ciliary_carpet.stokes.stokeslet import Direct as _Direct
+    from ciliary_carpet.stokes import Direct as _Direct
 
     orig = (_Direct.dense, _Direct.ranged)  # the evaluator's sums (their structure-of-arrays copies included)
     _Direct.dense, _Direct.ranged = timed(orig[0]), timed(orig[1])

@@ -33,8 +33,8 @@ import numba
 import numpy as np
 
 from ciliary_carpet.stokes import cuda as cc
-from ciliary_carpet.stokes.kernel import Blake, Stokeslet, Wall
-from ciliary_carpet.stokes.stokeslet import _INV_8PI, Direct
+from ciliary_carpet.stokes import Blake, Direct, Stokeslet, Wall
+from ciliary_carpet.stokes.kernel import INV_8PI
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_flow import best_time as best  # noqa: E402 -- one timing helper for every benchmark
@@ -68,7 +68,7 @@ def kernel_time(cuda, backend: cc.Cuda, kernel, T, S, F, repeat=3) -> float:
     blocks = -(-T.shape[0] // (backend.threads * backend.targets_per_thread))
 
     def run():
-        k[blocks, backend.threads](dT, dS, dF, dt(kernel.eps ** 2), _INV_8PI, out)
+        k[blocks, backend.threads](dT, dS, dF, dt(kernel.eps ** 2), INV_8PI, out)
         cuda.synchronize()
 
     run()  # compile

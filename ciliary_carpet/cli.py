@@ -42,7 +42,7 @@ from ciliary_carpet.output.vtkfiles import OutputError
 from ciliary_carpet.render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
 from ciliary_carpet.scenes.paths import ALLOW_ENV
 from ciliary_carpet.scenes.scene import Scene, SceneError, load_scene
-from ciliary_carpet.stokes.stokeslet import BACKENDS, CudaUnavailableError, backend_named
+from ciliary_carpet.stokes import BACKENDS, CudaUnavailableError, backend_named
 
 logger = logging.getLogger(__name__)
 
@@ -296,7 +296,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     is skipped; one interrupted while replacing an older render is rendered again; one with
     older results is kept unless ``overwrite``, and reported as failed; a folder holding files
     ciliary-carpet did not write is never changed (:func:`~ciliary_carpet.render.render`).
-    ``backend`` (a name of :data:`~ciliary_carpet.stokes.stokeslet.BACKENDS`) overrides the scenes'.
+    ``backend`` (a name of :data:`~ciliary_carpet.stokes.evaluator.BACKENDS`) overrides the scenes'.
     ``scheduler_timeout`` bounds the wait for ``scheduler`` to answer as a Dask scheduler (default
     20 s, or ``CILIA_SCHEDULER_TIMEOUT``): an address that does not (e.g. the dashboard's HTTP port)
     is an OSError after that wait. Interrupted (Ctrl-C, or SIGTERM/SIGHUP under the command line),

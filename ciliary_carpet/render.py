@@ -44,7 +44,7 @@ from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY, RenderContext
 from ciliary_carpet.output.plan import RenderPlan
 from ciliary_carpet.output.resources import ResourceError, check_resources
 from ciliary_carpet.scenes.scene import Scene
-from ciliary_carpet.stokes.stokeslet import Auto, backend_named
+from ciliary_carpet.stokes import Auto, backend_named
 
 logger = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ import pytest
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import C2_FREE, C2_WALL, Carpet
-from ciliary_carpet.stokes.stokeslet import Wall, stokeslet_velocity
+from ciliary_carpet.stokes import Wall, stokeslet_velocity
 from single_cilium.table import TableError, ThrustTable
 
 
@@ -86,7 +86,7 @@ def _sampled_taylor_constant(order: int, wall: bool, seed: int, n: int) -> float
     """max over n random unit in-plane h, f, targets x (above a wall at random depths) and blobs
     (none or 0.02 R) of |(h.grad)^order G f| R^(order + 1), by central differences in the source
     position (steps e R: first order +-e, third order -2, -1, 1, 2 e)."""
-    from ciliary_carpet.stokes.kernel import make_kernel
+    from ciliary_carpet.stokes import make_kernel
 
     rng = np.random.default_rng(seed)
     best = 0.0

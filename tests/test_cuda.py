@@ -16,12 +16,16 @@ import numpy as np
 import pytest
 
 from ciliary_carpet.stokes import cuda as cc
-from ciliary_carpet.stokes.kernel import Blake, RegularisedBlake, RegularisedStokeslet, Stokeslet, Wall
-from ciliary_carpet.stokes.stokeslet import (
+from ciliary_carpet.stokes import (
     Auto,
+    Blake,
     Cuda,
     CudaUnavailableError,
     Direct,
+    RegularisedBlake,
+    RegularisedStokeslet,
+    Stokeslet,
+    Wall,
     backend_named,
     stokeslet_velocity,
     stokeslet_velocity_ranges,

@@ -529,7 +529,7 @@ def test_mean_flow_inside_a_swept_region_is_resolved(table):
 
     from ciliary_carpet.carpet.carpet import _simpson
     from ciliary_carpet.design.inverse import INSIDE_ACCURACY
-    from ciliary_carpet.stokes.stokeslet import stokeslet_velocity
+    from ciliary_carpet.stokes import stokeslet_velocity
 
     rng = np.random.default_rng(0)
     for chi, wall in ((60.0, None), (-120.0, 0.5)):

@@ -69,8 +69,7 @@ def test_near_wall_coefficients_against_the_blake_kernel():
     a uniform line force, the velocity averaged round the surface at the middle of a long filament:
     2 pi mu u / f = ln(2h/a) along it, 4 pi mu u / f = ln(2h/a) across it parallel to the wall and
     ln(2h/a) - 1 normal to the wall."""
-    from ciliary_carpet.stokes.kernel import Wall, make_kernel
-    from ciliary_carpet.stokes.stokeslet import stokeslet_velocity
+    from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity
 
     a, h = 0.001, 0.02
     x = np.unique(np.concatenate([np.linspace(0, 0.49, 20000, endpoint=False), 0.5 + np.linspace(-0.01, 0.01, 40001),

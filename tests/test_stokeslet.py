@@ -1,28 +1,26 @@
-"""Stokeslet kernels (ciliary_carpet.stokes.stokeslet): numba direct sums against the numpy reference,
+"""The flow sums (ciliary_carpet.stokes): numba direct sums against the numpy reference,
 identities of the Stokeslet and of the Blake tensor, the FMM backend, the sparse ranges kernel."""
 import math
 
 import numpy as np
 import pytest
 
-from ciliary_carpet.stokes import stokeslet as sk
-from ciliary_carpet.stokes.stokeslet import (
+from ciliary_carpet.stokes import fmm as sk
+from ciliary_carpet.stokes import (
+    C2_FREE,
     FMM,
     Auto,
     Backend,
-    Direct,
-    Wall,
-    stokeslet_velocity,
-    stokeslet_velocity_numpy,
-    stokeslet_velocity_ranges,
-)
-from ciliary_carpet.stokes.kernel import (
-    C2_FREE,
     Blake,
+    Direct,
     RegularisedBlake,
     RegularisedStokeslet,
     Stokeslet,
+    Wall,
     make_kernel,
+    stokeslet_velocity,
+    stokeslet_velocity_numpy,
+    stokeslet_velocity_ranges,
 )
 
 WALLS = [None, Wall(0.0), Wall(-0.7)]
@@ -417,7 +415,7 @@ def test_auto_choice():
     auto = Auto(threshold=100.0)
     assert isinstance(auto.choose(5, 19, None), Direct)
     assert isinstance(auto.choose(50, 50, Wall()), Direct)
-    if sk._fmm_available():
+    if sk.fmm_available():
         assert auto.choose(10, 10, None) == FMM(1e-12)
     assert Auto().threshold == sk.FMM_CROSSOVER_PAIRS
 
@@ -593,3 +591,58 @@ def test_regularised_taylor_constant_bounded_by_singular():
             u = [stokeslet_velocity(x + s * d * h, src, f[None], kernel=k)[0] * 8 * math.pi for s in (-1, 0, 1)]
             worst = max(worst, np.linalg.norm(u[0] - 2 * u[1] + u[2]) / d ** 2)
         assert worst <= C2_FREE
+
+
+# ------------------------------------------------------------------ registries and capabilities
+def test_every_registered_green_function_sums_as_its_reference():
+    """Each Green's function of KERNELS, through the compiled loops (dense and ranged) and its own
+    numpy reference; its code indexes PAIRS, derived from the registry."""
+    from ciliary_carpet.stokes.kernel import KERNELS, PAIRS
+
+    assert PAIRS == tuple(dict.fromkeys(k.pair for k in KERNELS.values()))
+    T, S, F = random_case(40, 50, seed=40, zmin=0.02)
+    T[:, 2] -= 0.3
+    S[:, 2] -= 0.3
+    ptr = np.arange(0, 2 * len(T) + 1, 2)
+    ranges = np.tile([[0, 20], [20, 50]], (len(T), 1))
+    for name, cls in KERNELS.items():
+        k = cls(wall=Wall(-0.4)) if "blake" in name else cls()
+        assert cls.name == name and PAIRS[k.code] is cls.pair
+        ref = stokeslet_velocity_numpy(T, S, F, 0.9, kernel=k)
+        assert rel_err(stokeslet_velocity(T, S, F, 0.9, kernel=k, backend=Direct()), ref) < 1e-12
+        assert rel_err(stokeslet_velocity_ranges(T, S, F, ptr, ranges, 0.9, kernel=k), ref) < 1e-12
+        assert (k.c1, k.c2, k.c3) == ((4.0, 16.0, 64.0) if k.wall is not None else (2.0, 4.0, 16.0))
+
+
+def test_the_direct_loops_were_compiled_for_these_pair_formulas():
+    """The cache guard of ciliary_carpet.stokes.direct: the cached loops carry the fingerprint of
+    the pair formulas they inline."""
+    from ciliary_carpet.stokes import direct
+
+    assert direct._compiled_for() == direct._FINGERPRINT
+
+
+def test_ranged_sums_of_an_evaluator_without_them_run_on_direct_and_say_so(caplog):
+    """FMM does no ranged sums: the front door runs them on Direct, logs it, and FMM's description
+    says so; calling FMM.ranged itself is an error, not a silent fallback."""
+    import logging
+
+    from ciliary_carpet.stokes import BACKENDS, backend_named, ranged_evaluator
+
+    T, S, F = random_case(20, 30, seed=41)
+    ptr = np.arange(0, 2 * len(T) + 1, 2)
+    ranges = np.tile([[0, 10], [5, 30]], (len(T), 1))
+    assert not FMM.ranged_sums and Direct.ranged_sums and Auto.ranged_sums
+    with pytest.raises(NotImplementedError, match="no ranged sums"):
+        FMM().ranged(Stokeslet(), T, S, F, ptr, ranges, 1.0)
+    with caplog.at_level(logging.INFO, logger="ciliary_carpet.stokes.evaluator"):
+        u = stokeslet_velocity_ranges(T, S, F, ptr, ranges, backend=FMM(1e-9))
+    assert np.array_equal(u, stokeslet_velocity_ranges(T, S, F, ptr, ranges, backend=Direct()))
+    assert "fmm (fmm3dpy, eps 1e-09; ranged sums: direct, CPU) does no ranged sums: they run on direct" in caplog.text
+    assert isinstance(ranged_evaluator(FMM()), Direct) and ranged_evaluator(Auto()) == Auto()
+    for name in BACKENDS:
+        if name.startswith("cuda"):
+            continue  # needs a GPU (tests/test_cuda.py)
+        b = backend_named(name)
+        if not b.ranged_sums:
+            assert ranged_evaluator(b).describe().split(" (")[0] in b.describe()

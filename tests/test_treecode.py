@@ -7,9 +7,7 @@ import pytest
 
 from ciliary_carpet.design import inverse as design_mod
 from ciliary_carpet.carpet import layout
-from ciliary_carpet.stokes.kernel import RegularisedBlake, Wall, make_kernel
-from ciliary_carpet.stokes.stokeslet import Direct, stokeslet_velocity
-from ciliary_carpet.stokes.treecode import Treecode
+from ciliary_carpet.stokes import Direct, RegularisedBlake, Treecode, Wall, make_kernel, stokeslet_velocity
 from single_cilium.table import ThrustTable
 
 _E = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
@@ -126,7 +124,7 @@ def test_regularised_wall_kernel_is_reciprocal(planar):
     the docstring used to claim) would differ by about eps^2 / r^3 relative, 1e-4 here at r = 2."""
     from ciliary_carpet.stokes.kernel import regularised_blake_tensor
 
-    from ciliary_carpet.stokes.stokeslet import stokeslet_velocity_ranges
+    from ciliary_carpet.stokes import stokeslet_velocity_ranges
 
     rng = np.random.default_rng(7)
     eps, zw, n = 0.02, -0.5, 200

@@ -95,8 +95,8 @@ from single_cilium.equilibrium import equilibrium_shape
 from single_cilium.params import CiliumParams
 from single_cilium.table import ThrustTable
 
-from ciliary_carpet.stokes.kernel import C1_FREE, C1_WALL, C2_FREE, C2_WALL, C3_FREE, C3_WALL, Kernel, Wall, make_kernel
-from ciliary_carpet.stokes.stokeslet import Auto, Backend, stokeslet_velocity
+from ciliary_carpet.stokes import (C1_FREE, C1_WALL, C2_FREE, C2_WALL, C3_FREE, C3_WALL, Auto, Backend, Kernel, Wall,
+                                   make_kernel, stokeslet_velocity)
 
 logger = logging.getLogger(__name__)
 
@@ -745,7 +745,7 @@ class Carpet:
     mu : fluid viscosity in model units (B tau / L^4); 1 by default.
     wall : distance h > 0 of a no-slip wall z = -h below the plane, or None (free space).
     scales : optional :class:`Scales` for output in SI units.
-    backend : evaluator of the sums (:mod:`ciliary_carpet.stokes.stokeslet`); default Auto.
+    backend : evaluator of the sums (:mod:`ciliary_carpet.stokes`); default Auto.
     blob : regularisation length eps of the Stokeslets (:data:`BLOB`, the filament radius), > 0
         and at most half the smallest distance between base points; None: singular Stokeslets
         (the flow is then unbounded at the filaments).

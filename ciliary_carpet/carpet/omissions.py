@@ -130,8 +130,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ciliary_carpet.carpet.carpet import BLOB, Carpet
-from ciliary_carpet.stokes.kernel import Wall, make_kernel
-from ciliary_carpet.stokes.stokeslet import stokeslet_velocity, stokeslet_velocity_ranges
+from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 
 __all__ = ["Omissions", "omissions", "wall_drag_ratios", "wall_drag_formula", "sbt_viscosity", "N_CILIA", "N_INSTANTS",
            "TARGET_RATIO", "SPREAD", "SPREAD_SOURCES"]

@@ -122,10 +122,8 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.scenes.assembly import assemble
 from ciliary_carpet.carpet.carpet import Carpet
-from ciliary_carpet.stokes.kernel import make_kernel
-from ciliary_carpet.stokes.stokeslet import Wall, stokeslet_velocity, stokeslet_velocity_ranges
+from ciliary_carpet.stokes import Treecode, Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 from ciliary_carpet.design.target import Frame, TargetError, _as_in_spec, control_points, reachable_check
-from ciliary_carpet.stokes.treecode import Treecode
 
 logger = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.scenes.schema import SceneError
-from ciliary_carpet.stokes.stokeslet import backend_named
+from ciliary_carpet.stokes import backend_named
 from ciliary_carpet.design.target import Frame, Target
 
 if TYPE_CHECKING:

@@ -42,7 +42,7 @@ from ciliary_carpet.carpet.carpet import BLOB
 from ciliary_carpet.scenes.paths import _inside, check_derived, check_name, check_scene_paths, table_parts
 from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
-from ciliary_carpet.stokes.stokeslet import BACKENDS
+from ciliary_carpet.stokes import BACKENDS
 from ciliary_carpet.design.target import KINDS, TargetSpec, kinds_table
 
 logger = logging.getLogger(__name__)

@@ -1,19 +1,20 @@
 """The velocity sums on an NVIDIA GPU: the :class:`Cuda` evaluator (numba-cuda kernels).
 
-:class:`Cuda` is a :class:`~ciliary_carpet.stokes.stokeslet.Backend`: it evaluates the dense sum and the
-ranged (near-field) sum of :mod:`ciliary_carpet.stokes.stokeslet`,
+:class:`Cuda` is a :class:`~ciliary_carpet.stokes.backend.Backend`: it evaluates the dense sum and the
+ranged (near-field) sum (:mod:`ciliary_carpet.stokes.evaluator`),
 ``u(x_i) = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j``, for every
 :class:`~ciliary_carpet.stokes.kernel.Kernel` (free space, Blake's wall, regularised, regularised with
-wall), with the same conventions (coincident singular pairs skipped, heights above the wall).
+wall, and any other of :data:`~ciliary_carpet.stokes.kernel.KERNELS`), with the same conventions
+(coincident singular pairs skipped, heights above the wall).
 
-The physics is not written twice. The per-pair formulas are the scalar functions
-``_pair_free``, ``_pair_wall`` and ``_pair_regwall`` of :mod:`ciliary_carpet.stokes.stokeslet`, which
-the CPU loops inline; here their Python source (``.py_func``) is compiled a second time, by
+The physics is not written twice. The per-pair formulas are the ``pair`` functions of the
+Green's functions (:data:`ciliary_carpet.stokes.kernel.PAIRS`), which the CPU loops inline; here
+their Python source (``.py_func``) is compiled a second time, by
 ``numba.cuda.jit(device=True)``, into the device functions of the kernels below. For fp32 the
-copy is compiled with the module constants (``stokeslet.PAIR_CONSTANTS``) retyped to float32, so
-that no literal promotes the arithmetic to fp64. The CPU loops themselves (``_acc_*``) are not
-shared: they slice host arrays and rely on numba's CPU vectorisation; a GPU thread instead
-reads its sources from a shared-memory tile.
+copy is compiled with the module constants (:data:`~ciliary_carpet.stokes.kernel.PAIR_CONSTANTS`)
+retyped to float32, so that no literal promotes the arithmetic to fp64. The CPU loops themselves
+(:mod:`ciliary_carpet.stokes.direct`) are not shared: they slice host arrays and rely on numba's
+CPU vectorisation; a GPU thread instead reads its sources from a shared-memory tile.
 
 Kernels
 -------
@@ -30,7 +31,7 @@ Kernels
 Precision (:data:`PRECISIONS`)
 ------------------------------
 ``"fp64"`` (default) evaluates and sums in fp64: the same result as
-:class:`~ciliary_carpet.stokes.stokeslet.Direct` up to the order of the sums (tested to 1e-12 relative
+:class:`~ciliary_carpet.stokes.direct.Direct` up to the order of the sums (tested to 1e-12 relative
 to ``max |u|``). ``"fp32"`` evaluates and sums in fp32; ``"fp32-acc64"`` evaluates each pair in
 fp32 and sums in fp64. Coordinates are shifted first (x, y and, in free space, z) to the centre
 of the bounding box of targets and sources, then rounded to fp32. With ``u = 2^-24``,
@@ -57,7 +58,7 @@ summation term is a worst case): under the simulator, 70 targets and 75 sources 
 On a GPU the reciprocal square root of the pair formulas is libdevice's (``rsqrt``: 1 ulp in
 fp64; ``rsqrtf``, with fast math in fp32: ``rsqrt.approx``, relative error below 2^-22.9), not
 the CPU's correctly rounded ``1 / sqrt``: fp64 results then differ from
-:class:`~ciliary_carpet.stokes.stokeslet.Direct` by a few ulps per pair, far inside 1e-12 (the simulator,
+:class:`~ciliary_carpet.stokes.direct.Direct` by a few ulps per pair, far inside 1e-12 (the simulator,
 which has no libdevice, uses ``1 / sqrt``).
 
 The kernels run on a GPU when numba's CUDA target finds one, and under numba's CUDA simulator
@@ -77,9 +78,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ciliary_carpet.stokes.kernel import Kernel
-from ciliary_carpet.stokes.stokeslet import _INV_8PI, PAIR_CONSTANTS, PAIRS, Backend, _shift
-from ciliary_carpet.stokes.stokeslet import _rsqrt as _rsqrt_cpu
+from ciliary_carpet.stokes.backend import Backend
+from ciliary_carpet.stokes.kernel import INV_8PI, PAIR_CONSTANTS, PAIRS, Kernel, rsqrt
 
 __all__ = ["Cuda", "CudaUnavailableError", "PRECISIONS", "FP32_PAIR_CONSTANT", "cuda_available",
            "cuda_status", "fp32_error_bound"]
@@ -180,20 +180,20 @@ def _retyped(fn, fp32: bool, **extra):
 
 
 def _device_pair(code: int, precision: str):
-    """The pair formula of kernel ``code`` (``stokeslet.PAIRS``, its Python source) as a CUDA
-    device function: constants in the precision's type, and ``_rsqrt`` the GPU's reciprocal square
-    root (libdevice ``rsqrt`` / ``rsqrtf``: within 1 / 2 ulp), or, under the simulator, which has
+    """The pair formula ``code`` (:data:`~ciliary_carpet.stokes.kernel.PAIRS`, its Python source)
+    as a CUDA device function: constants in the precision's type, and ``rsqrt`` the GPU's reciprocal
+    square root (libdevice ``rsqrt`` / ``rsqrtf``: within 1 / 2 ulp), or, under the simulator, which has
     no libdevice, the CPU's ``1 / sqrt``."""
     from numba.core import config
 
     fp32 = precision != "fp64"
     if config.ENABLE_CUDASIM:
-        rsqrt = _retyped(_rsqrt_cpu.py_func, fp32)
+        device_rsqrt = _retyped(rsqrt.py_func, fp32)
     else:
         from numba.cuda import libdevice
 
-        rsqrt = libdevice.rsqrtf if fp32 else libdevice.rsqrt
-    return cuda.jit(device=True, fastmath=fp32)(_retyped(PAIRS[code].py_func, fp32, _rsqrt=rsqrt))
+        device_rsqrt = libdevice.rsqrtf if fp32 else libdevice.rsqrt
+    return cuda.jit(device=True, fastmath=fp32)(_retyped(PAIRS[code].py_func, fp32, rsqrt=device_rsqrt))
 
 
 def _types(precision: str):
@@ -328,13 +328,14 @@ def _ranged_kernel(code: int, precision: str, threads: int):
 
 # ------------------------------------------------------------------------------- the evaluator
 def _origin(kernel: Kernel, targets: np.ndarray, sources: np.ndarray) -> np.ndarray:
-    """The shift applied before rounding: the centre of the bounding box (x, y; z too in free
-    space), the wall height with a wall (the kernels take heights above the wall)."""
+    """The shift applied before rounding: the centre of the bounding box (x, y; z too where the
+    kernel allows any origin), else its :attr:`~ciliary_carpet.stokes.kernel.Kernel.z_origin`
+    (the wall height: the kernels take heights above the wall)."""
     lo = np.minimum(targets.min(axis=0), sources.min(axis=0))
     hi = np.maximum(targets.max(axis=0), sources.max(axis=0))
     o = 0.5 * (lo + hi)
-    if kernel.wall is not None:
-        o[2] = _shift(kernel)
+    if kernel.z_origin is not None:
+        o[2] = kernel.z_origin
     return o
 
 
@@ -356,7 +357,7 @@ class Cuda(Backend):
     Parameters
     ----------
     precision : "fp64" | "fp32" | "fp32-acc64", default "fp64"
-        Arithmetic (:data:`PRECISIONS`): fp64 agrees with :class:`~ciliary_carpet.stokes.stokeslet.Direct`
+        Arithmetic (:data:`PRECISIONS`): fp64 agrees with :class:`~ciliary_carpet.stokes.direct.Direct`
         to rounding; the fp32 variants within :func:`fp32_error_bound`.
     threads : int, default 128
         Threads per block (a multiple of 32, at most 1024): the source tile of the dense kernel,
@@ -378,6 +379,7 @@ class Cuda(Backend):
     precision: str = "fp64"
     threads: int = 128
     targets_per_thread: int = 2
+    ranged_sums = True
 
     def __post_init__(self) -> None:
         if self.precision not in PRECISIONS:
@@ -416,7 +418,7 @@ class Cuda(Backend):
         out = cuda.device_array((3, m), dtype=np.float64)
         blocks = -(-m // (self.threads * self.targets_per_thread))
         k[blocks, self.threads](cuda.to_device(_soa(targets, dt, o)), cuda.to_device(_soa(sources, dt, o)),
-                                cuda.to_device(_soa(forces, dt)), dt(kernel.eps ** 2), _INV_8PI / mu, out)
+                                cuda.to_device(_soa(forces, dt)), dt(kernel.eps ** 2), INV_8PI / mu, out)
         return np.ascontiguousarray(out.copy_to_host().T)
 
     def ranged(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
@@ -432,7 +434,7 @@ class Cuda(Backend):
         blocks = -(-m // (self.threads // _WARP))
         k[blocks, self.threads](cuda.to_device(_soa(targets, dt, o)), cuda.to_device(_soa(sources, dt, o)),
                                 cuda.to_device(_soa(forces, dt)), cuda.to_device(np.ascontiguousarray(ptr)),
-                                cuda.to_device(np.ascontiguousarray(ranges)), dt(kernel.eps ** 2), _INV_8PI / mu,
+                                cuda.to_device(np.ascontiguousarray(ranges)), dt(kernel.eps ** 2), INV_8PI / mu,
                                 out)
         return np.ascontiguousarray(out.copy_to_host().T)
 
@@ -463,7 +465,7 @@ def fp32_error_bound(kernel: Kernel, targets, sources, forces, mu: float = 1.0, 
     fn = np.linalg.norm(f, axis=1)[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         b = np.where(rho > 0, fn / rho * (1.0 + L / rho), 0.0)
-    B = b.sum(axis=1) * _INV_8PI / mu
+    B = b.sum(axis=1) * INV_8PI / mu
     n = np.full(t.shape[0], s.shape[0]) if terms is None else np.asarray(terms)
     a = 2.0 if precision == "fp32" else 2.0 ** -28
     return (FP32_PAIR_CONSTANT + a * n) * _U32 * B

@@ -23,7 +23,7 @@ benchmarks/bench_design.py: relative velocity error about 1e-4 at the default 0.
 of 1,000 and 10,000 cilia).
 
 The interaction lists are built once per geometry (vectorised level by level); both sums are
-then one call of :func:`~ciliary_carpet.stokes.stokeslet.stokeslet_velocity_ranges` each (any
+then one call of :func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity_ranges` each (any
 evaluator). The adjoint uses the same lists transposed: each leaf and each far cell gathers the
 control points that see it into a contiguous block, so that A^T is the exact transpose of the
 approximate A (what L-BFGS-B needs: its gradient is that of the objective it minimises).
@@ -36,8 +36,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ciliary_carpet.stokes.backend import Backend
+from ciliary_carpet.stokes.evaluator import stokeslet_velocity_ranges
 from ciliary_carpet.stokes.kernel import Kernel
-from ciliary_carpet.stokes.stokeslet import Backend, stokeslet_velocity_ranges
 
 __all__ = ["Treecode", "THETA", "LEAF"]
 
