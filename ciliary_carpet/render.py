@@ -73,7 +73,7 @@ from single_cilium._threads import threads_in_use
 from single_cilium.progress import Progress
 
 from ciliary_carpet.scenes.assembly import check_table_range
-from ciliary_carpet.carpet.carpet import BLOB, Carpet
+from ciliary_carpet.carpet.carpet import BLOB, Carpet, CycleMean, Instant
 from ciliary_carpet.design.inverse import design
 from ciliary_carpet.output.figures import _design_picture, _preview
 from ciliary_carpet.transport.ftle import ftle_field
@@ -81,7 +81,8 @@ from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, SUMMARY, Out
 from ciliary_carpet.output.folder import usual_mode as _usual_mode
 from ciliary_carpet.carpet.omissions import omissions
 from ciliary_carpet.output.paraview import SCRIPT, write_script
-from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR, UNDERFLOW, MeanFlow, check_output_size, check_seeds, pathlines
+from ciliary_carpet.transport.flow import MEAN_MODEL_ERROR, MeanFlow, ResolvedFlow
+from ciliary_carpet.transport.pathlines import UNDERFLOW, check_output_size, check_seeds, pathlines
 from ciliary_carpet.output.report import markdown
 from ciliary_carpet.scenes.scene import Scene, SceneError
 from ciliary_carpet.stokes.stokeslet import Auto, backend_named
@@ -146,7 +147,7 @@ def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, s
     sp = scene.carpet.spacing
     travel = float(np.ptp(b @ d0)) + 3.0 * sp
     probe = b[:: max(1, b.shape[0] // 200)] + 0.5 * sp * (d0 + np.array([-d0[1], d0[0]]))
-    speed = float(np.median(np.linalg.norm(carpet.mean_velocity(probe, max(scene.tolerance, 1e-3))[:, :2], axis=1)))
+    speed = float(np.median(np.linalg.norm(carpet.velocity(probe, CycleMean(), max(scene.tolerance, 1e-3))[:, :2], axis=1)))
     if not (math.isfinite(speed) and speed > 0):
         raise RenderError(f"{scene.source_name}: the carpet makes no mean flow (median speed {speed:g}): set "
                           "[output] periods for the path lines")
@@ -155,7 +156,7 @@ def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, s
 
 def pathline_model(scene: Scene) -> str:
     """The flow the tracers follow: ``[output] pathline_model``, "auto" resolved to "mean" when
-    the scene's tolerance is at least :data:`~ciliary_carpet.transport.pathlines.MEAN_MODEL_ERROR`."""
+    the scene's tolerance is at least :data:`~ciliary_carpet.transport.flow.MEAN_MODEL_ERROR`."""
     m = scene.output.pathline_model
     if m == "auto":
         return "mean" if scene.tolerance >= MEAN_MODEL_ERROR else "resolved"
@@ -180,13 +181,13 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
     k = min(ERROR_SAMPLE, seeds.shape[0])
     idx = np.unique(np.linspace(0, seeds.shape[0] - 1, k).round().astype(int))
     if model == "mean":
-        ref = carpet.pathlines(seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing, tol=tol,
-                               samples_per_period=1, domain=tuple(float(v) for v in flow.box))
+        ref = pathlines(ResolvedFlow(carpet, tol), seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing,
+                        samples_per_period=1, domain=tuple(float(v) for v in flow.box))
         what = f"the time-resolved flow (rtol 1e-6, flow tol {tol:g}): the long-time model's error"
     else:
         t_ref = max(tol / 10, 1e-6)
-        ref = carpet.pathlines(seeds[idx], (0.0, duration), rtol=1e-8, atol=1e-6 * spacing, tol=t_ref,
-                               samples_per_period=1)
+        ref = pathlines(ResolvedFlow(carpet, t_ref), seeds[idx], (0.0, duration), rtol=1e-8, atol=1e-6 * spacing,
+                        samples_per_period=1)
         what = f"rtol 1e-8 and flow tol {t_ref:g}: integration and levels of detail"
     e = np.linalg.norm(pl.end_points[idx] - ref.end_points, axis=1)
     return {"max": float(e.max()), "median": float(np.median(e)), "tracers": int(idx.size), "reference": what}
@@ -214,7 +215,7 @@ def _mean_flow(scene: Scene, carpet: Carpet, mean_field, tol: float) -> MeanFlow
     """The long-time model from the render's mean field (or evaluated on the same grid)."""
     if mean_field is not None:
         shape = mean_field[2]
-        return MeanFlow.from_grid(*_grid_lines(mean_field), mean_field[4].reshape(shape[1], shape[0], 3))
+        return MeanFlow.from_grid(carpet, *_grid_lines(mean_field), mean_field[4].reshape(shape[1], shape[0], 3))
     box = _field_box(scene, carpet)
     spacing = min((box[1] - box[0]) / (scene.output.field_shape[0] - 1), (box[3] - box[2]) / (scene.output.field_shape[1] - 1))
     return MeanFlow.from_carpet(carpet, box, spacing=spacing, tol=max(tol, 1e-6))
@@ -451,7 +452,7 @@ def _render(scene: Scene, folder: OutputFolder, *, progress: Progress | None, ma
         if o.field:
             t1 = _time.perf_counter()
             origin, spacing, shape, pts = _field_grid(scene, carpet)
-            s = carpet.evaluate_mean(pts, tol=tol)
+            s = carpet.evaluate(pts, CycleMean(), tol=tol)
             u = s.velocity
             mean_field = (origin, spacing, shape, pts, u)
             write_field(stage / "mean_field.vti", np.asarray(origin) * L, np.asarray(spacing) * L, shape,
@@ -477,7 +478,7 @@ def _render(scene: Scene, folder: OutputFolder, *, progress: Progress | None, ma
             entries, fid = [], []
             for k in range(o.snapshots):
                 t = k * Tb / o.snapshots
-                s = carpet.evaluate(pts, t, tol=tol)
+                s = carpet.evaluate(pts, Instant(t), tol=tol)
                 u = s.velocity
                 f = write_field(stage / f"snapshot_{k:03d}.vti", np.asarray(origin) * L, np.asarray(spacing) * L,
                                 shape, {"velocity": u * V, "speed": np.linalg.norm(u, axis=1) * V,
@@ -511,9 +512,9 @@ def _render(scene: Scene, folder: OutputFolder, *, progress: Progress | None, ma
             t1 = _time.perf_counter()
             duration, how = pathline_duration(scene, carpet, T0)
             model = pathline_model(scene)
-            flow = _mean_flow(scene, carpet, mean_field, tol) if model == "mean" else "resolved"
-            pl = carpet.pathlines(seeds, (0.0, duration), rtol=1e-6, atol=1e-4 * scene.carpet.spacing, tol=tol,
-                                  model=flow, samples_per_period=o.samples_per_period)
+            flow = _mean_flow(scene, carpet, mean_field, tol) if model == "mean" else ResolvedFlow(carpet, tol)
+            pl = pathlines(flow, seeds, (0.0, duration), rtol=1e-6, atol=1e-4 * scene.carpet.spacing,
+                           samples_per_period=o.samples_per_period)
             pl.write(stage / "pathlines.vtp", scales=sc)
             pl.write_particles(stage / "particles.pvd", scales=sc)
             clock["pathlines"] = _time.perf_counter() - t1
@@ -534,8 +535,8 @@ def _render(scene: Scene, folder: OutputFolder, *, progress: Progress | None, ma
             flow = _mean_flow(scene, carpet, mean_field, tol)
             b = carpet.bases
             nx, ny = max(3, o.field_shape[0] // 2), max(3, o.field_shape[1] // 2)
-            f = ftle_field(carpet, (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
-                           0.25 * duration, model=flow, rtol=1e-6, atol=1e-4 * scene.carpet.spacing)
+            f = ftle_field(flow, (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
+                           0.25 * duration, rtol=1e-6, atol=1e-4 * scene.carpet.spacing)
             f.write(stage / "ftle.vti", scales=sc)
             clock["ftle"] = _time.perf_counter() - t1
             summary["mixing"] = {"mixing_number": f.mixing_number, "ftle_max": float(np.nanmax(f.ftle)) / T

@@ -29,7 +29,7 @@ with it 0.15 % (0.05 % free). This is what makes points inside swept regions usa
 (``inside_swept``) and designs above a wall reach their threshold.
 
 Defect correction. After each inner solve the full flow model
-(:meth:`Carpet.evaluate_mean`: resolved near pairs, levels of detail elsewhere) is evaluated at
+(:meth:`Carpet.evaluate` of the :class:`CycleMean`: resolved near pairs, levels of detail elsewhere) is evaluated at
 the control points, and the next solve minimises the objective of ``model(chi) + (u_full -
 model)(chi_pass)``. The model already holds the monopole and dipole of every cilium (with the
 wall when there is one) and the near pairs exactly, so the defect is the far pairs' field
@@ -121,7 +121,7 @@ from scipy.optimize import minimize
 from single_cilium.table import ThrustTable
 
 from ciliary_carpet.scenes.assembly import assemble
-from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.stokes.kernel import make_kernel
 from ciliary_carpet.stokes.stokeslet import Wall, stokeslet_velocity, stokeslet_velocity_ranges
 from ciliary_carpet.design.target import Frame, TargetError, _as_in_spec, control_points, reachable_check
@@ -510,7 +510,7 @@ class NearField:
 
         v_kj(chi) = 1/(8 pi mu) 1/n_p sum_p sum_s w_s G(x_k - b_j, r(s, p; chi)) f(s, p; chi),
 
-    the resolved mean flow of :meth:`Carpet.evaluate_mean` (the table's phase samples, Simpson
+    the resolved mean flow of :meth:`Carpet.evaluate` (:class:`CycleMean`; the table's phase samples, Simpson
     weights w_s, the carpet's own kernel: regularised, with the wall when there is one). For
     every near pair (k, j), |x_k - b_j| <= ``radius`` (:data:`NEAR_RADIUS`), it is sampled at
     ``n_chi`` (:data:`NEAR_CHI_SAMPLES`) uniform curvatures on [-chi_c, chi_c] -- one
@@ -569,9 +569,9 @@ class NearField:
                 ref = Carpet(np.column_stack([10.0 * np.arange(self.grid.size), np.zeros(self.grid.size)]),
                              self.grid, carpet.table, None, carpet.direction, carpet.mu, carpet.wall,
                              backend=carpet.backend, blob=carpet.blob)
-            c = ref._c
-            wgt = c["w"] / c["n_phase"]
-            on = np.nonzero(c["flutter"])[0]  # a still filament makes no flow
+            c = ref.cycles
+            wgt = c.weights / c.n_phase
+            on = np.nonzero(c.flutter)[0]  # a still filament makes no flow
             if on.size:
                 # one ranged sum: every pair's point against the sources of every sampled curvature
                 pos, frc = ref.cycle_samples(on)
@@ -1000,7 +1000,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
         t0 = _time.perf_counter()
         c = _with_chi(carpet, chi) if c is None else c
         t1 = _time.perf_counter()
-        s = c.evaluate_mean(X, tol=check_tol if ctol is None else ctol, error=True)
+        s = c.evaluate(X, CycleMean(), tol=check_tol if ctol is None else ctol)
         counters["seconds_carpets"] += t1 - t0
         counters["seconds_checks"] += _time.perf_counter() - t1
         return c, s.velocity[:, :2], s.error_bound
