@@ -10,6 +10,7 @@ import pytest
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
+from ciliary_carpet.carpet.cycles import cycle_moments
 from ciliary_carpet.cli import main
 from ciliary_carpet.design.inverse import (
     INSIDE_WEIGHT,
@@ -18,7 +19,6 @@ from ciliary_carpet.design.inverse import (
     DesignModel,
     NearField,
     angle_objective,
-    cycle_moments,
     design,
     design_layout,
     floor_reference,

@@ -11,7 +11,8 @@ one of three orders:
 * the *dipole*: three forces at c_j + delta_j u_m, u_m the unit vectors of an equilateral triangle
   (:data:`DIPOLE` at 90, 210 and 330 degrees, :func:`triangle`), delta_j = a_j / 2, reproducing F
   and D: f_m = F / 3 + 2 / (3 delta) D^T u_m, from the inverse of their moment matrix
-  (:func:`dipole_forces`);
+  (:func:`dipole_forces`, the one implementation, which the design model uses too, with its own
+  triangle at 0, 120 and 240 degrees, :data:`DESIGN_DIPOLE`);
 * the *quadrupole*: six forces, one at c_j and five on a regular pentagon of radius delta_j
   (:data:`QUADRUPOLE`, a vertex at 90 degrees), reproducing F, D and T.
 
@@ -64,7 +65,7 @@ from numba import njit, prange
 from ciliary_carpet.carpet.cycles import CycleData
 from ciliary_carpet.stokes.kernel import Kernel
 
-__all__ = ["Bounds", "CarrierForces", "Carriers", "DIPOLE", "QUADRUPOLE", "LOD_SLACK", "PHASE_MARGIN",
+__all__ = ["Bounds", "CarrierForces", "Carriers", "DIPOLE", "DESIGN_DIPOLE", "QUADRUPOLE", "LOD_SLACK", "PHASE_MARGIN",
            "dipole_forces", "triangle"]
 
 PHASE_MARGIN = 1.25
@@ -97,6 +98,14 @@ DIPOLE = triangle(math.pi / 2)
 at 90 degrees (90, 210, 330), the vertex the pentagon of :data:`QUADRUPOLE` has too. Any
 orientation reproduces F and D exactly; the orientation sets the carriers' own second moment
 T_rep, hence what the dipole order misses (its bound uses nu(T - T_rep))."""
+DESIGN_DIPOLE = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
+"""Positions of the design model's dipole carriers for unit delta (:mod:`ciliary_carpet.design.inverse`):
+the triangle at 0, 120 and 240 degrees. The same carriers (:func:`dipole_forces`), another
+orientation: the design model's flow is its own approximation (corrected by the full flow
+between passes), and its designs were calibrated with this one. Measured on the five bundled
+scenes (reduced): the carpet's orientation would move the designed layouts' flows by up to 3 %
+(path-line velocities; the pattern a carpet can hold, e.g. 24.4 against 23.0 degrees for
+vortex_turn), so the design keeps its own."""
 QUADRUPOLE = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2),
                                        math.sin(2 * math.pi * m / 5 + math.pi / 2)] for m in range(5)])
 """Positions of the quadrupole carriers for unit delta: the centre and a regular pentagon."""
@@ -110,8 +119,9 @@ def dipole_forces(F: np.ndarray, D: np.ndarray, delta: np.ndarray, unit: np.ndar
     F (K, 2) and D (K, 2, 2) about c of K cilia with carrier scales ``delta`` (K,):
     f_m = F / 3 + 2 / (3 delta) D^T u_m, from the inverse of the carriers' moment matrix (rows 1,
     x, y). ``unit`` (3, 2): the u_m, an equilateral triangle: the carpet's :data:`DIPOLE` (default)
-    or another orientation. Linear in (F, D): the derivatives of F and D
-    give the carriers' derivatives."""
+    or the design model's :data:`DESIGN_DIPOLE`. Linear in (F, D): the derivatives of F and D
+    give the carriers' derivatives. The one implementation of the dipole carriers, for the
+    carpet's levels of detail and the design model."""
     inv = np.linalg.inv(np.stack([np.ones(3), unit[:, 0], unit[:, 1]]))
     F = np.asarray(F, dtype=float)
     D = np.asarray(D, dtype=float)
