@@ -1,5 +1,5 @@
 """The levels of detail's calibration on every carpet size: the measured error of
-``Carpet.evaluate(points, t, tol)`` against the dense resolved sum (``tol = 0``), in units of
+``Carpet.evaluate(points, Instant(t), tol)`` against the dense resolved sum (``tol = 0``), in units of
 ``tol`` times the far-field scale the bound is written in, and whether the rigorous bound
 (``FlowSample.error_bound``) held at every point.
 
@@ -18,8 +18,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from test_carpet import _grid, _inside_points, _scale  # noqa: E402
 
-from ciliary_carpet import layout  # noqa: E402
-from ciliary_carpet.carpet.carpet import Carpet  # noqa: E402
+from ciliary_carpet.carpet import layout  # noqa: E402
+from ciliary_carpet.carpet.carpet import Carpet, Instant  # noqa: E402
 from single_cilium.table import ThrustTable  # noqa: E402
 
 TOLS = (1e-2, 1e-3, 1e-4)
@@ -35,11 +35,11 @@ def main() -> str:
             c = Carpet(layout.square(n, n, 2.0), rng.uniform(-100, 100, n * n), table,
                        layout.random_phases(n * n, 0), wall=wall)
             p = np.concatenate([_inside_points(c, t=0.81), _grid(c, distances=(0.0, 5.0))])
-            ref = c.evaluate(p, 0.81, tol=0)
-            scale = _scale(c, p, c._c["F_rms"])
+            ref = c.evaluate(p, Instant(0.81), tol=0)
+            scale = _scale(c, p, c.cycles.F_rms)
             ratios, held = [], True
             for tol in TOLS:
-                s = c.evaluate(p, 0.81, tol=tol)
+                s = c.evaluate(p, Instant(0.81), tol=tol)
                 err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
                 held &= bool(np.all(err <= s.error_bound * (1 + 1e-9) + 1e-15))
                 ratios.append(float(np.max(err / (tol * scale))))

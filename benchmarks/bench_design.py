@@ -69,8 +69,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 from bench_flow import cpu_model  # one CPU probe for every benchmark
 
 from ciliary_carpet.carpet import layout
-from ciliary_carpet.carpet.carpet import Carpet
-from ciliary_carpet.design.inverse import DesignModel, cycle_moments, design_layout
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean
+from ciliary_carpet.carpet.cycles import cycle_moments
+from ciliary_carpet.design.inverse import DesignModel, design_layout
 from ciliary_carpet.render import render
 from ciliary_carpet.scenes.scene import load_scene
 from ciliary_carpet.design.target import Frame, control_points
@@ -174,13 +175,13 @@ def section_design(emit, table: ThrustTable, sizes, cap: float, old_max_n: int):
          f"Carpet), capped at {cap:g} s. Residuals in rad, measured with the full flow model.")
     emit("")
     emit("Split of the time: the local Carpet, the carpets of the checked layouts, their full-model "
-         "evaluations (`evaluate_mean`), the L-BFGS-B solves on the design model; CPU = process CPU time of the "
+         "evaluations (`evaluate` of the `CycleMean`), the L-BFGS-B solves on the design model; CPU = process CPU time of the "
          "whole row (2 numba threads), less inflated by the other processes on the machine than the wall clock. "
          "\"whole-carpet floor\": the same design with the speed floor relative to the whole straight carpet "
          "(`floor_radius=inf`, the floor of commit b0bebbe), same carpet, same process.")
     emit("")
     emit("| N | target | local rms | design rms (+- bound) | worst | returned | near cutoff | iterations | checks "
-         "| time [s] | local Carpet / check carpets / evaluate_mean / design model [s] | CPU [s] "
+         "| time [s] | local Carpet / check carpets / evaluate (mean) / design model [s] | CPU [s] "
          "| peak memory [GB] | whole-carpet floor: rms | near cutoff | time [s] "
          "| before: rms | before: near cutoff | before: time [s] | time before / now |")
     emit("|---:|---|---:|---:|---:|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
@@ -259,7 +260,7 @@ def section_large(emit, table: ThrustTable, n: int = 10000):
     cpu = time.process_time() - cpu0
     w = d.work
     emit("| N | control points | design rms (+- bound) [rad] | returned | near cutoff | iterations | checks | time [s] "
-         "| local Carpet / check carpets / evaluate_mean / design model [s] | CPU [s] | peak memory [GB] |")
+         "| local Carpet / check carpets / evaluate (mean) / design model [s] | CPU [s] | peak memory [GB] |")
     emit("|---:|---:|---:|---|---:|---:|---:|---:|---|---:|---:|")
     emit(f"| {n} | {X.shape[0]} | {d.residual_rms:.3g} (+- {d.residual_error:.1g}) | {d.returned} | "
          f"{len(d.near_cutoff)} | {w['iterations']} | {w['checks']} | {t_d:.1f} | {t_c:.1f} / "
@@ -300,7 +301,7 @@ def section_velocity(emit, table: ThrustTable, cap: float):
          "starts from chi_N = 0. Time = `Carpet(...)` + `design_layout(...)`; rms relative to the rms target speed.")
     emit("")
     emit("| cilia | control points | wall | start rms | design rms (+- bound) | returned | iterations | checks "
-         "| time [s] | check carpets / evaluate_mean / design model [s] | CPU [s] |")
+         "| time [s] | check carpets / evaluate (mean) / design model [s] | CPU [s] |")
     emit("|---:|---:|---|---:|---:|---|---:|---:|---:|---|---:|")
     for n, wall, n_ctrl in ((30, None, 400), (12, 0.5, None)):
         bases = layout.square(n, n, SPACING)
@@ -312,7 +313,7 @@ def section_velocity(emit, table: ThrustTable, cap: float):
         chi_true = 90 * np.sin(bases[:, 0] / 7) * np.cos(bases[:, 1] / 9)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            U = Carpet(bases, chi_true, table, phases, wall=wall).mean_velocity(X)[:, :2]
+            U = Carpet(bases, chi_true, table, phases, wall=wall).velocity(X, CycleMean())[:, :2]
         log(f"velocity target: {n * n} cilia, {X.shape[0]} control points, wall {wall}")
 
         def run():
@@ -351,7 +352,7 @@ def _reachable_target(table, n, spacing, wall, points, seed=1):
     phases = layout.random_phases(n * n, 0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        U = Carpet(b, chi, table, phases, wall=wall).mean_velocity(X, tol=0.0)[:, :2]
+        U = Carpet(b, chi, table, phases, wall=wall).velocity(X, CycleMean(), tol=0.0)[:, :2]
     return b, phases, X, U
 
 
@@ -391,7 +392,7 @@ def section_targets(emit, table: ThrustTable, cap: float, quick: bool = False):
                 if d is None:
                     emit(f"| {n * n} | {points} | {len(X)} | | {wall} | stopped after {t_d:.0f} s |" + " |" * 11)
                     continue
-                u = d.carpet.mean_velocity(d.control, tol=0.0)[:, :2]
+                u = d.carpet.velocity(d.control, CycleMean(), tol=0.0)[:, :2]
                 s = math.sqrt(np.mean(np.sum(d.target ** 2, axis=1)))
                 exact = math.sqrt(np.mean(np.sum((u - d.target) ** 2, axis=1))) / s
                 w = d.work

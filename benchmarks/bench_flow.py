@@ -273,7 +273,8 @@ def bench_levels(quick: bool, emit) -> dict:
                 spent["kernel"] += time.perf_counter() - t0
         return wrapper
 
-    import ciliary_carpet.carpet.carpet as carpet_module
+    import ciliary_carpet.carpet.traversal as carpet_module
+    from ciliary_carpet.carpet.carpet import CycleMean, Instant
     from ciliary_carpet.stokes import Direct as _Direct
 
     orig = (_Direct.dense, _Direct.ranged)  # the evaluator's sums (their structure-of-arrays copies included)
@@ -301,11 +302,11 @@ def bench_levels(quick: bool, emit) -> dict:
             pts = lo + (hi - lo) * rng.random((1500, 2))
             pts = pts[c.filament_distance(pts, 0.37) > 2 * c.blob][:1000]
             for field in ("instantaneous", "mean"):
-                ev = (lambda tol: c.evaluate(pts, 0.37, tol=tol, error=False)) if field == "instantaneous" else \
-                    (lambda tol: c.evaluate_mean(pts, tol=tol, error=False))
+                when = Instant(0.37) if field == "instantaneous" else CycleMean()
+                ev = (lambda tol: c.velocity(pts, when, tol=tol))  # noqa: B023
                 ref, t_ref = best_time(lambda: ev(0.0), repeat=2)
                 for tol in ((1e-3,) if quick else (1e-2, 1e-3, 1e-4)):
-                    s = c.evaluate(pts, 0.37, tol=tol) if field == "instantaneous" else c.evaluate_mean(pts, tol=tol)
+                    s = c.evaluate(pts, when, tol=tol)
                     # interleaved with the resolved sum (instantaneous; the mean's takes seconds), best
                     # of 7: the machine is shared, its load changes from second to second
                     t, share, t_q = np.inf, float("nan"), np.inf
@@ -320,16 +321,16 @@ def bench_levels(quick: bool, emit) -> dict:
                         # the plan takes when classifying a cilium is made prohibitive)
                         price = carpet_module._CLASSIFY
                         carpet_module._CLASSIFY = 1e12
-                        c._c["memo"].clear()
+                        c._plans.clear()
                         try:
                             ev(tol)  # the plan is made once per tolerance (not timed, as for the levels)
                             t_q = min(t_q, best_time(lambda: ev(tol), repeat=1)[1])
                         finally:
                             carpet_module._CLASSIFY = price
-                            c._c["memo"].clear()
+                            c._plans.clear()
                             ev(tol)
-                    err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
-                    rel = float(np.max(err / np.linalg.norm(ref.velocity, axis=1)))
+                    err = np.linalg.norm(s.velocity - ref, axis=1)
+                    rel = float(np.max(err / np.linalg.norm(ref, axis=1)))
                     frac = 1 - s.fidelity["resolved"]
                     spp = s.work["sources"] / len(pts)
                     o = s.work["orders"]
@@ -358,6 +359,10 @@ def bench_pathlines(quick: bool, emit) -> dict:
     """Time-resolved path lines in a 10 x 10 carpet: our multirate Dormand-Prince 5(4) with dense
     output against a plain vectorised fixed-step RK4 on the same velocity evaluation (regularised
     Stokeslets, blob 0.02 L, flow tol 1e-3); end-point error against rtol = atol = 1e-8."""
+    from ciliary_carpet.carpet.carpet import Instant
+    from ciliary_carpet.transport.flow import ResolvedFlow
+    from ciliary_carpet.transport.pathlines import pathlines
+
     c = _carpet()
     T0 = float(np.nanmin(c.periods))
     n_tr, periods = (30, 3) if quick else (100, 20)
@@ -368,7 +373,7 @@ def bench_pathlines(quick: bool, emit) -> dict:
          "[L] over the tracers, against our integrator at rtol = atol = 1e-8 (blob 0.02 L: tracers pass between "
          "and through the beating filaments, none is stopped).\n")
     t0 = time.perf_counter()
-    ref = c.pathlines(seeds, span, rtol=1e-8, atol=1e-8, tol=1e-3)
+    ref = pathlines(ResolvedFlow(c, 1e-3), seeds, span, rtol=1e-8, atol=1e-8)
     t_ref = time.perf_counter() - t0
     emit(f"Reference: {_fmt_t(t_ref)}, {ref.stats['evaluations']} evaluations; outcome {ref.counts()}.\n")
     emit("| integrator | tolerance / step | time | steps (+substeps) | velocity evaluations | points per beat | "
@@ -378,7 +383,7 @@ def bench_pathlines(quick: bool, emit) -> dict:
     runs = [(1e-5, None)] if quick else [(1e-4, None), (1e-6, None), (1e-6, 1e9)]
     for r, cap in runs:
         t0 = time.perf_counter()
-        p = c.pathlines(seeds, span, rtol=r, atol=r, tol=1e-3, max_step=cap)
+        p = pathlines(ResolvedFlow(c, 1e-3), seeds, span, rtol=r, atol=r, max_step=cap)
         t = time.perf_counter() - t0
         err = float(np.max(np.linalg.norm(p.end_points - ref.end_points, axis=1)))
         ppb = float(np.mean([len(q) for q in p.points])) / periods
@@ -393,10 +398,10 @@ def bench_pathlines(quick: bool, emit) -> dict:
         t0 = time.perf_counter()
         tt = 0.0
         for _ in range(n_steps):
-            k1 = c.velocity(x, tt, 1e-3)
-            k2 = c.velocity(x + 0.5 * h * k1, tt + 0.5 * h, 1e-3)
-            k3 = c.velocity(x + 0.5 * h * k2, tt + 0.5 * h, 1e-3)
-            k4 = c.velocity(x + h * k3, tt + h, 1e-3)
+            k1 = c.velocity(x, Instant(tt), 1e-3)
+            k2 = c.velocity(x + 0.5 * h * k1, Instant(tt + 0.5 * h), 1e-3)
+            k3 = c.velocity(x + 0.5 * h * k2, Instant(tt + 0.5 * h), 1e-3)
+            k4 = c.velocity(x + h * k3, Instant(tt + h), 1e-3)
             x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
             tt += h
         t = time.perf_counter() - t0
@@ -412,7 +417,7 @@ def bench_pathlines(quick: bool, emit) -> dict:
     seeds = _free_seeds(c, 30 if quick else 100, np.random.default_rng(2))
     span = (0.0, beats * T0)
     t0 = time.perf_counter()
-    ref = c.pathlines(seeds, span, rtol=1e-8, atol=1e-8, tol=1e-3)
+    ref = pathlines(ResolvedFlow(c, 1e-3), seeds, span, rtol=1e-8, atol=1e-8)
     t_ref = time.perf_counter() - t0
     emit(f"### {beats} beats: end-point error ({seeds.shape[0]} tracers) and time (1000 tracers)\n")
     emit(f"Error against our integrator at rtol = atol = 1e-8 ({_fmt_t(t_ref)}, {ref.stats['evaluations']} "
@@ -427,10 +432,10 @@ def bench_pathlines(quick: bool, emit) -> dict:
     emit("|---:|---|---:|---:|---:|---:|---:|---:|---|")
     big = _free_seeds(c, 100 if quick else 1000, np.random.default_rng(3))
     for r, cap in runs:
-        p = c.pathlines(seeds, span, rtol=r, atol=r, tol=1e-3, max_step=T0 / cap)
+        p = pathlines(ResolvedFlow(c, 1e-3), seeds, span, rtol=r, atol=r, max_step=T0 / cap)
         e = np.linalg.norm(p.end_points - ref.end_points, axis=1)
         t0 = time.perf_counter()
-        q = c.pathlines(big, span, rtol=r, atol=r, tol=1e-3, max_step=T0 / cap)
+        q = pathlines(ResolvedFlow(c, 1e-3), big, span, rtol=r, atol=r, max_step=T0 / cap)
         t = time.perf_counter() - t0
         emit(f"| {r:g} | T/{cap}{' (default)' if cap == 16 else ''} | {e.max():.1e} | {np.median(e):.1e} | "
              f"{np.percentile(e, 90):.1e} | {_fmt_t(t)} | {q.stats['evaluations']} | "
@@ -441,13 +446,14 @@ def bench_pathlines(quick: bool, emit) -> dict:
 
 
 def bench_longtime(quick: bool, emit) -> dict:
-    """The long-time model (pathlines.MeanFlow: the mean Eulerian flow on a grid) against
+    """The long-time model (flow.MeanFlow: the mean Eulerian flow on a grid) against
     time-resolved path lines across the designed uniform_deflection carpet, seeded as the render
     seeds them, for the render's automatic duration."""
     import warnings
 
     from ciliary_carpet.design.inverse import design
-    from ciliary_carpet.transport.pathlines import MeanFlow
+    from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow
+    from ciliary_carpet.transport.pathlines import pathlines
     from ciliary_carpet.output.plan import FieldGrid, pathline_duration, seed_points
     from ciliary_carpet.scenes.scene import load_scene
 
@@ -464,7 +470,7 @@ def bench_longtime(quick: bool, emit) -> dict:
     emit(f"## Long-time model vs time-resolved path lines ({scene.name}, {c.n} cilia, {seeds.shape[0]} tracers, "
          f"{duration / T0:.0f} beats; {how})\n")
     t0 = time.perf_counter()
-    res = c.pathlines(seeds, (0.0, duration), rtol=1e-6, atol=2e-4, tol=1e-3, domain=box)
+    res = pathlines(ResolvedFlow(c, 1e-3), seeds, (0.0, duration), rtol=1e-6, atol=2e-4, domain=box)
     t_res = time.perf_counter() - t0
     out = {"resolved": t_res}
     emit("| flow model | grid spacing | build | integration | end-point error / distance travelled (max, median) "
@@ -477,7 +483,7 @@ def bench_longtime(quick: bool, emit) -> dict:
         m = MeanFlow.from_carpet(c, box, spacing=spacing, tol=1e-3)
         t_build = time.perf_counter() - t0
         t0 = time.perf_counter()
-        p = c.pathlines(seeds, (0.0, duration), rtol=1e-6, atol=2e-4, model=m, domain=box)
+        p = pathlines(m, seeds, (0.0, duration), rtol=1e-6, atol=2e-4, domain=box)
         t_int = time.perf_counter() - t0
         both = (p.reason == res.reason)
         rel = np.linalg.norm(p.end_points - res.end_points, axis=1)[both] / travel[both]
@@ -488,7 +494,7 @@ def bench_longtime(quick: bool, emit) -> dict:
     rng = np.random.default_rng(3)
     many = _free_seeds(c, 1000, rng, pad=0.0)
     t0 = time.perf_counter()
-    p = c.pathlines(many, (0.0, 200 * T0), rtol=1e-6, atol=2e-4, model=m, domain=box)
+    p = pathlines(m, many, (0.0, 200 * T0), rtol=1e-6, atol=2e-4, domain=box)
     t_many = time.perf_counter() - t0
     emit(f"\nMean-flow path lines of {many.shape[0]} tracers over 200 beats (grid above, built once): "
          f"{_fmt_t(t_many)} ({p.stats['evaluations']} evaluations; outcome {p.counts()}).")
@@ -506,7 +512,7 @@ def _stokes_drift(emit, table, quick: bool) -> dict:
     differences (h = 1e-3 L). Cilia of different periods add no cross terms to the long-time
     average, so in a carpet the drift is this single-cilium drift of the nearest cilia while the
     mean flow adds up over all of them: the ratios below bound the carpet's from above."""
-    from ciliary_carpet.carpet.carpet import Carpet
+    from ciliary_carpet.carpet.carpet import Carpet, Instant
 
     emit("### Stokes drift of one cilium's beat against its mean flow (what the long-time model omits)\n")
     emit("| chi_N | distance from the force centre [L] | max |u_S| / |ubar| | median | max |u'| / |ubar| |")
@@ -522,7 +528,7 @@ def _stokes_drift(emit, table, quick: bool) -> dict:
             ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
             P = np.c_[ctr[0] + d * np.cos(ang), ctr[1] + d * np.sin(ang), np.zeros(16)]
             offs = [np.zeros(3)] + [s * h * e for e in np.eye(3) for s in (1, -1)]
-            U = np.array([[c.velocity(P + o, tt, tol=0) for o in offs] for tt in ts])  # (phase, offset, point, 3)
+            U = np.array([[c.velocity(P + o, Instant(tt), tol=0) for o in offs] for tt in ts])  # (phase, offset, point, 3)
             ubar = U[:, 0].mean(0)
             up = U[:, 0] - ubar
             with np.errstate(divide="ignore", invalid="ignore"):

@@ -22,8 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.output.vtkfiles import grid_points, write_field
+from ciliary_carpet.transport.flow import ResolvedFlow
+from ciliary_carpet.transport.pathlines import pathlines
 from single_cilium import CiliumParams, limit_angle
 from single_cilium.table import ThrustTable
 
@@ -43,13 +45,13 @@ origin, spacing, shape = (-3.0, -4.0, 0.0), (6 / 40, 6 / 40, 1.0), (41, 41, 1)
 grid = grid_points(origin, spacing, shape)
 for name, carpet in scenes.items():
     probe = carpet.centres[0] + 30.0 * np.array([[0.0, -1.0]])
-    u = carpet.mean_velocity(probe)[0]
+    u = carpet.velocity(probe, CycleMean())[0]
     deflection[name] = math.degrees(math.atan2(u[0], -u[1]))  # from -y, anticlockwise
     seeds = np.column_stack([np.linspace(-1.5, 1.5, n_seeds), np.full(n_seeds, 1.4)])
     T = float(carpet.periods[0])
-    paths[name] = carpet.pathlines(seeds, (0.0, periods * T), rtol=1e-6, atol=1e-6, tol=1e-4)
+    paths[name] = pathlines(ResolvedFlow(carpet, 1e-4), seeds, (0.0, periods * T), rtol=1e-6, atol=1e-6)
     paths[name].write(OUT / f"{name}_pathlines.vtp")
-    um = carpet.mean_velocity(grid)
+    um = carpet.velocity(grid, CycleMean())
     fields[name] = um
     write_field(OUT / f"{name}_mean_field.vti", origin, spacing, shape,
                 {"velocity": um, "speed": np.linalg.norm(um, axis=1)})

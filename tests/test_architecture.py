@@ -23,8 +23,6 @@ PACKAGES = ("single_cilium", "ciliary_carpet")
 # Known faults, each to be removed from these lists by the branch that fixes it (the coordinator
 # empties them as the branches of issue 25 merge); test_known_faults_still_exist keeps them honest.
 ALLOWED_CYCLES: set[frozenset[str]] = {
-    # carpet <-> path lines (issue 25, point 2)
-    frozenset({"ciliary_carpet.carpet.carpet", "ciliary_carpet.transport.pathlines"}),
     # scene <-> target (issue 25, point 5)
     frozenset({"ciliary_carpet.scenes.scene", "ciliary_carpet.design.target"}),
     # single_cilium's cycle, dynamics and stability read __version__ from the package's __init__,

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from ciliary_carpet.carpet import layout
-from ciliary_carpet.carpet.carpet import C2_FREE, C2_WALL, Carpet
-from ciliary_carpet.stokes import Wall, stokeslet_velocity
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant
+from ciliary_carpet.stokes import C2_FREE, C2_WALL, Wall, stokeslet_velocity
 from single_cilium.table import TableError, ThrustTable
 
 
@@ -41,12 +41,12 @@ def _scale(carpet, pts, S):
 @pytest.mark.parametrize("tol", [1e-2, 1e-3, 1e-4])
 def test_point_level_meets_tolerance(carpet, tol):
     pts = _grid(carpet)
-    ref = carpet.evaluate(pts, 0.37, tol=0)
+    ref = carpet.evaluate(pts, Instant(0.37), tol=0)
     assert ref.pairs["point"] == 0 and np.all(ref.error_bound == 0)
-    s = carpet.evaluate(pts, 0.37, tol=tol)
+    s = carpet.evaluate(pts, Instant(0.37), tol=tol)
     err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
     assert np.all(err <= s.error_bound * (1 + 1e-9) + 1e-15)
-    F = carpet._c["F_rms"]
+    F = carpet.cycles.F_rms
     assert np.all(err <= tol * _scale(carpet, pts, F))
     assert s.pairs["point"] > 0.15 * sum(s.pairs.values())  # the cheap level is actually used
 
@@ -54,8 +54,8 @@ def test_point_level_meets_tolerance(carpet, tol):
 @pytest.mark.parametrize("tol", [1e-2, 1e-3])
 def test_mean_level_meets_tolerance(carpet, tol):
     pts = _grid(carpet)
-    ref = carpet.evaluate_mean(pts, tol=0)
-    s = carpet.evaluate_mean(pts, tol=tol)
+    ref = carpet.evaluate(pts, CycleMean(), tol=0)
+    s = carpet.evaluate(pts, CycleMean(), tol=tol)
     err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
     assert np.all(err <= s.error_bound * (1 + 1e-9) + 1e-15)
     S = np.linalg.norm(carpet.mean_thrust, axis=1)
@@ -112,7 +112,7 @@ def _sampled_taylor_constant(order: int, wall: bool, seed: int, n: int) -> float
 def test_first_order_taylor_constants(wall):
     """C1_FREE / C1_WALL bound the first in-plane source derivatives of the (regularised)
     kernels times R^2 (the free singular Stokeslet reaches 2 at h = f = e)."""
-    from ciliary_carpet.carpet.carpet import C1_FREE, C1_WALL
+    from ciliary_carpet.stokes.kernel import C1_FREE, C1_WALL
 
     best = _sampled_taylor_constant(1, wall, seed=5, n=1500)
     if not wall:  # attained: x along h and f
@@ -128,23 +128,20 @@ def test_phase_margin_covers_the_phases_between_samples(table):
     """The exact terms of the monopole and dipole bounds, nu(D) and nu(T - T_rep), over 2000
     random phases stay within PHASE_MARGIN of their maxima over the table's phase samples
     (measured: 0.5 % above at most, over chi_N in -160..160)."""
-    from ciliary_carpet.carpet.carpet import PHASE_MARGIN, _moments_at
+    from ciliary_carpet.carpet.carriers import PHASE_MARGIN
 
     rng = np.random.default_rng(1)
     c = Carpet(layout.square(5, 5, 2.0), rng.uniform(-160, 160, 25), table, layout.random_phases(25, 0))
-    C = c._c
-    n, n_p = c.n, C["n_phase"]
-    car = c._carriers(C["F"].reshape(-1, 2), C["D"].reshape(-1, 2, 2), C["T"].reshape(-1, 2, 2, 2),
-                      np.repeat(c._delta(), n_p))
-    top = {q: car[q].reshape(n, n_p).max(axis=1) for q in ("nu1", "nu2")}
-    coef_t = np.ascontiguousarray(C["mom_coef"].transpose(0, 2, 1))
-    mom = np.empty((n, 14))
+    C = c.cycles
+    n, n_p = c.n, C.n_phase
+    car = c.carriers.forces(C.F.reshape(-1, 2), C.D.reshape(-1, 2, 2), C.T.reshape(-1, 2, 2, 2),
+                            np.repeat(c.carriers.delta, n_p))
+    top = {q: getattr(car, q).reshape(n, n_p).max(axis=1) for q in ("nu1", "nu2")}
     worst = {"nu1": 0.0, "nu2": 0.0}
     for t in rng.random(2000):
-        _moments_at(coef_t, np.full(n, t), mom)
-        now = c._carriers(mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2))
+        now = c.carriers.forces(*C.moments_at(np.full(n, t)))
         for q in worst:
-            worst[q] = max(worst[q], float((now[q] / top[q]).max()))
+            worst[q] = max(worst[q], float((getattr(now, q) / top[q]).max()))
     assert 1.0 < max(worst.values()) <= 1.01 < PHASE_MARGIN
 
 
@@ -173,8 +170,8 @@ def test_mean_is_time_average_and_state_interpolates(table):
     T = c.periods[0]
     pts = np.array([[1.5, 0.3], [-2.0, 4.0], [0.5, -3.0]])
     n = 64
-    avg = np.mean([c.evaluate(pts, k * T / n, tol=0).velocity for k in range(n)], axis=0)
-    np.testing.assert_allclose(avg, c.evaluate_mean(pts, tol=0).velocity, rtol=0, atol=1e-9)
+    avg = np.mean([c.evaluate(pts, Instant(k * T / n), tol=0).velocity for k in range(n)], axis=0)
+    np.testing.assert_allclose(avg, c.evaluate(pts, CycleMean(), tol=0).velocity, rtol=0, atol=1e-9)
     # at the table's phase samples the trigonometric interpolant returns the samples
     row = table.at(40.0)
     pos, f, ph = c.state(5 * T / 64)
@@ -187,14 +184,14 @@ def test_mirror_and_rotation(table):
     pts = np.array([[1.2, 0.4], [-0.7, 2.5], [3.0, -1.0]])
     a = Carpet(np.zeros((1, 2)), [60.0], table)
     b = Carpet(np.zeros((1, 2)), [-60.0], table)
-    ua = a.mean_velocity(pts, tol=0)
-    ub = b.mean_velocity(pts * [-1, 1], tol=0)
+    ua = a.velocity(pts, CycleMean(), tol=0)
+    ub = b.velocity(pts * [-1, 1], CycleMean(), tol=0)
     np.testing.assert_allclose(ub[:, 0], -ua[:, 0], atol=1e-12)
     np.testing.assert_allclose(ub[:, 1], ua[:, 1], atol=1e-12)
     th = 0.7
     r = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
     c = Carpet(np.zeros((1, 2)), [60.0], table, direction=th)
-    uc = c.mean_velocity(pts @ r.T, tol=0)
+    uc = c.velocity(pts @ r.T, CycleMean(), tol=0)
     np.testing.assert_allclose(uc[:, :2], ua[:, :2] @ r.T, atol=1e-12)
 
 
@@ -204,7 +201,7 @@ def test_far_field_is_the_mean_thrust_stokeslet(table):
     errs = []
     for R in (20.0, 40.0, 80.0):
         x = c.centres[0] + R * np.array([[0.6, 0.8]])
-        u = c.mean_velocity(x, tol=0)[0, :2]
+        u = c.velocity(x, CycleMean(), tol=0)[0, :2]
         g = stokeslet_velocity(x, c.centres, F[None], c.mu)[0, :2]
         errs.append(np.linalg.norm(u - g) / np.linalg.norm(g))
     assert errs[0] < 0.05 and errs[2] < errs[1] < errs[0]
@@ -221,7 +218,7 @@ def test_quasi_periodic_phases(table):
 def test_still_cilia_make_no_flow(table):
     c = Carpet(np.array([[0.0, 0.0]]), [165.0], table)
     assert not c.flutter[0] and np.isnan(c.periods[0])
-    assert np.all(c.velocity(np.array([[1.0, 1.0]]), 0.3) == 0)
+    assert np.all(c.velocity(np.array([[1.0, 1.0]]), Instant(0.3)) == 0)
     pos, f, _ = c.state(0.0)
     assert np.all(np.isfinite(pos)) and np.all(f == 0)
 
@@ -240,18 +237,18 @@ def test_bad_input(table):
         Carpet(np.array([[0.0, 0.0], [0.0, 0.3]]), [0.0, 0.0], table)
     c = Carpet(b, 0.0, table)
     with pytest.raises(ValueError, match="points contain NaN"):
-        c.velocity(np.array([[np.nan, 0.0]]), 0.0)
+        c.velocity(np.array([[np.nan, 0.0]]), Instant(0.0))
     with pytest.raises(ValueError, match="points must have shape"):
-        c.velocity(np.zeros((3, 4)), 0.0)
+        c.velocity(np.zeros((3, 4)), Instant(0.0))
     with pytest.raises(ValueError, match="tol"):
-        c.mean_velocity(np.zeros((1, 2)) + 5, tol=2.0)
+        c.velocity(np.zeros((1, 2)) + 5, CycleMean(), tol=2.0)
 
 
 def test_wall_flow_vanishes_on_the_wall(table):
     c = Carpet(layout.row(3), [30.0, 0.0, -30.0], table, wall=0.5)
     on_wall = np.column_stack([np.linspace(-3, 7, 11), np.full(11, 1.0), np.full(11, -0.5)])
-    u = c.velocity(on_wall, 0.2, tol=1e-3)
-    free = Carpet(layout.row(3), [30.0, 0.0, -30.0], table).velocity(on_wall, 0.2, tol=1e-3)
+    u = c.velocity(on_wall, Instant(0.2), tol=1e-3)
+    free = Carpet(layout.row(3), [30.0, 0.0, -30.0], table).velocity(on_wall, Instant(0.2), tol=1e-3)
     assert np.abs(u).max() < 1e-10 * np.abs(free).max()
 
 
@@ -259,7 +256,7 @@ def test_wall_flow_vanishes_on_the_wall(table):
 def test_third_order_taylor_constants(wall):
     """C3_FREE / C3_WALL bound the third in-plane source derivatives of the (regularised) kernels
     times R^4: the constants of the levels of detail."""
-    from ciliary_carpet.carpet.carpet import C3_FREE, C3_WALL
+    from ciliary_carpet.stokes.kernel import C3_FREE, C3_WALL
 
     best = _sampled_taylor_constant(3, wall, seed=7, n=300)
     assert 5.0 < best <= (C3_WALL if wall else C3_FREE)
@@ -282,27 +279,27 @@ def test_level_of_detail_cost(carpet):
     resolved 4001 and 6092 (LOD_SLACK = 1)."""
     p = _inside_points(carpet)
     assert p.shape == (200, 2)
-    n_s, n_ph = carpet._c["n_s"], carpet._c["n_phase"]
+    n_s, n_ph = carpet.cycles.n_s, carpet.cycles.n_phase
 
     def sources(s, blk):
         o = s.work["orders"]
         return o["monopole"] + 3 * o["dipole"] + 6 * o["quadrupole"] + s.pairs["resolved"] * blk
 
-    s = carpet.evaluate(p, 0.37, tol=1e-3)
+    s = carpet.evaluate(p, Instant(0.37), tol=1e-3)
     assert s.pairs["resolved"] <= 1450 and s.pairs["point"] + s.pairs["resolved"] == 200 * 100
     assert sum(s.work["orders"].values()) == s.pairs["point"]
     # every cheap pair: its carriers; every resolved pair: its sources
     assert s.work["sources"] == sources(s, n_s)
     # per point the runs of carriers end at a resolved cilium or at the end: one block per pair
     assert 200 + s.pairs["resolved"] <= s.work["ranges"] <= 200 + 2 * s.pairs["resolved"]
-    loose = carpet.evaluate(p, 0.37, tol=1e-2)
+    loose = carpet.evaluate(p, Instant(0.37), tol=1e-2)
     assert loose.work["orders"]["dipole"] > 0.8 * loose.pairs["point"] and loose.pairs["resolved"] <= 500
     assert loose.work["sources"] == sources(loose, n_s) < 0.5 * s.work["sources"]
-    m = carpet.evaluate_mean(p, tol=1e-3)
+    m = carpet.evaluate(p, CycleMean(), tol=1e-3)
     assert m.pairs["resolved"] <= 2250
     assert m.work["sources"] == sources(m, n_ph * n_s)
     # the resolved sum: every source of every cilium, in one dense sum
-    r = carpet.evaluate(p, 0.37, tol=0)
+    r = carpet.evaluate(p, Instant(0.37), tol=0)
     assert r.work["sources"] == 200 * 100 * n_s and r.work["ranges"] == 0 and r.pairs["resolved"] == 200 * 100
 
 
@@ -312,19 +309,19 @@ def test_level_of_detail_calibration_margin(table, wall):
     sum at points in and around the carpet (measured: 0.16 with the dipole order at tol 1e-2,
     0.07 at 1e-3 and 1e-4; 0.01 with the wall), while the rigorous bound, up to LOD_SLACK times
     larger, still holds."""
-    from ciliary_carpet.carpet.carpet import LOD_SLACK
+    from ciliary_carpet.carpet.carriers import LOD_SLACK
 
     assert LOD_SLACK == 8.0
     rng = np.random.default_rng(1)
     c = Carpet(layout.square(10, 10, 2.0), rng.uniform(-100, 100, 100), table, layout.random_phases(100, 0),
                wall=wall)
     p = np.concatenate([_inside_points(c, t=0.81), _grid(c, distances=(0.0, 5.0))])
-    ref = c.evaluate(p, 0.81, tol=0)
+    ref = c.evaluate(p, Instant(0.81), tol=0)
     for tol in (1e-2, 1e-3, 1e-4):
-        s = c.evaluate(p, 0.81, tol=tol)
+        s = c.evaluate(p, Instant(0.81), tol=tol)
         err = np.linalg.norm(s.velocity - ref.velocity, axis=1)
         assert np.all(err <= s.error_bound * (1 + 1e-9) + 1e-15)
-        scale = _scale(c, p, c._c["F_rms"])
+        scale = _scale(c, p, c.cycles.F_rms)
         assert np.all(err <= 0.2 * tol * scale)
         assert np.all(s.error_bound <= LOD_SLACK * tol * scale * (1 + 1e-9))
 
@@ -332,7 +329,7 @@ def test_level_of_detail_calibration_margin(table, wall):
 def _orders_of(carpet, plan, s_ranges, ptr, res_j, rptr, m):
     """(M, N) the order each target's ranges give each cilium (0 monopole, 1 dipole, 2
     quadrupole, 3 resolved; -1 none), decoded from the carrier segments of :func:`_traverse`."""
-    sj = plan["sj"]
+    sj = plan.order
     n_p = sj.size
     out = np.full((m, carpet.n), -1)
     for i in range(m):
@@ -356,7 +353,7 @@ def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
     threshold its distance reaches (3-D distance from the force centre in the plane; the far
     cilia at the plan's far order), for each choice of the far order (forced by the price of a
     classification), points above/below the plane, beside the grid and far away."""
-    import ciliary_carpet.carpet.carpet as cm
+    import ciliary_carpet.carpet.traversal as cm
 
     monkeypatch.setattr(cm, "_CLASSIFY", classify)
     rng = np.random.default_rng(7)
@@ -365,28 +362,26 @@ def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
     m = x.shape[0]
     fars = set()
     for tol in (1e-2, 1e-3):
-        carpet._c["memo"].clear()
-        plan = carpet._plan(tol, "point")
-        fars.add(plan["trav"][13])
+        plan = cm.make_plan(carpet.carriers.over_cycle.thresholds(tol), carpet.carriers)
+        fars.add(plan.far)
         uptr = np.zeros(m + 1, np.int64)
-        cm._upper(x, *plan["trav"][6:13], plan["always"].size, uptr)
+        cm._upper(x, *plan.grid, plan.always.size, uptr)
         np.cumsum(uptr, out=uptr)
         ru, ju, rr = np.empty((uptr[-1], 2), np.int64), np.empty(uptr[-1], np.int64), np.empty(uptr[-1], np.int64)
         nr, nres, counts = np.empty(m, np.int64), np.empty(m, np.int64), np.empty((m, 3), np.int64)
-        cm._traverse(x, *plan["trav"], uptr, nr, nres, counts, ru, ju, rr)
+        cm._traverse(x, *plan.traverse, uptr, nr, nres, counts, ru, ju, rr)
         assert np.all(nr <= np.diff(uptr)) and np.all(nres <= nr)
         ptr, rptr = np.r_[0, np.cumsum(nr)], np.r_[0, np.cumsum(nres)]
         ranges, res_j, res_r = np.empty((ptr[-1], 2), np.int64), np.empty(rptr[-1], np.int64), np.empty(rptr[-1], np.int64)
         cm._compact(uptr, nr, nres, ptr, rptr, ru, ju, rr, ranges, res_j, res_r)
         got = _orders_of(carpet, plan, ranges, ptr, res_j, rptr, m)
         R = np.linalg.norm(x[:, None, :] - np.c_[carpet.centres, np.zeros(carpet.n)][None], axis=-1)
-        R1, R2, R3 = plan["R"]
+        R1, R2, R3 = plan.thresholds
         want = np.where(R >= R1, 0, np.where(R >= R2, 1, np.where(R >= R3, 2, 3)))
         assert np.array_equal(got, want)
         assert np.array_equal(counts.sum(axis=0), [(want == k).sum() for k in range(3)])
         assert np.all(ranges[res_r] == 0)  # the resolved blocks' placeholders
         assert (want == 3).sum() > 20 and len(np.unique(want)) >= 2  # the case is not trivial
-    carpet._c["memo"].clear()
     # free classification: monopoles far; the default price: dipoles at 1e-2, quadrupoles at
     # 1e-3 (on this 18 x 18 L carpet); a prohibitive one: the smallest cells, quadrupoles
     assert fars == {0.0: {0}, 5.0: {1, 2}, 1e6: {2}}[classify]
@@ -396,15 +391,15 @@ def test_chunked_sums_match_one_sum(carpet, monkeypatch):
     """The near blocks summed in chunks of a few cilia (each chunk its own ranged sum; the first
     also carries the carriers) give the one-chunk velocities and the same work counters, for the
     instantaneous and the mean flow."""
-    import ciliary_carpet.carpet.carpet as cm
+    import ciliary_carpet.carpet.traversal as cm
 
     p = _inside_points(carpet, n=150)
-    one = carpet.evaluate(p, 0.37, tol=1e-3), carpet.evaluate_mean(p, tol=1e-3)
+    one = carpet.evaluate(p, Instant(0.37), tol=1e-3), carpet.evaluate(p, CycleMean(), tol=1e-3)
     assert one[0].pairs["resolved"] > 100  # many near cilia, so that small chunks split them
-    monkeypatch.setattr(cm, "_CHUNK_SOURCES", 3 * carpet._c["n_s"] * carpet._c["n_phase"])
-    many_mean = carpet.evaluate_mean(p, tol=1e-3)
-    monkeypatch.setattr(cm, "_CHUNK_SOURCES", 3 * carpet._c["n_s"])
-    many = carpet.evaluate(p, 0.37, tol=1e-3), many_mean
+    monkeypatch.setattr(cm, "_CHUNK_SOURCES", 3 * carpet.cycles.n_s * carpet.cycles.n_phase)
+    many_mean = carpet.evaluate(p, CycleMean(), tol=1e-3)
+    monkeypatch.setattr(cm, "_CHUNK_SOURCES", 3 * carpet.cycles.n_s)
+    many = carpet.evaluate(p, Instant(0.37), tol=1e-3), many_mean
     for a, b in zip(one, many):
         assert np.abs(a.velocity - b.velocity).max() <= 1e-13 * np.abs(a.velocity).max()
         assert a.work == b.work and a.pairs == b.pairs
@@ -436,3 +431,27 @@ def test_compiled_functions_have_their_own_cache_slot():
                     assert seen.setdefault(key, f"{mod.__name__}.{name}") == f"{mod.__name__}.{name}", \
                         f"{mod.__name__}.{name} and {seen[key]} compile the same function: one cache slot"
     assert len(seen) > 20  # the scan found the package's kernels
+
+
+def test_cycle_moments_are_the_carpets(table):
+    """One moment code: the design's CycleMoments (splines in chi_N, field frame) take at their
+    samples the cycle means, centre offsets and radii the carpet's CycleData computes for cilia at
+    those curvatures; and dipole_forces reproduces F and D for any triangle of carriers."""
+    from ciliary_carpet.carpet.carriers import dipole_forces, triangle
+    from ciliary_carpet.carpet.cycles import CycleMoments
+
+    m = CycleMoments(table, n=9)
+    chi = np.linspace(0.0, table.flutter_range[1], 9)
+    c = Carpet(np.column_stack([10.0 * np.arange(9), np.zeros(9)]), chi, table)
+    got = m(chi)
+    np.testing.assert_allclose(got["F"], c.cycles.F_mean, rtol=0, atol=1e-14 * m.thrust0)
+    np.testing.assert_allclose(got["D"], c.cycles.D_mean, rtol=0, atol=1e-14 * m.thrust0)
+    np.testing.assert_allclose(got["offset"], c.centres - c.bases, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(got["radius"], c.radii, rtol=0, atol=1e-14)
+    rng = np.random.default_rng(3)
+    F, D, delta = rng.normal(size=(5, 2)), rng.normal(size=(5, 2, 2)), rng.uniform(0.1, 1, 5)
+    for angle in (0.0, math.pi / 2, 1.0):
+        u = triangle(angle)
+        f = dipole_forces(F, D, delta, u)
+        np.testing.assert_allclose(f.sum(axis=1), F, atol=1e-13)
+        np.testing.assert_allclose(np.einsum("jma,jmb->jab", delta[:, None, None] * u[None], f), D, atol=1e-13)

@@ -260,7 +260,7 @@ if SIM:
         """A 2 x 2 carpet above a wall (regularised Blake kernel, dense and ranged sums, point
         and resolved levels): instantaneous and mean flows on Cuda agree with Direct."""
         from ciliary_carpet.carpet import layout
-        from ciliary_carpet.carpet.carpet import Carpet
+        from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant
         from single_cilium.table import ThrustTable
 
         rng = np.random.default_rng(7)
@@ -269,7 +269,7 @@ if SIM:
         kw = dict(phases=layout.random_phases(4, 0), wall=0.5)
         a = Carpet(bases, chi, ThrustTable.default(), backend=Direct(), **kw)
         b = Carpet(bases, chi, ThrustTable.default(), backend=Cuda(), **kw)
-        for f in (lambda c: c.evaluate(pts, 0.3), lambda c: c.evaluate_mean(pts)):
+        for f in (lambda c: c.evaluate(pts, Instant(0.3)), lambda c: c.evaluate(pts, CycleMean())):
             ua, ub = f(a).velocity, f(b).velocity
             assert np.max(np.abs(ua - ub)) <= 1e-12 * np.max(np.abs(ua))
 

@@ -8,14 +8,13 @@ import pytest
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
-from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.carpet.carpet import Carpet, Instant
+from ciliary_carpet.transport.flow import FLOWS, MEAN_MODEL_ERROR, Flow, MeanFlow, ResolvedFlow
 from ciliary_carpet.transport.pathlines import (
     DOMAIN,
     END,
-    MEAN_MODEL_ERROR,
     REASONS,
     UNDERFLOW,
-    MeanFlow,
     PathLineError,
     SeedError,
     pathlines,
@@ -34,10 +33,13 @@ def one(table):
     return Carpet(np.zeros((1, 2)), [4.0], table, phases=[0.3])
 
 
-class Rotation:
-    """Solid-body rotation u = w (-y, x): circles of period 2 pi / w."""
+class Rotation(Flow):
+    """Solid-body rotation u = w (-y, x): circles of period 2 pi / w (beside the carpet ``carpet``)."""
 
-    def __init__(self, w=1.0):
+    name = "rotation"
+
+    def __init__(self, carpet, w=1.0):
+        self.carpet = carpet
         self.w = w
         self.calls = 0
 
@@ -49,10 +51,13 @@ class Rotation:
         return u
 
 
-class Oscillating:
+class Oscillating(Flow):
     """u = (cos(2 pi t / P), 0): x(t) = x0 + P sin(2 pi t / P) / (2 pi)."""
 
-    def __init__(self, period):
+    name = "oscillating"
+
+    def __init__(self, carpet, period):
+        self.carpet = carpet
         self.P = period
 
     def velocity(self, x, t):
@@ -64,7 +69,7 @@ class Oscillating:
 def _rotation_error(one, rtol):
     seeds = np.column_stack([np.linspace(3.0, 6.0, 4), np.zeros(4)])
     t1 = 2.5
-    pl = pathlines(one, seeds, (0.0, t1), rtol=rtol, atol=rtol, model=Rotation(), domain=(-20, 20, -20, 20))
+    pl = pathlines(Rotation(one), seeds, (0.0, t1), rtol=rtol, atol=rtol, domain=(-20, 20, -20, 20))
     exact = np.column_stack([seeds[:, 0] * math.cos(t1), seeds[:, 0] * math.sin(t1), np.zeros(4)])
     return float(np.abs(pl.end_points - exact).max()), pl
 
@@ -85,7 +90,7 @@ def test_known_flow_and_convergence_in_tolerance(one):
 def test_dense_output_is_smooth_and_accurate(one):
     P = float(one.periods[0])
     seeds = np.array([[5.0, 0.0], [6.0, 1.0]])
-    pl = pathlines(one, seeds, (0.0, 3 * P), rtol=1e-9, atol=1e-9, model=Oscillating(P), samples_per_period=16)
+    pl = pathlines(Oscillating(one, P), seeds, (0.0, 3 * P), rtol=1e-9, atol=1e-9, samples_per_period=16)
     for p, t, v in zip(pl.points, pl.times, pl.velocities):
         assert np.diff(t).max() <= P / 16 * (1 + 1e-9)
         assert t.size >= 3 * 16 + 1
@@ -96,14 +101,17 @@ def test_dense_output_is_smooth_and_accurate(one):
 
 
 def test_termination_reasons(one):
-    class Jump:  # a velocity jump of 1e15 at x = 0.5: no step can resolve it
+    class Jump(Flow):  # a velocity jump of 1e15 at x = 0.5: no step can resolve it
+        name = "jump"
+        carpet = one
+
         def velocity(self, x, t):
             u = np.zeros_like(x)
             u[:, 0] = 1.0 + 1e15 * (x[:, 0] > 0.5)
             return u
 
     seeds = np.array([[0.45, 3.0], [-50.0, 3.0], [5.0, 3.0]])
-    pl = pathlines(one, seeds, (0.0, 1.0), model=Jump(), domain=(-100, 10, -10, 10))
+    pl = pathlines(Jump(), seeds, (0.0, 1.0), domain=(-100, 10, -10, 10))
     assert list(pl.reason) == [UNDERFLOW, END, DOMAIN]
     assert pl.status == "inaccurate" and "underflow" in pl.message
     assert pl.counts() == {REASONS[END]: 1, REASONS[DOMAIN]: 1, REASONS[UNDERFLOW]: 1}
@@ -117,7 +125,10 @@ def test_termination_reasons(one):
 def test_exit_point_lies_on_the_boundary_at_the_crossing_time(one):
     """Uniform flow u = (1, 0.5): a tracer from (0, -2) leaves the box x <= 3 at t = 3 exactly, at
     (3, -0.5); the exit is found by bisection on the continuous extension, whatever the steps."""
-    class Uniform:
+    class Uniform(Flow):
+        name = "uniform"
+        carpet = one
+
         def velocity(self, x, t):
             u = np.zeros_like(x)
             u[:, 0] = 1.0
@@ -125,11 +136,35 @@ def test_exit_point_lies_on_the_boundary_at_the_crossing_time(one):
             return u
 
     for h0 in (0.7, 2.9):
-        pl = pathlines(one, np.array([[0.0, -2.0]]), (0.0, 10.0), model=Uniform(), domain=(-5, 3, -5, 5), h0=h0)
+        pl = pathlines(Uniform(), np.array([[0.0, -2.0]]), (0.0, 10.0), domain=(-5, 3, -5, 5), h0=h0)
         assert pl.reason[0] == DOMAIN
         assert pl.times[0][-1] == pytest.approx(3.0, abs=1e-9)
         assert np.allclose(pl.points[0][-1], [3.0, -0.5, 0.0], atol=1e-9)
         assert np.allclose(pl.velocities[0][-1], [1.0, 0.5, 0.0], atol=1e-9)
+
+
+def test_a_flow_model_is_one_class(one):
+    """pathlines asks the flow for its name, domain and step cap: a new model is one subclass of
+    Flow (the registry names the bundled ones)."""
+    class Drift(Flow):
+        name = "drift"
+        carpet = one
+        domain = np.array([-5.0, 3.0, -5.0, 5.0, -np.inf, np.inf])  # valid only in this box
+        step_cap = 0.05
+
+        def velocity(self, x, t):
+            u = np.zeros_like(x)
+            u[:, 0] = 1.0
+            return u
+
+    pl = pathlines(Drift(), np.array([[0.0, -2.0]]), (0.0, 10.0), domain=(-20, 20, -20, 20))
+    assert pl.model == "drift" and pl.reason[0] == DOMAIN and "drift flow" in pl.message
+    assert pl.points[0][-1, 0] == pytest.approx(3.0, abs=1e-9)  # the flow's domain, not the run's wider one
+    assert pl.stats["steps"] >= 3.0 / 0.05 - 1  # its step cap
+    assert set(FLOWS) == {"resolved", "mean"} and FLOWS["mean"] is MeanFlow
+    assert ResolvedFlow(one).step_cap == pytest.approx(float(one.periods[0]) / 16)
+    assert MeanFlow.from_carpet(one, (-2.0, 2.0, -1.0, 3.0), spacing=1.0).domain.tolist() == \
+        [-2.0, 2.0, -1.0, 3.0, -np.inf, np.inf]
 
 
 def test_tracers_pass_a_single_filament(one):
@@ -140,18 +175,19 @@ def test_tracers_pass_a_single_filament(one):
     seeds = np.column_stack([np.linspace(c[0] - 0.6 * a, c[0] + 0.6 * a, 9), np.full(9, c[1])])
     seeds = seeds[one.filament_distance(seeds, 0.0) > 2 * one.blob]
     assert len(seeds) >= 6 and all(one.in_swept_region(seeds, 0))
-    pl = pathlines(one, seeds, (0.0, P), rtol=1e-5, atol=1e-5, tol=1e-3)
+    pl = pathlines(ResolvedFlow(one, 1e-3), seeds, (0.0, P), rtol=1e-5, atol=1e-5)
     assert np.all(pl.reason == END), pl.message
     # the filament passed over the tracers: each is within a few blob sizes of it at some time
     closest = [min(one.filament_distance(p[j:j + 1], t[j])[0] for j in range(len(t)))
                for p, t in zip(pl.points, pl.times)]
     assert sum(d < 0.1 for d in closest) >= 3, closest
     pos, _, _ = one.state(0.37 * P)
-    u = one.velocity(pos[0], 0.37 * P)
+    u = one.velocity(pos[0], Instant(0.37 * P))
     assert np.all(np.isfinite(u)) and np.abs(u).max() < 1e3
     singular = Carpet(one.bases, one.chi_N, one.table, one.phases, blob=None)
     near = pos[0, 20] + [1e-7, 0.0]
-    assert np.abs(singular.velocity(near[None], 0.37 * P)).max() > 100 * np.abs(one.velocity(near[None], 0.37 * P)).max()
+    assert np.abs(singular.velocity(near[None], Instant(0.37 * P))).max() > \
+        100 * np.abs(one.velocity(near[None], Instant(0.37 * P))).max()
 
 
 def test_long_time_model_against_time_resolved(table):
@@ -164,9 +200,8 @@ def test_long_time_model_against_time_resolved(table):
     seeds = np.column_stack([np.linspace(-0.5, 2.5, 6), np.full(6, 3.7)])
     span = (0.0, 12 * float(carpet.periods[0]))
     box = (-2.0, 4.0, -2.0, 5.0)
-    resolved = pathlines(carpet, seeds, span, rtol=1e-6, atol=1e-5, tol=1e-3, domain=box)
-    mean = pathlines(carpet, seeds, span, model=MeanFlow.from_carpet(carpet, box, spacing=0.25, tol=1e-3),
-                     domain=box)
+    resolved = pathlines(ResolvedFlow(carpet, 1e-3), seeds, span, rtol=1e-6, atol=1e-5, domain=box)
+    mean = pathlines(MeanFlow.from_carpet(carpet, box, spacing=0.25, tol=1e-3), seeds, span, domain=box)
     assert mean.model == "mean" and resolved.model == "resolved"
     ok = (resolved.reason == END) & (mean.reason == END)
     assert ok.sum() >= 4
@@ -184,7 +219,7 @@ def seeds_3d(s):
 
 def test_write_pathlines_and_particles(one, tmp_path):
     P = float(one.periods[0])
-    pl = pathlines(one, np.array([[5.0, 0.0], [6.0, 1.0]]), (0.0, 2 * P), model=Oscillating(P))
+    pl = pathlines(Oscillating(one, P), np.array([[5.0, 0.0], [6.0, 1.0]]), (0.0, 2 * P))
     f = pl.write(tmp_path / "p.vtp")
     r = vtk.vtkXMLPolyDataReader()
     r.SetFileName(str(f))
@@ -207,45 +242,50 @@ def test_write_pathlines_and_particles(one, tmp_path):
 def test_bad_input_named_before_any_work(one, table):
     pos, _, _ = one.state(0.0)
     with pytest.raises(SeedError, match="inside a filament"):
-        pathlines(one, pos[0, 30:31] + [0.005, 0.0], (0.0, 1.0))
+        pathlines(ResolvedFlow(one), pos[0, 30:31] + [0.005, 0.0], (0.0, 1.0))
     with pytest.raises(SeedError, match="shape"):
-        pathlines(one, np.zeros((3, 4)), (0.0, 1.0))
-    flow = Rotation()
+        pathlines(ResolvedFlow(one), np.zeros((3, 4)), (0.0, 1.0))
+    flow = Rotation(one)
     with pytest.raises(PathLineError, match="GiB"):
-        pathlines(one, np.full((1000, 2), 5.0), (0.0, 1e6), model=flow)
+        pathlines(flow, np.full((1000, 2), 5.0), (0.0, 1e6))
     assert flow.calls == 0
     for bad in (0.0, -0.1, float("nan")):
         with pytest.raises(ValueError, match="blob"):
             Carpet(np.zeros((1, 2)), [0.0], table, blob=bad)
     with pytest.raises(ValueError, match="blob = 0.6 is larger than half"):
         Carpet(np.array([[0.0, 0.0], [1.0, 0.0]]), [0.0, 0.0], table, blob=0.6)
-    with pytest.raises(ValueError, match="model"):
-        pathlines(one, np.array([[5.0, 0.0]]), (0.0, 1.0), model="fast")
+    with pytest.raises(TypeError, match="Flow"):
+        pathlines("fast", np.array([[5.0, 0.0]]), (0.0, 1.0))
+    with pytest.raises(ValueError, match="tol"):
+        ResolvedFlow(one, 1.5)
 
 
 def test_ftle_of_a_linear_hyperbolic_flow(one):
     from ciliary_carpet.transport.ftle import FTLEError, ftle_field
 
-    class Saddle:  # u = (a x, -a y): stretching rate a everywhere
+    class Saddle(Flow):  # u = (a x, -a y): stretching rate a everywhere
+        name = "saddle"
+        carpet = one
+
         def velocity(self, x, t):
             u = np.zeros_like(x)
             u[:, 0] = 0.7 * (x[:, 0] - 10.0)
             u[:, 1] = -0.7 * x[:, 1]
             return u
 
-    f = ftle_field(one, (9.0, 11.0, -1.0, 1.0), (7, 5), 2.0, model=Saddle(), rtol=1e-9, atol=1e-9)
+    f = ftle_field(Saddle(), (9.0, 11.0, -1.0, 1.0), (7, 5), 2.0, rtol=1e-9, atol=1e-9)
     assert f.ftle.shape == (5, 7) and f.shape == (7, 5)
     assert np.allclose(f.ftle, 0.7, atol=1e-6)
     assert f.mixing_number == pytest.approx(1.4, abs=1e-5)
-    rot = ftle_field(one, (5.0, 7.0, -1.0, 1.0), (5, 5), 1.0, model=Rotation(), rtol=1e-9, atol=1e-9)
+    rot = ftle_field(Rotation(one), (5.0, 7.0, -1.0, 1.0), (5, 5), 1.0, rtol=1e-9, atol=1e-9)
     assert np.allclose(rot.ftle, 0.0, atol=1e-6)  # a rotation does not stretch
     for shape in ((0, 5), (2, 9)):
         with pytest.raises(FTLEError, match="at least 3 x 3"):
-            ftle_field(one, (9.0, 11.0, -1.0, 1.0), shape, 2.0, model=Saddle())
+            ftle_field(Saddle(), (9.0, 11.0, -1.0, 1.0), shape, 2.0)
     with pytest.raises(FTLEError, match="box"):
-        ftle_field(one, (9.0, 9.0, -1.0, 1.0), (5, 5), 2.0, model=Saddle())
+        ftle_field(Saddle(), (9.0, 9.0, -1.0, 1.0), (5, 5), 2.0)
     with pytest.raises(FTLEError, match="duration"):
-        ftle_field(one, (9.0, 11.0, -1.0, 1.0), (5, 5), 0.0, model=Saddle())
+        ftle_field(Saddle(), (9.0, 11.0, -1.0, 1.0), (5, 5), 0.0)
 
 
 def test_render_writes_paraview_ready_path_lines(tmp_path):
@@ -281,14 +321,14 @@ def test_render_writes_paraview_ready_path_lines(tmp_path):
 def test_render_error_estimate_of_the_long_time_model(table):
     """For the long-time model the render's estimate is its error against the time-resolved flow:
     positive (the models differ), below the distance travelled, and named as the model's error."""
-    from ciliary_carpet.transport.pathlines import MeanFlow
+    from ciliary_carpet.transport.flow import MeanFlow
     from ciliary_carpet.output.outputs import pathline_error
 
     c = Carpet(np.array([[0.0, 0.0], [2.0, 0.0]]), [4.0, -4.0], table, phases=[0.3, 0.8])
     T = float(np.nanmin(c.periods))
     seeds = np.array([[-0.5, 1.5], [1.0, 1.4], [2.5, -1.5]])
     flow = MeanFlow.from_carpet(c, (-4.0, 6.0, -4.0, 4.0), tol=1e-3)
-    pl = pathlines(c, seeds, (0.0, 6 * T), model=flow, domain=(-4.0, 6.0, -4.0, 4.0))
+    pl = pathlines(flow, seeds, (0.0, 6 * T), domain=(-4.0, 6.0, -4.0, 4.0))
     e = pathline_error(c, seeds, 6 * T, pl, "mean", flow, 1e-3, 2.0)
     travel = np.linalg.norm(pl.end_points[:, :2] - seeds, axis=1)
     assert e["tracers"] == 3 and "long-time model" in e["reference"]

@@ -9,7 +9,7 @@ import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
 from ciliary_carpet.carpet import layout
-from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.cli import batch, main
 from ciliary_carpet.design.inverse import DesignError, design, design_layout
 from ciliary_carpet.render import RenderError, render
@@ -88,7 +88,7 @@ def test_velocity_target_and_unreachable(table):
     c = Carpet(bases, 0.0, table)
     ctrl = bases + np.array([1.0, -1.0])
     truth = Carpet(bases, np.linspace(-80, 80, 16), table)
-    U = truth.mean_velocity(ctrl)[:, :2]
+    U = truth.velocity(ctrl, CycleMean())[:, :2]
     d = design_layout(c, ctrl, velocities=U)
     assert d.kind == "velocity" and d.residual_rms < 0.05
     with pytest.raises(TargetError, match="cilium"):

@@ -48,7 +48,7 @@ The mean push of the neighbours. A filament held in a uniform stream U feels abo
 unit length (eta the model's tangential resistive coefficient, MODEL.md section 2; 2 eta across
 the stream), so the stream that would cancel cilium j's mean thrust |Fbar_j| has the speed
 U_cancel,j = |Fbar_j| / (eta L). The others' cycle-mean flow at j's force centre c_j,
-|u_mean_others(c_j)| (:meth:`Carpet.evaluate_mean` minus j's own cycle-averaged resolved line),
+|u_mean_others(c_j)| (:meth:`Carpet.velocity` of the :class:`CycleMean` minus j's own cycle-averaged resolved line),
 over U_cancel,j is the ``pushback`` ratio: 1 means the neighbours' mean flow would stall the
 cilium (the tangential coefficient makes it a lower bound, by up to 2, of that push; the flow's
 magnitude is used, not its component along Fbar_j: in a carpet whose cilia push the same way the
@@ -129,7 +129,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ciliary_carpet.carpet.carpet import BLOB, Carpet
+from ciliary_carpet.carpet.carpet import BLOB, Carpet, CycleMean, Instant
+from ciliary_carpet.carpet.cycles import simpson
 from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 
 __all__ = ["Omissions", "omissions", "wall_drag_ratios", "wall_drag_formula", "sbt_viscosity", "N_CILIA", "N_INSTANTS",
@@ -375,14 +376,6 @@ def _stats(r: np.ndarray) -> tuple[float, float, float]:
     return float(np.median(r)), float(np.percentile(r, 90)), float(r.max())
 
 
-def _simpson(n: int) -> np.ndarray:
-    """The composite Simpson weights of the carpet's s grid (the carpet's own rule)."""
-    w = np.ones(n)
-    w[1:-1:2] = 4.0
-    w[2:-1:2] = 2.0
-    return w / (3.0 * (n - 1))
-
-
 def _own(carpet: Carpet, targets: np.ndarray, src: np.ndarray, frc: np.ndarray, per: int, blk: int) -> np.ndarray:
     """Velocity at ``targets`` ((len(js) * per, 3), ``per`` consecutive targets per cilium) of
     each cilium's own sources only (block i of ``blk`` rows of ``src``, ``frc``)."""
@@ -412,7 +405,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
     tol = float(tol)
     s = carpet.s
     n_s = s.size
-    w = _simpson(n_s)
+    w = simpson(n_s)
     pts = np.array([int(np.argmin(np.abs(s - 0.5))), n_s - 1])
     fl = np.flatnonzero(carpet.flutter)
     if fl.size > n_cilia:
@@ -459,7 +452,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         for k, t in enumerate(instants):
             pos, frc, _ = carpet.state(t, js)
             targets = _pad(pos[:, pts].reshape(-1, 2))  # (nj * 2, 3)
-            sample = carpet.evaluate(targets, t, tol)
+            sample = carpet.evaluate(targets, Instant(t), tol)
             src = _pad(pos.reshape(-1, 2))
             force = _pad((frc * w[None, :, None]).reshape(-1, 2))
             u = sample.velocity - _own(carpet, targets, src, force, 2, n_s)
@@ -490,7 +483,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         cen = _pad(carpet.centres[js])
         mean_src = _pad(xs.reshape(-1, 2))
         mean_frc = _pad((fs * (w / n_p)[None, None, :, None]).reshape(-1, 2))
-        um = carpet.evaluate_mean(cen, tol, error=False).velocity - _own(carpet, cen, mean_src, mean_frc, 1, n_p * n_s)
+        um = carpet.velocity(cen, CycleMean(), tol) - _own(carpet, cen, mean_src, mean_frc, 1, n_p * n_s)
         mean_others = np.linalg.norm(um, axis=1)
         fbar = np.linalg.norm(carpet.mean_thrust[js], axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):

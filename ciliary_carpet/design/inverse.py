@@ -3,16 +3,18 @@
 Design model
 ------------
 The design works on the steady (cycle-averaged) flow at control points x_k. Each cilium j is
-represented exactly as the ``mean`` level of :mod:`ciliary_carpet.carpet.carpet` represents it: three
-point forces at c_j + delta_j e_m (e_m at 0, 120, 240 degrees, delta_j = a_j / 2) that carry the
+represented by the carpet's dipole carriers (:func:`~ciliary_carpet.carpet.carriers.dipole_forces`):
+three point forces at c_j + delta_j e_m (e_m at 0, 120, 240 degrees,
+:data:`~ciliary_carpet.carpet.carriers.DESIGN_DIPOLE`; delta_j = a_j / 2) that carry the
 cycle-mean force Fbar(chi_j) and its first moment Dbar(chi_j) about the force centre c_j,
 
     f_jm(chi) = Fbar(chi) / 3 + 2 / (3 delta_j) Dbar(chi)^T e_m,
     u_k(chi) = 1/(8 pi mu) sum_{j, m} G(x_k - c_j - delta_j e_m) f_jm(chi_j),
 
 with Blake's tensor for G when the carpet has a wall. Fbar, Dbar, the centre offset and the
-swept radius are functions of chi_N alone (in the field frame); :class:`CycleMoments` samples
-them once from the table's cycle data (the same Simpson sums the carpet uses) and interpolates
+swept radius are functions of chi_N alone (in the field frame);
+:class:`~ciliary_carpet.carpet.cycles.CycleMoments` samples them once from the table's cycle
+data (the carpet's own moment code) and interpolates
 them with cubic splines, whose chi_N derivatives give the exact gradient. The geometry (c_j,
 delta_j) is frozen during one inner solve and refreshed between passes.
 
@@ -29,7 +31,7 @@ with it 0.15 % (0.05 % free). This is what makes points inside swept regions usa
 (``inside_swept``) and designs above a wall reach their threshold.
 
 Defect correction. After each inner solve the full flow model
-(:meth:`Carpet.evaluate_mean`: resolved near pairs, levels of detail elsewhere) is evaluated at
+(:meth:`Carpet.evaluate` of the :class:`CycleMean`: resolved near pairs, levels of detail elsewhere) is evaluated at
 the control points, and the next solve minimises the objective of ``model(chi) + (u_full -
 model)(chi_pass)``. The model already holds the monopole and dipole of every cilium (with the
 wall when there is one) and the near pairs exactly, so the defect is the far pairs' field
@@ -121,7 +123,9 @@ from scipy.optimize import minimize
 from single_cilium.table import ThrustTable
 
 from ciliary_carpet.scenes.assembly import assemble
-from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean
+from ciliary_carpet.carpet.carriers import DESIGN_DIPOLE, dipole_forces
+from ciliary_carpet.carpet.cycles import CycleMoments, cycle_moments
 from ciliary_carpet.stokes import Treecode, Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 from ciliary_carpet.design.target import Frame, TargetError, _as_in_spec, control_points, reachable_check
 
@@ -130,7 +134,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["NearField", "NEAR_RADIUS", "NEAR_CHI_SAMPLES", "INSIDE_SWEPT", "INSIDE_WEIGHT", "SWEEP_RADIUS",
            "design", "design_layout", "carpet_with", "Design", "DesignError", "DesignModel",
            "ToleranceStudy", "tolerance_study",
-           "CycleMoments", "cycle_moments", "angle_objective", "floor_reference", "FLOOR_RADIUS_SPACINGS",
+           "angle_objective", "floor_reference", "FLOOR_RADIUS_SPACINGS",
            "Reachability", "reachability", "WIDTH_GRID", "check_control_points", "NEAR_CUTOFF_FRACTION",
            "TREE_PAIRS"]
 
@@ -147,7 +151,6 @@ TREE_PAIRS = 3e7
 0.3: velocity error below 2e-4 relative, 1.5e-4 rad in angle; tests/test_treecode.py) from this
 many control-point x carrier pairs on (about 3,000 cilia); below it directly (measured on 2
 cores: equal cost at 1.8e7 pairs, the treecode 2x faster at 7e7 and 5-7x at 3e8)."""
-_E = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])  # carrier directions
 
 
 INSIDE_SWEPT = ("use", "downweight", "drop")
@@ -174,90 +177,6 @@ the design allows (half the threshold, 0.025), so no finer quadrature is needed 
 
 class DesignError(ValueError):
     """A target the cilia cannot make (listed in the message), or a design that did not converge."""
-
-
-# ------------------------------------------------------------------------------ cycle moments
-def _simpson(n: int) -> np.ndarray:
-    w = np.ones(n)
-    w[1:-1:2] = 4.0
-    w[2:-1:2] = 2.0
-    return w / (3.0 * (n - 1))
-
-
-class CycleMoments:
-    """Cycle-mean moments of one cilium as smooth functions of its signed chi_N (field frame).
-
-    ``F`` (2,): the mean force on the fluid, ``D`` (2, 2): its first moment about the force
-    centre (D_ab = <int (r - c)_a f_b ds>), ``offset`` (2,): the force centre relative to the
-    base, ``radius``: the largest distance of a swept sample from the centre -- exactly the
-    quantities :class:`~ciliary_carpet.carpet.carpet.Carpet` computes per cilium for its ``mean`` level
-    (centroid of the samples, composite Simpson over s, mean over the phase samples). They are
-    sampled at ``n`` values of |chi_N| on the flutter branch [0, chi_c] and extended to negative
-    chi_N by the mirror symmetry (x -> -x: F_x, D_xy, D_yx, offset_x odd, the rest even), then
-    interpolated by cubic splines (``nu`` = 1 gives the chi_N derivative). Outside the branch a
-    cilium is still: zero force.
-
-    Interpolation error: the spline through 2n - 1 samples, checked against the table at the
-    midpoints in the tests (below 1e-6 relative to |Fbar(0)| for n = 257)."""
-
-    def __init__(self, table: ThrustTable, n: int = 257):
-        b0, b1 = table.flutter_range
-        self.cutoff = float(b1)
-        a = np.linspace(0.0, b1, int(n))
-        F = np.empty((a.size, 2))
-        D = np.empty((a.size, 2, 2))
-        off = np.empty((a.size, 2))
-        rad = np.empty(a.size)
-        w = None
-        for lo in range(0, a.size, 64):
-            sl = slice(lo, lo + 64)
-            cyc = table.cycles(a[sl])
-            xy = np.stack([cyc["x"], cyc["y"]], axis=-1)
-            f = np.stack([cyc["fx"], cyc["fy"]], axis=-1)
-            if w is None:
-                w = _simpson(xy.shape[2])
-            xy = np.where(np.isfinite(xy), xy, 0.0)
-            cen = xy.reshape(xy.shape[0], -1, 2).mean(axis=1)
-            rel = xy - cen[:, None, None, :]
-            fw = f * w[None, None, :, None]
-            F[sl] = fw.sum(axis=2).mean(axis=1)
-            D[sl] = np.einsum("jpsa,jpsb->jab", rel, fw) / xy.shape[1]
-            off[sl] = cen
-            rad[sl] = np.sqrt((rel ** 2).sum(-1)).reshape(xy.shape[0], -1).max(axis=1)
-        # mirror: sign of each component under chi -> -chi
-        vals = np.column_stack([F, D.reshape(-1, 4), off, rad])
-        odd = np.array([1, 0, 0, 1, 1, 0, 1, 0, 0], bool)  # Fx Fy Dxx Dxy Dyx Dyy ox oy r
-        neg = np.where(odd, -1.0, 1.0) * vals[:0:-1]
-        self._spline = CubicSpline(np.concatenate([-a[:0:-1], a]), np.vstack([neg, vals]), axis=0)
-        self.thrust0 = float(np.hypot(*F[0]))
-
-    def __call__(self, chi, nu: int = 0) -> dict:
-        """``F`` (N, 2), ``D`` (N, 2, 2), ``offset`` (N, 2), ``radius`` (N,) at ``chi`` (N,)
-        in the field frame (their ``nu``-th chi_N derivatives for nu > 0; zero off the branch)."""
-        c = np.asarray(chi, dtype=float)
-        on = np.abs(c) <= self.cutoff
-        v = self._spline(np.clip(c, -self.cutoff, self.cutoff), nu) if nu else self._spline(
-            np.clip(c, -self.cutoff, self.cutoff))
-        v = np.where(on[:, None], v, 0.0)
-        if nu == 0:  # a still filament: its base, no force
-            v[~on, 8] = 0.0
-        return {"F": v[:, :2], "D": v[:, 2:6].reshape(-1, 2, 2), "offset": v[:, 6:8], "radius": v[:, 8]}
-
-    def thrust_norm(self, chi) -> np.ndarray:
-        """|Fbar| at ``chi`` (N,)."""
-        return np.hypot(*self(np.atleast_1d(chi))["F"].T)
-
-
-_MOMENTS: dict = {}
-
-
-def cycle_moments(table: ThrustTable) -> CycleMoments:
-    """The :class:`CycleMoments` of ``table`` (cached per table object)."""
-    key = id(table)
-    m = _MOMENTS.get(key)
-    if m is None or m[0] is not table:
-        _MOMENTS[key] = m = (table, CycleMoments(table))
-    return m[1]
 
 
 # ------------------------------------------------------------------------------ result
@@ -477,7 +396,7 @@ def _carriers(moments: CycleMoments, rot: np.ndarray, delta, chi, nu: int = 0) -
     m = moments(np.asarray(chi, dtype=float), nu)
     F = m["F"] @ rot.T
     D = rot @ m["D"] @ rot.T
-    return F[:, None, :] / 3.0 + (2.0 / (3.0 * np.asarray(delta)))[:, None, None] * (_E @ D)  # (E D)_jkb = e_k . D_j:b
+    return dipole_forces(F, D, np.asarray(delta, dtype=float), DESIGN_DIPOLE)
 
 
 NEAR_RADIUS = 2.0
@@ -508,7 +427,7 @@ class NearField:
 
         v_kj(chi) = 1/(8 pi mu) 1/n_p sum_p sum_s w_s G(x_k - b_j, r(s, p; chi)) f(s, p; chi),
 
-    the resolved mean flow of :meth:`Carpet.evaluate_mean` (the table's phase samples, Simpson
+    the resolved mean flow of :meth:`Carpet.evaluate` (:class:`CycleMean`; the table's phase samples, Simpson
     weights w_s, the carpet's own kernel: regularised, with the wall when there is one). For
     every near pair (k, j), |x_k - b_j| <= ``radius`` (:data:`NEAR_RADIUS`), it is sampled at
     ``n_chi`` (:data:`NEAR_CHI_SAMPLES`) uniform curvatures on [-chi_c, chi_c] -- one
@@ -567,9 +486,9 @@ class NearField:
                 ref = Carpet(np.column_stack([10.0 * np.arange(self.grid.size), np.zeros(self.grid.size)]),
                              self.grid, carpet.table, None, carpet.direction, carpet.mu, carpet.wall,
                              backend=carpet.backend, blob=carpet.blob)
-            c = ref._c
-            wgt = c["w"] / c["n_phase"]
-            on = np.nonzero(c["flutter"])[0]  # a still filament makes no flow
+            c = ref.cycles
+            wgt = c.weights / c.n_phase
+            on = np.nonzero(c.flutter)[0]  # a still filament makes no flow
             if on.size:
                 # one ranged sum: every pair's point against the sources of every sampled curvature
                 pos, frc = ref.cycle_samples(on)
@@ -626,7 +545,7 @@ class DesignModel:
         m = self.moments(np.asarray(chi_geom, dtype=float))
         cen = carpet.bases + m["offset"] @ self.rot.T
         self.delta = 0.5 * np.maximum(m["radius"], 1e-6)
-        pos = cen[:, None, :] + self.delta[:, None, None] * _E[None]
+        pos = cen[:, None, :] + self.delta[:, None, None] * DESIGN_DIPOLE[None]
         self.pos3 = np.column_stack([pos.reshape(-1, 2), np.zeros(3 * carpet.n)])
         # large carpets: the sums through a treecode over the frozen geometry (its A^T is the
         # exact transpose, so the gradient stays exact for the model it minimises)
@@ -998,7 +917,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
         t0 = _time.perf_counter()
         c = _with_chi(carpet, chi) if c is None else c
         t1 = _time.perf_counter()
-        s = c.evaluate_mean(X, tol=check_tol if ctol is None else ctol, error=True)
+        s = c.evaluate(X, CycleMean(), tol=check_tol if ctol is None else ctol)
         counters["seconds_carpets"] += t1 - t0
         counters["seconds_checks"] += _time.perf_counter() - t1
         return c, s.velocity[:, :2], s.error_bound

@@ -73,7 +73,7 @@ import numpy as np
 from single_cilium.files import non_finite, strict_json, write_netcdf
 from single_cilium.threads import threads_in_use
 
-from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant
 from ciliary_carpet.carpet.omissions import omissions
 from ciliary_carpet.design.inverse import Design
 from ciliary_carpet.output import RenderError
@@ -83,7 +83,8 @@ from ciliary_carpet.output.plan import FieldGrid, RenderPlan
 from ciliary_carpet.output.report import markdown
 from ciliary_carpet.output.vtkfiles import write_cilia, write_field, write_points, write_pvd
 from ciliary_carpet.transport.ftle import ftle_field
-from ciliary_carpet.transport.pathlines import UNDERFLOW, MeanFlow, PathLines
+from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow
+from ciliary_carpet.transport.pathlines import UNDERFLOW, PathLines, pathlines
 
 logger = logging.getLogger(__name__)
 
@@ -141,7 +142,7 @@ class RenderContext:
             mf, tol = self.mean_field, self.plan.scene.tolerance
             if mf is not None:
                 nx, ny = mf.grid.shape[:2]
-                self._mean_flow = MeanFlow.from_grid(*mf.grid.lines(), mf.velocity.reshape(ny, nx, 3))
+                self._mean_flow = MeanFlow.from_grid(self.carpet, *mf.grid.lines(), mf.velocity.reshape(ny, nx, 3))
             else:
                 g = self.plan.grid
                 self._mean_flow = MeanFlow.from_carpet(self.carpet, g.box, spacing=min(g.spacing[:2]),
@@ -250,7 +251,7 @@ class MeanFieldOutput(Output):
         grid, V = ctx.plan.grid, ctx.plan.units[2]
         with ctx.timed("mean_field"):
             pts = grid.points()
-            s = ctx.carpet.evaluate_mean(pts, tol=ctx.plan.scene.tolerance)
+            s = ctx.carpet.evaluate(pts, CycleMean(), tol=ctx.plan.scene.tolerance)
             ctx.mean_field = MeanField(grid, pts, s.velocity)
             _write_flow(ctx.stage / "mean_field.vti", grid, s, ctx.plan)
         ctx.summary["mean_field"] = {"points": int(pts.shape[0]), "fidelity": s.fidelity,
@@ -275,7 +276,7 @@ class SnapshotsOutput(Output):
             entries, fid = [], []
             for k in range(n):
                 t = k * Tb / n
-                s = ctx.carpet.evaluate(pts, t, tol=plan.scene.tolerance)
+                s = ctx.carpet.evaluate(pts, Instant(t), tol=plan.scene.tolerance)
                 entries.append(_write_flow(ctx.stage / f"snapshot_{k:03d}.vti", plan.grid, s, plan, time=t * T))
                 fid.append(s.fidelity)
             write_pvd(ctx.stage / "snapshots.pvd", _looped(entries, Tb * T, plan.span * T))
@@ -325,13 +326,13 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
     k = min(ERROR_SAMPLE, seeds.shape[0])
     idx = np.unique(np.linspace(0, seeds.shape[0] - 1, k).round().astype(int))
     if model == "mean":
-        ref = carpet.pathlines(seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing, tol=tol,
-                               samples_per_period=1, domain=tuple(float(v) for v in flow.box))
+        ref = pathlines(ResolvedFlow(carpet, tol), seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing,
+                        samples_per_period=1, domain=tuple(float(v) for v in flow.box))
         what = f"the time-resolved flow (rtol 1e-6, flow tol {tol:g}): the long-time model's error"
     else:
         t_ref = max(tol / 10, 1e-6)
-        ref = carpet.pathlines(seeds[idx], (0.0, duration), rtol=1e-8, atol=1e-6 * spacing, tol=t_ref,
-                               samples_per_period=1)
+        ref = pathlines(ResolvedFlow(carpet, t_ref), seeds[idx], (0.0, duration), rtol=1e-8, atol=1e-6 * spacing,
+                        samples_per_period=1)
         what = f"rtol 1e-8 and flow tol {t_ref:g}: integration and levels of detail"
     e = np.linalg.norm(pl.end_points[idx] - ref.end_points, axis=1)
     return {"max": float(e.max()), "median": float(np.median(e)), "tracers": int(idx.size), "reference": what}
@@ -353,9 +354,9 @@ class PathLinesOutput(Output):
         seeds, duration, model = plan.seeds, plan.duration, plan.pathline_model
         L, T, _ = plan.units
         with ctx.timed("pathlines"):
-            flow = ctx.mean_flow() if model == "mean" else "resolved"
-            pl = c.pathlines(seeds, (0.0, duration), rtol=1e-6, atol=1e-4 * spacing, tol=tol, model=flow,
-                             samples_per_period=o.samples_per_period)
+            flow = ctx.mean_flow() if model == "mean" else ResolvedFlow(c, tol)
+            pl = pathlines(flow, seeds, (0.0, duration), rtol=1e-6, atol=1e-4 * spacing,
+                           samples_per_period=o.samples_per_period)
             pl.write(ctx.stage / "pathlines.vtp", scales=plan.scales)
             pl.write_particles(ctx.stage / "particles.pvd", scales=plan.scales)
         with ctx.timed("pathline_error"):
@@ -384,8 +385,8 @@ class FtleOutput(Output):
         fs, T = plan.scene.output.field_shape, plan.units[1]
         nx, ny = max(3, fs[0] // 2), max(3, fs[1] // 2)
         with ctx.timed("ftle"):
-            f = ftle_field(ctx.carpet, (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
-                           0.25 * plan.duration, model=ctx.mean_flow(), rtol=1e-6,
+            f = ftle_field(ctx.mean_flow(), (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
+                           0.25 * plan.duration, rtol=1e-6,
                            atol=1e-4 * plan.scene.carpet.spacing)
             f.write(ctx.stage / "ftle.vti", scales=plan.scales)
         defined = np.isfinite(f.ftle)

@@ -26,12 +26,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ciliary_carpet.carpet.carpet import BLOB, Carpet, Scales
+from ciliary_carpet.carpet.carpet import BLOB, Carpet, CycleMean, Scales
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.resources import Estimate
 from ciliary_carpet.output.vtkfiles import grid_points
 from ciliary_carpet.scenes.scene import Scene
-from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR, check_output_size, check_seeds
+from ciliary_carpet.transport.flow import MEAN_MODEL_ERROR
+from ciliary_carpet.transport.pathlines import check_output_size, check_seeds
 
 __all__ = ["RenderPlan", "FieldGrid", "Beat", "seed_points", "pathline_duration", "pathline_model"]
 
@@ -141,7 +142,7 @@ def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, s
     sp = scene.carpet.spacing
     travel = float(np.ptp(b @ d0)) + 3.0 * sp
     probe = b[:: max(1, b.shape[0] // 200)] + 0.5 * sp * (d0 + np.array([-d0[1], d0[0]]))
-    speed = float(np.median(np.linalg.norm(carpet.mean_velocity(probe, max(scene.tolerance, 1e-3))[:, :2], axis=1)))
+    speed = float(np.median(np.linalg.norm(carpet.velocity(probe, CycleMean(), max(scene.tolerance, 1e-3))[:, :2], axis=1)))
     if not (math.isfinite(speed) and speed > 0):
         raise RenderError(f"{scene.source_name}: the carpet makes no mean flow (median speed {speed:g}): set "
                           "[output] periods for the path lines")
@@ -150,7 +151,7 @@ def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, s
 
 def pathline_model(scene: Scene) -> str:
     """The flow the tracers follow: ``[output] pathline_model``, "auto" resolved to "mean" when
-    the scene's tolerance is at least :data:`~ciliary_carpet.transport.pathlines.MEAN_MODEL_ERROR`."""
+    the scene's tolerance is at least :data:`~ciliary_carpet.transport.flow.MEAN_MODEL_ERROR`."""
     m = scene.output.pathline_model
     if m == "auto":
         return "mean" if scene.tolerance >= MEAN_MODEL_ERROR else "resolved"

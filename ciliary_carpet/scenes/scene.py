@@ -40,7 +40,7 @@ from single_cilium.table import TableError, ThrustTable
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import BLOB
 from ciliary_carpet.scenes.paths import _inside, check_derived, check_name, check_scene_paths, table_parts
-from ciliary_carpet.transport.pathlines import MEAN_MODEL_ERROR
+from ciliary_carpet.transport.flow import FLOWS, MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
 from ciliary_carpet.stokes import BACKENDS
 from ciliary_carpet.design.target import KINDS, TargetSpec, kinds_table
@@ -346,7 +346,7 @@ class OutputSpec(Section):
     pathline_model: str = key(
         "auto", 'the flow tracers follow: time-resolved beat, or the long-time mean flow ("auto": the mean flow '
         f"when `tolerance` >= its measured error, {MEAN_MODEL_ERROR:g})", "str",
-        choices=("auto", "resolved", "mean"))
+        choices=("auto", *FLOWS))
     samples_per_period: int = key(16, "path-line points per beat (dense output)", "int", lo=1)
     ftle: bool = key(True, "the finite-time Lyapunov exponent field (`ftle.vti`) and the mixing number in the "
                      "summary", "bool")

@@ -1,7 +1,8 @@
 """Mixing: the finite-time Lyapunov exponent (FTLE) field of a carpet's flow, and a mixing number.
 
-Tracers start on a regular grid of the plane, ``X0``, and are advected for a time ``T`` by the
-flow (:mod:`ciliary_carpet.transport.pathlines`: the time-resolved beat or the long-time mean flow). With
+Tracers start on a regular grid of the plane, ``X0``, and are advected for a time ``T`` by a
+flow model (:mod:`ciliary_carpet.transport.flow`: the time-resolved beat, the long-time mean flow,
+...; :func:`~ciliary_carpet.transport.pathlines.pathlines`). With
 the flow map ``Phi(X0) = x(T)`` and its gradient ``J = dPhi/dX0`` (second-order differences on
 the grid), the right Cauchy-Green tensor ``C = J^T J`` and its largest eigenvalue
 ``lambda_max``, the FTLE is
@@ -26,14 +27,10 @@ import math
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 import numpy as np
 
+from ciliary_carpet.transport.flow import Flow
 from ciliary_carpet.transport.pathlines import END, pathlines
-
-if TYPE_CHECKING:
-    from ciliary_carpet.carpet.carpet import Carpet
 
 logger = logging.getLogger(__name__)
 
@@ -74,12 +71,13 @@ class FTLEField:
                            {"FTLE": self.ftle.ravel() / T})
 
 
-def ftle_field(carpet: "Carpet", box, shape, duration: float, *, model="mean", tol: float = 1e-3,
-               rtol: float = 1e-6, atol: float = 1e-6, t0: float = 0.0) -> FTLEField:
-    """FTLE of ``carpet``'s flow on the ``shape = (nx, ny)`` grid spanning ``box = (xmin, xmax,
-    ymin, ymax)``, over ``duration`` (> 0) from ``t0``; ``model`` as in
-    :func:`ciliary_carpet.transport.pathlines.pathlines`. Raises :class:`FTLEError` before any work for a
-    grid with fewer than 3 points per side, an empty box or a duration that is not positive."""
+def ftle_field(flow: Flow, box, shape, duration: float, *, rtol: float = 1e-6, atol: float = 1e-6,
+               t0: float = 0.0) -> FTLEField:
+    """FTLE of ``flow`` (a :class:`~ciliary_carpet.transport.flow.Flow`, e.g. the long-time
+    ``MeanFlow.from_carpet(carpet, box)``) on the ``shape = (nx, ny)`` grid spanning
+    ``box = (xmin, xmax, ymin, ymax)``, over ``duration`` (> 0) from ``t0``; the grid points inside
+    a filament of ``flow.carpet`` at ``t0`` are left out. Raises :class:`FTLEError` before any work
+    for a grid with fewer than 3 points per side, an empty box or a duration that is not positive."""
     try:
         nx, ny = (int(v) for v in shape)
     except (TypeError, ValueError):
@@ -96,10 +94,10 @@ def ftle_field(carpet: "Carpet", box, shape, duration: float, *, model="mean", t
     y = np.linspace(b[2], b[3], ny)
     X, Y = np.meshgrid(x, y)
     pts = np.column_stack([X.ravel(), Y.ravel()])
+    carpet = flow.carpet
     blob = carpet.blob if carpet.blob is not None else 0.0
     ok = carpet.filament_distance(pts, t0) >= blob if blob > 0 else np.ones(len(pts), bool)
-    pl = pathlines(carpet, pts[ok], (t0, t0 + duration), rtol=rtol, atol=atol, tol=tol, model=model,
-                   samples_per_period=1)
+    pl = pathlines(flow, pts[ok], (t0, t0 + duration), rtol=rtol, atol=atol, samples_per_period=1)
     end = np.full((len(pts), 2), np.nan)
     good = np.zeros(len(pts), bool)
     good[np.nonzero(ok)[0]] = pl.reason == END

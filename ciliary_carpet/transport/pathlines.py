@@ -1,35 +1,19 @@
 """Path lines of massless tracers in a carpet's flow: dx/dt = u(x(t), t) (MODEL.md section 6).
 
-Two flow models (strategies with one method, ``velocity(x, t)``):
-
-* :class:`ResolvedFlow`: the time-resolved flow of the beating cilia at the tolerance ``tol`` of
-  the levels of detail (:meth:`Carpet.velocity <ciliary_carpet.carpet.carpet.Carpet.velocity>`);
-* :class:`MeanFlow`: the long-time model, the steady time-averaged (Eulerian mean) flow
-  (:meth:`Carpet.mean_velocity <ciliary_carpet.carpet.carpet.Carpet.mean_velocity>`) sampled once on a
-  grid of the plane and interpolated by bicubic splines. It neglects the Stokes drift of the beat
-  (the difference between the Lagrangian and the Eulerian mean): measured for one cilium, at most
-  1.9 % of its mean flow 1 L from its force centre, 0.3 % at 2 L, 0.04 % at 4 L (cilia of other
-  periods add no cross terms, and a carpet's mean flow adds up over all its cilia), below this
-  model's own error. Its end-point error against time-resolved path lines is measured by
-  ``benchmarks/bench_flow.py --sections longtime`` (benchmarks/results/bench_longtime.md, with the
-  drift table): across the designed 10 x 10 uniform_deflection carpet (156 beats, the render's
-  100 seeds) at most 2.0 % of the distance travelled (median 0.6 %; vortex_turn's 100 seeds over
-  its carpet: 1.6 %, median 0.3 %), at 1/29 of the cost with the 0.5 L grid built; 1000 tracers
-  over 200 beats take 0.23 s with the grid built once (0.08 s), the render's grid reused. It
-  shows the routes of the flow, not where a given tracer is at a given time.
+:func:`pathlines` integrates tracers in any flow model (:class:`~ciliary_carpet.transport.flow.Flow`:
+the time-resolved beat, the long-time mean flow, or a new one), asking the flow for its name,
+the domain where it is valid, the largest step it allows and its velocity; the carpet it
+belongs to (``flow.carpet``) gives the seeds' check, the dense output's time scale (its
+shortest beat period) and the default domain.
 
 Integration: one embedded Runge-Kutta pair (Dormand-Prince 5(4)) for all tracers together, with
 a common step ``H`` chosen so that most tracers (90 %) meet their local error test
 ``|err| <= atol + rtol |x|``; the tracers that fail it (those close to a filament, where the
 flow changes within a blob size) re-integrate the same interval with smaller steps of their own
 (recursively, at most :data:`MAX_DEPTH` levels), so that one tracer near a filament does not slow
-down all others. For the time-resolved flow the step is also capped at a sixteenth of the beat
-period (``max_step``): the one-step error estimate does not see the error the beat's oscillation
-accumulates (a tracer passing a beating filament meets a velocity spike shorter than a step).
-Measured over 200 beats of a 10 x 10 carpet (100 tracers crossing it, flow tol 1e-3, against
-rtol 1e-8; benchmarks/results/bench_pathlines.md): the defaults (rtol 1e-6, cap T/16) end at
-most 7e-4 L off, median 1e-6 L; rtol 1e-4 with the cap 1.1e-3 L; a cap of T/24 1e-4 L.
-1000 such tracers over 200 beats take about 16-20 s on 2 cores. Every stage evaluates the flow
+down all others. The step is also capped by the flow (``flow.step_cap``; for the time-resolved
+flow a sixteenth of the beat period, see :mod:`~ciliary_carpet.transport.flow` for what that
+buys) or by ``max_step``. Every stage evaluates the flow
 once for all the tracers it advances (one vectorised sum). A tracer that leaves the domain ends
 on its boundary, at the crossing time found by bisection on the continuous extension. Output is
 dense: positions at the common times ``t0 + k dt`` with at least
@@ -48,31 +32,26 @@ import math
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from single_cilium.progress import Progress
+
+from ciliary_carpet.transport.flow import Flow
 
 if TYPE_CHECKING:
     from ciliary_carpet.carpet.carpet import Carpet
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PathLines", "pathlines", "check_seeds", "check_output_size", "REASONS", "ResolvedFlow", "MeanFlow", "SeedError",
-           "PathLineError", "MAX_DEPTH", "MAX_OUTPUT_BYTES", "MEAN_MODEL_ERROR"]
+__all__ = ["PathLines", "pathlines", "check_seeds", "check_output_size", "REASONS", "SeedError", "PathLineError",
+           "MAX_DEPTH", "MAX_OUTPUT_BYTES"]
 
 REASONS = ("reached end time", "left the domain", "step size underflow")
 END, DOMAIN, UNDERFLOW = range(3)
 MAX_DEPTH = 12
 """Most levels of step halving a tracer may take below the common step (H / 4096)."""
-MEAN_MODEL_ERROR = 0.05
-"""End-point error of the long-time model (:class:`MeanFlow`) relative to the distance travelled,
-against time-resolved path lines: the largest over the render's 100 tracers of the designed
-10 x 10 uniform_deflection carpet (0.020; median 0.006) and of vortex_turn (0.016), measured with
-``benchmarks/bench_flow.py --sections longtime`` (benchmarks/results/bench_longtime.md, 20 of
-the tracers), with a margin of 2.5. Renders take the model automatically only when the scene's
-tolerance is at least this."""
 MAX_OUTPUT_BYTES = 2 * 1024 ** 3
 """Largest dense output (positions and velocities, float64) a run may allocate."""
 
@@ -105,76 +84,14 @@ class PathLineError(ValueError):
     """A path-line request that cannot run as asked (e.g. its output would not fit in memory)."""
 
 
-class Flow(Protocol):
-    """A velocity field for tracers: ``velocity(x (M, 3), t) -> (M, 3)``."""
-
-    def velocity(self, x: np.ndarray, t: float) -> np.ndarray: ...
-
-
-@dataclass(frozen=True)
-class ResolvedFlow:
-    """The time-resolved flow of ``carpet`` at the levels-of-detail tolerance ``tol``."""
-
-    carpet: "Carpet"
-    tol: float = 1e-4
-
-    def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
-        return self.carpet.velocity(x, t, self.tol)
-
-
-@dataclass(frozen=True, eq=False)
-class MeanFlow:
-    """The long-time model: the carpet's time-averaged flow in the plane z = 0, sampled on a
-    regular grid and interpolated with bicubic splines (module docstring for its error).
-
-    Build it with :meth:`from_carpet` (evaluates the mean flow on the grid) or :meth:`from_grid`
-    (from an already evaluated grid, e.g. the render's mean field). ``box`` = (xmin, xmax, ymin,
-    ymax) is the grid's extent: tracers that leave it stop ("left the domain")."""
-
-    box: tuple
-    _ux: object = field(repr=False)
-    _uy: object = field(repr=False)
-
-    @classmethod
-    def from_grid(cls, x: np.ndarray, y: np.ndarray, u: np.ndarray) -> "MeanFlow":
-        """``x`` (nx,), ``y`` (ny,) increasing grid lines, ``u`` (ny, nx, >= 2) the velocity."""
-        from scipy.interpolate import RectBivariateSpline
-
-        x, y, u = np.asarray(x, float), np.asarray(y, float), np.asarray(u, float)
-        if x.size < 4 or y.size < 4 or u.shape[:2] != (y.size, x.size):
-            raise ValueError(f"MeanFlow needs at least 4 x 4 grid points and u of shape (ny, nx, 2), got "
-                             f"x {x.shape}, y {y.shape}, u {u.shape}")
-        if not np.all(np.isfinite(u[..., :2])):
-            raise ValueError("MeanFlow: the grid velocity has NaN or inf")
-        ux = RectBivariateSpline(x, y, u[..., 0].T, kx=3, ky=3)
-        uy = RectBivariateSpline(x, y, u[..., 1].T, kx=3, ky=3)
-        return cls((float(x[0]), float(x[-1]), float(y[0]), float(y[-1])), ux, uy)
-
-    @classmethod
-    def from_carpet(cls, carpet: "Carpet", box, spacing: float = 0.25, tol: float = 1e-3) -> "MeanFlow":
-        """Sample ``carpet.mean_velocity`` on the grid of ``spacing`` covering ``box``."""
-        xmin, xmax, ymin, ymax = (float(v) for v in box)
-        nx = max(4, int(math.ceil((xmax - xmin) / spacing)) + 1)
-        ny = max(4, int(math.ceil((ymax - ymin) / spacing)) + 1)
-        x, y = np.linspace(xmin, xmax, nx), np.linspace(ymin, ymax, ny)
-        X, Y = np.meshgrid(x, y)
-        u = carpet.mean_velocity(np.column_stack([X.ravel(), Y.ravel()]), tol)
-        return cls.from_grid(x, y, u.reshape(ny, nx, 3))
-
-    def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
-        out = np.zeros((x.shape[0], 3))
-        out[:, 0] = self._ux.ev(x[:, 0], x[:, 1])
-        out[:, 1] = self._uy.ev(x[:, 0], x[:, 1])
-        return out
-
-
 @dataclass(frozen=True)
 class PathLines:
     """Tracer trajectories: one polyline per seed.
 
     points[k] (n_k, 3), times[k] (n_k,), velocities[k] (n_k, 3): tracer k at the dense output
     times (every ``dt``) up to where it stopped, and its last point; seed_ids (K,); reason (K,)
-    codes into :data:`REASONS`; model: "resolved" or "mean"; stats: work counters (steps,
+    codes into :data:`REASONS`; model: the flow's name (``"resolved"``, ``"mean"``, ...:
+    :data:`~ciliary_carpet.transport.flow.FLOWS`); stats: work counters (steps,
     rejected, evaluations, substeps, seconds); status ``"success"`` when every tracer reached its
     end time or left the domain, ``"inaccurate"`` when some tracers' step size underflowed (the
     words of the other results of the toolkit); message says what happened and what to change."""
@@ -186,7 +103,6 @@ class PathLines:
     reason: np.ndarray
     rtol: float
     atol: float
-    tol: float
     dt: float = 0.0
     model: str = "resolved"
     stats: dict = field(default_factory=dict)
@@ -444,37 +360,32 @@ class _Run:
         return h
 
 
-def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e-6, tol: float = 1e-4,
-              model: str | Flow = "resolved", samples_per_period: int = 16, domain=None, h0: float | None = None,
-              max_step: float | None = None, max_steps: int = 1_000_000,
+def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e-6, samples_per_period: int = 16,
+              domain=None, h0: float | None = None, max_step: float | None = None, max_steps: int = 1_000_000,
               progress: Progress | None = None) -> PathLines:
-    """Integrate tracers from ``seeds`` (K, 2) or (K, 3) over ``t_span = (t0, t1)``.
+    """Integrate tracers from ``seeds`` (K, 2) or (K, 3) over ``t_span = (t0, t1)`` in ``flow``.
 
     Parameters
     ----------
-    carpet : Carpet
+    flow : Flow
+        The flow model (:mod:`ciliary_carpet.transport.flow`: e.g. ``ResolvedFlow(carpet, tol)``,
+        ``MeanFlow.from_carpet(carpet, box)``); its carpet checks the seeds and sets the output's
+        time scale.
     seeds : (K, 2) or (K, 3) array_like
         Start points, none inside a filament at ``t0`` (:class:`SeedError`).
     t_span : (t0, t1), t1 > t0
     rtol, atol : float
         Local error tolerances of the positions (units of L).
-    tol : float
-        The flow model's tolerance (levels of detail, :mod:`ciliary_carpet.carpet.carpet`).
-    model : "resolved", "mean" or a flow object with ``velocity(x, t)``
-        "resolved": :class:`ResolvedFlow`; "mean": :class:`MeanFlow` on a 0.25 L grid over the
-        domain (the long-time model, module docstring).
     samples_per_period : int >= 1
         Dense output: samples per shortest beat period (``dt = T_min / samples_per_period``).
     domain : (xmin, xmax, ymin, ymax[, zmin, zmax]), optional
-        Tracers leaving it stop; default the bounding box of bases and seeds grown by 10 L.
+        Tracers leaving it stop; default the bounding box of bases and seeds grown by 10 L. Always
+        within ``flow.domain``.
     h0 : float, optional
         First step (default from the speed scale).
     max_step : float, optional
-        Largest step; default a sixteenth of the shortest beat period for the time-resolved flow
-        (none for other flows). The one-step error estimate does not see the error that the
-        beat's oscillation accumulates over many steps; the cap sets most of the end-point error
-        (module docstring: over 200 beats of a 10 x 10 carpet 7e-4 L at T/16 and the default
-        rtol, 1e-4 L at T/24; ``benchmarks/results/bench_pathlines.md``).
+        Largest step; default ``flow.step_cap`` (for the time-resolved flow a sixteenth of the
+        shortest beat period: :mod:`~ciliary_carpet.transport.flow`).
 
     Returns
     -------
@@ -482,10 +393,13 @@ def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: floa
 
     Raises
     ------
-    SeedError, PathLineError, ValueError
+    SeedError, PathLineError, ValueError, TypeError
         Before any work: malformed or in-filament seeds; an output that would exceed
-        :data:`MAX_OUTPUT_BYTES`; bad tolerances, span or domain.
+        :data:`MAX_OUTPUT_BYTES`; bad tolerances, span or domain; a ``flow`` that is not a Flow.
     """
+    if not isinstance(flow, Flow):
+        raise TypeError(f"flow must be a Flow (ciliary_carpet.transport.flow), got {type(flow).__name__}")
+    carpet = flow.carpet
     t0, t1 = (float(v) for v in t_span)
     if not (math.isfinite(t0) and math.isfinite(t1) and t1 > t0):
         raise ValueError(f"t_span must be finite with t1 > t0, got {t_span!r}")
@@ -500,25 +414,10 @@ def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: floa
     n_out, t_beat = check_output_size(carpet, x0.shape[0], t1 - t0, samples_per_period)
     t_out = np.linspace(t0, t1, n_out)
     dom = _domain(domain, carpet, x0)
-    if isinstance(model, str):
-        if model == "resolved":
-            flow = ResolvedFlow(carpet, tol)
-        elif model == "mean":
-            flow = MeanFlow.from_carpet(carpet, dom[:4], tol=max(tol, 1e-6))
-        else:
-            raise ValueError(f'model must be "resolved", "mean" or a flow object, got {model!r}')
-        name = model
-    else:
-        if not callable(getattr(model, "velocity", None)):
-            raise ValueError(f"model must have a velocity(x, t) method, got {type(model).__name__}")
-        flow, name = model, ("mean" if isinstance(model, MeanFlow) else "resolved")
-    if isinstance(flow, MeanFlow):
-        b = np.asarray(flow.box)
-        dom = dom.copy()
-        dom[0] = max(dom[0], b[0])
-        dom[1] = min(dom[1], b[1])
-        dom[2] = max(dom[2], b[2])
-        dom[3] = min(dom[3], b[3])
+    valid = np.asarray(flow.domain, dtype=float)  # within the flow's own domain
+    dom = np.concatenate([np.maximum(dom[0::2], valid[0::2])[:, None], np.minimum(dom[1::2], valid[1::2])[:, None]],
+                         axis=1).ravel()
+    name = flow.name
     progress = progress if progress is not None else Progress()
     clock = _time.perf_counter()
     progress.start(t1 - t0, "path lines")
@@ -528,8 +427,8 @@ def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: floa
             if not (math.isfinite(max_step) and max_step > 0):
                 raise ValueError(f"max_step must be > 0, got {max_step!r}")
             run.max_h = float(max_step)
-        elif isinstance(flow, ResolvedFlow):
-            run.max_h = t_beat / 16.0
+        else:
+            run.max_h = float(flow.step_cap)
         if h0 is None:  # a first guess from the speed scale, corrected by the controller
             vmax = float(np.max(np.linalg.norm(run.u[run.active], axis=1))) if np.any(run.active) else 1.0
             h = min(t1 - t0, 0.05 * t_beat, (atol + rtol) ** 0.2 / max(vmax, 1e-300))
@@ -569,5 +468,5 @@ def pathlines(carpet: "Carpet", seeds, t_span, *, rtol: float = 1e-6, atol: floa
     logger.info("path lines: %s (%d steps, %d substeps, %d rejected, %.2f s)", message, run.n_steps, run.n_sub,
                 run.n_rej, seconds)
     return PathLines(points=pts, times=tms, velocities=vel, seed_ids=np.arange(K), reason=reason,
-                     rtol=float(rtol), atol=float(atol), tol=float(tol), dt=float(t_out[1] - t_out[0]),
+                     rtol=float(rtol), atol=float(atol), dt=float(t_out[1] - t_out[0]),
                      model=name, stats=stats, status=status, message=message)

@@ -1,0 +1,375 @@
+"""The levels of detail: point-force carriers of each cilium's moments and their rigorous bounds.
+
+Per (cilium, evaluation point) pair the flow is summed at the cheapest representation whose
+error bound meets the tolerance (DESIGN.md "flow fidelity"). Around the force centre c_j of
+cilium j (every filament point lies within the radius a_j of it; :class:`~.cycles.CycleData`),
+with h = r - c, its moments F = int f ds (2,), D = int h f^T ds (2, 2), T = int h h f ds
+(2, 2, 2) and Qk = int |h|^k |f| ds are carried by point forces at fixed positions about c_j, at
+one of three orders:
+
+* the *monopole*: F at c_j;
+* the *dipole*: three forces at c_j + delta_j u_m, u_m the unit vectors of an equilateral triangle
+  (:data:`DIPOLE` at 90, 210 and 330 degrees, :func:`triangle`), delta_j = a_j / 2, reproducing F
+  and D: f_m = F / 3 + 2 / (3 delta) D^T u_m, from the inverse of their moment matrix
+  (:func:`dipole_forces`, the one implementation, which the design model uses too, with its own
+  triangle at 0, 120 and 240 degrees, :data:`DESIGN_DIPOLE`);
+* the *quadrupole*: six forces, one at c_j and five on a regular pentagon of radius delta_j
+  (:data:`QUADRUPOLE`, a vertex at 90 degrees), reproducing F, D and T.
+
+Their moment systems are invertible. By Taylor's theorem, for a target at distance R > a from c
+the order-k carriers (matching the moments below order k) err by the order-k term they miss
+plus a remainder:
+
+    monopole:    8 pi mu |u - u_resolved| <= C1 nu(D) / R^2 + C2 Q2 / (2 (R - a)^3)
+    dipole:      8 pi mu |u - u_resolved| <= C2 nu(T - T_rep) / (2 R^3) + C3 (Q3 + Q3_rep) / (6 (R - a)^4)
+    quadrupole:  8 pi mu |u - u_resolved| <= C3 (Q3 + Q3_rep) / (6 (R - a)^4)
+
+with Ck the supremum of |(h.grad)^k G f| over unit in-plane h, f at unit distance (times R^(k+1)
+with a wall; :attr:`Kernel.c1 <ciliary_carpet.stokes.kernel.Kernel.c1>`, ``c2``, ``c3``: 2, 4, 16
+free and 4, 16, 64 with a wall; sampled maxima 2, 4, 12.3 free, 1.98 for C1 and 12.9 for C3 with
+a wall, tests/test_carpet.py), T_rep and Q3_rep = delta^3 sum_m |f_m| the carriers' own second
+and third moments, and nu the sum of the singular values of D (of the symmetric matrices
+T[:, :, c], summed over c, for the second moment): the missed term is taken exactly, only the
+remainder by absolute values. A pair is summed at the cheapest order whose bound is at most
+``LOD_SLACK * tol * S_j / (8 pi mu R)``, S_j the cilium's force scale, so that at every point
+
+    |u - u_resolved| <= LOD_SLACK * tol * sum_j S_j / (8 pi mu |x - c_j|)
+
+rigorously (the ``error_bound`` of a :class:`~.carpet.FlowSample`: the pairs' bounds at the
+current moments summed, :meth:`Carriers.error_bound`).
+
+:class:`Bounds` holds the bounds' coefficients per cilium for one kind of flow and turns a
+tolerance into the distances R1, R2, R3 beyond which each order will do
+(:meth:`Bounds.thresholds`): :attr:`Carriers.over_cycle` for the flow at any instant (the
+exact terms' maxima over the cycle's phase samples times :data:`PHASE_MARGIN`, S_j the r.m.s. of
+|F_j(t)|; the reported bound uses the moments at the current phase), :attr:`Carriers.of_mean`
+for the cycle-mean flow (the cycle means, S_j = |Fbar_j|). ``tol`` is relative to the sum of the
+cilia's far-field magnitudes (for a carpet whose cilia push roughly the same way, relative to
+|u| itself). Measured: the error on carpets of 10 x 10 and 30 x 30 cilia stays below
+``0.2 * tol`` times that sum (tested on 10 x 10; ``benchmarks/bench_calibration.py`` for every
+size: the worst-case alignments and signs that the bound adds up do not occur, see
+:data:`LOD_SLACK`). Small carpets average less: 3 x 3 cilia reach 0.73 tol (free space, tol
+1e-3) and a lone cilium 4.4 tol (tol 1e-2; 2.1 at 1e-3, 0.7 at 1e-4), the rigorous bound holding.
+
+Shapes: per cilium arrays (N,); carrier forces (N, 3, 2) and (N, 6, 2), in-plane, lab frame.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from numba import njit, prange
+
+from ciliary_carpet.carpet.cycles import CycleData
+from ciliary_carpet.stokes import Kernel
+
+__all__ = ["Bounds", "CarrierForces", "Carriers", "DIPOLE", "DESIGN_DIPOLE", "QUADRUPOLE", "LOD_SLACK", "PHASE_MARGIN",
+           "dipole_forces", "triangle"]
+
+PHASE_MARGIN = 1.25
+"""The exact terms of the cheap orders' bounds (nu(D), nu(T - T_rep)) are maximised over the
+table's phase samples to choose the orders for every time; this factor covers the phases between
+the samples (measured: the maximum over 2000 random phases exceeds the samples' by at most
+0.4 %, tests/test_carpet.py). The reported error bound uses the moments at the current phase."""
+LOD_SLACK = 8.0
+"""Calibration of the levels of detail: a pair is summed at an order when its Taylor bound is at
+most ``LOD_SLACK * tol * S_j / (8 pi mu R)`` (module docstring). The bound adds worst-case
+magnitudes: every pair's remainder at its worst alignment, and all pairs with the same sign; in
+fact the force density changes sign along the filament (the third moment cancels in part) and
+the cilia's errors add with mixed signs. Measured (tests/test_carpet.py, 10 x 10 carpets with
+and without wall, tol 1e-2 to 1e-4, four times and the mean flow, points 0.05 L from the swept
+regions and beyond): with 8 the error stays below 0.16 tol sum_j S_j / (8 pi mu |x - c_j|) (free
+space, the dipole order at tol 1e-2; 0.07 with quadrupoles at 1e-3 and 1e-4; 0.01 with a wall),
+while the near pairs fall 3-fold (benchmarks/bench_flow.py, levels). The rigorous bound is still
+what ``error_bound`` reports."""
+
+
+def triangle(angle: float) -> np.ndarray:
+    """(3, 2) the unit vectors at ``angle``, ``angle + 2 pi / 3`` and ``angle + 4 pi / 3``
+    (radians, anticlockwise from +x): the positions of dipole carriers for unit delta."""
+    return np.array([[math.cos(2 * math.pi * m / 3 + angle), math.sin(2 * math.pi * m / 3 + angle)]
+                     for m in range(3)])
+
+
+DIPOLE = triangle(math.pi / 2)
+"""Positions of the carpet's dipole carriers for unit delta: an equilateral triangle with a vertex
+at 90 degrees (90, 210, 330), the vertex the pentagon of :data:`QUADRUPOLE` has too. Any
+orientation reproduces F and D exactly; the orientation sets the carriers' own second moment
+T_rep, hence what the dipole order misses (its bound uses nu(T - T_rep))."""
+DESIGN_DIPOLE = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
+"""Positions of the design model's dipole carriers for unit delta (:mod:`ciliary_carpet.design.inverse`):
+the triangle at 0, 120 and 240 degrees. The same carriers (:func:`dipole_forces`), another
+orientation: the design model's flow is its own approximation (corrected by the full flow
+between passes), and its designs were calibrated with this one. Measured on the five bundled
+scenes (reduced): the carpet's orientation would move the designed layouts' flows by up to 3 %
+(path-line velocities; the pattern a carpet can hold, e.g. 24.4 against 23.0 degrees for
+vortex_turn), so the design keeps its own."""
+QUADRUPOLE = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2),
+                                       math.sin(2 * math.pi * m / 5 + math.pi / 2)] for m in range(5)])
+"""Positions of the quadrupole carriers for unit delta: the centre and a regular pentagon."""
+_QUADRUPOLE_INV = np.linalg.inv(np.stack([np.ones(6), QUADRUPOLE[:, 0], QUADRUPOLE[:, 1], QUADRUPOLE[:, 0] ** 2,
+                                          QUADRUPOLE[:, 0] * QUADRUPOLE[:, 1], QUADRUPOLE[:, 1] ** 2]))
+"""Inverse of the quadrupole carriers' moment matrix (rows: the monomials 1, x, y, x^2, xy, y^2)."""
+
+
+def dipole_forces(F: np.ndarray, D: np.ndarray, delta: np.ndarray, unit: np.ndarray = DIPOLE) -> np.ndarray:
+    """(K, 3, 2) the forces of the dipole carriers at c + delta u_m that reproduce the moments
+    F (K, 2) and D (K, 2, 2) about c of K cilia with carrier scales ``delta`` (K,):
+    f_m = F / 3 + 2 / (3 delta) D^T u_m, from the inverse of the carriers' moment matrix (rows 1,
+    x, y). ``unit`` (3, 2): the u_m, an equilateral triangle: the carpet's :data:`DIPOLE` (default)
+    or the design model's :data:`DESIGN_DIPOLE`. Linear in (F, D): the derivatives of F and D
+    give the carriers' derivatives. The one implementation of the dipole carriers, for the
+    carpet's levels of detail and the design model."""
+    inv = np.linalg.inv(np.stack([np.ones(3), unit[:, 0], unit[:, 1]]))
+    F = np.asarray(F, dtype=float)
+    D = np.asarray(D, dtype=float)
+    d = np.asarray(delta, dtype=float)[:, None, None]
+    return (inv[None, :, 0, None] * F[:, None, :] + inv[None, :, 1, None] * (D[:, None, 0, :] / d)
+            + inv[None, :, 2, None] * (D[:, None, 1, :] / d))
+
+
+@njit(cache=True, inline="always")
+def _solve_carriers(inv, b, fk):  # pragma: no cover - compiled
+    """fk (n, 2) = inv (n, n) @ b[:n] (the carriers' forces from their scaled moments); returns
+    sum_m |fk_m|."""
+    acc = 0.0
+    for m in range(inv.shape[0]):
+        gx = 0.0
+        gy = 0.0
+        for q in range(inv.shape[1]):
+            gx += inv[m, q] * b[q, 0]
+            gy += inv[m, q] * b[q, 1]
+        fk[m, 0] = gx
+        fk[m, 1] = gy
+        acc += math.sqrt(gx * gx + gy * gy)
+    return acc
+
+
+@njit(cache=True)
+def _carrier_sets(F, D, T, delta, u3, f3, inv6, f6, nu1, nu2, q3, q6):  # pragma: no cover - compiled
+    """Per cilium j the bound terms of the cheap orders about c_j (module docstring), for its
+    moments F (N, 2), D (N, 2, 2), T (N, 2, 2, 2) and its dipole carriers' forces f3 (N, 3, 2) at
+    c_j + delta_j u3_m (:func:`dipole_forces`):
+
+    * q3 (N,) = delta^3 sum |f3_m|, the dipole carriers' third moment, and nu2 (N,) =
+      nu(T - T_rep), T_rep their second moment;
+    * f6 (N, 6, 2): the quadrupole carriers' forces at c_j + delta_j u_m (``inv6``: the inverse
+      of their moment matrix), reproducing F, D and T; q6 (N,) = delta^3 sum |f6_m|;
+    * nu1 (N,) = nu(D), the sum of D's singular values.
+
+    nu of a second moment M (2, 2, 2), symmetric in its first two indices, is
+    sum_c (|lambda_1| + |lambda_2|) of the symmetric matrices M[:, :, c]: with M = sum of
+    |lambda| u u^T e_c terms, |(grad^2 G) : M| <= C2 nu(M) / R^3 (and |(grad G) : D| <= C1 nu(D) / R^2)."""
+    b = np.empty((6, 2))
+    for j in range(F.shape[0]):
+        d = delta[j]
+        d2 = d * d
+        for k in range(2):
+            b[0, k] = F[j, k]
+            b[1, k] = D[j, 0, k] / d
+            b[2, k] = D[j, 1, k] / d
+            b[3, k] = T[j, 0, 0, k] / d2
+            b[4, k] = T[j, 0, 1, k] / d2
+            b[5, k] = T[j, 1, 1, k] / d2
+        q6[j] = d2 * d * _solve_carriers(inv6, b, f6[j])
+        acc = 0.0
+        for m in range(3):
+            acc += math.sqrt(f3[j, m, 0] * f3[j, m, 0] + f3[j, m, 1] * f3[j, m, 1])
+        q3[j] = d2 * d * acc
+        nu = 0.0
+        for c in range(2):
+            # the symmetric part of T[:, :, c] minus the carriers' second moment
+            sxx = T[j, 0, 0, c]
+            sxy = 0.5 * (T[j, 0, 1, c] + T[j, 1, 0, c])
+            syy = T[j, 1, 1, c]
+            for m in range(3):
+                fm = f3[j, m, c] * d2
+                sxx -= u3[m, 0] * u3[m, 0] * fm
+                sxy -= u3[m, 0] * u3[m, 1] * fm
+                syy -= u3[m, 1] * u3[m, 1] * fm
+            tr = sxx + syy
+            det = sxx * syy - sxy * sxy
+            nu += abs(tr) if det >= 0.0 else math.sqrt(tr * tr - 4.0 * det)
+        nu2[j] = nu
+        fro = D[j, 0, 0] ** 2 + D[j, 0, 1] ** 2 + D[j, 1, 0] ** 2 + D[j, 1, 1] ** 2
+        det = D[j, 0, 0] * D[j, 1, 1] - D[j, 0, 1] * D[j, 1, 0]
+        nu1[j] = math.sqrt(fro + 2.0 * abs(det))
+
+
+@njit(cache=True, parallel=True)
+def _tier_bound(targets, centre, radius, R1, R2, R3, a1, b1, a2, b2, b3, out):  # pragma: no cover - compiled
+    """out[i] = sum over the cilia j summed cheaply for targets[i] (M, 3) of the Taylor bound of
+    their order (times 8 pi mu; module docstring), R the distance from the force centre c_j (in
+    the plane z = 0), d = R - a_j:
+
+    * R >= R1[j] (monopole): a1_j / R^2 + b1_j / d^3;
+    * R2[j] <= R < R1[j] (dipole): a2_j / R^3 + b2_j / d^4;
+    * R3[j] <= R < R2[j] (quadrupole): b3_j / d^4;
+
+    the same rule as :func:`_traverse`. Closer cilia are resolved (exact); a cilium with
+    R1[j] < 0 makes no flow."""
+    n = centre.shape[0]
+    for i in prange(targets.shape[0]):
+        x = targets[i, 0]
+        y = targets[i, 1]
+        z2 = targets[i, 2] * targets[i, 2]
+        acc = 0.0
+        for j in range(n):
+            if R1[j] < 0.0:
+                continue
+            dx = x - centre[j, 0]
+            dy = y - centre[j, 1]
+            R = math.sqrt(dx * dx + dy * dy + z2)
+            d = R - radius[j]
+            if R >= R1[j]:
+                acc += a1[j] / (R * R) + b1[j] / (d * d * d)
+            elif R >= R2[j]:
+                acc += a2[j] / (R * R * R) + b2[j] / (d * d * d * d)
+            elif R >= R3[j]:
+                acc += b3[j] / (d * d * d * d)
+        out[i] = acc
+
+
+
+@dataclass(frozen=True, eq=False)
+class CarrierForces:
+    """The cheap orders' carriers of K cilia for given moments: the dipole and quadrupole forces
+    f3 (K, 3, 2), f6 (K, 6, 2) (the monopole is F itself) and the bound terms (K,) nu1 = nu(D),
+    nu2 = nu(T - T_rep), q3 and q6 (the dipole's and quadrupole's delta^3 sum |f_m|) of
+    :func:`_carrier_sets`."""
+
+    f3: np.ndarray
+    f6: np.ndarray
+    nu1: np.ndarray
+    nu2: np.ndarray
+    q3: np.ndarray
+    q6: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Bounds:
+    """Per cilium (N,) the force scale ``S`` and the coefficients (times 8 pi mu) of the Taylor
+    bounds that choose its order at a distance R (module docstring): ``a1`` = C1 nu(D),
+    ``b1`` = C2 Q2 / 2, ``a2`` = C2 nu(T - T_rep) / 2, ``b2`` = C3 (Q3 + q3) / 6,
+    ``b3`` = C3 (Q3 + q6) / 6; ``Q3`` the third moment the reported bound adds to the carriers'
+    own, and ``radius`` the swept radii a_j."""
+
+    S: np.ndarray
+    a1: np.ndarray
+    b1: np.ndarray
+    a2: np.ndarray
+    b2: np.ndarray
+    b3: np.ndarray
+    Q3: np.ndarray
+    radius: np.ndarray
+
+    def thresholds(self, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per cilium the distances R1, R2, R3 from its force centre beyond which its monopole,
+        dipole and quadrupole carriers meet the tolerance: the smallest R > a_j with
+        R (A / R^p + B / (R - a)^(p + 1)) <= LOD_SLACK tol S (the left side decreases in R),
+        by bisection. -1 for a cilium that makes no flow, inf for one whose S is 0 while it makes
+        a flow (always resolved)."""
+        a = self.radius
+        S = self.S
+        target = LOD_SLACK * tol * S
+        makes_flow = self.b3 > 0  # Q3 > 0: some force on the fluid
+        out = []
+        for A, p, B in ((self.a1, 2, self.b1), (self.a2, 3, self.b2), (np.zeros_like(a), 3, self.b3)):
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                g = lambda R: R * (A / R ** p + B / (R - a) ** (p + 1)) - target  # noqa: E731,B023
+                lo = a.copy()
+                hi = a + 1.0
+                for _ in range(200):
+                    grow = (g(hi) > 0) & (S > 0)
+                    if not np.any(grow):
+                        break
+                    hi = np.where(grow, 2 * hi, hi)
+                for _ in range(60):
+                    mid = 0.5 * (lo + hi)
+                    pos = g(mid) > 0
+                    lo = np.where(pos, mid, lo)
+                    hi = np.where(pos, hi, mid)
+            R = hi * (1 + 1e-12) + 1e-12
+            out.append(np.where(S > 0, np.minimum(R, 1e300), np.where(makes_flow, np.inf, -1.0)))
+        return tuple(out)
+
+
+class Carriers:
+    """The level-of-detail carriers of a carpet's cilia and their rigorous bounds (module
+    docstring), for the cycle data ``cycles`` and the Green's function ``kernel`` (its Taylor
+    constants c1, c2, c3). ``delta`` (N,): the carriers' scale a_j / 2."""
+
+    def __init__(self, cycles: CycleData, kernel: Kernel):
+        self.cycles, self.kernel = cycles, kernel
+        self.delta = 0.5 * np.maximum(cycles.radius, 1e-12)
+
+    def forces(self, F: np.ndarray, D: np.ndarray, T: np.ndarray, delta: np.ndarray | None = None) -> CarrierForces:
+        """The carriers for moments F (K, 2), D (K, 2, 2), T (K, 2, 2, 2) of cilia of carrier scale
+        ``delta`` (K,) (default: every cilium's, K = N)."""
+        d = np.ascontiguousarray(self.delta if delta is None else delta, dtype=float)
+        k = F.shape[0]
+        f3 = np.ascontiguousarray(dipole_forces(F, D, d))
+        out = CarrierForces(f3=f3, f6=np.empty((k, 6, 2)), nu1=np.empty(k), nu2=np.empty(k), q3=np.empty(k),
+                            q6=np.empty(k))
+        _carrier_sets(np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(D, dtype=float),
+                      np.ascontiguousarray(T, dtype=float), d, DIPOLE, f3, _QUADRUPOLE_INV, out.f6, out.nu1,
+                      out.nu2, out.q3, out.q6)
+        return out
+
+    @cached_property
+    def over_cycle(self) -> Bounds:
+        """The bounds of the flow at any instant: the exact terms' maxima over the cycle's phase
+        samples times :data:`PHASE_MARGIN`, the remainders' maxima, S the r.m.s. of |F(t)|."""
+        c = self.cycles
+        n, n_p = c.n, c.n_phase
+        car = self.forces(c.F.reshape(-1, 2), c.D.reshape(-1, 2, 2), c.T.reshape(-1, 2, 2, 2),
+                          np.repeat(self.delta, n_p))
+        nu1, nu2 = (getattr(car, q).reshape(n, n_p).max(axis=1) for q in ("nu1", "nu2"))
+        Q3 = c.Q_max
+        q3, q6 = ((c.Q + getattr(car, q).reshape(n, n_p)).max(axis=1) - Q3 for q in ("q3", "q6"))
+        Q2 = c.Q2.max(axis=1)
+        S = c.F_rms * c.flutter
+        return self._bounds(S, nu1, nu2, q3, q6, Q2, Q3, PHASE_MARGIN)
+
+    @cached_property
+    def of_mean(self) -> Bounds:
+        """The bounds of the cycle-mean flow: those of the cycle means, S = |Fbar|."""
+        c = self.cycles
+        car = self.forces(c.F_mean, c.D_mean, c.T_mean)
+        S = np.sqrt((c.F_mean ** 2).sum(-1)) * c.flutter
+        return self._bounds(S, car.nu1, car.nu2, car.q3, car.q6, c.Q2_mean, c.Q_mean, 1.0)
+
+    def _bounds(self, S, nu1, nu2, q3, q6, Q2, Q3, margin) -> Bounds:
+        k = self.kernel
+        return Bounds(S=S, a1=margin * k.c1 * nu1, b1=0.5 * k.c2 * Q2, a2=margin * 0.5 * k.c2 * nu2,
+                      b2=k.c3 / 6.0 * (Q3 + q3), b3=k.c3 / 6.0 * (Q3 + q6), Q3=Q3, radius=self.cycles.radius)
+
+    def positions(self, js: np.ndarray) -> np.ndarray:
+        """(10 len(js), 3) the carriers' positions (z = 0) of cilia ``js`` in the order a ranged
+        sum reads them: the monopoles (at c_j), then the dipoles' three, then the quadrupoles' six
+        per cilium."""
+        cen, dl = self.cycles.centre[js], self.delta[js][:, None, None]
+        pos = np.concatenate([cen, (cen[:, None] + dl * DIPOLE[None]).reshape(-1, 2),
+                              (cen[:, None] + dl * QUADRUPOLE[None]).reshape(-1, 2)])
+        return np.concatenate([pos, np.zeros((pos.shape[0], 1))], axis=1)
+
+    @staticmethod
+    def stacked(F: np.ndarray, car: CarrierForces, js: np.ndarray) -> np.ndarray:
+        """(10 len(js), 2) the carriers' forces of cilia ``js`` in the order of :meth:`positions`."""
+        return np.concatenate([F[js], car.f3[js].reshape(-1, 2), car.f6[js].reshape(-1, 2)])
+
+    def error_bound(self, targets: np.ndarray, thresholds: tuple, bounds: Bounds, car: CarrierForces,
+                    mu: float) -> np.ndarray:
+        """(M,) the rigorous bound of |u - u_resolved| at ``targets`` (M, 3): per target the
+        Taylor bounds of the cilia summed cheaply at the orders the ``thresholds`` (R1, R2, R3)
+        give them (:func:`_tier_bound`), at the current moments (``car``)."""
+        k = self.kernel
+        k3 = k.c3 / 6.0
+        Q3 = bounds.Q3
+        out = np.zeros(targets.shape[0])
+        R1, R2, R3 = thresholds
+        _tier_bound(targets, self.cycles.centre, self.cycles.radius, R1, R2, R3, k.c1 * car.nu1, bounds.b1,
+                    0.5 * k.c2 * car.nu2, k3 * (Q3 + car.q3), k3 * (Q3 + car.q6), out)
+        return out / (8 * math.pi * mu)

@@ -1,0 +1,575 @@
+"""The cilia's limit cycles in the lab frame: interpolation in phase, moments, the Simpson rule.
+
+A carpet's cilium j beats on the limit cycle of its natural curvature chi_N_j, read from the
+:class:`~single_cilium.table.ThrustTable` at the table's ``n_phase`` uniform phase samples and
+``n_s`` uniform arc-length samples s, in the field frame (field along e2), rotated by the field
+direction into the lab frame and placed at its base b_j. :class:`CycleData` holds, for all N
+cilia of a carpet, built once:
+
+* the trigonometric interpolant in phase of the shape r_j(s, phi) - b_j and of the force per
+  length on the fluid f_j(s, phi) (``coef`` (N, 2K-1, n_s, 4), float32: the cosine coefficients
+  k = 0..K-1, then the sine coefficients k = 1..K-1, of x, y, fx, fy; K the harmonics the table
+  resolves), spectral because the cycle is smooth: :meth:`CycleData.state`,
+  :meth:`CycleData.beat_velocity`, :meth:`CycleData.samples`, and the resolved line sources of an
+  evaluation (:class:`ResolvedSources`);
+* the force centre c_j (N, 2) (the centroid of the swept samples; every filament point lies
+  within the radius a_j (N,) of it) and, about it, with h = r - c and the composite Simpson rule
+  in s (:func:`simpson`), the moments at each phase sample: F = int f ds (N, n_phase, 2),
+  D = int h f^T ds (N, n_phase, 2, 2), T = int h h f ds (N, n_phase, 2, 2, 2), Q = int |h|^3 |f| ds
+  and Q2 = int |h|^2 |f| ds (N, n_phase); their cycle means; and the trigonometric interpolant of
+  F, D, T in phase for any phase (:meth:`CycleData.moments_at`);
+* the phases: phi_j(t) = phases[j] + t / T(chi_N_j) (mod 1), each cilium at its own period.
+
+Still cilia (chi_N off the flutter branch) stand in their equilibrium shape with no force.
+
+:class:`CycleMoments` is the same moment code (:func:`_sample_moments`) as smooth functions of
+chi_N: the cycle means of F and D, the centre offset and the radius of one cilium in the field
+frame, interpolated by cubic splines in chi_N (the design model's, :mod:`ciliary_carpet.design.inverse`).
+
+(About 570 lines, 300 of them the compiled kernels of the interpolant and the moments, which
+belong with the data they build.)
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+from scipy.interpolate import CubicSpline
+from scipy.spatial import ConvexHull
+
+from single_cilium.equilibrium import equilibrium_shape
+from single_cilium.params import CiliumParams
+from single_cilium.table import ThrustTable
+
+__all__ = ["CycleData", "CycleMoments", "ResolvedSources", "cycle_moments", "simpson"]
+
+_CHUNK = 128
+"""Cilia whose table cycles are read and reduced at once (the full cycle data of a large carpet
+would not fit in memory)."""
+
+
+def simpson(n: int) -> np.ndarray:
+    """(n,) weights of the composite Simpson rule on the uniform grid of n points on [0, 1]
+    (n odd, >= 3): int_0^1 g(s) ds ~ sum_i w_i g(s_i). The one quadrature in arc length of the
+    carpet, its design model and its omissions (the table's s grid)."""
+    if n < 3 or n % 2 == 0:
+        raise ValueError(f"the table's s grid must have an odd number (>= 3) of points, got {n}")
+    w = np.ones(n)
+    w[1:-1:2] = 4.0
+    w[2:-1:2] = 2.0
+    return w / (3.0 * (n - 1))
+
+
+def _modes(table: ThrustTable, floor: float = 1e-7) -> int:
+    """Number of phase harmonics (k = 0..K-1) above ``floor`` times the largest, over every row of
+    the table (the table stores float32: its harmonics level off near 1e-8)."""
+    fl = table.ds.flutter.values.astype(bool)
+    if not np.any(fl):
+        return 1
+    amp = np.zeros(table.ds.sizes["phase"] // 2 + 1)
+    for k in ("x", "y", "fx", "fy"):
+        a = np.abs(np.fft.rfft(table.ds[k].values[fl].astype(float), axis=1)).max(axis=(0, 2))
+        amp = np.maximum(amp, a / a.max())
+    return int(np.nonzero(amp > floor)[0].max()) + 1
+
+
+def _trig_basis(phases, K: int) -> np.ndarray:
+    """(..., 2K-1) the basis 1, cos(2 pi k phi), sin(2 pi k phi) (k = 1..K-1) of the interpolant
+    at ``phases`` (...,)."""
+    arg = 2.0 * math.pi * np.asarray(phases)[..., None] * np.arange(K)
+    return np.ascontiguousarray(np.concatenate([np.cos(arg), np.sin(arg[..., 1:])], axis=-1))
+
+
+@njit(cache=True, inline="always")
+def _basis_row(ph, cs, sn):  # pragma: no cover - compiled
+    """cs[k] = cos(2 pi k ph), sn[k] = sin(2 pi k ph), k < len(cs), by the angle-addition recurrence."""
+    th = 2.0 * np.pi * ph
+    c1 = np.cos(th)
+    s1 = np.sin(th)
+    cs[0] = 1.0
+    sn[0] = 0.0
+    for k in range(1, cs.shape[0]):
+        cs[k] = cs[k - 1] * c1 - sn[k - 1] * s1
+        sn[k] = sn[k - 1] * c1 + cs[k - 1] * s1
+
+
+@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+def _moments_at(coef_t, ph, out):  # pragma: no cover - compiled
+    """out[j, p] = a_0 + sum_{k=1}^{K-1} a_k cos(2 pi k ph_j) + b_k sin(2 pi k ph_j), the
+    trigonometric interpolant of every cilium j (in parallel) at its phase ph[j], with
+    coef_t[j, p] (2K-1,) holding a_0..a_{K-1} then b_1..b_{K-1} (the moments' coefficients stored
+    transposed, so that each output is one contiguous dot product, which vectorises: the
+    reordered sum differs by rounding only). The basis by the angle-addition recurrence
+    (rounding grows like k eps: below 1e-13 for the K <= 64 used)."""
+    nk = coef_t.shape[2]
+    K = (nk + 1) // 2
+    for j in prange(coef_t.shape[0]):
+        cs = np.empty(K)
+        sn = np.empty(K)
+        b = np.empty(nk)
+        _basis_row(ph[j], cs, sn)
+        for k in range(K):
+            b[k] = cs[k]
+        for k in range(1, K):
+            b[K - 1 + k] = sn[k]
+        for p in range(coef_t.shape[1]):
+            acc = 0.0
+            for k in range(nk):
+                acc += coef_t[j, p, k] * b[k]
+            out[j, p] = acc
+
+
+@njit(cache=True)
+def _basis(ph, K, out):  # pragma: no cover - compiled
+    """out[i, 0] (len(ph), 1, 2K-1): the trigonometric basis 1, cos(2 pi k ph_i), sin(2 pi k ph_i)
+    (k = 1..K-1) of :func:`_moments_at` at phase ph[i]."""
+    cs = np.empty(K)
+    sn = np.empty(K)
+    for i in range(ph.shape[0]):
+        _basis_row(ph[i], cs, sn)
+        for k in range(K):
+            out[i, 0, k] = cs[k]
+        for k in range(1, K):
+            out[i, 0, K - 1 + k] = sn[k]
+
+
+
+@njit(cache=True, inline="always")
+def _rotated(x, y, fx, fy, rot, j, v):  # pragma: no cover - compiled
+    """v (n_p, 4 n_s) = the cycle samples of cilium j, x, y, fx, fy (n, n_p, n_s), rotated by
+    ``rot`` into the lab frame, flattened per phase as (s, q) with q = x, y, fx, fy: the inner
+    loops of the callers run over 4 n_s contiguous numbers."""
+    for p in range(x.shape[1]):
+        for s in range(x.shape[2]):
+            a = x[j, p, s]
+            b = y[j, p, s]
+            v[p, 4 * s] = rot[0, 0] * a + rot[0, 1] * b
+            v[p, 4 * s + 1] = rot[1, 0] * a + rot[1, 1] * b
+            a = fx[j, p, s]
+            b = fy[j, p, s]
+            v[p, 4 * s + 2] = rot[0, 0] * a + rot[0, 1] * b
+            v[p, 4 * s + 3] = rot[1, 0] * a + rot[1, 1] * b
+
+
+@njit(cache=True, parallel=True)
+def _sample_moments(x, y, fx, fy, rot, bases, w, centre, radius, F, D, T, Q, Q2):  # pragma: no cover - compiled
+    """Per cilium j (parallel over j) the moments of its cycle samples x, y, fx, fy (n, n_p, n_s),
+    rotated by ``rot`` into the lab frame: centre[j] (2,) the centroid of the swept samples plus
+    bases[j], radius[j] the largest distance of a sample from it, and per phase sample p, with
+    h = r - c and the Simpson weights ``w`` (n_s,), F[j, p] = sum_s w_s f (2,),
+    D[j, p] = sum_s w_s h f^T (2, 2), T[j, p] = sum_s w_s h h f (2, 2, 2),
+    Q[j, p] = sum_s w_s |h|^3 |f| and Q2[j, p] = sum_s w_s |h|^2 |f|."""
+    n, n_p, n_s = x.shape
+    for j in prange(n):
+        v = np.empty((n_p, 4 * n_s))
+        _rotated(x, y, fx, fy, rot, j, v)
+        cx = 0.0
+        cy = 0.0
+        for p in range(n_p):
+            for s in range(n_s):
+                cx += v[p, 4 * s + 0]
+                cy += v[p, 4 * s + 1]
+        cx /= n_p * n_s
+        cy /= n_p * n_s
+        centre[j, 0] = cx + bases[j, 0]
+        centre[j, 1] = cy + bases[j, 1]
+        rmax = 0.0
+        for p in range(n_p):
+            for a in range(2):
+                F[j, p, a] = 0.0
+                for b in range(2):
+                    D[j, p, a, b] = 0.0
+                    for c3 in range(2):
+                        T[j, p, a, b, c3] = 0.0
+            Q[j, p] = 0.0
+            Q2[j, p] = 0.0
+            for s in range(n_s):
+                h0 = v[p, 4 * s + 0] - cx
+                h1 = v[p, 4 * s + 1] - cy
+                r = math.sqrt(h0 * h0 + h1 * h1)
+                rmax = max(rmax, r)
+                g0 = v[p, 4 * s + 2] * w[s]
+                g1 = v[p, 4 * s + 3] * w[s]
+                F[j, p, 0] += g0
+                F[j, p, 1] += g1
+                D[j, p, 0, 0] += h0 * g0
+                D[j, p, 0, 1] += h0 * g1
+                D[j, p, 1, 0] += h1 * g0
+                D[j, p, 1, 1] += h1 * g1
+                T[j, p, 0, 0, 0] += h0 * h0 * g0
+                T[j, p, 0, 0, 1] += h0 * h0 * g1
+                T[j, p, 0, 1, 0] += h0 * h1 * g0
+                T[j, p, 0, 1, 1] += h0 * h1 * g1
+                T[j, p, 1, 0, 0] += h1 * h0 * g0
+                T[j, p, 1, 0, 1] += h1 * h0 * g1
+                T[j, p, 1, 1, 0] += h1 * h1 * g0
+                T[j, p, 1, 1, 1] += h1 * h1 * g1
+                af = math.sqrt(v[p, 4 * s + 2] ** 2 + v[p, 4 * s + 3] ** 2) * w[s]
+                Q[j, p] += r * r * r * af
+                Q2[j, p] += r * r * af
+        radius[j] = rmax
+
+
+@njit(cache=True, parallel=True)
+def _interpolant(x, y, fx, fy, rot, w, cos_p, sin_p, mk, cos_m, sin_m, coef, mom_coef):  # pragma: no cover - compiled
+    """Per cilium j (parallel over j) the trigonometric interpolant in phase of its cycle samples
+    x, y, fx, fy (n, n_p, n_s), rotated by ``rot`` into the lab frame:
+
+    * coef[j] (2K-1, n_s, 4), float32: its coefficients (rounded to single precision, the
+      table's own: the near-field blocks made from them at every evaluation read half the memory),
+      a_k = mk_k / n_p sum_p v_p cos(2 pi k p / n_p), b_k = mk_k / n_p sum_p v_p sin(...)
+      (``cos_p``, ``sin_p`` (n_p, K) hold the cosines and sines; v = x, y, fx, fy);
+    * mom_coef[j] (2Km-1, 14): the coefficients (cos k = 0..Km-1, then sin k = 1..Km-1) of
+      F (2), D (4) and T (8) of the interpolant about c_j = base + mean of the shape (its k = 0
+      term), with the Simpson weights ``w``, sampled at n_m = 2 Km phases (``cos_m``, ``sin_m``
+      (n_m, Km)): products of up to three functions of K harmonics hold 3 (K - 1) + 1 <= Km, so
+      the samples alias nothing."""
+    n, n_p, n_s = x.shape
+    K = cos_p.shape[1]
+    n_m, Km = cos_m.shape
+    R = 4 * n_s
+    for j in prange(n):
+        v = np.empty((n_p, R))  # (phase, (s, q)) flattened: the inner loops run over R contiguous numbers
+        _rotated(x, y, fx, fy, rot, j, v)
+        # trigonometric coefficients in phase
+        cf = np.zeros((2 * K - 1, R))
+        for p in range(n_p):
+            for k in range(K):
+                c = mk[k] * cos_p[p, k] / n_p
+                for r in range(R):
+                    cf[k, r] += c * v[p, r]
+            for k in range(1, K):
+                c = mk[k] * sin_p[p, k] / n_p
+                for r in range(R):
+                    cf[K - 1 + k, r] += c * v[p, r]
+        for k in range(2 * K - 1):  # stored in single precision, as the table's samples are: the
+            for r in range(R):      # moments below are those of the rounded interpolant
+                cf[k, r] = np.float32(cf[k, r])
+        for k in range(2 * K - 1):
+            for s in range(n_s):
+                for q in range(4):
+                    coef[j, k, s, q] = cf[k, 4 * s + q]
+        # moments of the interpolant on the oversampled phase grid, then their coefficients
+        mx = 0.0
+        my = 0.0
+        for s in range(n_s):
+            mx += cf[0, 4 * s]
+            my += cf[0, 4 * s + 1]
+        mx /= n_s
+        my /= n_s
+        vm = np.empty(R)
+        mom = np.empty(14)
+        mc = np.zeros((2 * Km - 1, 14))
+        for pm in range(n_m):
+            for r in range(R):
+                vm[r] = cf[0, r]
+            for k in range(1, K):
+                c = cos_m[pm, k]
+                sn = sin_m[pm, k]
+                for r in range(R):
+                    vm[r] += c * cf[k, r] + sn * cf[K - 1 + k, r]
+            for q in range(14):
+                mom[q] = 0.0
+            for s in range(n_s):
+                h0 = vm[4 * s] - mx
+                h1 = vm[4 * s + 1] - my
+                g0 = vm[4 * s + 2] * w[s]
+                g1 = vm[4 * s + 3] * w[s]
+                mom[0] += g0
+                mom[1] += g1
+                mom[2] += h0 * g0
+                mom[3] += h0 * g1
+                mom[4] += h1 * g0
+                mom[5] += h1 * g1
+                mom[6] += h0 * h0 * g0
+                mom[7] += h0 * h0 * g1
+                mom[8] += h0 * h1 * g0
+                mom[9] += h0 * h1 * g1
+                mom[10] += h1 * h0 * g0
+                mom[11] += h1 * h0 * g1
+                mom[12] += h1 * h1 * g0
+                mom[13] += h1 * h1 * g1
+            for k in range(Km):
+                c = (1.0 if k == 0 else 2.0) * cos_m[pm, k] / n_m
+                for q in range(14):
+                    mc[k, q] += c * mom[q]
+            for k in range(1, Km):
+                c = 2.0 * sin_m[pm, k] / n_m
+                for q in range(14):
+                    mc[Km - 1 + k, q] += c * mom[q]
+        mom_coef[j] = mc
+
+
+@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+def _blocks(coef, basis, wgt, bases, jc, src, frc):  # pragma: no cover - compiled
+    """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
+    ``frc``, (len(jc) * blk, 3), z = 0, blk = P n_s) holds the resolved sources of cilium
+    j = jc[i] -- its trigonometric interpolant (coef (N, 2K-1, n_s, 4)) at the P phases whose
+    basis rows are ``basis[i]`` (len(jc), P, 2K-1), positions plus the base, forces times
+    ``wgt`` (n_s,)."""
+    n_s = coef.shape[2]
+    nk = coef.shape[1]
+    P = basis.shape[1]
+    blk = P * n_s
+    R = 4 * n_s
+    for i in prange(jc.shape[0]):
+        j = jc[i]
+        o = i * blk
+        cj = coef[j].reshape(nk, R)  # (k, (s, q)): the inner loop runs over R contiguous numbers
+        v = np.empty(R)
+        for p in range(P):
+            e = basis[i, p, 0]
+            for r in range(R):
+                v[r] = e * cj[0, r]
+            for k in range(1, nk):
+                e = basis[i, p, k]
+                for r in range(R):
+                    v[r] += e * cj[k, r]
+            for s in range(n_s):
+                r = o + p * n_s + s
+                src[r, 0] = v[4 * s] + bases[j, 0]
+                src[r, 1] = v[4 * s + 1] + bases[j, 1]
+                src[r, 2] = 0.0
+                frc[r, 0] = v[4 * s + 2] * wgt[s]
+                frc[r, 1] = v[4 * s + 3] * wgt[s]
+                frc[r, 2] = 0.0
+
+
+
+class CycleData:
+    """The limit cycles of a carpet's cilia in the lab frame and their moments (module
+    docstring), built once per carpet.
+
+    Parameters
+    ----------
+    table : the ThrustTable of the field (chi_E, eta).
+    chi_N : (N,) signed natural curvatures, each within the table's range (TableError otherwise).
+    bases : (N, 2) base points; phases : (N,) phases at t = 0 in [0, 1).
+    rotation : (2, 2) from the field frame (field along e2) to the lab frame.
+
+    Attributes (arrays over the N cilia first; read them, do not write them)
+    -------------------------------------------------------------------------
+    flutter (N,) bool: the cilium beats; period (N,): its beat period (NaN for still ones);
+    rate (N,): 1 / period (0 for still ones); s (n_s,), weights (n_s,): the arc-length grid and
+    its Simpson weights; n_s, n_phase: the table's samples; coef (N, 2K-1, n_s, 4): the
+    interpolant's coefficients (float32); centre (N, 2), radius (N,): force centres c_j and swept
+    radii a_j; F, D, T, Q, Q2: the moments per phase sample (N, n_phase, ...), with their cycle
+    means F_mean, D_mean, T_mean, Q_mean, Q2_mean, the r.m.s. F_rms (N,) of |F| over the cycle
+    and Q_max (N,) the largest Q; moment_coef (N, 14, 2Km-1): the coefficients in phase of
+    (F, D, T) flattened to 14 numbers (:meth:`moments_at`).
+    """
+
+    def __init__(self, table: ThrustTable, chi_N: np.ndarray, bases: np.ndarray, phases: np.ndarray,
+                 rotation: np.ndarray):
+        n = bases.shape[0]
+        n_p, n_s = table.ds.sizes["phase"], table.ds.sizes["s"]
+        s = table.ds.s.values
+        w = simpson(n_s)
+        K = _modes(table)
+        Km = 3 * (K - 1) + 1  # the moments are products of up to three K-band functions
+        n_m = 2 * Km
+        arg = 2.0 * math.pi * np.arange(n_p)[:, None] * np.arange(K)[None, :] / n_p
+        arg_m = 2.0 * math.pi * np.arange(n_m)[:, None] * np.arange(Km)[None, :] / n_m
+        mk = np.full(K, 2.0)
+        mk[0] = 1.0
+        if n_p % 2 == 0 and K - 1 == n_p // 2:
+            mk[-1] = 1.0
+        trig = (np.cos(arg), np.sin(arg), mk, np.cos(arg_m), np.sin(arg_m))
+        fl = np.zeros(n, bool)
+        coef = np.empty((n, 2 * K - 1, n_s, 4), np.float32)
+        mom_coef = np.empty((n, 2 * Km - 1, 14))
+        centre, radius = np.empty((n, 2)), np.empty(n)
+        F, D, T, Q = np.empty((n, n_p, 2)), np.empty((n, n_p, 2, 2)), np.empty((n, n_p, 2, 2, 2)), np.empty((n, n_p))
+        Q2 = np.empty((n, n_p))
+        for lo in range(0, n, _CHUNK):
+            sl = slice(lo, min(n, lo + _CHUNK))
+            cyc = table.cycles(chi_N[sl])  # raises TableError for chi_N outside the table
+            fl[sl] = cyc["flutter"]
+            for i in np.nonzero(~cyc["flutter"])[0]:  # still filaments: equilibrium shape, no force
+                x, y = equilibrium_shape(CiliumParams(table.chi_E, table.eta, float(chi_N[lo + i])), s)
+                cyc["x"][i], cyc["y"][i] = x[None], y[None]
+            xyf = (cyc["x"], cyc["y"], cyc["fx"], cyc["fy"], rotation)
+            _interpolant(*xyf, w, *trig, coef[sl], mom_coef[sl])
+            _sample_moments(*xyf, bases[sl], w, centre[sl], radius[sl], F[sl], D[sl], T[sl], Q[sl], Q2[sl])
+        period = np.full(n, np.nan)
+        if np.any(fl):
+            period[fl] = table.scalar("period", chi_N[fl])
+        self.bases, self.phases = bases, phases
+        self.flutter, self.period = fl, period
+        self.rate = np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0)
+        self.s, self.weights, self.n_s, self.n_phase = s, w, n_s, n_p
+        self.coef, self.harmonics = coef, K
+        self.centre, self.radius = centre, radius
+        self.F, self.D, self.T, self.Q, self.Q2 = F, D, T, Q, Q2
+        self.F_mean, self.D_mean, self.T_mean = F.mean(axis=1), D.mean(axis=1), T.mean(axis=1)
+        self.Q_mean, self.Q2_mean, self.Q_max = Q.mean(axis=1), Q2.mean(axis=1), Q.max(axis=1)
+        self.F_rms = np.sqrt((F ** 2).sum(-1).mean(axis=1))
+        self.moment_coef = np.ascontiguousarray(mom_coef.transpose(0, 2, 1))
+        self._hulls: dict = {}
+
+    @property
+    def n(self) -> int:
+        """Number of cilia."""
+        return self.coef.shape[0]
+
+    def phase_at(self, t: float) -> np.ndarray:
+        """(N,) phase of every cilium at time t, in [0, 1)."""
+        return np.mod(self.phases + float(t) * self.rate, 1.0)
+
+    def moments_at(self, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """F (N, 2), D (N, 2, 2), T (N, 2, 2, 2) of every cilium at its phase ``phases`` (N,),
+        from the interpolant of the moments (:func:`_moments_at`)."""
+        mom = np.empty((self.n, self.moment_coef.shape[1]))
+        _moments_at(self.moment_coef, phases, mom)
+        return mom[:, :2], mom[:, 2:6].reshape(-1, 2, 2), mom[:, 6:].reshape(-1, 2, 2, 2)
+
+    def state(self, t: float, js=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions (N, n_s, 2) (lab frame), force per length on the fluid (N, n_s, 2) and phases
+        (N,) of all cilia (or of cilia ``js``: N = len(js)) at time t."""
+        ph = self.phase_at(t)
+        coef, bases = self.coef, self.bases
+        if js is not None:
+            js = np.asarray(js, dtype=np.int64).reshape(-1)
+            ph, coef, bases = ph[js], coef[js], bases[js]
+        basis = _trig_basis(ph, self.harmonics)  # (N, 2K-1)
+        vals = np.einsum("jk,jksq->jsq", basis, coef, dtype=float, optimize=True)
+        return vals[..., :2] + bases[:, None, :], vals[..., 2:], ph
+
+    def beat_velocity(self, t, js=None) -> np.ndarray:
+        """(len(js), n_s, 2) velocity d r_j / dt of the filaments ``js`` (default all) at time
+        ``t`` (a number, or one per cilium of ``js``), lab frame: the exact time derivative of the
+        interpolant :meth:`state` evaluates (its harmonics times 2 pi k / T_j); zero for still
+        cilia."""
+        js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).reshape(-1)
+        t = np.broadcast_to(np.asarray(t, dtype=float), js.shape)
+        ph = np.mod(self.phases[js] + t * self.rate[js], 1.0)
+        k = np.arange(self.harmonics)
+        arg = 2.0 * math.pi * ph[:, None] * k[None, :]
+        w = 2.0 * math.pi * k[None, :] * self.rate[js][:, None]  # d(phase angle)/dt of harmonic k
+        dbasis = np.concatenate([-w * np.sin(arg), (w * np.cos(arg))[:, 1:]], axis=1)  # (len(js), 2K-1)
+        return np.einsum("jk,jksq->jsq", dbasis, self.coef[js][..., :2], dtype=float, optimize=True)
+
+    def samples(self, js) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and forces per length of cilia ``js`` at the table's phase samples:
+        (len(js), n_phase, n_s, 2) each, lab frame."""
+        js = np.asarray(js, dtype=np.int64)
+        basis = _trig_basis(np.arange(self.n_phase) / self.n_phase, self.harmonics)  # (phase, 2K-1)
+        vals = np.einsum("pk,jksq->jpsq", basis, self.coef[js], dtype=float, optimize=True)
+        return vals[..., :2] + self.bases[js][:, None, None, :], vals[..., 2:]
+
+    def in_swept_region(self, points, j: int, margin: float = 0.0) -> np.ndarray:
+        """Whether points (M, 2) lie in the convex hull of cilium j's swept region grown by
+        ``margin`` (conservative: the hull covers the region)."""
+        p = np.asarray(points, dtype=float)[:, :2]
+        if j not in self._hulls:  # built when first asked for: most cilia never are
+            try:
+                self._hulls[j] = ConvexHull(self.samples([j])[0].reshape(-1, 2)).equations
+            except Exception:  # degenerate (a straight still filament): its bounding disc is used
+                self._hulls[j] = None
+        eq = self._hulls[j]
+        if eq is None:
+            d = np.linalg.norm(p - self.centre[j], axis=1)
+            return d <= self.radius[j] + margin
+        return np.all(p @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
+
+
+class ResolvedSources:
+    """The resolved line sources of the cilia for one evaluation: cilium j's line distribution at
+    its phase ``phases[j]`` ((N,): the flow at an instant), or at every phase sample of the table
+    with weight 1 / n_phase (``phases`` None: the cycle-mean flow). ``block``: the sources per
+    cilium (n_s, or n_phase n_s); :meth:`fill` writes them."""
+
+    def __init__(self, cycles: CycleData, phases: np.ndarray | None):
+        self.cycles, self.phases = cycles, phases
+        if phases is None:
+            self._all = _trig_basis(np.arange(cycles.n_phase) / cycles.n_phase, cycles.harmonics)[None]
+            self._weights = cycles.weights / cycles.n_phase
+            self.block = cycles.n_phase * cycles.n_s
+        else:
+            self._weights = cycles.weights
+            self.block = cycles.n_s
+
+    def fill(self, jc: np.ndarray, src: np.ndarray, frc: np.ndarray) -> None:
+        """The sources (positions, z = 0) and forces (Simpson weights included) of cilia ``jc``
+        into ``src``, ``frc`` (len(jc) * block, 3), block after block (:func:`_blocks`)."""
+        c = self.cycles
+        if self.phases is None:
+            bs = np.ascontiguousarray(np.broadcast_to(self._all, (len(jc),) + self._all.shape[1:]))
+        else:
+            bs = np.empty((len(jc), 1, c.coef.shape[1]))
+            _basis(self.phases[jc], c.harmonics, bs)
+        _blocks(c.coef, bs, self._weights, c.bases, np.asarray(jc, np.int64), src, frc)
+
+
+class CycleMoments:
+    """Cycle-mean moments of one cilium as smooth functions of its signed chi_N (field frame).
+
+    ``F`` (2,): the mean force on the fluid, ``D`` (2, 2): its first moment about the force
+    centre (D_ab = <int (r - c)_a f_b ds>), ``offset`` (2,): the force centre relative to the
+    base, ``radius``: the largest distance of a swept sample from the centre -- exactly the
+    quantities :class:`CycleData` computes per cilium (the same code, :func:`_sample_moments`:
+    centroid of the samples, composite Simpson over s, mean over the phase samples). They are
+    sampled at ``n`` values of |chi_N| on the flutter branch [0, chi_c] and extended to negative
+    chi_N by the mirror symmetry (x -> -x: F_x, D_xy, D_yx, offset_x odd, the rest even), then
+    interpolated by cubic splines (``nu`` = 1 gives the chi_N derivative). Outside the branch a
+    cilium is still: zero force.
+
+    Interpolation error: the spline through 2n - 1 samples, checked against the table at the
+    midpoints in the tests (below 1e-6 relative to |Fbar(0)| for n = 257)."""
+
+    def __init__(self, table: ThrustTable, n: int = 257):
+        b0, b1 = table.flutter_range
+        self.cutoff = float(b1)
+        a = np.linspace(0.0, b1, int(n))
+        F = np.empty((a.size, 2))
+        D = np.empty((a.size, 2, 2))
+        off = np.empty((a.size, 2))
+        rad = np.empty(a.size)
+        w = simpson(table.ds.sizes["s"])
+        n_p = table.ds.sizes["phase"]
+        for lo in range(0, a.size, 64):
+            sl = slice(lo, lo + 64)
+            cyc = table.cycles(a[sl])
+            k = cyc["x"].shape[0]
+            x, y = (np.where(np.isfinite(cyc[q]), cyc[q], 0.0) for q in ("x", "y"))
+            Fp, Dp, Tp = np.empty((k, n_p, 2)), np.empty((k, n_p, 2, 2)), np.empty((k, n_p, 2, 2, 2))
+            Qp, Q2p = np.empty((k, n_p)), np.empty((k, n_p))
+            _sample_moments(x, y, cyc["fx"], cyc["fy"], np.eye(2), np.zeros((k, 2)), w, off[sl], rad[sl], Fp, Dp, Tp,
+                            Qp, Q2p)
+            F[sl] = Fp.mean(axis=1)
+            D[sl] = Dp.mean(axis=1)
+        # mirror: sign of each component under chi -> -chi
+        vals = np.column_stack([F, D.reshape(-1, 4), off, rad])
+        odd = np.array([1, 0, 0, 1, 1, 0, 1, 0, 0], bool)  # Fx Fy Dxx Dxy Dyx Dyy ox oy r
+        neg = np.where(odd, -1.0, 1.0) * vals[:0:-1]
+        self._spline = CubicSpline(np.concatenate([-a[:0:-1], a]), np.vstack([neg, vals]), axis=0)
+        self.thrust0 = float(np.hypot(*F[0]))
+
+    def __call__(self, chi, nu: int = 0) -> dict:
+        """``F`` (N, 2), ``D`` (N, 2, 2), ``offset`` (N, 2), ``radius`` (N,) at ``chi`` (N,)
+        in the field frame (their ``nu``-th chi_N derivatives for nu > 0; zero off the branch)."""
+        c = np.asarray(chi, dtype=float)
+        on = np.abs(c) <= self.cutoff
+        v = self._spline(np.clip(c, -self.cutoff, self.cutoff), nu) if nu else self._spline(
+            np.clip(c, -self.cutoff, self.cutoff))
+        v = np.where(on[:, None], v, 0.0)
+        if nu == 0:  # a still filament: its base, no force
+            v[~on, 8] = 0.0
+        return {"F": v[:, :2], "D": v[:, 2:6].reshape(-1, 2, 2), "offset": v[:, 6:8], "radius": v[:, 8]}
+
+    def thrust_norm(self, chi) -> np.ndarray:
+        """|Fbar| at ``chi`` (N,)."""
+        return np.hypot(*self(np.atleast_1d(chi))["F"].T)
+
+
+_MOMENTS: dict = {}
+
+
+def cycle_moments(table: ThrustTable) -> CycleMoments:
+    """The :class:`CycleMoments` of ``table`` (cached per table object)."""
+    key = id(table)
+    m = _MOMENTS.get(key)
+    if m is None or m[0] is not table:
+        _MOMENTS[key] = m = (table, CycleMoments(table))
+    return m[1]

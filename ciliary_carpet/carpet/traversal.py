@@ -1,0 +1,413 @@
+"""One ranged sum per evaluation: which carriers or sources each target sums, and the sum.
+
+Given the thresholds R1, R2, R3 of every cilium (:meth:`~.carriers.Bounds.thresholds`), each
+target x (M, 3) sums cilium j at the cheapest order its distance |x - c_j| reaches: its monopole
+carrier (R >= R1), its three dipole carriers (R >= R2), its six quadrupole carriers (R >= R3), or
+its resolved line sources (closer; :class:`~.cycles.ResolvedSources`). All of it is one sparse
+"ranged" sum of the evaluator (:meth:`Backend.ranged <ciliary_carpet.stokes.backend.Backend.ranged>`): the
+sources are the carriers of every cilium (monopoles, then dipoles, then quadrupoles, cilia
+sorted by grid cell: :meth:`~.carriers.Carriers.positions`) followed by the resolved blocks, and
+each target reads a list of row ranges of them (CSR: ``ptr`` (M + 1,), ``ranges`` (R, 2)).
+
+:class:`Plan` is what an evaluation at one tolerance reuses: the thresholds, a grid of the force
+centres and the order ``far`` of the cilia beyond the (2 reach + 1)^2 cells around a target,
+which are not looked at one by one but taken as runs between those cells (:func:`_traverse`).
+The far order is the one with the least estimated cost per target (:func:`_far_order`:
+classifying a cilium costs about :data:`_CLASSIFY` kernel evaluations, so small carpets keep
+quadrupoles and large ones take monopoles or dipoles; at tol 1e-3 the thresholds are about
+80, 7 and 3 L for the instantaneous flow), unless the flow fixes it (the cycle-mean flow keeps
+quadrupoles: its resolved blocks dominate its cost, and bounds that each sit near their budget
+would loosen its error bars, the design's residuals', for a saving of about 2 %). Measured on
+10 x 10 and 30 x 30 carpets: see tests/test_carpet.py and benchmarks/bench_flow.py.
+
+:func:`flow_sum` makes and runs the sum (targets in parts when their ranges would take more than
+:data:`_MAX_ROWS` rows; the resolved blocks in chunks of at most :data:`_CHUNK_SOURCES` sources),
+:func:`dense_sum` the resolved sum of every source (tol = 0). Both return a :class:`Summed`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from ciliary_carpet.carpet.carriers import Carriers
+from ciliary_carpet.carpet.cycles import ResolvedSources
+from ciliary_carpet.stokes import Kernel
+from ciliary_carpet.stokes import stokeslet_velocity
+
+__all__ = ["Plan", "Summed", "make_plan", "flow_sum", "dense_sum"]
+
+_CLASSIFY = 5.0
+"""Cost of classifying one cilium for one target (:func:`_traverse`) in kernel evaluations
+(measured: about 3 ns against 0.55 ns per evaluation on 2 cores); used to choose the order of
+the far cilia (:func:`_far_order`)."""
+_MAX_ROWS = 1 << 23
+"""An evaluation's targets are taken in parts when their source ranges could take more rows than
+this (128 MB: :func:`_upper`)."""
+_CHUNK_SOURCES = 1 << 19
+"""The resolved near-field sources of a flow evaluation are made and summed in chunks of cilia
+of at most this many sources (3 MB per coordinate array): :func:`flow_sum`."""
+
+
+@njit(cache=True, inline="always")
+def _close(seg, lo, hi, r, ranges, n_p, count):  # pragma: no cover - compiled
+    """Write the open run [lo, hi) of order ``seg`` (0 monopole, 1 dipole, 2 quadrupole; -1 none)
+    as source range r of the carrier segments (:func:`_traverse`) and count its pairs in
+    count[seg]; returns the next range."""
+    if seg < 0:
+        return r
+    base = 0 if seg == 0 else (n_p if seg == 1 else 4 * n_p)
+    mult = 1 if seg == 0 else (3 if seg == 1 else 6)
+    ranges[r, 0] = base + mult * lo
+    ranges[r, 1] = base + mult * hi
+    count[seg] += hi - lo
+    return r + 1
+
+
+@njit(cache=True, inline="always")
+def _resolve(j, r, k, ranges, res_j, res_r):  # pragma: no cover - compiled
+    """Record cilium j as resolved k, its block's range r left empty for the caller (:func:`_traverse`)."""
+    res_j[k] = j
+    res_r[k] = r
+    ranges[r, 0] = 0
+    ranges[r, 1] = 0
+
+
+@njit(cache=True, inline="always")
+def _window(x, y, x0, y0, h, nx, ny, reach):  # pragma: no cover - compiled
+    """The columns gx0..gx1 and rows gy0..gy1 of the cells within ``reach`` of the cell of
+    (x, y) (none: gx1 < gx0)."""
+    ix = int(math.floor((x - x0) / h))
+    iy = int(math.floor((y - y0) / h))
+    gx0 = max(ix - reach, 0)
+    gx1 = min(ix + reach, nx - 1)
+    gy0 = max(iy - reach, 0)
+    gy1 = min(iy + reach, ny - 1)
+    if gx0 > gx1 or gy0 > gy1:  # the target is beside the grid: no cell is near it
+        gx0 = 0
+        gx1 = -1
+    return gx0, gx1, gy0, gy1
+
+
+@njit(cache=True, parallel=True)
+def _upper(targets, cell_ptr, x0, y0, h, nx, ny, reach, n_always, uptr):  # pragma: no cover - compiled
+    """uptr[i + 1] = an upper bound of target i's ranges (and resolved cilia) in
+    :func:`_traverse`: the cilia of its cells, one run of far cilia before each column of cells
+    and after the last, and the cilia always resolved."""
+    for i in prange(targets.shape[0]):
+        gx0, gx1, gy0, gy1 = _window(targets[i, 0], targets[i, 1], x0, y0, h, nx, ny, reach)
+        k = gx1 - gx0 + 2 + n_always
+        for gx in range(gx0, gx1 + 1):
+            k += cell_ptr[gx * ny + gy1 + 1] - cell_ptr[gx * ny + gy0]
+        uptr[i + 1] = k
+
+
+@njit(cache=True, parallel=True)
+def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+              uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover - compiled
+    """Per target i (M, 3) the list of source ranges of one ranged sum: each present cilium q
+    (sorted by grid cell: centres scx, scy, the squares of the thresholds sR1, sR2, sR3, cilium
+    index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
+    the target: its monopole carrier (row q) when R >= R1, else its three dipole carriers (rows
+    n_p + 3q ...) when R >= R2, else its six quadrupole carriers (rows 4 n_p + 6q ...) when R >= R3,
+    else its resolved block (an empty range, filled by the caller; the cilium and the range
+    go to res_j, res_r). Consecutive cilia at the same order make one range.
+
+    Only the cilia of the (2 reach + 1)^2 cells around the target's (origin x0, y0, nx x ny
+    cells of side h; cell c holds the sorted cilia cell_ptr[c] ... cell_ptr[c + 1]) are looked
+    at: every other cilium is further than reach h and is summed at the order ``far`` (0, 1 or 2),
+    taken as the runs between those cells; the caller makes reach h at least the threshold of
+    that order (max R1 for monopoles, max R2 for dipoles, with R1 = inf). The cilia ``always``
+    (no finite threshold) are resolved for every target.
+
+    Target i writes its ranges and resolved cilia from row uptr[i] on (:func:`_upper` bounds
+    their number), and its counts: nr[i] ranges, nres[i] resolved cilia, counts[i] its pairs at
+    the three cheap orders (:func:`_compact` then packs the rows)."""
+    n_p = scx.shape[0]
+    for i in prange(targets.shape[0]):
+        x = targets[i, 0]
+        y = targets[i, 1]
+        z2 = targets[i, 2] * targets[i, 2]
+        gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
+        r = uptr[i]
+        k = uptr[i]
+        seg = -1
+        lo = 0
+        hi = 0
+        count = counts[i]
+        count[:] = 0
+        pos = 0
+        for gx in range(gx0, gx1 + 2):
+            if gx <= gx1:
+                a = cell_ptr[gx * ny + gy0]
+                b = cell_ptr[gx * ny + gy1 + 1]
+            else:  # past the last column: the rest is far
+                a = n_p
+                b = n_p
+            if a > pos:  # a run of far cilia
+                if seg == far and hi == pos:
+                    hi = a
+                else:
+                    r = _close(seg, lo, hi, r, ranges, n_p, count)
+                    seg = far
+                    lo = pos
+                    hi = a
+            for q in range(a, b):
+                dx = x - scx[q]
+                dy = y - scy[q]
+                R2 = dx * dx + dy * dy + z2  # squared distance against squared thresholds
+                if R2 >= sR1[q]:
+                    t = 0
+                elif R2 >= sR2[q]:
+                    t = 1
+                elif R2 >= sR3[q]:
+                    t = 2
+                else:
+                    t = 3
+                if t == seg and hi == q:
+                    hi = q + 1
+                    continue
+                r = _close(seg, lo, hi, r, ranges, n_p, count)
+                if t == 3:
+                    seg = -1
+                    _resolve(sj[q], r, k, ranges, res_j, res_r)
+                    r += 1
+                    k += 1
+                else:
+                    seg = t
+                    lo = q
+                    hi = q + 1
+            if b > pos:
+                pos = b
+        r = _close(seg, lo, hi, r, ranges, n_p, count)
+        for q in range(always.shape[0]):
+            _resolve(always[q], r, k, ranges, res_j, res_r)
+            r += 1
+            k += 1
+        nr[i] = r - uptr[i]
+        nres[i] = k - uptr[i]
+
+
+@njit(cache=True, parallel=True)
+def _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r):  # pragma: no cover
+    """Pack target i's rows of :func:`_traverse` (from uptr[i]) into CSR rows ptr[i] ... (ranges)
+    and rptr[i] ... (resolved cilia, their range indices shifted along)."""
+    for i in prange(nr.shape[0]):
+        u = uptr[i]
+        p = ptr[i]
+        for q in range(nr[i]):
+            ranges[p + q, 0] = ranges_u[u + q, 0]
+            ranges[p + q, 1] = ranges_u[u + q, 1]
+        rp = rptr[i]
+        for q in range(nres[i]):
+            res_j[rp + q] = res_j_u[u + q]
+            res_r[rp + q] = res_r_u[u + q] - u + p
+
+
+@njit(cache=True, parallel=True)
+def _block_ranges(res_j, res_r, local, per, k, off, blk, out):  # pragma: no cover - compiled
+    """The source range of each resolved pair q (cilium res_j[q]) in the sum of chunk k of the
+    resolved blocks (cilia of local index l in chunk l // per, rows off + (l % per) blk ...),
+    empty for another chunk's cilium: at row res_r[q] of ``out`` (the first chunk: the ranges of
+    :func:`_traverse`), or at row q (``res_r`` empty: a later chunk's own ranges)."""
+    direct = res_r.shape[0] == 0
+    for q in prange(res_j.shape[0]):
+        loc = local[res_j[q]]
+        row = np.int64(q) if direct else res_r[q]
+        if loc // per == k:
+            out[row, 0] = off + (loc % per) * blk
+            out[row, 1] = out[row, 0] + blk
+        else:
+            out[row, 0] = 0
+            out[row, 1] = 0
+
+
+
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """What an evaluation at one tolerance reuses (module docstring): ``thresholds`` (R1, R2, R3)
+    (N,) each, the cheaper orders' made infinite where the far order replaces them; ``order``
+    (n_p,) the cilia chosen per target (finite thresholds), sorted by grid cell; ``always`` the
+    cilia resolved for every target (no finite threshold); ``carriers`` (10 n_p, 3) their
+    carriers' positions (:meth:`Carriers.positions <.carriers.Carriers.positions>`); ``far`` the
+    order of the cilia beyond the cells around a target (0 monopole, 1 dipole, 2 quadrupole);
+    ``traverse`` the arguments of :func:`_traverse` after the targets (the sorted centres and
+    squared thresholds, the grid: cell pointers, origin, cell side, cells per side, reach)."""
+
+    thresholds: tuple
+    order: np.ndarray
+    always: np.ndarray
+    carriers: np.ndarray
+    far: int
+    traverse: tuple
+
+    @property
+    def grid(self) -> tuple:
+        """The arguments of :func:`_upper` that describe the grid (cell_ptr, x0, y0, h, nx, ny, reach)."""
+        return self.traverse[6:13]
+
+
+def _far_order(cen: np.ndarray, R: tuple) -> int:
+    """The order (0 monopole, 1 dipole, 2 quadrupole) of the cilia beyond the cells around a
+    target with the least estimated cost per target, cells of side max R_f / 2 for order f
+    (R = (R1, R2, R3) of the cilia at centres ``cen``): the cilia of the 5 x 5 cells are
+    classified one by one (:data:`_CLASSIFY` kernel evaluations' worth each) and get their
+    cheapest order, the others cost 1, 3 or 6 evaluations. Cilia spread evenly over their
+    bounding box, the cells' box as a disc of radius 1.4 max R_f, median thresholds; the
+    resolved cilia cost the same for every f and are left out."""
+    n = cen.shape[0]
+    ext = np.ptp(cen, axis=0) + 2.0
+    rho = n / float(ext[0] * ext[1])
+    med = [float(np.median(r)) for r in R]
+
+    def within(r):
+        return min(float(n), rho * math.pi * min(r, 1e150) ** 2)
+
+    cost = []
+    for f, (Rf, sf) in enumerate(zip(R, (1.0, 3.0, 6.0))):
+        rn = 1.4 * float(min(Rf.max(), 1e150))
+        n_in = within(rn)
+        edges = [min(r, rn) for r in med[f:]][::-1] + [rn]  # R3 <= ... <= rn
+        price = (6.0, 3.0, 1.0)[:len(edges) - 1]  # inside: costlier orders closer in
+        inside = sum(p * (within(b) - within(a)) for p, a, b in zip(price, edges[:-1], edges[1:]))
+        cost.append(_CLASSIFY * n_in + inside + sf * (n - n_in))
+    return int(np.argmin(cost))
+
+
+def make_plan(thresholds: tuple, carriers: Carriers, far: int | None = None) -> Plan:
+    """The :class:`Plan` of the ``thresholds`` (R1, R2, R3) (N,) of the cilia of ``carriers``: the
+    far order ``far`` (or the cheapest, :func:`_far_order`), a grid of the centres of the cilia
+    chosen per target with cells of side max R_far / 2 (at most 4096 a side), the cheaper orders'
+    thresholds made infinite for them, and their carriers' positions in grid order."""
+    R1, R2, R3 = thresholds
+    centre = carriers.cycles.centre
+    js = np.nonzero(np.isfinite(R3) & (R3 >= 0))[0]
+    always = np.nonzero(np.isinf(R3))[0].astype(np.int64)
+    reach = 2
+    f = 0
+    if js.size:
+        cen = centre[js]
+        # Far cilia (beyond reach h) at one order f, cells of side max R_f / 2; the cheaper
+        # orders' thresholds made infinite.
+        f = far if far is not None else _far_order(cen, (R1[js], R2[js], R3[js]))
+        R1 = np.where(R1 >= 0, np.inf, R1) if f >= 1 else R1  # the far cilia are summed at order f
+        R2 = np.where(R2 >= 0, np.inf, R2) if f >= 2 else R2
+        h = float(min((R1, R2, R3)[f][js].max(), 1e300)) / reach
+        lo = cen.min(axis=0) - h
+        span = cen.max(axis=0) + h - lo
+        nx, ny = (int(min(max(1, math.ceil(v / h)), 4096)) for v in span)
+        h = float(max(span[0] / nx, span[1] / ny, h))  # at most 4096 cells a side
+        g = np.minimum(np.floor((cen - lo) / h).astype(np.int64), [nx - 1, ny - 1])
+        cell = g[:, 0] * ny + g[:, 1]
+        order = np.argsort(cell, kind="stable")
+        cell_ptr = np.searchsorted(cell[order], np.arange(nx * ny + 1)).astype(np.int64)
+        x0, y0 = float(lo[0]), float(lo[1])
+    else:
+        order, cell_ptr, x0, y0, h, nx, ny = np.zeros(0, np.int64), np.zeros(2, np.int64), 0.0, 0.0, 1.0, 1, 1
+    sj = js[order].astype(np.int64)
+    cen = centre[sj]
+    return Plan(thresholds=(R1, R2, R3), order=sj, always=always, carriers=carriers.positions(sj), far=f,
+                traverse=(np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1]), R1[sj] ** 2, R2[sj] ** 2,
+                          R3[sj] ** 2, sj, cell_ptr, x0, y0, h, nx, ny, reach, f, always))
+
+
+@dataclass(frozen=True, eq=False)
+class Summed:
+    """A sum's velocity (M, 3) and its work: ``orders`` (3,) the cheap pairs per order
+    (monopole, dipole, quadrupole), ``resolved`` the resolved pairs, ``ranges`` the source
+    ranges read, ``sources`` the (target, source) interactions summed."""
+
+    velocity: np.ndarray
+    orders: np.ndarray
+    resolved: int
+    ranges: int
+    sources: int
+
+    @staticmethod
+    def joined(parts: list) -> "Summed":
+        """The parts' sums over consecutive targets as one."""
+        return Summed(velocity=np.concatenate([q.velocity for q in parts]),
+                      orders=sum(q.orders for q in parts), resolved=sum(q.resolved for q in parts),
+                      ranges=sum(q.ranges for q in parts), sources=sum(q.sources for q in parts))
+
+
+def dense_sum(targets: np.ndarray, js: np.ndarray, sources: ResolvedSources, kernel: Kernel, backend,
+              mu: float) -> Summed:
+    """The resolved sum itself: every source of the cilia ``js`` at every target (M, 3), in
+    chunks of cilia of at most :data:`_CHUNK_SOURCES` sources."""
+    m = targets.shape[0]
+    blk = sources.block
+    u = np.zeros((m, 3))
+    per = max(1, _CHUNK_SOURCES // blk)
+    for lo in range(0, js.size, per):
+        jc = js[lo:lo + per]
+        bsrc, bfrc = np.empty((len(jc) * blk, 3)), np.empty((len(jc) * blk, 3))
+        sources.fill(jc, bsrc, bfrc)
+        u += stokeslet_velocity(targets, bsrc, bfrc, mu, kernel=kernel, backend=backend)
+    return Summed(velocity=u, orders=np.zeros(3, np.int64), resolved=m * js.size, ranges=0,
+                  sources=m * js.size * blk)
+
+
+def flow_sum(targets: np.ndarray, plan: Plan, forces: np.ndarray, sources: ResolvedSources, n: int,
+             kernel: Kernel, evaluator, mu: float) -> Summed:
+    """Per target (M, 3) one ranged sum (module docstring): every cilium of the ``n`` at the
+    order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 2) (in the
+    order of ``plan.carriers``), or its resolved ``sources``; ``evaluator`` runs the sums."""
+    m = targets.shape[0]
+    sj = plan.order
+    n_car = 10 * sj.size
+    blk = sources.block
+    # the ranges of every point, written into rows bounded by _upper, then packed (the
+    # resolved blocks' ranges filled later); targets in parts when the bound is very large
+    uptr = np.zeros(m + 1, np.int64)
+    _upper(targets, *plan.grid, plan.always.size, uptr)
+    np.cumsum(uptr, out=uptr)
+    if uptr[-1] > _MAX_ROWS and m > 1:
+        cut = np.searchsorted(uptr, np.arange(1, -(-int(uptr[-1]) // _MAX_ROWS)) * _MAX_ROWS)
+        cut = np.unique(np.clip(cut, 1, m - 1))
+        return Summed.joined([flow_sum(t, plan, forces, sources, n, kernel, evaluator, mu)
+                              for t in np.split(targets, cut)])
+    ranges_u, res_j_u, res_r_u = np.empty((int(uptr[-1]), 2), np.int64), np.empty(int(uptr[-1]), np.int64), \
+        np.empty(int(uptr[-1]), np.int64)
+    nr, nres, counts = np.empty(m, np.int64), np.empty(m, np.int64), np.empty((m, 3), np.int64)
+    _traverse(targets, *plan.traverse, uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
+    ptr, rptr = np.zeros(m + 1, np.int64), np.zeros(m + 1, np.int64)
+    np.cumsum(nr, out=ptr[1:])
+    np.cumsum(nres, out=rptr[1:])
+    ranges = np.empty((int(ptr[-1]), 2), np.int64)
+    res_j, res_r = np.empty(int(rptr[-1]), np.int64), np.empty(int(rptr[-1]), np.int64)
+    _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
+    # The resolved blocks are made and summed in chunks of cilia of at most _CHUNK_SOURCES
+    # sources (the resolved mean flow has 4160 per cilium: a whole carpet's would take hundreds
+    # of MB, and fresh memory costs more than the sum); the first chunk carries the carriers
+    # too, so that an instantaneous flow (65 sources per cilium: one chunk) is one ranged sum.
+    used = np.zeros(n, bool)
+    used[res_j] = True
+    used = np.flatnonzero(used)
+    per = max(1, _CHUNK_SOURCES // blk)
+    local = np.zeros(n, np.int64)
+    local[used] = np.arange(used.size)
+    u = np.zeros((m, 3))
+    for k in range(max(1, -(-used.size // per))):
+        jc = used[k * per:(k + 1) * per]
+        off = n_car if k == 0 else 0
+        src, frc = np.empty((off + jc.size * blk, 3)), np.empty((off + jc.size * blk, 3))
+        if k == 0:
+            src[:n_car] = plan.carriers
+            frc[:n_car, :2] = forces
+            frc[:n_car, 2] = 0.0
+            rng, p = ranges, ptr
+            _block_ranges(res_j, res_r, local, per, k, off, blk, rng)
+        else:
+            rng, p = np.empty((res_j.size, 2), np.int64), rptr
+            _block_ranges(res_j, np.zeros(0, np.int64), local, per, k, off, blk, rng)
+        if jc.size:
+            sources.fill(jc, src[off:], frc[off:])
+        if src.shape[0] and rng.shape[0]:
+            # the evaluator directly: every array here is made and checked by this function
+            u += evaluator.ranged(kernel, targets, src, frc, p, rng, mu)
+    cnt = counts.sum(axis=0)
+    return Summed(velocity=u, orders=cnt, resolved=int(res_j.size), ranges=int(ptr[-1]),
+                  sources=int(cnt[0] + 3 * cnt[1] + 6 * cnt[2] + res_j.size * blk))

@@ -1,0 +1,188 @@
+"""Flow models that tracers follow: the contract and its models.
+
+The contract (like ``scipy.integrate.OdeSolver``)
+-------------------------------------------------
+A flow model is a subclass of :class:`Flow`, registered in :data:`FLOWS` under its name, that
+provides
+
+``name`` : str (class attribute)
+    Its label in results (``PathLines.model``, ``FTLEField.model``, a render's summary) and its
+    key in :data:`FLOWS` (the scene key ``[output] pathline_model`` takes these names).
+``carpet`` : Carpet
+    The carpet whose flow it is: path lines refuse seeds inside its filaments, sample their
+    dense output per its shortest beat period and by default follow tracers within 10 L of its
+    bases and of the seeds (:func:`~ciliary_carpet.transport.pathlines.pathlines`).
+``velocity(x, t) -> (M, 3)``
+    The fluid velocity at points ``x`` (M, 3) at time ``t``: one call for all the tracers a
+    stage advances (make it one vectorised sum).
+
+and may override
+
+``domain`` : (6,) array
+    (xmin, xmax, ymin, ymax, zmin, zmax) where the model is valid (default: everywhere, inf):
+    tracers that leave it stop ("left the domain"); a path-line run intersects it with its own.
+``step_cap`` : float
+    The largest time step an integrator may take in it (default inf): a flow that changes on a
+    time scale the one-step error estimate does not see sets it.
+
+:func:`~ciliary_carpet.transport.pathlines.pathlines` and
+:func:`~ciliary_carpet.transport.ftle.ftle_field` ask the flow for these and nothing else, so a new
+model is one class here (or in its own module) and its entry in :data:`FLOWS`.
+
+Models
+------
+* :class:`ResolvedFlow` (``"resolved"``): the time-resolved flow of the beating cilia at the
+  tolerance ``tol`` of the levels of detail (:meth:`Carpet.velocity
+  <ciliary_carpet.carpet.carpet.Carpet.velocity>` at an ``Instant``). Its steps are capped at a
+  sixteenth of the shortest beat period (:data:`STEPS_PER_BEAT`): the one-step error estimate
+  does not see the error the beat's oscillation accumulates (a tracer passing a beating
+  filament meets a velocity spike shorter than a step). Measured over 200 beats of a 10 x 10
+  carpet (100 tracers crossing it, flow tol 1e-3, against rtol 1e-8;
+  benchmarks/results/bench_pathlines.md): the defaults (rtol 1e-6, cap T/16) end at most
+  7e-4 L off, median 1e-6 L; rtol 1e-4 with the cap 1.1e-3 L; a cap of T/24 1e-4 L. 1000 such
+  tracers over 200 beats take about 16-20 s on 2 cores.
+* :class:`MeanFlow` (``"mean"``): the long-time model, the steady time-averaged (Eulerian mean)
+  flow (:meth:`Carpet.velocity <ciliary_carpet.carpet.carpet.Carpet.velocity>` of the
+  ``CycleMean``) sampled once on a grid of the plane and interpolated by bicubic splines, valid
+  on the grid's box. It neglects the Stokes drift of the beat (the difference between the
+  Lagrangian and the Eulerian mean): measured for one cilium, at most 1.9 % of its mean flow
+  1 L from its force centre, 0.3 % at 2 L, 0.04 % at 4 L (cilia of other periods add no cross
+  terms, and a carpet's mean flow adds up over all its cilia), below this model's own error. Its
+  end-point error against time-resolved path lines is measured by ``benchmarks/bench_flow.py
+  --sections longtime`` (benchmarks/results/bench_longtime.md, with the drift table): across the
+  designed 10 x 10 uniform_deflection carpet (156 beats, the render's 100 seeds) at most 2.0 % of
+  the distance travelled (median 0.6 %; vortex_turn's 100 seeds over its carpet: 1.6 %, median
+  0.3 %), at 1/29 of the cost with the 0.5 L grid built; 1000 tracers over 200 beats take 0.23 s
+  with the grid built once (0.08 s), the render's grid reused. It shows the routes of the flow,
+  not where a given tracer is at a given time.
+"""
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+from scipy.interpolate import RectBivariateSpline
+
+from ciliary_carpet.carpet.carpet import CycleMean, Instant
+
+if TYPE_CHECKING:
+    from ciliary_carpet.carpet.carpet import Carpet
+
+__all__ = ["Flow", "ResolvedFlow", "MeanFlow", "FLOWS", "MEAN_MODEL_ERROR", "STEPS_PER_BEAT"]
+
+STEPS_PER_BEAT = 16
+"""The time-resolved flow caps an integrator's steps at the shortest beat period over this
+(:class:`ResolvedFlow`; module docstring for what it buys)."""
+MEAN_MODEL_ERROR = 0.05
+"""End-point error of the long-time model (:class:`MeanFlow`) relative to the distance travelled,
+against time-resolved path lines: the largest over the render's 100 tracers of the designed
+10 x 10 uniform_deflection carpet (0.020; median 0.006) and of vortex_turn (0.016), measured with
+``benchmarks/bench_flow.py --sections longtime`` (benchmarks/results/bench_longtime.md, 20 of
+the tracers), with a margin of 2.5. Renders take the model automatically only when the scene's
+tolerance is at least this."""
+_EVERYWHERE = (-math.inf, math.inf) * 3
+
+
+class Flow(ABC):
+    """Base class of the flow models tracers follow (see the module docstring for the contract)."""
+
+    name: ClassVar[str] = ""
+    carpet: "Carpet"
+
+    @abstractmethod
+    def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
+        """(M, 3) the velocity at points ``x`` (M, 3) at time ``t``."""
+
+    @property
+    def domain(self) -> np.ndarray:
+        """(6,) (xmin, xmax, ymin, ymax, zmin, zmax) where the model is valid: everywhere."""
+        return np.array(_EVERYWHERE)
+
+    @property
+    def step_cap(self) -> float:
+        """The largest time step an integrator may take: none."""
+        return math.inf
+
+
+@dataclass(frozen=True, eq=False)
+class ResolvedFlow(Flow):
+    """The time-resolved flow of ``carpet`` at the levels-of-detail tolerance ``tol``."""
+
+    name: ClassVar[str] = "resolved"
+    carpet: "Carpet"
+    tol: float = 1e-4
+
+    def __post_init__(self) -> None:
+        t = float(self.tol)
+        if not 0 <= t < 1:
+            raise ValueError(f"ResolvedFlow: tol must be in [0, 1), got {self.tol!r}")
+        object.__setattr__(self, "tol", t)
+
+    def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
+        return self.carpet.velocity(x, Instant(t), self.tol)
+
+    @property
+    def step_cap(self) -> float:
+        """The shortest beat period over :data:`STEPS_PER_BEAT` (none when no cilium beats)."""
+        p = self.carpet.periods
+        p = p[np.isfinite(p)]
+        return float(p.min()) / STEPS_PER_BEAT if p.size else math.inf
+
+
+@dataclass(frozen=True, eq=False)
+class MeanFlow(Flow):
+    """The long-time model: ``carpet``'s time-averaged flow in the plane z = 0, sampled on a
+    regular grid and interpolated with bicubic splines (module docstring for its error).
+
+    Build it with :meth:`from_carpet` (evaluates the mean flow on the grid) or :meth:`from_grid`
+    (from an already evaluated grid, e.g. the render's mean field). ``box`` = (xmin, xmax, ymin,
+    ymax) is the grid's extent, its :attr:`domain`: tracers that leave it stop ("left the domain")."""
+
+    name: ClassVar[str] = "mean"
+    carpet: "Carpet"
+    box: tuple
+    _ux: object = field(repr=False)
+    _uy: object = field(repr=False)
+
+    @classmethod
+    def from_grid(cls, carpet: "Carpet", x: np.ndarray, y: np.ndarray, u: np.ndarray) -> "MeanFlow":
+        """``x`` (nx,), ``y`` (ny,) increasing grid lines, ``u`` (ny, nx, >= 2) ``carpet``'s mean
+        velocity there."""
+        x, y, u = np.asarray(x, float), np.asarray(y, float), np.asarray(u, float)
+        if x.size < 4 or y.size < 4 or u.shape[:2] != (y.size, x.size):
+            raise ValueError(f"MeanFlow needs at least 4 x 4 grid points and u of shape (ny, nx, 2), got "
+                             f"x {x.shape}, y {y.shape}, u {u.shape}")
+        if not np.all(np.isfinite(u[..., :2])):
+            raise ValueError("MeanFlow: the grid velocity has NaN or inf")
+        ux = RectBivariateSpline(x, y, u[..., 0].T, kx=3, ky=3)
+        uy = RectBivariateSpline(x, y, u[..., 1].T, kx=3, ky=3)
+        return cls(carpet, (float(x[0]), float(x[-1]), float(y[0]), float(y[-1])), ux, uy)
+
+    @classmethod
+    def from_carpet(cls, carpet: "Carpet", box, spacing: float = 0.25, tol: float = 1e-3) -> "MeanFlow":
+        """Sample ``carpet``'s mean flow at tolerance ``tol`` on the grid of ``spacing`` covering ``box``."""
+        xmin, xmax, ymin, ymax = (float(v) for v in box)
+        nx = max(4, int(math.ceil((xmax - xmin) / spacing)) + 1)
+        ny = max(4, int(math.ceil((ymax - ymin) / spacing)) + 1)
+        x, y = np.linspace(xmin, xmax, nx), np.linspace(ymin, ymax, ny)
+        X, Y = np.meshgrid(x, y)
+        u = carpet.velocity(np.column_stack([X.ravel(), Y.ravel()]), CycleMean(), tol)
+        return cls.from_grid(carpet, x, y, u.reshape(ny, nx, 3))
+
+    @property
+    def domain(self) -> np.ndarray:
+        """(6,) the grid's box in the plane, every z."""
+        return np.array([*self.box, -math.inf, math.inf])
+
+    def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
+        out = np.zeros((x.shape[0], 3))
+        out[:, 0] = self._ux.ev(x[:, 0], x[:, 1])
+        out[:, 1] = self._uy.ev(x[:, 0], x[:, 1])
+        return out
+
+
+FLOWS: dict[str, type[Flow]] = {m.name: m for m in (ResolvedFlow, MeanFlow)}
+"""The flow models by name (the contract: the module docstring)."""
