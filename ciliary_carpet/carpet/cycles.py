@@ -348,8 +348,9 @@ class CycleData:
     bases : (N, 2) base points; phases : (N,) phases at t = 0 in [0, 1).
     rotation : (2, 2) from the field frame (field along e2) to the lab frame.
 
-    Attributes (arrays over the N cilia first; read them, do not write them)
-    -------------------------------------------------------------------------
+    Attributes
+    ----------
+    Arrays over the N cilia first; read them, do not write them.
     flutter (N,) bool: the cilium beats; period (N,): its beat period (NaN for still ones);
     rate (N,): 1 / period (0 for still ones); s (n_s,), weights (n_s,): the arc-length grid and
     its Simpson weights; n_s, n_phase: the table's samples; coef (N, 2K-1, n_s, 4): the
