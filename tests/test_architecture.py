@@ -31,7 +31,6 @@ ALLOWED_CYCLES: set[frozenset[str]] = {
 }
 ALLOWED_PRIVATE: set[str] = {
     # private names across the modules of ciliary_carpet (issue 25, points 3, 5 and 6)
-    "ciliary_carpet.design.inverse imports the private name _as_in_spec of ciliary_carpet.design.target",
     "ciliary_carpet.scenes.scene imports the private name _inside of ciliary_carpet.scenes.paths",
     # inside single_cilium: a private name of its private _kernels module (not in issue 25's list)
     "single_cilium.filament imports the private name _stage_terms of single_cilium._kernels",

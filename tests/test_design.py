@@ -12,18 +12,10 @@ from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.cycles import cycle_moments
 from ciliary_carpet.cli import main
-from ciliary_carpet.design.inverse import (
-    INSIDE_WEIGHT,
-    NEAR_RADIUS,
-    DesignError,
-    DesignModel,
-    NearField,
-    angle_objective,
-    design,
-    design_layout,
-    floor_reference,
-    tolerance_study,
-)
+from ciliary_carpet.design.inverse import INSIDE_WEIGHT, design, design_layout
+from ciliary_carpet.design.model import NEAR_RADIUS, DesignModel, NearField, angle_objective, floor_reference
+from ciliary_carpet.design.result import DesignError
+from ciliary_carpet.design.tolerance import tolerance_study
 from ciliary_carpet.scenes.scene import SceneError, load_scene
 from ciliary_carpet.design.target import Frame, TargetError, control_points
 from single_cilium.table import ThrustTable
@@ -343,7 +335,7 @@ def test_reachability_of_a_two_sided_pattern_matches_designs(table):
     """The estimated reachable amplitude of a focusing pattern (10 x 10 cilia, spacing 2) lies
     between an amplitude the design meets (20 deg) and one it misses (40 deg); the per-cilium
     range is the table's."""
-    from ciliary_carpet.design.inverse import reachability
+    from ciliary_carpet.design.reachability import reachability
 
     c = _carpet(table, 10)
     fr = Frame.from_bases(c.bases, 2.0, c.direction)
@@ -370,7 +362,7 @@ def test_narrowest_width_estimate_matches_designs(table):
     """reachability's narrowest transition width (focusing at 20 deg, threshold 0.05 rad): it grows
     with the spacing; on 10 x 10 cilia of spacing 2 a width it calls reachable (1.5 spacings)
     meets the threshold in a full design, and one well below it (half a spacing) misses."""
-    from ciliary_carpet.design.inverse import reachability
+    from ciliary_carpet.design.reachability import reachability
     from ciliary_carpet.design.target import Target
 
     tg = Target(kind="focus", amplitude=math.radians(20), width=1.0)

@@ -424,7 +424,7 @@ def test_one_builder_from_scene_to_table_carpet_and_target(tmp_path):
     (and through it render and the command line) builds its carpet there, and a chi_N outside
     the table is refused there, naming the key."""
     from ciliary_carpet.scenes.assembly import assemble
-    from ciliary_carpet.design.inverse import design
+    from ciliary_carpet.design import design
 
     s = scene_from_dict({"carpet": {"shape": [3, 2], "chi_N": 40, "phases": "synchronous"},
                          "field": {"direction": 30}})

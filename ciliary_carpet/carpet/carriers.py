@@ -99,7 +99,7 @@ at 90 degrees (90, 210, 330), the vertex the pentagon of :data:`QUADRUPOLE` has 
 orientation reproduces F and D exactly; the orientation sets the carriers' own second moment
 T_rep, hence what the dipole order misses (its bound uses nu(T - T_rep))."""
 DESIGN_DIPOLE = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
-"""Positions of the design model's dipole carriers for unit delta (:mod:`ciliary_carpet.design.inverse`):
+"""Positions of the design model's dipole carriers for unit delta (:mod:`ciliary_carpet.design.model`):
 the triangle at 0, 120 and 240 degrees. The same carriers (:func:`dipole_forces`), another
 orientation: the design model's flow is its own approximation (corrected by the full flow
 between passes), and its designs were calibrated with this one. Measured on the five bundled

@@ -92,7 +92,10 @@ class Pattern:
     two_sided : bool
         The flow turns toward (or away from) a line from both sides: the design's estimate of
         the reachable amplitude of such a pattern applies
-        (:func:`~ciliary_carpet.design.inverse.reachability`).
+        (:func:`~ciliary_carpet.design.reachability.reachability`).
+
+    A pattern whose ``keys`` hold ``"width"`` has a transition width (:attr:`has_width`): the
+    reachability estimates the narrowest width it meets its threshold at.
     """
 
     name: str
@@ -101,6 +104,11 @@ class Pattern:
     deflection: Callable | None = None
     signed: bool = False
     two_sided: bool = False
+
+    @property
+    def has_width(self) -> bool:
+        """The pattern has a transition width (the ``[target]`` key ``width`` is one of its keys)."""
+        return "width" in self.keys
 
 
 def _across_line(t: "Target", x: np.ndarray, frame: "Frame") -> np.ndarray:
@@ -360,7 +368,7 @@ class Frame:
 
 
 # ------------------------------------------------------------------------------ target
-def _as_in_spec(name: str):
+def spec_default(name: str):
     """The default of the ``[target]`` key ``name`` (its one home is :class:`TargetSpec`)."""
     return keys_of(TargetSpec)[name][1]
 
@@ -380,7 +388,7 @@ class Target:
         as the keys of :class:`TargetSpec` (same defaults): width None = ``frame.spacing``,
         centre None = ``frame.centre``; ``control`` see :func:`control_points`; the design
         settings go to :func:`~ciliary_carpet.design.inverse.design_layout` (``robust``: its
-        ``robust_sigma``) and :func:`~ciliary_carpet.design.inverse.tolerance_study`.
+        ``robust_sigma``) and :func:`~ciliary_carpet.design.tolerance.tolerance_study`.
     data_points, data_velocities : ndarray or None
         (P, 2) arrays for kind "points" (else None); see :meth:`velocities`.
     source : str or None
@@ -389,18 +397,18 @@ class Target:
 
     kind: str
     amplitude: float | None = None
-    line: float = _as_in_spec("line")
-    width: float | None = _as_in_spec("width")
-    centre: tuple | None = _as_in_spec("centre")
-    control: object = _as_in_spec("control")
-    residual: float = _as_in_spec("residual")
-    strict: bool = _as_in_spec("strict")
-    speed_floor: float = _as_in_spec("speed_floor")
-    inside_swept: str = _as_in_spec("inside_swept")
-    smoothness: float = _as_in_spec("smoothness")
-    sigma: float = _as_in_spec("sigma")
-    samples: int = _as_in_spec("samples")
-    robust: bool = _as_in_spec("robust")
+    line: float = spec_default("line")
+    width: float | None = spec_default("width")
+    centre: tuple | None = spec_default("centre")
+    control: object = spec_default("control")
+    residual: float = spec_default("residual")
+    strict: bool = spec_default("strict")
+    speed_floor: float = spec_default("speed_floor")
+    inside_swept: str = spec_default("inside_swept")
+    smoothness: float = spec_default("smoothness")
+    sigma: float = spec_default("sigma")
+    samples: int = spec_default("samples")
+    robust: bool = spec_default("robust")
     data_points: np.ndarray | None = None
     data_velocities: np.ndarray | None = None
     source: str | None = None

@@ -1,6 +1,6 @@
 """A treecode for repeated Stokeslet sums over fixed points: a linear operator and its exact transpose.
 
-The design model (:mod:`ciliary_carpet.design.inverse`) evaluates, hundreds of times per solve, the
+The design model (:mod:`ciliary_carpet.design.model`) evaluates, hundreds of times per solve, the
 velocity at P fixed control points x_k of point forces f_s at S fixed source points y_s in the
 plane z = 0,
 
