@@ -17,6 +17,7 @@ from ciliary_carpet.design.model import NEAR_RADIUS, DesignModel, NearField, ang
 from ciliary_carpet.design.result import DesignError
 from ciliary_carpet.design.tolerance import tolerance_study
 from ciliary_carpet.scenes.scene import SceneError, load_scene
+from ciliary_carpet.scenes.assembly import frame_of
 from ciliary_carpet.design.target import Frame, TargetError, control_points
 from single_cilium.table import ThrustTable
 
@@ -206,7 +207,7 @@ def _intent(name):
 def test_focusing_converges_and_spreading_diverges(name, sign):
     scene, d, carpet = _intent(name)
     assert d.residual_rms <= scene.target.residual
-    fr = Frame.from_scene(scene, carpet.bases)
+    fr = frame_of(scene, carpet.bases)
     xi = fr.cross_coordinate(d.control)
     v = d.achieved @ fr.cross  # cross-stream velocity
     left, right = xi < -0.5, xi > 0.5
@@ -221,7 +222,7 @@ def test_focusing_converges_and_spreading_diverges(name, sign):
 def test_shear_layer_turns_one_side():
     scene, d, carpet = _intent("shear_layer")
     assert d.residual_rms <= scene.target.residual
-    fr = Frame.from_scene(scene, carpet.bases)
+    fr = frame_of(scene, carpet.bases)
     xi = fr.cross_coordinate(d.control)
     ang = np.arctan2(d.achieved @ fr.cross, d.achieved @ fr.flow_direction)
     A = math.radians(scene.target.angle)
@@ -231,7 +232,7 @@ def test_shear_layer_turns_one_side():
 def test_vortex_turn_turns_anticlockwise():
     scene, d, carpet = _intent("vortex_turn")
     assert d.residual_rms <= scene.target.residual
-    fr = Frame.from_scene(scene, carpet.bases)
+    fr = frame_of(scene, carpet.bases)
     # circulation of the mean flow minus its mean drift around a circle about the centre
     th = np.linspace(0, 2 * np.pi, 64, endpoint=False)
     r = 1.5

@@ -41,16 +41,11 @@ import math
 import warnings
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
 from ciliary_carpet.scenes.schema import Key, SceneError, Section, key, keys_of, reader, section, values
-
-if TYPE_CHECKING:
-    from single_cilium.table import ThrustTable
-
-    from ciliary_carpet.scenes.scene import Scene
 
 __all__ = ["TargetError", "UnreachableTargetError", "Target", "TargetSpec", "Frame", "Pattern", "PATTERNS",
            "control_points", "reachable_check", "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS",
@@ -351,12 +346,6 @@ class Frame:
         a = float(direction_rad)
         return cls(0.5 * (b.min(axis=0) + b.max(axis=0)), np.array([math.sin(a), -math.cos(a)]), spacing)
 
-    @classmethod
-    def from_scene(cls, scene: "Scene", bases=None) -> "Frame":
-        """The frame of ``scene``'s carpet (``bases`` default: ``scene.carpet.bases()``)."""
-        b = scene.carpet.bases() if bases is None else bases
-        return cls.from_bases(b, scene.carpet.spacing, scene.field.direction_rad)
-
     def cross_coordinate(self, points) -> np.ndarray:
         """(P,) coordinate of ``points`` along the cross-stream axis, from the centre."""
         return (_points("points", points) - self.centre) @ self.cross
@@ -375,7 +364,7 @@ def spec_default(name: str):
 
 @dataclass(frozen=True, eq=False)
 class Target:
-    """A resolved target (from a scene's ``[target]`` by :meth:`from_spec` / :meth:`from_scene`).
+    """A resolved target (from a scene's ``[target]`` by :meth:`from_spec`; for a scene: :func:`~ciliary_carpet.scenes.assembly.target_of`).
 
     Attributes
     ----------
@@ -469,16 +458,6 @@ class Target:
             src = str(p)
         return cls(amplitude=amp, data_points=pts, data_velocities=vel, source=src,
                    **{k: getattr(spec, k) for k in _FROM_SPEC})
-
-    @classmethod
-    def from_scene(cls, scene: "Scene", table: "ThrustTable | None" = None) -> "Target":
-        """The target of ``scene`` (``table`` default: ``scene.load_table()``, needed only for
-        the default angle)."""
-        angle_max = None
-        if scene.target.kind in ANGLE_KINDS and scene.target.angle is None:
-            table = table if table is not None else scene.load_table()
-            angle_max = table.thrust_angle_range()[1]
-        return cls.from_spec(scene.target, scene.base_dir, angle_max)
 
     # -------------------------------------------------------------------- evaluation
     @property
