@@ -40,6 +40,46 @@ def _cells(c):
     return control_points(c.bases, Frame.from_bases(c.bases, 2.0, c.direction), "cells")
 
 
+def test_the_carpets_evaluator_runs_every_sum_of_the_design_model(table):
+    """The carpet's evaluator (a scene's ``backend``, ``--backend`` on the command line) runs every
+    Stokeslet sum of the design model: the near field's table, the near pairs' kernel blocks, the
+    carrier sum and its adjoint, and the speed floor's reference (local: ranged; every cilium:
+    dense). (The floor's reference once summed with the default evaluator whatever was asked.)"""
+    from dataclasses import dataclass
+
+    from ciliary_carpet.stokes import Direct
+
+    calls = []
+
+    @dataclass(frozen=True)
+    class Recording(Direct):
+        def dense(self, *a):
+            calls.append("dense")
+            return super().dense(*a)
+
+        def ranged(self, *a):
+            calls.append("ranged")
+            return super().ranged(*a)
+
+    c = replace(_carpet(table, 3, chi=40.0), backend=Recording())
+    X = _cells(c)
+    chi = np.linspace(-60.0, 60.0, c.n)
+
+    def ran(f, *a, **kw):
+        calls.clear()
+        f(*a, **kw)
+        return set(calls)
+
+    near = NearField(c, X)
+    assert ran(NearField, c, X) == {"ranged"}
+    assert ran(DesignModel, c, X, chi, near=near) == {"ranged"}  # the near pairs' kernel blocks
+    dm = DesignModel(c, X, chi, near=near)
+    assert ran(dm.velocity, chi) == {"dense"}
+    assert ran(dm.gradient, chi, np.ones((X.shape[0], 2))) == {"dense"}
+    assert ran(floor_reference, c, X) == {"ranged"}  # the cilia within the floor radius
+    assert ran(floor_reference, c, X, radius=math.inf) == {"dense"}
+
+
 def test_cycle_moments_match_the_table_and_are_mirror_symmetric(table):
     m = cycle_moments(table)
     chi = np.array([-150.0, -60.3, -1.0, 0.0, 2.5, 47.0, 120.0, 162.0])

@@ -360,7 +360,7 @@ def _local_velocity(dm: "DesignModel", chi: np.ndarray, radius: float) -> np.nda
     f = dm.carriers(chi).reshape(-1, 2)
     F3 = np.column_stack([f, np.zeros(f.shape[0])])
     if not math.isfinite(radius):
-        return stokeslet_velocity(dm.X3, dm.pos3, F3, dm.carpet.mu, wall=dm.wall)[:, :2]
+        return stokeslet_velocity(dm.X3, dm.pos3, F3, dm.carpet.mu, wall=dm.wall, backend=dm.carpet.backend)[:, :2]
     from scipy.spatial import cKDTree
 
     cen = dm.pos3[:, :2].reshape(-1, 3, 2).mean(axis=1)
@@ -369,7 +369,8 @@ def _local_velocity(dm: "DesignModel", chi: np.ndarray, radius: float) -> np.nda
     ptr = np.concatenate([[0], np.cumsum(cnt)]).astype(np.int64)
     j = np.concatenate([np.asarray(x, np.int64) for x in lists]) if cnt.sum() else np.zeros(0, np.int64)
     ranges = np.column_stack([3 * j, 3 * j + 3]).astype(np.int64)
-    return stokeslet_velocity_ranges(dm.X3, dm.pos3, F3, ptr, ranges, dm.carpet.mu, wall=dm.wall)[:, :2]
+    return stokeslet_velocity_ranges(dm.X3, dm.pos3, F3, ptr, ranges, dm.carpet.mu, wall=dm.wall,
+                                     backend=dm.carpet.backend)[:, :2]
 
 
 def angle_objective(u, target, floor, weight: float = 1.0, point_weights=None) -> tuple[float, np.ndarray]:
