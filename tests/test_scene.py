@@ -448,3 +448,15 @@ def test_one_builder_from_scene_to_table_carpet_and_target(tmp_path):
 if __name__ == "__main__":
     RESOLVED.write_text(json.dumps(resolved_now(), indent=1, sort_keys=True) + "\n")
     print(f"wrote {RESOLVED}")
+
+
+def test_the_package_front_door_exports_what_it_says():
+    """``import ciliary_carpet`` is the front door: every exported name is there and its docstring
+    names each one (scenes, carpets, flow sums, design, transport, output)."""
+    import ciliary_carpet as cc
+
+    assert len(cc.__all__) == len(set(cc.__all__)) >= 25
+    for name in cc.__all__:
+        assert getattr(cc, name) is not None
+        assert name in cc.__doc__, name
+    assert cc.load_scene is load_scene and cc.assemble.__module__ == "ciliary_carpet.scenes.assembly"
