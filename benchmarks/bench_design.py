@@ -28,7 +28,7 @@ Prints Markdown tables to stdout (progress goes to stderr); ``--out`` also write
    centre), free space; 12 x 12 cilia above a wall 0.5 L below the plane.
 3. ``ciliary_carpet.render.render`` of every ``designs/*.toml``: the per-stage seconds of
    ``summary["seconds"]`` and the design's figures.
-4. (``reach``) ``ciliary_carpet.design.inverse.reachability``'s estimate of the amplitude a two-sided
+4. (``reach``) ``ciliary_carpet.design.reachability.reachability``'s estimate of the amplitude a two-sided
    pattern can hold against focusing designs at amplitudes 20-40 degrees (width 4 L), on 10 x 10
    and 20 x 12 cilia; (4b) its estimate of the narrowest transition width (``width_min``, and the
    rms residual it expects at a width) against designs at widths 0.5-2 spacings, spacings 2 and
@@ -71,7 +71,7 @@ from bench_flow import cpu_model  # one CPU probe for every benchmark
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.cycles import cycle_moments
-from ciliary_carpet.design.inverse import DesignModel, design_layout
+from ciliary_carpet.design import DesignModel, design_layout
 from ciliary_carpet.render import render
 from ciliary_carpet.scenes.scene import load_scene
 from ciliary_carpet.design.target import Frame, control_points
@@ -408,7 +408,7 @@ def section_targets(emit, table: ThrustTable, cap: float, quick: bool = False):
 def section_reach(emit, table: ThrustTable, quick: bool = False):
     """reachability() against designs: focusing at several amplitudes (4), widths against the
     narrowest-width estimate at spacings 2 and 3 (4b)."""
-    from ciliary_carpet.design.inverse import reachability
+    from ciliary_carpet.design import reachability
     from ciliary_carpet.design.target import Target
 
     emit("## 4. Reachability estimate against designs")

@@ -35,7 +35,7 @@ from single_cilium.signals import Terminated, exit_status, terminate_as_interrup
 from single_cilium.table import TableError
 from single_cilium.threads import ThreadBudget
 
-from ciliary_carpet.design.inverse import DesignError, design
+from ciliary_carpet.design import DesignError, design
 from ciliary_carpet.design.target import TargetError, UnreachableTargetError
 from ciliary_carpet.output.resources import available_memory
 from ciliary_carpet.output.vtkfiles import OutputError

@@ -37,7 +37,7 @@ from pathlib import Path
 
 from single_cilium.progress import Progress
 
-from ciliary_carpet.design.inverse import design
+from ciliary_carpet.design import design
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, OutputFolder, is_complete, owned_files
 from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY, RenderContext

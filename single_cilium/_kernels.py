@@ -16,28 +16,16 @@ normal at the node, not on ``U``) picks the stream up, and the derivative with r
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
+# the Radau IIA(5) tableau (its one home; compile-time constants of the kernels here)
+from .radau import C as C_NODES
+from .radau import MU_COMPLEX, MU_REAL, TI_COMPLEX, TI_REAL
+from .radau import T as T_MAT
+
 __all__ = ["stage_residual", "radau_steps"]
 
-_S6 = math.sqrt(6.0)
-C_NODES = np.array([(4 - _S6) / 10, (4 + _S6) / 10, 1.0])
-# eigen-decomposition of the Radau IIA(5) A^-1 (as in scipy's Radau / RADAU5)
-MU_REAL = 3 + 3 ** (2 / 3) - 3 ** (1 / 3)
-MU_COMPLEX = 3 + 0.5 * (3 ** (1 / 3) - 3 ** (2 / 3)) - 0.5j * (3 ** (5 / 6) + 3 ** (7 / 6))
-T_MAT = np.array([
-    [0.09443876248897524, -0.14125529502095421, 0.03002919410514742],
-    [0.25021312296533332, 0.20412935229379994, -0.38294211275726192],
-    [1.0, 1.0, 0.0]])
-_TI = np.array([
-    [4.17871859155190428, 0.32768282076106237, 0.52337644549944951],
-    [-4.17871859155190428, -0.32768282076106237, 0.47662355450055044],
-    [0.50287263494578682, -2.57192694985560522, 0.59603920482822492]])
-TI_REAL = _TI[0].copy()
-TI_COMPLEX = _TI[1] + 1j * _TI[2]
 
 
 @njit(cache=True)

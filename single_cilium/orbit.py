@@ -83,6 +83,7 @@ from scipy.sparse.linalg import LinearOperator, gmres
 
 from ._kernels import radau_steps
 from .filament import Filament
+from .radau import A_INV
 from .radau import P as _P
 from .radau import ConvergenceError, Radau
 
@@ -90,13 +91,6 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["Orbit", "OrbitSolver", "OrbitError", "ExactShooting", "KrylovShooting", "METHODS"]
 
-_S6 = math.sqrt(6.0)
-#: Radau IIA(5) Butcher matrix
-RADAU_A = np.array([
-    [(88 - 7 * _S6) / 360, (296 - 169 * _S6) / 1800, (-2 + 3 * _S6) / 225],
-    [(296 + 169 * _S6) / 1800, (88 + 7 * _S6) / 360, (-2 - 3 * _S6) / 225],
-    [(16 - _S6) / 36, (16 + _S6) / 36, 1 / 9]])
-RADAU_AINV = np.linalg.inv(RADAU_A)
 
 
 class OrbitError(ConvergenceError):
@@ -205,7 +199,7 @@ class ExactShooting(OrbitSolver):
     def __init__(self, fil: Filament, n_phase: int):
         super().__init__(fil, n_phase)
         m = fil.mesh
-        self._args = (RADAU_AINV, _P, np.ascontiguousarray(m.cumulative), np.ascontiguousarray(m.weights),
+        self._args = (A_INV, _P, np.ascontiguousarray(m.cumulative), np.ascontiguousarray(m.weights),
                       np.ascontiguousarray(fil._K), np.ascontiguousarray(fil._B), float(fil.params.eta),
                       float(fil.params.chi_E), float(fil.params.chi_N), self.step_tol, self.step_maxiter,
                       float(fil.params.background[0]), float(fil.params.background[1]))

@@ -17,27 +17,11 @@ field; units ``L / tau``) makes the drag act on the velocity relative to the str
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
+from .checks import finite, positive
+
 __all__ = ["CiliumParams", "PhysicalCilium"]
-
-
-def _finite(name: str, value: float) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite, got {x}")
-    return x
-
-
-def _positive(name: str, value: float) -> float:
-    x = _finite(name, value)
-    if x <= 0.0:
-        raise ValueError(f"{name} must be > 0, got {x}")
-    return x
 
 
 @dataclass(frozen=True)
@@ -73,14 +57,14 @@ class CiliumParams:
     background: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "chi_E", _finite("chi_E", self.chi_E))
-        object.__setattr__(self, "eta", _positive("eta", self.eta))
-        object.__setattr__(self, "chi_N", _finite("chi_N", self.chi_N))
+        object.__setattr__(self, "chi_E", finite("chi_E", self.chi_E))
+        object.__setattr__(self, "eta", positive("eta", self.eta))
+        object.__setattr__(self, "chi_N", finite("chi_N", self.chi_N))
         try:
             U1, U2 = self.background
         except (TypeError, ValueError):
             raise ValueError(f"background must be a pair (U1, U2) of real numbers, got {self.background!r}") from None
-        object.__setattr__(self, "background", (_finite("background U1", U1) + 0.0, _finite("background U2", U2) + 0.0))
+        object.__setattr__(self, "background", (finite("background U1", U1) + 0.0, finite("background U2", U2) + 0.0))
 
     def __repr__(self) -> str:
         # the background is shown only when there is one (messages in still fluid stay as they were)
@@ -133,26 +117,26 @@ class CiliumParams:
             Uniform background flow [m/s] in the field frame (along ``e1``, along the field ``e2``);
             divided by ``L / tau``.
         """
-        L = _positive("length", length)
-        tau = _positive("relaxation_time", relaxation_time)
-        B = _positive("bending_stiffness", bending_stiffness)
-        mu = _positive("drag_coefficient", drag_coefficient)
-        kE = _finite("target_curvature", target_curvature)
-        kN = _finite("natural_curvature", natural_curvature)
+        L = positive("length", length)
+        tau = positive("relaxation_time", relaxation_time)
+        B = positive("bending_stiffness", bending_stiffness)
+        mu = positive("drag_coefficient", drag_coefficient)
+        kE = finite("target_curvature", target_curvature)
+        kN = finite("natural_curvature", natural_curvature)
         try:
             u1, u2 = background_flow
         except (TypeError, ValueError):
             raise ValueError(f"background_flow must be a pair of velocities, got {background_flow!r}") from None
-        U = (_finite("background_flow", u1) * tau / L, _finite("background_flow", u2) * tau / L)
+        U = (finite("background_flow", u1) * tau / L, finite("background_flow", u2) * tau / L)
         return cls(chi_E=L * kE, eta=mu * L**4 / (tau * B), chi_N=L * kN, background=U)
 
     def to_physical(
         self, length: float, relaxation_time: float, bending_stiffness: float
     ) -> "PhysicalCilium":
         """SI values of these groups for a filament of given length, relaxation time and stiffness."""
-        L = _positive("length", length)
-        tau = _positive("relaxation_time", relaxation_time)
-        B = _positive("bending_stiffness", bending_stiffness)
+        L = positive("length", length)
+        tau = positive("relaxation_time", relaxation_time)
+        B = positive("bending_stiffness", bending_stiffness)
         return PhysicalCilium(
             length=L,
             relaxation_time=tau,
@@ -186,11 +170,11 @@ class PhysicalCilium:
             u1, u2 = self.background_flow
         except (TypeError, ValueError):
             raise ValueError(f"background_flow must be a pair of velocities, got {self.background_flow!r}") from None
-        object.__setattr__(self, "background_flow", (_finite("background_flow", u1), _finite("background_flow", u2)))
+        object.__setattr__(self, "background_flow", (finite("background_flow", u1), finite("background_flow", u2)))
         for name in ("length", "relaxation_time", "bending_stiffness", "drag_coefficient"):
-            object.__setattr__(self, name, _positive(name, getattr(self, name)))
+            object.__setattr__(self, name, positive(name, getattr(self, name)))
         for name in ("target_curvature", "natural_curvature"):
-            object.__setattr__(self, name, _finite(name, getattr(self, name)))
+            object.__setattr__(self, name, finite(name, getattr(self, name)))
 
     @property
     def force_scale(self) -> float:

@@ -31,6 +31,14 @@ A problem passed to :class:`Radau` must provide
 ``factor(y, sigmas) -> list``
     for each ``sigma`` (one real, one complex), an object whose ``solve(b)`` solves
     ``(sigma M(y) - J(y)) x = b`` (``J`` an approximation of ``df/dy``).
+
+The tableau
+-----------
+This module is the one home of the Radau IIA(5) tableau: the nodes :data:`C`, the Butcher
+matrix :data:`A` (and :data:`A_INV`), the eigen-decomposition of ``A^-1`` (:data:`MU_REAL`,
+:data:`MU_COMPLEX`, :data:`T`, :data:`TI`), the error weights :data:`E` and the collocation
+polynomial :data:`P`. The compiled period map (``single_cilium._kernels``) and the orbit solver
+(:mod:`single_cilium.orbit`) take them from here.
 """
 from __future__ import annotations
 
@@ -47,6 +55,12 @@ __all__ = ["Radau", "RadauStats", "ConvergenceError", "StepProblem"]
 
 S6 = 6.0**0.5
 C = np.array([(4 - S6) / 10, (4 + S6) / 10, 1.0])
+A = np.array([
+    [(88 - 7 * S6) / 360, (296 - 169 * S6) / 1800, (-2 + 3 * S6) / 225],
+    [(296 + 169 * S6) / 1800, (88 + 7 * S6) / 360, (-2 - 3 * S6) / 225],
+    [(16 - S6) / 36, (16 + S6) / 36, 1 / 9]])
+"""The Butcher matrix; :data:`C` its nodes (the row sums)."""
+A_INV = np.linalg.inv(A)
 E = np.array([-13 - 7 * S6, -13 + 7 * S6, -1.0]) / 3
 MU_REAL = 3 + 3 ** (2 / 3) - 3 ** (1 / 3)
 MU_COMPLEX = 3 + 0.5 * (3 ** (1 / 3) - 3 ** (2 / 3)) - 0.5j * (3 ** (5 / 6) + 3 ** (7 / 6))

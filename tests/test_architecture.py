@@ -23,16 +23,11 @@ PACKAGES = ("single_cilium", "ciliary_carpet")
 # Known faults, each to be removed from these lists by the branch that fixes it (the coordinator
 # empties them as the branches of issue 25 merge); test_known_faults_still_exist keeps them honest.
 ALLOWED_CYCLES: set[frozenset[str]] = {
-    # scene <-> target (issue 25, point 5)
-    frozenset({"ciliary_carpet.scenes.scene", "ciliary_carpet.design.target"}),
     # single_cilium's cycle, dynamics and stability read __version__ from the package's __init__,
     # which imports them (not in issue 25's list)
     frozenset({"single_cilium", "single_cilium.cycle", "single_cilium.dynamics", "single_cilium.stability"}),
 }
 ALLOWED_PRIVATE: set[str] = {
-    # private names across the modules of ciliary_carpet (issue 25, points 3, 5 and 6)
-    "ciliary_carpet.design.inverse imports the private name _as_in_spec of ciliary_carpet.design.target",
-    "ciliary_carpet.scenes.scene imports the private name _inside of ciliary_carpet.scenes.paths",
     # inside single_cilium: a private name of its private _kernels module (not in issue 25's list)
     "single_cilium.filament imports the private name _stage_terms of single_cilium._kernels",
 }

@@ -12,19 +12,12 @@ from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.cycles import cycle_moments
 from ciliary_carpet.cli import main
-from ciliary_carpet.design.inverse import (
-    INSIDE_WEIGHT,
-    NEAR_RADIUS,
-    DesignError,
-    DesignModel,
-    NearField,
-    angle_objective,
-    design,
-    design_layout,
-    floor_reference,
-    tolerance_study,
-)
+from ciliary_carpet.design.inverse import INSIDE_WEIGHT, design, design_layout
+from ciliary_carpet.design.model import NEAR_RADIUS, DesignModel, NearField, angle_objective, floor_reference
+from ciliary_carpet.design.result import DesignError
+from ciliary_carpet.design.tolerance import tolerance_study
 from ciliary_carpet.scenes.scene import SceneError, load_scene
+from ciliary_carpet.scenes.assembly import frame_of
 from ciliary_carpet.design.target import Frame, TargetError, control_points
 from single_cilium.table import ThrustTable
 
@@ -45,6 +38,46 @@ def _carpet(table, n, chi=0.0, wall=None, seed=0):
 
 def _cells(c):
     return control_points(c.bases, Frame.from_bases(c.bases, 2.0, c.direction), "cells")
+
+
+def test_the_carpets_evaluator_runs_every_sum_of_the_design_model(table):
+    """The carpet's evaluator (a scene's ``backend``, ``--backend`` on the command line) runs every
+    Stokeslet sum of the design model: the near field's table, the near pairs' kernel blocks, the
+    carrier sum and its adjoint, and the speed floor's reference (local: ranged; every cilium:
+    dense). (The floor's reference once summed with the default evaluator whatever was asked.)"""
+    from dataclasses import dataclass
+
+    from ciliary_carpet.stokes import Direct
+
+    calls = []
+
+    @dataclass(frozen=True)
+    class Recording(Direct):
+        def dense(self, *a):
+            calls.append("dense")
+            return super().dense(*a)
+
+        def ranged(self, *a):
+            calls.append("ranged")
+            return super().ranged(*a)
+
+    c = replace(_carpet(table, 3, chi=40.0), backend=Recording())
+    X = _cells(c)
+    chi = np.linspace(-60.0, 60.0, c.n)
+
+    def ran(f, *a, **kw):
+        calls.clear()
+        f(*a, **kw)
+        return set(calls)
+
+    near = NearField(c, X)
+    assert ran(NearField, c, X) == {"ranged"}
+    assert ran(DesignModel, c, X, chi, near=near) == {"ranged"}  # the near pairs' kernel blocks
+    dm = DesignModel(c, X, chi, near=near)
+    assert ran(dm.velocity, chi) == {"dense"}
+    assert ran(dm.gradient, chi, np.ones((X.shape[0], 2))) == {"dense"}
+    assert ran(floor_reference, c, X) == {"ranged"}  # the cilia within the floor radius
+    assert ran(floor_reference, c, X, radius=math.inf) == {"dense"}
 
 
 def test_cycle_moments_match_the_table_and_are_mirror_symmetric(table):
@@ -214,7 +247,7 @@ def _intent(name):
 def test_focusing_converges_and_spreading_diverges(name, sign):
     scene, d, carpet = _intent(name)
     assert d.residual_rms <= scene.target.residual
-    fr = Frame.from_scene(scene, carpet.bases)
+    fr = frame_of(scene, carpet.bases)
     xi = fr.cross_coordinate(d.control)
     v = d.achieved @ fr.cross  # cross-stream velocity
     left, right = xi < -0.5, xi > 0.5
@@ -229,7 +262,7 @@ def test_focusing_converges_and_spreading_diverges(name, sign):
 def test_shear_layer_turns_one_side():
     scene, d, carpet = _intent("shear_layer")
     assert d.residual_rms <= scene.target.residual
-    fr = Frame.from_scene(scene, carpet.bases)
+    fr = frame_of(scene, carpet.bases)
     xi = fr.cross_coordinate(d.control)
     ang = np.arctan2(d.achieved @ fr.cross, d.achieved @ fr.flow_direction)
     A = math.radians(scene.target.angle)
@@ -239,7 +272,7 @@ def test_shear_layer_turns_one_side():
 def test_vortex_turn_turns_anticlockwise():
     scene, d, carpet = _intent("vortex_turn")
     assert d.residual_rms <= scene.target.residual
-    fr = Frame.from_scene(scene, carpet.bases)
+    fr = frame_of(scene, carpet.bases)
     # circulation of the mean flow minus its mean drift around a circle about the centre
     th = np.linspace(0, 2 * np.pi, 64, endpoint=False)
     r = 1.5
@@ -343,7 +376,7 @@ def test_reachability_of_a_two_sided_pattern_matches_designs(table):
     """The estimated reachable amplitude of a focusing pattern (10 x 10 cilia, spacing 2) lies
     between an amplitude the design meets (20 deg) and one it misses (40 deg); the per-cilium
     range is the table's."""
-    from ciliary_carpet.design.inverse import reachability
+    from ciliary_carpet.design.reachability import reachability
 
     c = _carpet(table, 10)
     fr = Frame.from_bases(c.bases, 2.0, c.direction)
@@ -370,7 +403,7 @@ def test_narrowest_width_estimate_matches_designs(table):
     """reachability's narrowest transition width (focusing at 20 deg, threshold 0.05 rad): it grows
     with the spacing; on 10 x 10 cilia of spacing 2 a width it calls reachable (1.5 spacings)
     meets the threshold in a full design, and one well below it (half a spacing) misses."""
-    from ciliary_carpet.design.inverse import reachability
+    from ciliary_carpet.design.reachability import reachability
     from ciliary_carpet.design.target import Target
 
     tg = Target(kind="focus", amplitude=math.radians(20), width=1.0)

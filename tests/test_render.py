@@ -11,7 +11,7 @@ from vtk.util.numpy_support import vtk_to_numpy
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.cli import batch, main
-from ciliary_carpet.design.inverse import DesignError, design, design_layout
+from ciliary_carpet.design import DesignError, design, design_layout
 from ciliary_carpet.render import RenderError, render
 from ciliary_carpet.scenes.scene import load_scene
 from ciliary_carpet.design.target import TargetError

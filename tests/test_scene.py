@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from ciliary_carpet.scenes import scene as scene_mod
+from ciliary_carpet.scenes.assembly import load_table, target_of
 from ciliary_carpet.scenes.scene import (
     CarpetSpec,
     OutputSpec,
@@ -198,9 +199,9 @@ def test_malformed_toml_names_file_and_position(tmp_path):
 
 def test_table_default_is_the_shipped_table(tmp_path):
     s = load_scene(write(tmp_path, '[table]\nfile = "default"\n'))
-    t = s.table.load(s)
+    t = load_table(s)
     assert (t.chi_E, t.eta) == (200.0, 1.0)
-    assert s.load_table() is t  # cached
+    assert load_table(s) is t  # cached
     lo, hi = t.thrust_angle_range()
     assert abs(lo) < 1e-9 and 0.9 < hi < 0.95
 
@@ -208,14 +209,14 @@ def test_table_default_is_the_shipped_table(tmp_path):
 def test_table_mismatched_field(tmp_path):
     s = load_scene(write(tmp_path, "[field]\nchi_E = 150\n"))
     with pytest.raises(SceneError) as e:
-        s.table.load(s)
+        load_table(s)
     msg = str(e.value)
     assert str(s.source) in msg and "chi_E = 200" in msg and "chi_E = 150" in msg
     s = load_scene(write(tmp_path, "[field]\neta = 1.000001\n"))
     with pytest.raises(SceneError, match="eta"):
-        s.load_table()
+        load_table(s)
     s = load_scene(write(tmp_path, "[field]\neta = 1.0000000000001\n"))  # within 1e-9 relative
-    assert s.load_table().eta == 1.0
+    assert load_table(s).eta == 1.0
 
 
 def test_table_file_relative_to_scene(tmp_path):
@@ -226,17 +227,17 @@ def test_table_file_relative_to_scene(tmp_path):
     ThrustTable.default().save(sub / "mine.nc")
     s = load_scene(write(tmp_path, '[table]\nfile = "tables/mine.nc"\n'))
     assert s.table.path(s) == sub / "mine.nc"
-    assert s.load_table().chi_E == 200.0
+    assert load_table(s).chi_E == 200.0
     (sub / "bad.nc").write_text("not a table")
     s = load_scene(write(tmp_path, '[table]\nfile = "tables/bad.nc"\n'))
     with pytest.raises(SceneError, match="table.file"):
-        s.load_table()
+        load_table(s)
 
 
 def test_missing_table_without_build_says_add_table_build(tmp_path):
     s = load_scene(write(tmp_path, '[table]\nfile = "nothere.nc"\n'))
     with pytest.raises(SceneError) as e:
-        s.table.load(s)
+        load_table(s)
     assert "[table.build]" in str(e.value) and "nothere.nc" in str(e.value) and str(s.source) in str(e.value)
     with pytest.raises(SceneError, match="needs table.file"):
         load_scene(write(tmp_path, "[table.build]\nn = 5\n"))
@@ -260,12 +261,12 @@ def test_missing_table_with_build_builds_it(tmp_path, monkeypatch):
     monkeypatch.setattr(table_mod, "build_table", fake_build)
     s = load_scene(write(tmp_path, '[table]\nfile = "built.nc"\n[table.build]\nn = 5\ndegree = 6\n'))
     assert s.table.build == TableBuild(n=5, degree=6)
-    t = s.load_table()
+    t = load_table(s)
     assert t.chi_E == 200.0 and (tmp_path / "built.nc").exists()
     (chi_E, eta, grid, degree, path), = calls
     assert (chi_E, eta, degree, path) == (200.0, 1.0, 6, tmp_path / "built.nc")
     assert np.allclose(grid, [0, 25, 50, 75, 105])
-    s.load_table()  # exists now: not built again
+    load_table(s)  # exists now: not built again
     assert len(calls) == 1
 
 
@@ -335,7 +336,7 @@ def test_robust_needs_a_fabrication_tolerance(tmp_path):
         load_scene(p)
     p.write_text(base + "sigma = 0.1\n")
     s = load_scene(p)
-    assert s.target.robust and Target.from_scene(s).robust
+    assert s.target.robust and target_of(s).robust
 
 
 # ------------------------------------------------------------------------------ one home per default
@@ -424,13 +425,13 @@ def test_one_builder_from_scene_to_table_carpet_and_target(tmp_path):
     (and through it render and the command line) builds its carpet there, and a chi_N outside
     the table is refused there, naming the key."""
     from ciliary_carpet.scenes.assembly import assemble
-    from ciliary_carpet.design.inverse import design
+    from ciliary_carpet.design import design
 
     s = scene_from_dict({"carpet": {"shape": [3, 2], "chi_N": 40, "phases": "synchronous"},
                          "field": {"direction": 30}})
     a = assemble(s)
     c = a.carpet()
-    assert a.table is s.load_table() and a.target.kind == "none" and c.table is a.table
+    assert a.table is load_table(s) and a.target.kind == "none" and c.table is a.table
     assert np.array_equal(c.bases, s.carpet.bases()) and np.all(c.chi_N == 40.0)
     assert c.direction == math.radians(30) and c.blob == s.carpet.blob and c.wall is None
     assert np.allclose(a.carpet([1, 2, 3, 4, 5, 6]).chi_N, [1, 2, 3, 4, 5, 6])
@@ -447,3 +448,15 @@ def test_one_builder_from_scene_to_table_carpet_and_target(tmp_path):
 if __name__ == "__main__":
     RESOLVED.write_text(json.dumps(resolved_now(), indent=1, sort_keys=True) + "\n")
     print(f"wrote {RESOLVED}")
+
+
+def test_the_package_front_door_exports_what_it_says():
+    """``import ciliary_carpet`` is the front door: every exported name is there and its docstring
+    names each one (scenes, carpets, flow sums, design, transport, output)."""
+    import ciliary_carpet as cc
+
+    assert len(cc.__all__) == len(set(cc.__all__)) >= 25
+    for name in cc.__all__:
+        assert getattr(cc, name) is not None
+        assert name in cc.__doc__, name
+    assert cc.load_scene is load_scene and cc.assemble.__module__ == "ciliary_carpet.scenes.assembly"

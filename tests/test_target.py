@@ -8,6 +8,7 @@ import pytest
 import xarray as xr
 
 from ciliary_carpet.scenes.scene import load_scene, scene_from_dict
+from ciliary_carpet.scenes.assembly import frame_of, load_table, target_of
 from ciliary_carpet.design.target import (
     DEFAULT_ANGLE_FRACTION,
     Frame,
@@ -106,16 +107,16 @@ def test_turn_is_smooth_and_tangential_across_the_stream():
 
 def test_target_from_scene_defaults_and_kinds(tmp_path):
     s = load_scene(DESIGNS / "uniform_deflection.toml")
-    t = Target.from_scene(s)
+    t = target_of(s)
     assert t.kind == "uniform" and np.isclose(t.amplitude, math.radians(30))
-    table = s.load_table()
+    table = load_table(s)
     s2 = scene_from_dict({"target": {"kind": "focus"}})
-    t2 = Target.from_scene(s2, table)
+    t2 = target_of(s2, table)
     assert np.isclose(t2.amplitude, DEFAULT_ANGLE_FRACTION * table.thrust_angle_range()[1])
     assert t2.width is None and t2.centre is None and t2.control == "cells"
     with pytest.raises(TargetError, match="angle_max"):
         Target.from_spec(s2.target)
-    none = Target.from_scene(scene_from_dict({}))
+    none = target_of(scene_from_dict({}))
     with pytest.raises(TargetError):
         none.deflection([[0.0, 0.0]], frame())
     with pytest.raises(TargetError):
@@ -127,7 +128,7 @@ def test_points_target_from_csv_scene(tmp_path):
                                       "1.5, 2, 0, -2, b  # inline comment\n\n3, 4, -0.5, -1, c\n")
     (tmp_path / "s.toml").write_text('[target]\nkind = "points"\nfile = "ctl.csv"\nresidual = 0.1\n')
     s = load_scene(tmp_path / "s.toml")
-    t = Target.from_scene(s)
+    t = target_of(s)
     X, U = t.velocities()
     assert np.allclose(X, [[0, 0], [1.5, 2], [3, 4]]) and np.allclose(U, [[0.1, -1], [0, -2], [-0.5, -1]])
     assert t.residual == 0.1 and t.source == str(tmp_path / "ctl.csv")
@@ -245,9 +246,9 @@ def test_design_targets_are_reachable_and_patterns_right():
 
     for path in sorted(DESIGNS.glob("*.toml")):
         s = load_scene(path)
-        table = s.load_table()
-        t = Target.from_scene(s, table)
-        fr = Frame.from_scene(s)
+        table = load_table(s)
+        t = target_of(s, table)
+        fr = frame_of(s)
         X = control_points(s.carpet.bases(), fr, t.control)
         assert X.shape[0] >= 50
         with warnings.catch_warnings():

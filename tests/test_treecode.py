@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from ciliary_carpet.design import inverse as design_mod
+from ciliary_carpet.design import model as design_mod
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.stokes import Direct, RegularisedBlake, Treecode, Wall, make_kernel, stokeslet_velocity
 from single_cilium.table import ThrustTable

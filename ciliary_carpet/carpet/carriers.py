@@ -14,7 +14,7 @@ one of three orders:
   (:func:`dipole_forces`, the one implementation, which the design model uses too, with its own
   triangle at 0, 120 and 240 degrees, :data:`DESIGN_DIPOLE`);
 * the *quadrupole*: six forces, one at c_j and five on a regular pentagon of radius delta_j
-  (:data:`QUADRUPOLE`, a vertex at 90 degrees), reproducing F, D and T.
+  (:data:`~ciliary_carpet.stokes.treecode.QUADRUPOLE`, a vertex at 90 degrees; the treecode's stencil), reproducing F, D and T.
 
 Their moment systems are invertible. By Taylor's theorem, for a target at distance R > a from c
 the order-k carriers (matching the moments below order k) err by the order-k term they miss
@@ -63,9 +63,9 @@ import numpy as np
 from numba import njit, prange
 
 from ciliary_carpet.carpet.cycles import CycleData
-from ciliary_carpet.stokes import Kernel
+from ciliary_carpet.stokes import QUADRUPOLE, QUADRUPOLE_INV, Kernel
 
-__all__ = ["Bounds", "CarrierForces", "Carriers", "DIPOLE", "DESIGN_DIPOLE", "QUADRUPOLE", "LOD_SLACK", "PHASE_MARGIN",
+__all__ = ["Bounds", "CarrierForces", "Carriers", "DIPOLE", "DESIGN_DIPOLE", "LOD_SLACK", "PHASE_MARGIN",
            "dipole_forces", "triangle"]
 
 PHASE_MARGIN = 1.25
@@ -95,23 +95,17 @@ def triangle(angle: float) -> np.ndarray:
 
 DIPOLE = triangle(math.pi / 2)
 """Positions of the carpet's dipole carriers for unit delta: an equilateral triangle with a vertex
-at 90 degrees (90, 210, 330), the vertex the pentagon of :data:`QUADRUPOLE` has too. Any
+at 90 degrees (90, 210, 330), the vertex the pentagon of :data:`~ciliary_carpet.stokes.treecode.QUADRUPOLE` has too. Any
 orientation reproduces F and D exactly; the orientation sets the carriers' own second moment
 T_rep, hence what the dipole order misses (its bound uses nu(T - T_rep))."""
 DESIGN_DIPOLE = np.array([[1.0, 0.0], [-0.5, math.sqrt(3) / 2], [-0.5, -math.sqrt(3) / 2]])
-"""Positions of the design model's dipole carriers for unit delta (:mod:`ciliary_carpet.design.inverse`):
+"""Positions of the design model's dipole carriers for unit delta (:mod:`ciliary_carpet.design.model`):
 the triangle at 0, 120 and 240 degrees. The same carriers (:func:`dipole_forces`), another
 orientation: the design model's flow is its own approximation (corrected by the full flow
 between passes), and its designs were calibrated with this one. Measured on the five bundled
 scenes (reduced): the carpet's orientation would move the designed layouts' flows by up to 3 %
 (path-line velocities; the pattern a carpet can hold, e.g. 24.4 against 23.0 degrees for
 vortex_turn), so the design keeps its own."""
-QUADRUPOLE = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2),
-                                       math.sin(2 * math.pi * m / 5 + math.pi / 2)] for m in range(5)])
-"""Positions of the quadrupole carriers for unit delta: the centre and a regular pentagon."""
-_QUADRUPOLE_INV = np.linalg.inv(np.stack([np.ones(6), QUADRUPOLE[:, 0], QUADRUPOLE[:, 1], QUADRUPOLE[:, 0] ** 2,
-                                          QUADRUPOLE[:, 0] * QUADRUPOLE[:, 1], QUADRUPOLE[:, 1] ** 2]))
-"""Inverse of the quadrupole carriers' moment matrix (rows: the monomials 1, x, y, x^2, xy, y^2)."""
 
 
 def dipole_forces(F: np.ndarray, D: np.ndarray, delta: np.ndarray, unit: np.ndarray = DIPOLE) -> np.ndarray:
@@ -314,7 +308,7 @@ class Carriers:
         out = CarrierForces(f3=f3, f6=np.empty((k, 6, 2)), nu1=np.empty(k), nu2=np.empty(k), q3=np.empty(k),
                             q6=np.empty(k))
         _carrier_sets(np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(D, dtype=float),
-                      np.ascontiguousarray(T, dtype=float), d, DIPOLE, f3, _QUADRUPOLE_INV, out.f6, out.nu1,
+                      np.ascontiguousarray(T, dtype=float), d, DIPOLE, f3, QUADRUPOLE_INV, out.f6, out.nu1,
                       out.nu2, out.q3, out.q6)
         return out
 

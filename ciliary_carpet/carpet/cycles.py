@@ -24,7 +24,7 @@ Still cilia (chi_N off the flutter branch) stand in their equilibrium shape with
 
 :class:`CycleMoments` is the same moment code (:func:`_sample_moments`) as smooth functions of
 chi_N: the cycle means of F and D, the centre offset and the radius of one cilium in the field
-frame, interpolated by cubic splines in chi_N (the design model's, :mod:`ciliary_carpet.design.inverse`).
+frame, interpolated by cubic splines in chi_N (the design model's, :mod:`ciliary_carpet.design.model`).
 
 (About 570 lines, 300 of them the compiled kernels of the interpolant and the moments, which
 belong with the data they build.)

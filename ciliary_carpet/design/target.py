@@ -32,6 +32,12 @@ Delaunay triangles of the base points (the Voronoi vertices: the points farthest
 base), merged where two triangles share one (the cell centres of a square lattice, the triangle
 centres of a hexagonal one), and for a carpet whose base points lie on a line (a row) the
 "cilia" rule; or an explicit list.
+
+Size: about 690 lines, above the project's 500, because one noun's parts are read together: the
+``[target]`` section's documented keys (the README's key table is made from them), the registry,
+the frame the patterns refer to, the resolved target and its control points and control file,
+all raising the one :class:`TargetError` (the readers of the control file could move to a
+module of their own if it grows).
 """
 from __future__ import annotations
 
@@ -41,16 +47,11 @@ import math
 import warnings
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import numpy as np
 
 from ciliary_carpet.scenes.schema import Key, SceneError, Section, key, keys_of, reader, section, values
-
-if TYPE_CHECKING:
-    from single_cilium.table import ThrustTable
-
-    from ciliary_carpet.scenes.scene import Scene
 
 __all__ = ["TargetError", "UnreachableTargetError", "Target", "TargetSpec", "Frame", "Pattern", "PATTERNS",
            "control_points", "reachable_check", "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS",
@@ -92,7 +93,10 @@ class Pattern:
     two_sided : bool
         The flow turns toward (or away from) a line from both sides: the design's estimate of
         the reachable amplitude of such a pattern applies
-        (:func:`~ciliary_carpet.design.inverse.reachability`).
+        (:func:`~ciliary_carpet.design.reachability.reachability`).
+
+    A pattern whose ``keys`` hold ``"width"`` has a transition width (:attr:`has_width`): the
+    reachability estimates the narrowest width it meets its threshold at.
     """
 
     name: str
@@ -101,6 +105,11 @@ class Pattern:
     deflection: Callable | None = None
     signed: bool = False
     two_sided: bool = False
+
+    @property
+    def has_width(self) -> bool:
+        """The pattern has a transition width (the ``[target]`` key ``width`` is one of its keys)."""
+        return "width" in self.keys
 
 
 def _across_line(t: "Target", x: np.ndarray, frame: "Frame") -> np.ndarray:
@@ -343,12 +352,6 @@ class Frame:
         a = float(direction_rad)
         return cls(0.5 * (b.min(axis=0) + b.max(axis=0)), np.array([math.sin(a), -math.cos(a)]), spacing)
 
-    @classmethod
-    def from_scene(cls, scene: "Scene", bases=None) -> "Frame":
-        """The frame of ``scene``'s carpet (``bases`` default: ``scene.carpet.bases()``)."""
-        b = scene.carpet.bases() if bases is None else bases
-        return cls.from_bases(b, scene.carpet.spacing, scene.field.direction_rad)
-
     def cross_coordinate(self, points) -> np.ndarray:
         """(P,) coordinate of ``points`` along the cross-stream axis, from the centre."""
         return (_points("points", points) - self.centre) @ self.cross
@@ -360,14 +363,14 @@ class Frame:
 
 
 # ------------------------------------------------------------------------------ target
-def _as_in_spec(name: str):
+def spec_default(name: str):
     """The default of the ``[target]`` key ``name`` (its one home is :class:`TargetSpec`)."""
     return keys_of(TargetSpec)[name][1]
 
 
 @dataclass(frozen=True, eq=False)
 class Target:
-    """A resolved target (from a scene's ``[target]`` by :meth:`from_spec` / :meth:`from_scene`).
+    """A resolved target (from a scene's ``[target]`` by :meth:`from_spec`; for a scene: :func:`~ciliary_carpet.scenes.assembly.target_of`).
 
     Attributes
     ----------
@@ -380,7 +383,7 @@ class Target:
         as the keys of :class:`TargetSpec` (same defaults): width None = ``frame.spacing``,
         centre None = ``frame.centre``; ``control`` see :func:`control_points`; the design
         settings go to :func:`~ciliary_carpet.design.inverse.design_layout` (``robust``: its
-        ``robust_sigma``) and :func:`~ciliary_carpet.design.inverse.tolerance_study`.
+        ``robust_sigma``) and :func:`~ciliary_carpet.design.tolerance.tolerance_study`.
     data_points, data_velocities : ndarray or None
         (P, 2) arrays for kind "points" (else None); see :meth:`velocities`.
     source : str or None
@@ -389,18 +392,18 @@ class Target:
 
     kind: str
     amplitude: float | None = None
-    line: float = _as_in_spec("line")
-    width: float | None = _as_in_spec("width")
-    centre: tuple | None = _as_in_spec("centre")
-    control: object = _as_in_spec("control")
-    residual: float = _as_in_spec("residual")
-    strict: bool = _as_in_spec("strict")
-    speed_floor: float = _as_in_spec("speed_floor")
-    inside_swept: str = _as_in_spec("inside_swept")
-    smoothness: float = _as_in_spec("smoothness")
-    sigma: float = _as_in_spec("sigma")
-    samples: int = _as_in_spec("samples")
-    robust: bool = _as_in_spec("robust")
+    line: float = spec_default("line")
+    width: float | None = spec_default("width")
+    centre: tuple | None = spec_default("centre")
+    control: object = spec_default("control")
+    residual: float = spec_default("residual")
+    strict: bool = spec_default("strict")
+    speed_floor: float = spec_default("speed_floor")
+    inside_swept: str = spec_default("inside_swept")
+    smoothness: float = spec_default("smoothness")
+    sigma: float = spec_default("sigma")
+    samples: int = spec_default("samples")
+    robust: bool = spec_default("robust")
     data_points: np.ndarray | None = None
     data_velocities: np.ndarray | None = None
     source: str | None = None
@@ -461,16 +464,6 @@ class Target:
             src = str(p)
         return cls(amplitude=amp, data_points=pts, data_velocities=vel, source=src,
                    **{k: getattr(spec, k) for k in _FROM_SPEC})
-
-    @classmethod
-    def from_scene(cls, scene: "Scene", table: "ThrustTable | None" = None) -> "Target":
-        """The target of ``scene`` (``table`` default: ``scene.load_table()``, needed only for
-        the default angle)."""
-        angle_max = None
-        if scene.target.kind in ANGLE_KINDS and scene.target.angle is None:
-            table = table if table is not None else scene.load_table()
-            angle_max = table.thrust_angle_range()[1]
-        return cls.from_spec(scene.target, scene.base_dir, angle_max)
 
     # -------------------------------------------------------------------- evaluation
     @property

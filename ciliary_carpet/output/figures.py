@@ -33,7 +33,7 @@ def _savefig(fig, path: Path) -> None:
 def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     """Three panels: target (grey) and achieved (blue) flow directions at the control points over
     the layout coloured by chi_N; the residual per control point; the layout with the cilia
-    near the flutter cutoff ringed. ``d`` is the :class:`~ciliary_carpet.design.inverse.Design`."""
+    near the flutter cutoff ringed. ``d`` is the :class:`~ciliary_carpet.design.result.Design`."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -75,7 +75,7 @@ from single_cilium.threads import threads_in_use
 
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant
 from ciliary_carpet.carpet.omissions import omissions
-from ciliary_carpet.design.inverse import Design
+from ciliary_carpet.design import Design
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.figures import design_picture, preview
 from ciliary_carpet.output.paraview import SCRIPT, write_script

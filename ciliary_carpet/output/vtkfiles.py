@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import io
 import logging
-import math
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -42,6 +41,7 @@ from pathlib import Path
 import numpy as np
 import pyvista as pv
 
+from single_cilium.checks import finite
 from single_cilium.files import OutputFileError, write_bytes
 
 logger = logging.getLogger(__name__)
@@ -85,7 +85,7 @@ class PvdEntry:
     part: int = 0
 
     def __post_init__(self) -> None:
-        t = _finite_scalar("time", self.time)
+        t = finite("time", self.time)
         part = _int_scalar("part", self.part)
         if part < 0:
             raise ValueError(f"part must be >= 0, got {part}")
@@ -96,16 +96,6 @@ class PvdEntry:
 
 # --------------------------------------------------------------------------------------------
 # validation
-
-
-def _finite_scalar(name: str, value) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite, got {x}")
-    return x
 
 
 def _int_scalar(name: str, value) -> int:
@@ -188,7 +178,7 @@ def _grid(origin, spacing, shape) -> tuple[np.ndarray, np.ndarray, tuple[int, in
 
 
 def _time_value(time) -> float | None:
-    return None if time is None else _finite_scalar("time", time)
+    return None if time is None else finite("time", time)
 
 
 def _check_suffix(path, ext: str) -> Path:

@@ -1,30 +1,130 @@
 """The objects a scene describes: its thrust table, base points, target frame, target and carpet.
 
-:func:`assemble` is the one path from a :class:`~ciliary_carpet.scenes.scene.Scene` to them: the design
+This module is the one route from a :class:`~ciliary_carpet.scenes.scene.Scene` (the file format, which
+builds nothing) to objects: :func:`assemble` builds them all, :func:`load_table`,
+:func:`frame_of` and :func:`target_of` one each. The design
 (:func:`ciliary_carpet.design.inverse.design`), and through it the render and the command line, build
-what they need here. The table is the scene's (``scene.load_table()``, cached) and is checked
-against ``carpet.chi_N``; the target is resolved against the table (its default angle) and the
+what they need here. The table is the scene's (:func:`load_table`: the shipped one, a file, or
+one computed first with ``[table.build]``; cached) and is checked against ``carpet.chi_N``; the target is resolved against the table (its default angle) and the
 carpet's frame; the carpet is built on demand with the curvatures asked for (the design's
 starting layout, or the scene's own ``carpet.chi_N``).
 """
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from single_cilium.table import ThrustTable
+import single_cilium.table as _table
+from single_cilium.table import TableError, ThrustTable
 
 from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.scenes.paths import check_derived, inside, table_parts
 from ciliary_carpet.scenes.schema import SceneError
 from ciliary_carpet.stokes import backend_named
-from ciliary_carpet.design.target import Frame, Target
+from ciliary_carpet.design.target import ANGLE_KINDS, Frame, Target
 
 if TYPE_CHECKING:
     from ciliary_carpet.scenes.scene import Scene
 
-__all__ = ["Assembly", "assemble", "check_table_range"]
+logger = logging.getLogger(__name__)
+
+__all__ = ["Assembly", "assemble", "check_table_range", "load_table", "frame_of", "target_of"]
+
+_TABLE_CACHE: dict = {}
+
+
+def load_table(scene: "Scene") -> ThrustTable:
+    """The scene's thrust table (``[table]``): loaded, built first if asked (``[table.build]``), and check that it is for the scene's field.
+
+    Tables are cached per (file, modification time), so repeated loads are free; treat the
+    returned table as read-only.
+
+    Raises
+    ------
+    SceneError
+        If the file is missing and there is no ``[table.build]``, if it is not a readable
+        table, or if its (chi_E, eta) differ from ``[field]`` by more than 1e-9 relative.
+    """
+    src = scene.source_name
+    spec = scene.table
+    p = spec.path(scene)
+    if p is None:
+        key = ("default",)
+        table = _TABLE_CACHE.get(key)
+        if table is None:
+            table = _TABLE_CACHE[key] = ThrustTable.default()
+        where = "the shipped default table"
+    else:
+        if not p.exists():
+            if spec.build is None:
+                raise SceneError(
+                    f"{src}: table.file '{spec.file}' not found (looked for {p.absolute()}); fix the path, "
+                    f"use file = \"default\" for the shipped table (chi_E = 200, eta = 1), or add a "
+                    f"[table.build] section (n, degree) to compute it there (takes minutes)")
+            _check_build_paths(scene, p)
+            _build(scene, p)
+        st = p.stat()
+        key = (str(p.resolve()), st.st_mtime_ns, st.st_size)
+        table = _TABLE_CACHE.get(key)
+        if table is None:
+            try:
+                table = ThrustTable.load(p)
+            except TableError as exc:
+                raise SceneError(f"{src}: table.file: {exc}") from None
+            _TABLE_CACHE[key] = table
+        where = f"table {p}"
+    f = scene.field
+    bad = [(k, getattr(table, k), getattr(f, k)) for k in ("chi_E", "eta")
+           if abs(getattr(table, k) - getattr(f, k)) > 1e-9 * max(abs(getattr(f, k)), abs(getattr(table, k)))]
+    if bad:
+        got = ", ".join(f"{k} = {t:g}" for k, t, _ in bad)
+        want = ", ".join(f"{k} = {w:g}" for k, _, w in bad)
+        raise SceneError(f"{src}: {where} is for {got}, but [field] asks {want}; use a table built "
+                         f"for this field (table.file with [table.build]) or change [field]")
+    return table
+
+def _check_build_paths(scene: "Scene", p: Path) -> None:
+    """Just before a build: when ``table.file`` lies below the scene's folder, the row folder
+    the build derives from it must too (:func:`~ciliary_carpet.scenes.paths.check_derived`; it may
+    have become a symbolic link since the scene was read)."""
+    if not inside(p, scene.base_dir)[0]:
+        return  # table.file itself was allowed outside (allow_outside): so is its row folder
+    check_derived(scene.source_name, "table.file", "the table build's row folder", table_parts(p), scene.base_dir)
+
+def _build(scene: "Scene", p: Path) -> None:
+    from single_cilium import flutter_cutoff
+
+    f, b = scene.field, scene.table.build
+    cut = flutter_cutoff(f.chi_E, f.eta, degree=b.degree)
+    if not math.isfinite(cut.chi_N_cutoff):
+        raise SceneError(f"{scene.source_name}: cannot build a thrust table for chi_E = {f.chi_E:g}, "
+                         f"eta = {f.eta:g}: {cut.message}")
+    c = cut.chi_N_cutoff
+    grid = np.concatenate([np.linspace(0.0, c, b.n)[:-1], [1.05 * c]])
+    logger.info("building the thrust table %s (chi_E = %g, eta = %g, %d rows)", p, f.chi_E, f.eta, grid.size)
+    _table.build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p)
+
+
+def frame_of(scene: "Scene", bases=None) -> Frame:
+    """The target :class:`~ciliary_carpet.design.target.Frame` of ``scene``'s carpet (``bases``
+    default: ``scene.carpet.bases()``)."""
+    b = scene.carpet.bases() if bases is None else bases
+    return Frame.from_bases(b, scene.carpet.spacing, scene.field.direction_rad)
+
+
+def target_of(scene: "Scene", table: ThrustTable | None = None) -> Target:
+    """The resolved target of ``scene`` (``table`` default: :func:`load_table`, needed only for
+    the default angle; a control-point file is read relative to the scene's folder)."""
+    angle_max = None
+    if scene.target.kind in ANGLE_KINDS and scene.target.angle is None:
+        table = table if table is not None else load_table(scene)
+        angle_max = table.thrust_angle_range()[1]
+    return Target.from_spec(scene.target, scene.base_dir, angle_max)
 
 
 def check_table_range(scene: "Scene", table: ThrustTable) -> None:
@@ -63,12 +163,12 @@ class Assembly:
 
 
 def assemble(scene: "Scene", table: ThrustTable | None = None) -> Assembly:
-    """Build the objects ``scene`` describes (``table`` default: ``scene.load_table()``).
+    """Build the objects ``scene`` describes (``table`` default: :func:`load_table`).
 
     Raises SceneError for an unreadable table or one for another field, or ``carpet.chi_N``
     outside the table's range; TargetError for a target that cannot be resolved (an unreadable
     control-point file)."""
-    table = table if table is not None else scene.load_table()
+    table = table if table is not None else load_table(scene)
     check_table_range(scene, table)
     bases = scene.carpet.bases()
-    return Assembly(scene, table, bases, Frame.from_scene(scene, bases), Target.from_scene(scene, table))
+    return Assembly(scene, table, bases, frame_of(scene, bases), target_of(scene, table))

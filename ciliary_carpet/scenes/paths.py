@@ -31,7 +31,7 @@ from pathlib import Path
 
 from ciliary_carpet.scenes.schema import SceneError
 
-__all__ = ["check_name", "check_input", "check_derived", "check_scene_paths", "table_parts", "ALLOW_ENV"]
+__all__ = ["check_name", "check_input", "check_derived", "check_scene_paths", "table_parts", "inside", "ALLOW_ENV"]
 
 ALLOW_ENV = "CILIARY_CARPET_ALLOW_OUTSIDE_PATHS"
 
@@ -91,7 +91,9 @@ def check_input(src: str, key: str, value: str, base_dir: Path, *, allow_outside
     return full
 
 
-def _inside(path: Path, base_dir: Path) -> tuple[bool, Path, Path]:
+def inside(path: Path, base_dir: Path) -> tuple[bool, Path, Path]:
+    """(whether ``path`` resolves, symbolic links followed, to ``base_dir`` or below it, the resolved
+    base_dir, the resolved path)."""
     root = Path(os.path.realpath(base_dir))
     real = Path(os.path.realpath(path))
     return real == root or root in real.parents, root, real
@@ -109,7 +111,7 @@ def check_derived(src: str, key: str, what: str, path: Path, base_dir: Path, *, 
     path = Path(path)
     if allow_outside or os.environ.get(ALLOW_ENV, "") == "1":
         return path
-    ok, root, real = _inside(path, base_dir)
+    ok, root, real = inside(path, base_dir)
     if not ok:
         raise _error(f"{src}: {what} {path.name!r}, derived from {key}, resolves to {real}, outside the scene's "
                      f"folder {root} (a symbolic link there points elsewhere); nothing was written: remove the link, "

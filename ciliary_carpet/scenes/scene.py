@@ -20,7 +20,9 @@ Sections (all optional): top level (name, description, tolerance, backend), ``[f
 
 Values that depend on the thrust table or on the carpet's geometry (the default target angle,
 width and centre) are stored as ``None`` here and resolved by :mod:`ciliary_carpet.design.target`; the
-objects a scene describes (table, carpet, target) are built by :mod:`ciliary_carpet.scenes.assembly`.
+objects a scene describes (table, carpet, target) are built by :mod:`ciliary_carpet.scenes.assembly`, the
+only route from a scene to objects (this module is the file format: it reads and checks, and builds
+nothing).
 """
 from __future__ import annotations
 
@@ -35,11 +37,10 @@ from pathlib import Path
 import numpy as np
 
 import single_cilium.table as _table
-from single_cilium.table import TableError, ThrustTable
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import BLOB
-from ciliary_carpet.scenes.paths import _inside, check_derived, check_name, check_scene_paths, table_parts
+from ciliary_carpet.scenes.paths import check_name, check_scene_paths
 from ciliary_carpet.transport.flow import FLOWS, MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
 from ciliary_carpet.stokes import BACKENDS
@@ -102,9 +103,6 @@ class TableBuild(Section):
                       "mesh degree of that computation (`single_cilium.table.build_table`)", "int", lo=2)
 
 
-_TABLE_CACHE: dict = {}
-
-
 @section
 @dataclass(frozen=True)
 class TableSpec(Section):
@@ -146,76 +144,6 @@ class TableSpec(Section):
             return None
         p = Path(self.file).expanduser()
         return p if p.is_absolute() else scene.base_dir / p
-
-    def load(self, scene: "Scene") -> ThrustTable:
-        """Load the table (building it first if asked), and check that it is for the scene's field.
-
-        Tables are cached per (file, modification time), so repeated loads are free; treat the
-        returned table as read-only.
-
-        Raises
-        ------
-        SceneError
-            If the file is missing and there is no ``[table.build]``, if it is not a readable
-            table, or if its (chi_E, eta) differ from ``[field]`` by more than 1e-9 relative.
-        """
-        src = scene.source_name
-        p = self.path(scene)
-        if p is None:
-            key = ("default",)
-            table = _TABLE_CACHE.get(key)
-            if table is None:
-                table = _TABLE_CACHE[key] = ThrustTable.default()
-            where = "the shipped default table"
-        else:
-            if not p.exists():
-                if self.build is None:
-                    raise SceneError(
-                        f"{src}: table.file '{self.file}' not found (looked for {p.absolute()}); fix the path, "
-                        f"use file = \"default\" for the shipped table (chi_E = 200, eta = 1), or add a "
-                        f"[table.build] section (n, degree) to compute it there (takes minutes)")
-                self._check_build_paths(scene, p)
-                self._build(scene, p)
-            st = p.stat()
-            key = (str(p.resolve()), st.st_mtime_ns, st.st_size)
-            table = _TABLE_CACHE.get(key)
-            if table is None:
-                try:
-                    table = ThrustTable.load(p)
-                except TableError as exc:
-                    raise SceneError(f"{src}: table.file: {exc}") from None
-                _TABLE_CACHE[key] = table
-            where = f"table {p}"
-        f = scene.field
-        bad = [(k, getattr(table, k), getattr(f, k)) for k in ("chi_E", "eta")
-               if abs(getattr(table, k) - getattr(f, k)) > 1e-9 * max(abs(getattr(f, k)), abs(getattr(table, k)))]
-        if bad:
-            got = ", ".join(f"{k} = {t:g}" for k, t, _ in bad)
-            want = ", ".join(f"{k} = {w:g}" for k, _, w in bad)
-            raise SceneError(f"{src}: {where} is for {got}, but [field] asks {want}; use a table built "
-                             f"for this field (table.file with [table.build]) or change [field]")
-        return table
-
-    def _check_build_paths(self, scene: "Scene", p: Path) -> None:
-        """Just before a build: when ``table.file`` lies below the scene's folder, the row folder
-        the build derives from it must too (:func:`~ciliary_carpet.scenes.paths.check_derived`; it may
-        have become a symbolic link since the scene was read)."""
-        if not _inside(p, scene.base_dir)[0]:
-            return  # table.file itself was allowed outside (allow_outside): so is its row folder
-        check_derived(scene.source_name, "table.file", "the table build's row folder", table_parts(p), scene.base_dir)
-
-    def _build(self, scene: "Scene", p: Path) -> None:
-        from single_cilium import flutter_cutoff
-
-        f, b = scene.field, self.build
-        cut = flutter_cutoff(f.chi_E, f.eta, degree=b.degree)
-        if not math.isfinite(cut.chi_N_cutoff):
-            raise SceneError(f"{scene.source_name}: cannot build a thrust table for chi_E = {f.chi_E:g}, "
-                             f"eta = {f.eta:g}: {cut.message}")
-        c = cut.chi_N_cutoff
-        grid = np.concatenate([np.linspace(0.0, c, b.n)[:-1], [1.05 * c]])
-        logger.info("building the thrust table %s (chi_E = %g, eta = %g, %d rows)", p, f.chi_E, f.eta, grid.size)
-        _table.build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p)
 
 
 @section
@@ -445,10 +373,6 @@ class Scene:
     @property
     def source_name(self) -> str:
         return str(self.source) if self.source is not None else f"<scene {self.name}>"
-
-    def load_table(self) -> ThrustTable:
-        """``self.table.load(self)``."""
-        return self.table.load(self)
 
     def to_dict(self) -> dict:
         """The resolved scene, defaults filled in, as plain TOML/JSON types (keys that are None,

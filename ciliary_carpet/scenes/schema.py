@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
 import textwrap
 from dataclasses import MISSING, dataclass, fields
+
+from single_cilium.checks import finite
 
 __all__ = ["SceneError", "Key", "key", "keys_of", "reader", "values", "read", "validate", "section", "section_dict",
            "plain", "markdown_table", "Section"]
@@ -200,9 +201,10 @@ class Reader:
     def number(self, k: str, v, spec: Key, what: str) -> float:
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self.fail(k, what, v)
-        x = float(v)
-        if not math.isfinite(x):
-            raise SceneError(f"{self.src}: {self.key(k)} must be a finite number, got {x}")
+        try:
+            x = finite(self.key(k), v)
+        except ValueError:
+            raise SceneError(f"{self.src}: {self.key(k)} must be a finite number, got {float(v)}") from None
         if spec.lo is not None and (x < spec.lo or (spec.lo_open and x == spec.lo)):
             raise self.fail(k, what, v)
         if spec.hi is not None and (x > spec.hi or (spec.hi_open and x == spec.hi)):
@@ -262,10 +264,10 @@ class Section:
 def _finite_number(src: str, key: str, v, what: str) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise SceneError(f"{src}: {key} must be {what}, got {v!r}")
-    x = float(v)
-    if not math.isfinite(x):
-        raise SceneError(f"{src}: {key} must be {what} (finite), got {x}")
-    return x
+    try:
+        return finite(key, v)
+    except ValueError:
+        raise SceneError(f"{src}: {key} must be {what} (finite), got {float(v)}") from None
 
 
 def _pair(src: str, key: str, v, what: str) -> tuple[float, float]:

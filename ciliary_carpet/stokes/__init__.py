@@ -48,12 +48,12 @@ from ciliary_carpet.stokes.kernel import (
     make_kernel,
 )
 from ciliary_carpet.stokes.reference import stokeslet_velocity_numpy
-from ciliary_carpet.stokes.treecode import Treecode
+from ciliary_carpet.stokes.treecode import QUADRUPOLE, QUADRUPOLE_INV, Treecode
 
 __all__ = [
     "Wall", "Kernel", "Stokeslet", "Blake", "RegularisedStokeslet", "RegularisedBlake", "KERNELS", "make_kernel",
     "C1_FREE", "C1_WALL", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL",
     "Backend", "Direct", "FMM", "Cuda", "CudaUnavailableError", "cuda_available", "Auto", "BACKENDS",
     "backend_named", "ranged_evaluator", "FMM_CROSSOVER_PAIRS",
-    "stokeslet_velocity", "stokeslet_velocity_ranges", "stokeslet_velocity_numpy", "Treecode",
+    "stokeslet_velocity", "stokeslet_velocity_ranges", "stokeslet_velocity_numpy", "Treecode", "QUADRUPOLE", "QUADRUPOLE_INV",
 ]

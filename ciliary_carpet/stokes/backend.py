@@ -46,15 +46,16 @@ wall the image terms of that source are regular and are kept).
 """
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import numpy as np
 
+from single_cilium.checks import positive
+
 from ciliary_carpet.stokes.kernel import Kernel, Wall, make_kernel
 
-__all__ = ["Backend", "validated", "validated_ranges", "kernel_of", "positive"]
+__all__ = ["Backend", "validated", "validated_ranges", "kernel_of"]
 
 
 class Backend(ABC):
@@ -85,19 +86,6 @@ class Backend(ABC):
 
 
 # --------------------------------------------------------------------------- the inputs
-def positive(name: str, value: Any) -> float:
-    """``value`` as a finite float > 0, or ValueError naming ``name``."""
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite, got {x}")
-    if x <= 0.0:
-        raise ValueError(f"{name} must be > 0, got {x}")
-    return x
-
-
 def _points(name: str, a: Any) -> np.ndarray:
     """``a`` as a C-contiguous (K, 3) float64 array (z = 0 padded from (K, 2)), validated."""
     try:

@@ -45,7 +45,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ciliary_carpet.stokes.backend import Backend, kernel_of, positive, validated, validated_ranges
+from single_cilium.checks import positive
+
+from ciliary_carpet.stokes.backend import Backend, kernel_of, validated, validated_ranges
 from ciliary_carpet.stokes.cuda import Cuda, cuda_available
 from ciliary_carpet.stokes.direct import Direct
 from ciliary_carpet.stokes.fmm import FMM, FMM_CROSSOVER_PAIRS, fmm_available

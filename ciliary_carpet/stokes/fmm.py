@@ -12,7 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ciliary_carpet.stokes.backend import Backend, positive
+from single_cilium.checks import positive
+
+from ciliary_carpet.stokes.backend import Backend
 from ciliary_carpet.stokes.kernel import Kernel, Stokeslet
 
 __all__ = ["FMM", "FMM_CROSSOVER_PAIRS", "fmm_available"]

@@ -1,6 +1,6 @@
 """A treecode for repeated Stokeslet sums over fixed points: a linear operator and its exact transpose.
 
-The design model (:mod:`ciliary_carpet.design.inverse`) evaluates, hundreds of times per solve, the
+The design model (:mod:`ciliary_carpet.design.model`) evaluates, hundreds of times per solve, the
 velocity at P fixed control points x_k of point forces f_s at S fixed source points y_s in the
 plane z = 0,
 
@@ -40,17 +40,22 @@ from ciliary_carpet.stokes.backend import Backend
 from ciliary_carpet.stokes.evaluator import stokeslet_velocity_ranges
 from ciliary_carpet.stokes.kernel import Kernel
 
-__all__ = ["Treecode", "THETA", "LEAF"]
+__all__ = ["Treecode", "THETA", "LEAF", "QUADRUPOLE", "QUADRUPOLE_INV"]
 
 THETA = 0.3
 """Default opening angle: a cell is far when its radius is at most THETA times its distance."""
 LEAF = 48
 """Default largest number of sources in a leaf cell."""
 
-_UNIT = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2), math.sin(2 * math.pi * m / 5 + math.pi / 2)]
-                                 for m in range(5)])
-_UNIT_INV = np.linalg.inv(np.stack([np.ones(6), _UNIT[:, 0], _UNIT[:, 1], _UNIT[:, 0] ** 2,
-                                    _UNIT[:, 0] * _UNIT[:, 1], _UNIT[:, 1] ** 2]))
+QUADRUPOLE = np.array([[0.0, 0.0]] + [[math.cos(2 * math.pi * m / 5 + math.pi / 2),
+                                       math.sin(2 * math.pi * m / 5 + math.pi / 2)] for m in range(5)])
+"""Positions of the quadrupole carriers for unit delta: the centre and a regular pentagon (a vertex
+at 90 degrees). Six point forces there reproduce a cluster's force, first and second moments
+about its centre: the treecode's far cells and the carpet's quadrupole level of detail
+(:mod:`ciliary_carpet.carpet.carriers`) use this one stencil."""
+QUADRUPOLE_INV = np.linalg.inv(np.stack([np.ones(6), QUADRUPOLE[:, 0], QUADRUPOLE[:, 1], QUADRUPOLE[:, 0] ** 2,
+                                         QUADRUPOLE[:, 0] * QUADRUPOLE[:, 1], QUADRUPOLE[:, 1] ** 2]))
+"""Inverse of the quadrupole carriers' moment matrix (rows: the monomials 1, x, y, x^2, xy, y^2)."""
 
 
 @dataclass(frozen=True)
@@ -137,12 +142,12 @@ class Treecode:
         C = len(tr.start)
         # the cells' carriers and the map W from the (sorted) source forces to their forces
         delta = 0.5 * np.maximum(tr.radius, 1e-12)
-        cpos = tr.centre[:, None, :] + delta[:, None, None] * _UNIT[None]
+        cpos = tr.centre[:, None, :] + delta[:, None, None] * QUADRUPOLE[None]
         cid = np.repeat(np.arange(C), tr.end - tr.start)
         col = np.concatenate([np.arange(a, b) for a, b in zip(tr.start, tr.end)])
         h = (y[tr.order][col, :2] - tr.centre[cid]) / delta[cid, None]
         mono = np.stack([np.ones(len(col)), h[:, 0], h[:, 1], h[:, 0] ** 2, h[:, 0] * h[:, 1], h[:, 1] ** 2])
-        wv = _UNIT_INV @ mono  # (6, nnz): carrier m of cell cid gets wv[m] times the source's force
+        wv = QUADRUPOLE_INV @ mono  # (6, nnz): carrier m of cell cid gets wv[m] times the source's force
         self._W = sp.csr_matrix((wv.T.ravel(), (((6 * cid)[:, None] + np.arange(6)).ravel(), np.repeat(col, 6))),
                                 shape=(6 * C, S))
         self._pts = np.concatenate([y[tr.order], np.column_stack([cpos.reshape(-1, 2), np.zeros(6 * C)])])
