@@ -18,7 +18,7 @@ limit_cycle       periodic orbit by shooting with the exact monodromy (single_ci
                   mean thrust, Floquet multipliers, error estimates; mean_thrust: Fbar at (chi_N, U)
                   with an error estimate
 """
-__version__ = "0.1.0"
+from .version import __version__
 
 from .numba_cache import ensure_writable_cache as _ensure_writable_cache
 

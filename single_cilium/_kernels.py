@@ -130,7 +130,7 @@ def _drag_projections(th, v, I, w, eta, U1, U2):
 
 
 @njit(cache=True)
-def _stage_terms(th, v, I, w, eta, U1, U2):
+def stage_terms(th, v, I, w, eta, U1, U2):
     """For full nodal ``th`` and ``v`` (theta_t): ``D(th) v`` on the free nodes (n-1,), the drag
     matrix ``D(th)`` (n-1, n-1) and ``d(D(th) v)/dth`` at fixed ``v`` (n-1, n-1). With a
     background flow the first and the last include the stream's drag ``g_U(th)`` (the first is
@@ -198,7 +198,7 @@ def _reduced_system(Zt, th0, ka0, h, Q, Ainv, I, w, Kr, Bmat, eta, chi_E, chi_N,
             Vs[i, a_] = v[a_ + 1]
         th = Th[i].copy()
         if jac:
-            Dv, D, Jd = _stage_terms(th, v, I, w, eta, U1, U2)
+            Dv, D, Jd = stage_terms(th, v, I, w, eta, U1, U2)
             Ds[i] = D
             Jds[i] = Jd
         else:
@@ -281,7 +281,7 @@ def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi
         v0 = np.zeros(n)
         if k > 0:
             v0[1:] = Yd[k, :m]
-        _, D0, Jd0 = _stage_terms(th0, v0, I, w, eta, U1, U2)
+        _, D0, Jd0 = stage_terms(th0, v0, I, w, eta, U1, U2)
         c0 = np.cos(th0[1:])
         sr = MU_REAL / h
         sc = MU_COMPLEX / h

@@ -48,7 +48,7 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import brentq
 
-from . import __version__
+from .version import __version__
 from ._blas import single_threaded_blas
 from .equilibrium import NoLimitAngleError, limit_angle
 from .filament import Filament

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import xarray as xr
 
-from . import __version__
+from .version import __version__
 from ._blas import single_threaded_blas
 from .filament import Filament
 from .mesh import Mesh

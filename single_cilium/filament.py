@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
-from ._kernels import _stage_terms, stage_residual
+from ._kernels import stage_terms, stage_residual
 from .equilibrium import equilibrium
 from .mesh import Mesh
 from .params import CiliumParams
@@ -173,7 +173,7 @@ class Filament:
         """``dg_U/dtheta`` on the free nodes, shape (n-1, n-1), for full nodal ``theta`` (n,)."""
         m = self.mesh
         U1, U2 = self.params.background
-        return _stage_terms(np.ascontiguousarray(theta, dtype=float), np.zeros(self.n), m.cumulative,
+        return stage_terms(np.ascontiguousarray(theta, dtype=float), np.zeros(self.n), m.cumulative,
                             m.weights, float(self.params.eta), float(U1), float(U2))[2]
 
     def _project(self, d: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -337,7 +337,7 @@ class Filament:
             th = th.copy()
             last = np.inf
             for it in range(max_iter):
-                gU, _, JU = _stage_terms(th, zero, I, w, p.eta, lam * U1, lam * U2)
+                gU, _, JU = stage_terms(th, zero, I, w, p.eta, lam * U1, lam * U2)
                 g = Kr @ th[1:] + Br @ (p.chi_E * np.sin(th) - p.chi_N) + gU
                 J = Kr + Br[:, 1:] * (p.chi_E * np.cos(th[1:]))[None, :] + JU
                 try:

@@ -48,7 +48,7 @@ import scipy.linalg as sla
 import xarray as xr
 from scipy.optimize import brentq
 
-from . import __version__
+from .version import __version__
 from ._blas import single_threaded_blas
 from .filament import Filament
 from .mesh import Mesh

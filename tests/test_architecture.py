@@ -20,17 +20,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("single_cilium", "ciliary_carpet")
 
-# Known faults, each to be removed from these lists by the branch that fixes it (the coordinator
-# empties them as the branches of issue 25 merge); test_known_faults_still_exist keeps them honest.
-ALLOWED_CYCLES: set[frozenset[str]] = {
-    # single_cilium's cycle, dynamics and stability read __version__ from the package's __init__,
-    # which imports them (not in issue 25's list)
-    frozenset({"single_cilium", "single_cilium.cycle", "single_cilium.dynamics", "single_cilium.stability"}),
-}
-ALLOWED_PRIVATE: set[str] = {
-    # inside single_cilium: a private name of its private _kernels module (not in issue 25's list)
-    "single_cilium.filament imports the private name _stage_terms of single_cilium._kernels",
-}
+# Known faults, each listed with why it is tolerated until it is fixed (none today: issue 25 fixed
+# the last ones); test_known_faults_still_exist keeps the lists honest.
+ALLOWED_CYCLES: set[frozenset[str]] = set()
+ALLOWED_PRIVATE: set[str] = set()
 
 
 def _is_private(name: str) -> bool:

@@ -1,0 +1,5 @@
+"""The package's version, in a module of its own so that the modules which record it in their
+results (cycle, dynamics, stability, the table) need not import the package's ``__init__``,
+which imports them."""
+
+__version__ = "0.1.0"
