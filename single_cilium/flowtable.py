@@ -166,7 +166,18 @@ class FlowGrid:
     def cutoff(self, U_par, U_perp) -> np.ndarray:
         """The interpolated flutter cutoff chi_N in the flow ``(U_par, U_perp)``."""
         _, up, uq, _, shape = self._points(np.zeros(np.shape(U_par)), U_par, U_perp)
+        t = self._lone(up, uq)
+        if t is not None:
+            return np.full(shape, float(t.ds.attrs["chi_N_cutoff"]))
         return self._stencil(up, uq)[1].reshape(shape)
+
+    def _lone(self, up: np.ndarray, uq: np.ndarray):
+        """The table of a grid flow without a cutoff when every point lies exactly on it (served
+        by its own rows; the spline across the flows cannot use it), else None."""
+        for (i, j) in self.unaligned:
+            if np.all(up == self.grids[0][i]) and np.all(uq == self.grids[1][j]):
+                return self.knots[(i, j)]
+        return None
 
     # ------------------------------------------------------------------ evaluation
     def _knot_values(self, t, name: str, x: np.ndarray, nu: int, on: bool) -> np.ndarray:
@@ -244,8 +255,10 @@ class FlowGrid:
         return out, on, used
 
     def _scalars(self, names, a, up, uq, nu: int = 0, lower: bool = False) -> tuple[dict, np.ndarray]:
-        """Scalars, with the thrust's norm and angle from its interpolated components; off the
-        branch only the thrust (the steady state's force) is defined, the rest NaN."""
+        """Scalars, the thrust's norm and angle from its interpolated components (interpolating
+        the angle itself across the flows errs by up to 1 rad where a stream cancels part of the
+        thrust: measured at U spacing 1); off the branch only the thrust (the steady state's force)
+        is defined, the rest NaN."""
         need = [n for n in names if n not in _DERIVED]
         if set(names) & set(_DERIVED):
             need = sorted(set(need) | {"thrust_x", "thrust_y"})
@@ -278,7 +291,8 @@ class FlowGrid:
 
     def scalar(self, name: str, chi_N, nu: int, U_par, U_perp) -> np.ndarray:
         a, up, uq, neg, shape = self._points(chi_N, U_par, U_perp)
-        v = self._scalars([name], a, up, uq, nu)[0][name]
+        t = self._lone(up, uq)
+        v = t.scalar(name, a, nu) if t is not None else self._scalars([name], a, up, uq, nu)[0][name]
         return self._mirror(name, v, neg, nu).reshape(shape)
 
     def interpolation_error(self, name: str, chi_N, U_par, U_perp) -> np.ndarray:
@@ -286,16 +300,19 @@ class FlowGrid:
         flows' own estimates in chi_N, weighted by ``|weight|`` (for the thrust's norm and angle,
         from those of its components: ``e_norm = |(e_x, e_y)|``, ``e_angle = e_norm / |thrust|``)."""
         a, up, uq, neg, shape = self._points(chi_N, U_par, U_perp)
+        t = self._lone(up, uq)
+        if t is not None:
+            return t.interpolation_error(name, a).reshape(shape)
         names = ["thrust_x", "thrust_y"] if name in _DERIVED else [name]
         full, on, used = self._evaluate(names, a, up, uq)
         coarse = self._evaluate(names, a, up, uq, lower=True)[0]
         err = {}
         for n in names:
             e = np.abs(full[n] - coarse[n])
-            for w, x, t in used:  # the grid flows' chi_N interpolation, on the branch
-                sel = on & (w != 0)
-                if np.any(sel):
-                    e[sel] += np.abs(w[sel]) * t.interpolation_error(n, x[sel])
+            for w, x, t in used:  # the grid flows' own chi_N interpolation, on the branch and off it
+                for sel, at in ((on & (w != 0), x), (~on & (w != 0), a)):
+                    if np.any(sel):
+                        e[sel] += np.abs(w[sel]) * t.interpolation_error(n, at[sel])
             err[n] = e
         if name in _DERIVED:
             e = np.hypot(err["thrust_x"], err["thrust_y"])
@@ -309,6 +326,10 @@ class FlowGrid:
         a, up, uq, neg, shape = self._points(chi_N, U_par, U_perp)
         if len(shape) != 1:
             raise ValueError(f"chi_N must be 1-d, got shape {shape}")
+        t = self._lone(up, uq)
+        if t is not None:
+            out = t.cycles(a)
+            return {k: self._mirror(k, v, neg) if k in FIELDS else v for k, v in out.items()}
         vals, on, _ = self._evaluate(list(FIELDS), a, up, uq)
         out = {k: self._mirror(k, np.array(vals[k], dtype=float), neg) for k in FIELDS}
         for k in ("x", "y"):
@@ -318,6 +339,10 @@ class FlowGrid:
 
     def angle_curve(self, U_par: float, U_perp: float, n: int = 2001) -> tuple[np.ndarray, np.ndarray]:
         """``(chi_N, thrust_angle)`` along the flutter branch in the flow ``(U_par, U_perp)``."""
+        t = self._lone(*self._points(0.0, U_par, U_perp)[1:3])
+        if t is not None:
+            xs = np.linspace(*t.flutter_range, n)
+            return xs, t.scalar("thrust_angle", xs)
         C = float(self.cutoff(U_par, U_perp))
         xs = np.linspace(self.r_lo * C, self.r_hi * C, n)
         return xs, self.scalar("thrust_angle", xs, 0, U_par, U_perp)
@@ -327,6 +352,14 @@ class FlowGrid:
         ``thrust_interpolation_error``: the estimate of ``|thrust - exact|`` (absolute)."""
         c = float(chi_N)
         a, up, uq, neg, _ = self._points(c, U_par, U_perp)
+        t = self._lone(up, uq)
+        if t is not None:
+            ds = t.at(float(a[0]))
+            for k in ODD:
+                if neg[0] and k in ds:
+                    ds[k] = -ds[k]
+            ds["thrust_interpolation_error"] = ((), float(self.interpolation_error("thrust_norm", c, U_par, U_perp)))
+            return ds.assign_coords(chi_N=c, U_par=float(U_par), U_perp=float(U_perp))
         vals, on = self._scalars(list(SCALARS), a, up, uq)
         flutter = bool(on[0])
         fields = self._evaluate(list(FIELDS), a, up, uq, steady=False)[0]

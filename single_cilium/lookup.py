@@ -120,11 +120,14 @@ class ThrustTable:
         # every row that has one
         have = np.isin(self._regime, [REGIMES.index(r) for r in _STEADY]) & np.isfinite(ds.alpha.values)
         self._rest: dict[str, CubicSpline] = {}
+        self._rest_quadratic: dict = {}  # for the interpolation error estimate
         self._rest_rows = c[have]
         if have.sum() >= 2:
             for k in REST:
                 if k in ds:
                     self._rest[k] = CubicSpline(c[have], ds[k].values[have], axis=0)
+                    if have.sum() >= 3 and k in REST_SCALARS:
+                        self._rest_quadratic[k] = make_interp_spline(c[have], ds[k].values[have], k=2)
 
     # ------------------------------------------------------------------ tables over chi_E
     def _init_grid(self) -> None:
@@ -481,7 +484,7 @@ class ThrustTable:
             return t.scalar(name, chi_N, nu)
         return self._branch_values(name, chi_N, nu, self._splines)
 
-    def _branch_values(self, name: str, chi_N, nu: int, splines: dict) -> np.ndarray:
+    def _branch_values(self, name: str, chi_N, nu: int, splines: dict, rest: dict | None = None) -> np.ndarray:
         """A scalar column on the flutter branch (NaN where the column was not computed, e.g.
         error estimates skipped) and off it (thrust: the steady state's, 0 in still fluid)."""
         if self._branch.size < 2 and not (self._in_flow and name in _THRUST):
@@ -494,7 +497,7 @@ class ThrustTable:
             on = (a >= b0) & (a <= b1)
         off = np.full(a.shape, 0.0 if name.startswith("thrust") else np.nan)
         if self._in_flow and name in _THRUST and not np.all(on):
-            off[~on] = self._rest_thrust(name, a[~on], nu)
+            off[~on] = self._rest_thrust(name, a[~on], nu, rest)
         v = off
         if np.any(on):
             sp = splines.get(name)
@@ -502,11 +505,12 @@ class ThrustTable:
                          else np.nan, off)
         odd = name in ODD
         # f(c) = sgn(c)^odd g(|c|)  =>  f^(nu)(c) = sgn(c)^(odd + nu) g^(nu)(|c|)
-        if (odd + nu) % 2:  # an odd function of chi_N: vanishes at 0 (the mirror image meets itself)
-            v = np.where(c < 0, -v, np.where(c == 0, 0.0, v))
+        if (odd + nu) % 2:  # an odd function of chi_N: vanishes at 0 (the mirror image meets itself,
+            # unless a flow across the field tells the two apart)
+            v = np.where(c < 0, -v, np.where((c == 0) & (self._U[1] == 0), 0.0, v))
         return v
 
-    def _rest_thrust(self, name: str, a: np.ndarray, nu: int) -> np.ndarray:
+    def _rest_thrust(self, name: str, a: np.ndarray, nu: int, rest: dict | None = None) -> np.ndarray:
         """The thrust columns where the filament does not flutter in its flow: the steady state's
         force (a TableError where that state is unstable without flutter or unknown)."""
         self._rest_served(a)
@@ -519,7 +523,8 @@ class ThrustTable:
                 raise TableError(f"{self._source}: at chi_N = {float(a[near][0]):g} the steady state in the flow is "
                                  f"unstable without flutter (divergence at the row chi_N = {x:g}): no steady or "
                                  "periodic thrust")
-        fx, fy = self._rest["rest_thrust_x"], self._rest["rest_thrust_y"]
+        rest = self._rest if rest is None else rest
+        fx, fy = rest["rest_thrust_x"], rest["rest_thrust_y"]
         if name in ("thrust_x", "thrust_y"):
             return (fx if name == "thrust_x" else fy).derivative(nu)(a) if nu else (fx if name == "thrust_x" else fy)(a)
         if nu:
@@ -546,12 +551,12 @@ class ThrustTable:
 
     def _chi_N_error(self, name: str, chi_N) -> np.ndarray:
         """The chi_N part of :meth:`interpolation_error` of a one-flow table: ``|cubic - quadratic|``
-        on the flutter branch, 0 off it (the thrust there is the steady state's, in chi_N as smooth
-        as the branch; not estimated)."""
-        if name not in self._quadratic:
+        on the flutter branch and, in a flow, of the steady state's force off it."""
+        if name not in self._quadratic and not (self._in_flow and name in _THRUST):
             return np.zeros(np.shape(chi_N))
         cubic = self._branch_values(name, chi_N, 0, self._splines)
-        quad = self._branch_values(name, chi_N, 0, {**self._splines, name: self._quadratic[name]})
+        quad = self._branch_values(name, chi_N, 0, {**self._splines, **self._quadratic},
+                                   self._rest_quadratic if self._rest_quadratic else None)
         return np.abs(np.where(np.isfinite(cubic - quad), cubic - quad, 0.0))
 
     def cycles(self, chi_N, chi_E: float | None = None, *, U_par=None, U_perp=None) -> dict[str, np.ndarray]:

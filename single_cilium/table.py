@@ -185,7 +185,7 @@ class _Grid:
                  else {"build_chi_E": float(self.fields[0])})
         if self.kind == "flow":
             field.update(build_U_par_grid=grid_text(self.flows[0]), build_U_perp_grid=grid_text(self.flows[1]))
-        return {**field, "build_eta": float(eta), "build_degree": int(settings["degree"]),
+        return {"build_kind": self.kind, **field, "build_eta": float(eta), "build_degree": int(settings["degree"]),
                 "build_n_phase": int(settings["n_phase"]), "build_n_s": len(settings["s"]),
                 "build_error_estimate": int(bool(settings.get("error_estimate", True))),
                 "build_tol": float(settings.get("tol", 1e-8)),
