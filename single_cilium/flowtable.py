@@ -143,9 +143,9 @@ class FlowGrid:
                 i = int(np.flatnonzero(bad)[0])
                 mirror = (f" (chi_N = {-a[i]:g} < 0 is served by its mirror image, chi_N = {a[i]:g} at "
                           f"U_perp = {v[i]:g})" if name == "U_perp" and neg[i] else "")
-                rng = f"[{g[0]:g}, {g[-1]:g}]" if g.size > 1 else f"{g[0]:g} only"
-                raise TableError(f"{name} = {v[i]:g} is outside the table's range {rng}{mirror}: no extrapolation "
-                                 "in the background flow; build the table over a wider grid")
+                rng = f"the table's range [{g[0]:g}, {g[-1]:g}]" if g.size > 1 else f"the table's {name} = {g[0]:g} only"
+                raise TableError(f"{name} = {v[i]:g} is outside {rng}{mirror}: no extrapolation in the background "
+                                 "flow; build the table over a wider grid")
         return a, up, uq, neg, shape
 
     def _stencil(self, up, uq, lower: bool = False):

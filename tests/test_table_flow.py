@@ -321,3 +321,40 @@ def test_default_flow_grid_interpolation_error():
         err = float(np.hypot(float(r.thrust_x) - f.thrust_x, float(r.thrust_y) - f.thrust_y))
         assert err <= float(r.thrust_interpolation_error), (cN, up, uq)
         assert float(r.period) == pytest.approx(f.period, rel=1e-3)
+
+
+# ------------------------------------------------------------------------------ command line
+def _cli(capsys, *argv):
+    from single_cilium.cli import main
+
+    code = main(list(argv))
+    o = capsys.readouterr()
+    return code, o.out, o.err
+
+
+def test_table_command_over_a_flow_grid(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "flow.nc"
+    code, o, err = _cli(capsys, "table", "--chi-E", "200", "--eta", "1", "--chi-N", "120,140", "--U-par=-1,1",
+                        "--U-perp", "0", "-o", str(out), "--degree", "6", "--n-phase", "32", "--no-error-estimate",
+                        "--quiet", "--json")
+    assert code == 0, err
+    d = json.loads(o)
+    assert d["U_par"] == [-1.0, 1.0] and d["U_perp"] == [0.0] and d["rows"] == 4 and d["flutter_rows"] == 4
+    assert d["divergence_rows"] == 0 and d["no_steady_state_rows"] == 0
+    assert d["chi_N_cutoff"][0][0] > d["chi_N_cutoff"][1][0]  # a stream along the field lowers the cutoff
+    t = ThrustTable.load(out)
+    assert t.U_range == ((-1.0, 1.0), (0.0, 0.0)) and int(t.at(130.0, U_par=0.2).flutter) == 1
+    with pytest.raises(TableError, match="U_perp = 0 only"):
+        t.at(130.0, U_par=0.2, U_perp=0.1)
+    from single_cilium.cli import build_parser
+    args = build_parser().parse_args(["table", "--chi-E", "200", "--eta", "1", "--chi-N", "0", "-o", "x.nc",
+                                      "--U-par", "default", "--U-perp", "default"])
+    assert args.U_par.tolist() == args.U_perp.tolist() == [-2.0, -1.0, 0.0, 1.0, 2.0]
+    code, _, err = _cli(capsys, "table", "--chi-E", "180,200", "--eta", "1", "--chi-N", "100", "--U-par", "0",
+                        "-o", str(tmp_path / "x.nc"), "--quiet")
+    assert code == 2 and "one field" in err
+    code, _, err = _cli(capsys, "table", "--chi-E", "200", "--eta", "1", "--chi-N", "100", "--U-perp", "1,0",
+                        "-o", str(tmp_path / "x.nc"), "--quiet")
+    assert code == 2 and "U_perp grid must be strictly increasing" in err
