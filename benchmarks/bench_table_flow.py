@@ -113,7 +113,8 @@ def main() -> None:
         lines.append(s)
 
     rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    say(f"# Thrust table over the background flow ({os.cpu_count()} cores; {platform.processor() or platform.machine()})\n")
+    cpu = platform.processor() or platform.machine()
+    say(f"# Thrust table over the background flow ({os.cpu_count()} cores; {cpu})\n")
     say(f"- python {sys.version.split()[0]}, code git {rev}; {load()} at start")
     say("- chi_E = 200, eta = 1; degree 8, 64 steps per period, Floquet multipliers and error estimates on every row; "
         "default process pool\n")

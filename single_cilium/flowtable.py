@@ -143,7 +143,8 @@ class FlowGrid:
                 i = int(np.flatnonzero(bad)[0])
                 mirror = (f" (chi_N = {-a[i]:g} < 0 is served by its mirror image, chi_N = {a[i]:g} at "
                           f"U_perp = {v[i]:g})" if name == "U_perp" and neg[i] else "")
-                rng = f"the table's range [{g[0]:g}, {g[-1]:g}]" if g.size > 1 else f"the table's {name} = {g[0]:g} only"
+                rng = (f"the table's range [{g[0]:g}, {g[-1]:g}]" if g.size > 1
+                       else f"the table's {name} = {g[0]:g} only")
                 raise TableError(f"{name} = {v[i]:g} is outside {rng}{mirror}: no extrapolation in the background "
                                  "flow; build the table over a wider grid")
         return a, up, uq, neg, shape
@@ -208,7 +209,8 @@ class FlowGrid:
                 near = use & (a > c[max(k - 1, 0)]) & (a < c[min(k + 1, c.size - 1)])
                 if np.any(near):
                     raise TableError(f"{self.source}: at chi_N = {float(a[near][0]):g} the grid flow "
-                                     f"({self.grids[0][i]:g}, {self.grids[1][j]:g}) has a steady state that is unstable "
+                                     f"({self.grids[0][i]:g}, {self.grids[1][j]:g}) has a steady state that is "
+                                     "unstable "
                                      f"without flutter (divergence at its row chi_N = {x:g}): no thrust there")
 
     def _evaluate(self, names, a, up, uq, nu: int = 0, lower: bool = False,

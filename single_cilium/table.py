@@ -55,8 +55,7 @@ from .params import CiliumParams
 from .progress import Progress
 from .radau import ConvergenceError
 from .stability import flutter_cutoff, stability
-from .tablefile import (FIELDS, FRAME, REGIMES, REST_FIELDS, REST_SCALARS, SCALARS, SCHEMA_VERSION, TableError,
-                        coiled, grid_text, with_attrs)
+from .tablefile import FIELDS, FRAME, REGIMES, SCALARS, SCHEMA_VERSION, TableError, coiled, grid_text, with_attrs
 
 logger = logging.getLogger(__name__)
 

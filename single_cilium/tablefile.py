@@ -118,7 +118,8 @@ def with_attrs(ds: xr.Dataset) -> xr.Dataset:
     ds.phase.attrs.update(long_name="phase t/T from the upward crossing of the tip angle through its mean",
                           units="1")
     ds.s.attrs.update(long_name="arc length / filament length", units="1")
-    for k, what in (("U_par", "background flow along the field (e2)"), ("U_perp", "background flow across the field (e1)")):
+    for k, what in (("U_par", "background flow along the field (e2)"),
+                    ("U_perp", "background flow across the field (e1)")):
         if k in ds.dims:
             ds[k].attrs.update(long_name=what, units="L / tau")
     return ds

@@ -10,7 +10,6 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-import xarray as xr
 
 from single_cilium import CiliumParams, steady_state
 from single_cilium.cycle import CycleError, limit_cycle
