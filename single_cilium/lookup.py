@@ -24,8 +24,8 @@ from .equilibrium import NoLimitAngleError, limit_angle
 from .fieldtable import field_between
 from .flowtable import FlowGrid, thrust_angle_of
 from .params import CiliumParams
-from .tablefile import (FIELDS, ODD, REGIMES, REST_FIELDS, REST_SCALARS, SCALARS, U_DIMS, TableError, coiled,
-                        read, regime_of, validate)
+from .tablefile import (FIELDS, ODD, REGIMES, REST_FIELDS, REST_SCALARS, SAFETY, SCALARS, U_DIMS, TableError,
+                        coiled, read, regime_of, validate)
 
 __all__ = ["ThrustTable", "TableError", "DEFAULT_FILE"]
 
@@ -441,9 +441,9 @@ class ThrustTable:
     def interpolation_error(self, name: str, chi_N, chi_E: float | None = None, *, U_par=None,
                             U_perp=None) -> np.ndarray:
         """An estimate of the interpolation error of ``scalar(name, chi_N, ...)`` (absolute,
-        same shape): the change from the quadratic to the cubic interpolant in chi_N (and, for a
-        table over the flow, in U), i.e. the error of the quadratic ones, an upper estimate of
-        the cubic's. Zero at the rows of the grid; it does not include the rows' own
+        same shape): ``SAFETY = 3`` times the change from the quadratic to the cubic interpolant
+        in chi_N (and, for a table over the flow, in U; :mod:`single_cilium.flowtable` says why
+        the factor). Zero at the rows of the grid; it does not include the rows' own
         discretisation error (``*_error`` columns). Not for a table over chi_E."""
         if name not in SCALARS:
             raise KeyError(f"{name!r} is not a scalar column of the table ({', '.join(SCALARS)})")
@@ -463,7 +463,7 @@ class ThrustTable:
         cubic = self._branch_values(name, chi_N, 0, self._splines)
         quad = self._branch_values(name, chi_N, 0, {**self._splines, **self._quadratic},
                                    self._rest_quadratic if self._rest_quadratic else None)
-        return np.abs(np.where(np.isfinite(cubic - quad), cubic - quad, 0.0))
+        return SAFETY * np.abs(np.where(np.isfinite(cubic - quad), cubic - quad, 0.0))
 
     def cycles(self, chi_N, chi_E: float | None = None, *, U_par=None, U_perp=None) -> dict[str, np.ndarray]:
         """The cycle data of many cilia at once: ``x, y, fx, fy`` of shape (n, phase, s) for the
