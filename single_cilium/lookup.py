@@ -7,6 +7,10 @@ mirrors negative chi_N; a table over chi_E is interpolated in chi_E too, at fixe
 each field's cutoff, and a table over the background flow in ``(U_par, U_perp)``
 (:mod:`single_cilium.flowtable`). Built by :func:`single_cilium.table.build_table`; the front door
 for both is :mod:`single_cilium.table`.
+
+Over 500 lines: one class, whose every lookup (``at``, ``scalar``, ``cycles``, ``rest``, the
+angle's range and inverse, the interpolation error) serves the three kinds of table through one
+signature; the interpolation across chi_E and across the flow are in their own modules.
 """
 from __future__ import annotations
 

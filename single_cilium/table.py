@@ -5,7 +5,8 @@ A table is for one field (chi_E, eta), for a grid of field strengths chi_E (at o
 one field over a grid of uniform background flows ``(U_par, U_perp)`` (the filament in the mean
 flow its neighbours make; frame and signs in :mod:`single_cilium.flowtable`). The reader,
 :class:`ThrustTable`, is in :mod:`single_cilium.lookup`; the file schema in
-:mod:`single_cilium.tablefile`.
+:mod:`single_cilium.tablefile`; what a row holds, the fingerprint of its file and the resume in
+:mod:`single_cilium.tablerows`.
 
 :func:`build_table` computes limit cycles (:func:`~single_cilium.cycle.limit_cycle`) on a grid
 of chi_N by continuation: each worker walks a contiguous chunk of the grid (chunks of equal
@@ -46,16 +47,13 @@ import xarray as xr
 from . import __version__
 from ._io import write_netcdf
 from .cycle import CycleError, LimitCycle, limit_cycle
-from .equilibrium import NoLimitAngleError, equilibrium_shape, limit_angle
-from .filament import Filament
-from .flowtable import thrust_angle_of
 from .lookup import DEFAULT_FILE, ThrustTable
-from .mesh import Mesh
 from .params import CiliumParams
 from .progress import Progress
 from .radau import ConvergenceError
 from .stability import flutter_cutoff, stability
-from .tablefile import FIELDS, FRAME, REGIMES, SCALARS, SCHEMA_VERSION, TableError, coiled, grid_text, with_attrs
+from .tablefile import FIELDS, FRAME, SCHEMA_VERSION, TableError, coiled, with_attrs
+from .tablerows import TableGrid, hole, rest_state, resume, row
 
 logger = logging.getLogger(__name__)
 
@@ -67,168 +65,6 @@ __all__ = ["build_table", "ThrustTable", "TableError", "SCHEMA_VERSION", "DEFAUL
 #: ``|Fbar| = 1.1`` of chi_E = 200, eta = 1 and beyond (a coupled carpet's iteration visits
 #: flows past its solution); every flow of it has a flutter cutoff at chi_E = 200, eta = 1.
 DEFAULT_U = np.linspace(-2.0, 2.0, 5)
-
-
-# ---------------------------------------------------------------------------------- rows
-def _rest_state(params: CiliumParams, degree: int, s_grid: np.ndarray):
-    """The steady state in the flow: its force on the fluid ``F = -int d ds`` (2,), its force per
-    length on the fluid ``-d`` on ``s_grid`` (n_s, 2) and its shape (x, y) on ``s_grid``; zero
-    force in still fluid (the closed-form shape)."""
-    if not params.has_background:
-        x, y = equilibrium_shape(params, s_grid)
-        return np.zeros(2), np.zeros((s_grid.size, 2)), (x, y)
-    mesh = Mesh.for_params(params, degree)
-    fil = Filament(params, mesh)
-    theta = fil.split(fil.equilibrium_state())[0]
-    d = fil.drag(theta, np.zeros_like(theta))
-    r = fil.shape(theta)
-    f = -mesh.interpolate(d, s_grid)
-    return fil.clamp_force(d), f, (mesh.interpolate(r[:, 0], s_grid), mesh.interpolate(r[:, 1], s_grid))
-
-
-def _row(params: CiliumParams, cyc: LimitCycle | None, s_grid: np.ndarray, n_phase: int, alpha: float,
-         beta: float, regime: str, rest=None, cutoff: bool = False) -> xr.Dataset:
-    """One row (dims ``chi_N: 1, phase, s``): ``regime`` one of REGIMES; ``rest`` the steady
-    state (:func:`_rest_state`; None where there is none)."""
-    is_coiled = coiled(params.chi_E, params.chi_N)
-    try:
-        tl = math.nan if is_coiled else limit_angle(params.with_background((0.0, 0.0)))
-    except NoLimitAngleError:
-        tl = math.nan
-    sc = {k: math.nan for k in SCALARS}
-    F, f = (rest[0], rest[1]) if rest is not None else (np.full(2, math.nan), np.full((s_grid.size, 2), math.nan))
-    sc.update(theta_lim=tl, alpha=alpha, beta=beta, tip_area=0.0)
-    if not params.has_background:  # still fluid: no cycle, no force (as in version 1)
-        sc.update(thrust_norm=0.0, thrust_x=0.0, thrust_y=0.0)
-    elif regime == "stable" or cutoff:  # no cycle: the steady state's force in the flow (else NaN)
-        sc.update(thrust_x=F[0], thrust_y=F[1], thrust_norm=float(np.hypot(*F)),
-                  thrust_angle=float(thrust_angle_of(*F)))
-    fields = {k: np.full((n_phase, s_grid.size), np.nan) for k in FIELDS}
-    if cutoff:  # zero amplitude: the cycle shrinks onto the equilibrium with period 2 pi / beta
-        # the direction of a vanishing mean force is not defined by the table: NaN (the angle
-        # spline uses the other rows)
-        sc.update(period=2 * math.pi / beta, floquet=1.0, period_error=0.0, thrust_norm_error=0.0,
-                  floquet_trivial_error=0.0)
-        x, y = rest[2]
-        fields.update(x=np.broadcast_to(x, (n_phase, s_grid.size)).copy(),
-                      y=np.broadcast_to(y, (n_phase, s_grid.size)).copy(),
-                      fx=np.broadcast_to(f[:, 0], (n_phase, s_grid.size)).copy(),
-                      fy=np.broadcast_to(f[:, 1], (n_phase, s_grid.size)).copy())
-    elif cyc is not None and cyc.flutter:
-        e = cyc.errors
-        sc.update(period=cyc.period, thrust_norm=cyc.thrust_norm, thrust_angle=cyc.thrust_angle,
-                  thrust_x=cyc.thrust_x, thrust_y=cyc.thrust_y, floquet=cyc.floquet, tip_area=cyc.tip_area,
-                  period_error=e.get("period", math.nan), thrust_norm_error=e.get("thrust_norm", math.nan),
-                  thrust_angle_error=e.get("thrust_angle", math.nan),
-                  floquet_trivial_error=cyc.floquet_trivial_error)
-        for k in FIELDS:
-            fields[k] = cyc.mesh.interpolate(cyc.data[k].values.T, s_grid).T
-    ds = xr.Dataset({k: ((), v) for k, v in sc.items()})
-    ds["flutter"] = ((), np.int8(cutoff or regime == "flutter"))
-    ds["coiled"] = ((), np.int8(is_coiled))
-    ds["regime"] = ((), np.int8(REGIMES.index("flutter" if cutoff else regime)))
-    for k, v in fields.items():
-        ds[k] = (("phase", "s"), v)
-    ds["rest_thrust_x"], ds["rest_thrust_y"] = ((), float(F[0])), ((), float(F[1]))
-    ds["rest_fx"], ds["rest_fy"] = (("s",), f[:, 0]), (("s",), f[:, 1])
-    return ds.expand_dims(chi_N=[params.chi_N])
-
-
-def _hole(chi_E: float, chi_N: float, s_grid: np.ndarray, n_phase: int) -> xr.Dataset:
-    """A row of the shared chi_N grid that another flow's cutoff put there: not computed."""
-    r = _row(CiliumParams(chi_E, 1.0, chi_N), None, s_grid, n_phase, math.nan, math.nan, "not_computed")
-    for k in ("thrust_norm", "thrust_x", "thrust_y", "theta_lim", "tip_area"):
-        r[k][:] = math.nan
-    return r
-
-
-# ---------------------------------------------------------------------------------- the grid
-class _Grid:
-    """What a build computes: its columns (a field in a flow: ``(chi_E, U_par, U_perp)``), their
-    kind (``"field"``, ``"chi_E"``: a grid of fields, ``"flow"``: a grid of flows), row keys
-    ``(chi_E, U_par, U_perp, chi_N)`` and row files."""
-
-    def __init__(self, kind: str, columns: list, fields, flows):
-        self.kind, self.columns, self.fields, self.flows = kind, columns, fields, flows
-
-    def key(self, r: xr.Dataset, chi_E: float) -> tuple:
-        """(chi_E, U_par, U_perp, chi_N) of a one-row Dataset."""
-        e = float(r.chi_E.values[0]) if "chi_E" in r.dims else float(chi_E)
-        up = float(r.U_par.values[0]) if "U_par" in r.dims else 0.0
-        uq = float(r.U_perp.values[0]) if "U_perp" in r.dims else 0.0
-        return e, up, uq, float(r.chi_N.values[0])
-
-    def file(self, parts, key: tuple) -> Path:
-        E, up, uq, c = key
-        name = {"field": f"row_{c:.17g}", "chi_E": f"row_{E:.17g}_{c:.17g}",
-                "flow": f"row_{up:.17g}_{uq:.17g}_{c:.17g}"}[self.kind]
-        return Path(parts) / f"{name}.nc"
-
-    def key_of_file(self, f: Path, chi_E: float) -> tuple:
-        v = [float(x) for x in f.name[4:-3].split("_")]
-        return {"field": lambda: (chi_E, 0.0, 0.0, v[0]), "chi_E": lambda: (v[0], 0.0, 0.0, v[1]),
-                "flow": lambda: (chi_E, v[0], v[1], v[2])}[self.kind]()
-
-    def expand(self, row: xr.Dataset, col: tuple) -> xr.Dataset:
-        if self.kind == "chi_E":
-            return row.expand_dims(chi_E=[col[0]])
-        if self.kind == "flow":
-            return row.expand_dims(U_perp=[col[2]]).expand_dims(U_par=[col[1]])
-        return row
-
-    def fingerprint(self, eta: float, settings: dict) -> dict:
-        """What a stored row was computed for (attrs ``build_*`` of each row file): a resumed build
-        reuses a row only if all of these match. A table over chi_E or over the flow records its
-        whole grid (its rows are continued from one another)."""
-        field = ({"build_chi_E_grid": grid_text(self.fields)} if self.kind == "chi_E"
-                 else {"build_chi_E": float(self.fields[0])})
-        if self.kind == "flow":
-            field.update(build_U_par_grid=grid_text(self.flows[0]), build_U_perp_grid=grid_text(self.flows[1]))
-        return {"build_kind": self.kind, **field, "build_eta": float(eta), "build_degree": int(settings["degree"]),
-                "build_n_phase": int(settings["n_phase"]), "build_n_s": len(settings["s"]),
-                "build_error_estimate": int(bool(settings.get("error_estimate", True))),
-                "build_tol": float(settings.get("tol", 1e-8)),
-                "build_method": str(settings.get("method", "shooting")), "build_package_version": __version__,
-                "build_schema_version": SCHEMA_VERSION}
-
-
-def _resume(parts: Path, grid: _Grid, wanted: set, want: dict, chi_E: float) -> dict[tuple, xr.Dataset]:
-    """Rows of an interrupted build in ``parts`` that match the request (keys in ``wanted``);
-    refuse any other."""
-    done: dict[tuple, xr.Dataset] = {}
-    for f in sorted(parts.glob("row_*.nc")):
-        try:
-            with xr.open_dataset(f, engine="h5netcdf") as r:
-                r = r.load()
-        except (OSError, ValueError):
-            f.unlink()  # a row file cut short by the interruption
-            continue
-        got = {k: r.attrs.get(k) for k in want}
-        bad = [k for k in want if not _same(got[k], want[k])]
-        if bad:
-            def show(v):
-                return repr(v.item() if isinstance(v, np.generic) else v)
-
-            diff = ", ".join(f"{k[6:]} = {show(got[k])} (asked {show(want[k])})" for k in bad)
-            raise TableError(f"{f}: a row of an interrupted build with other settings ({diff}); it is not "
-                             f"merged into this table: remove {parts} (or build into another path) to "
-                             "start afresh, or repeat the original request to resume it")
-        key = grid.key(r, chi_E)
-        if key in wanted:  # rows outside the requested grid are never merged in
-            done[key] = r
-    return done
-
-
-def _same(got, want) -> bool:
-    """A stored attribute equals the requested value (of the same kind)."""
-    if got is None:
-        return False
-    try:
-        if isinstance(want, str):
-            return str(got) == want
-        return type(want)(got) == want
-    except (TypeError, ValueError):
-        return False
 
 
 def _chunk(args):
@@ -252,7 +88,7 @@ def _chunk(args):
         return _chunk_rows(*args[:-1])
 
 
-def _chunk_rows(grid: _Grid, eta: float, chi_Ns, settings: dict, parts, skip: dict):
+def _chunk_rows(grid: TableGrid, eta: float, chi_Ns, settings: dict, parts, skip: dict):
     degree, n_phase, s_grid = settings["degree"], settings["n_phase"], np.asarray(settings["s"])
     fp = grid.fingerprint(eta, settings)
     out = []
@@ -283,7 +119,7 @@ def _chunk_rows(grid: _Grid, eta: float, chi_Ns, settings: dict, parts, skip: di
                     seeds = []
                 if st is not None:
                     alpha, beta, regime = st.alpha, st.beta, st.regime
-                    rest = _rest_state(p, degree, s_grid)
+                    rest = rest_state(p, degree, s_grid)
                 if regime == "flutter":
                     start = seeds[-3:] or ([before[cN]] if cN in before else [])
                     try:
@@ -301,12 +137,12 @@ def _chunk_rows(grid: _Grid, eta: float, chi_Ns, settings: dict, parts, skip: di
                     mine[cN] = cyc
                 else:
                     seeds = []
-            row = grid.expand(_row(p, cyc, s_grid, n_phase, alpha, beta, regime, rest), col)
-            row.attrs.update(fp)
+            r = grid.expand(row(p, cyc, s_grid, n_phase, alpha, beta, regime, rest), col)
+            r.attrs.update(fp)
             key = (float(E), float(up), float(uq), float(cN))
             if parts is not None:
-                write_netcdf(row, grid.file(parts, key))
-            out.append((key, row))
+                write_netcdf(r, grid.file(parts, key))
+            out.append((key, r))
         before = mine
     return out
 
@@ -436,7 +272,7 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     flows = ((_validated_flow("U_par", 0.0 if U_par is None else U_par),
               _validated_flow("U_perp", 0.0 if U_perp is None else U_perp)) if flow else None)
     columns = ([(fields[0], up, uq) for up, uq in _snake(*flows)] if flow else [(E, 0.0, 0.0) for E in fields])
-    grid_spec = _Grid(kind, columns, fields, flows)
+    grid_spec = TableGrid(kind, columns, fields, flows)
     cN_grid = np.atleast_1d(np.asarray(chi_N, dtype=float))
     if cN_grid.ndim != 1 or cN_grid.size == 0:
         raise ValueError("chi_N must be a non-empty 1-d grid")
@@ -474,7 +310,7 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     if path is not None:
         parts = Path(str(path) + ".parts")
         parts.mkdir(parents=True, exist_ok=True)
-        rows = _resume(parts, grid_spec, own, grid_spec.fingerprint(eta, settings), fields[0])
+        rows = resume(parts, grid_spec, own, grid_spec.fingerprint(eta, settings), fields[0])
         if rows:
             logger.info("build_table: resuming %s, %d of %d rows done", parts, len(rows), len(own))
     for col in columns:
@@ -482,10 +318,10 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
         for c, is_own in skip[col].items():
             p = CiliumParams(E, eta, c, (uq, up))
             if is_own:
-                r = _row(p, None, s_grid, int(n_phase), 0.0, cuts[col].beta, "flutter",
-                         _rest_state(p, degree, s_grid), cutoff=True)
+                r = row(p, None, s_grid, int(n_phase), 0.0, cuts[col].beta, "flutter",
+                         rest_state(p, degree, s_grid), cutoff=True)
             else:
-                r = _hole(E, c, s_grid, int(n_phase))
+                r = hole(E, c, s_grid, int(n_phase))
             rows[(E, up, uq, c)] = grid_spec.expand(r, col)
     todo = np.array([c for c in grid_list if any((*col, c) not in rows for col in columns)])
     n_todo = sum((*col, float(c)) not in rows for col in columns for c in todo)
@@ -528,7 +364,7 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     return table
 
 
-def _run(grid: _Grid, eta, todo, weight, settings, parts, skip, rows, executor, scheduler, scheduler_timeout,
+def _run(grid: TableGrid, eta, todo, weight, settings, parts, skip, rows, executor, scheduler, scheduler_timeout,
          progress, finished: int, chi_E: float) -> None:
     """Compute the missing rows into ``rows`` on the executor (default: a process pool)."""
     own = None
@@ -584,7 +420,7 @@ def _run(grid: _Grid, eta, todo, weight, settings, parts, skip, rows, executor, 
             (own.close() if hasattr(own, "close") else own.shutdown())
 
 
-def _assemble(grid: _Grid, rows: dict, grid_list: list, n_phase: int, s_grid: np.ndarray) -> xr.Dataset:
+def _assemble(grid: TableGrid, rows: dict, grid_list: list, n_phase: int, s_grid: np.ndarray) -> xr.Dataset:
     """The table Dataset from its rows (dims as the kind of grid)."""
     def column(col):
         return xr.concat([rows[(*col, c)] for c in grid_list], dim="chi_N")

@@ -110,7 +110,7 @@ def test_interpolation_in_the_flow_against_fresh_cycles(flow):
         assert bool(r.flutter) == f.flutter
         err = float(np.hypot(float(r.thrust_x) - f.thrust_x, float(r.thrust_y) - f.thrust_y))
         est = float(r.thrust_interpolation_error)
-        assert err <= est < 0.05, (cN, up, uq, err, est)
+        assert err <= est < 0.1, (cN, up, uq, err, est)
         assert float(r.period) == pytest.approx(f.period, rel=1e-2)
         assert float(r.thrust_angle) == pytest.approx(f.thrust_angle, abs=1e-2)
         if cN > 0:  # (a mirrored cycle starts at the mirror image of phase 0: not a fresh cycle's phase 0)
