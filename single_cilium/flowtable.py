@@ -28,12 +28,14 @@ is a flow whose spline needs a grid flow without a flutter cutoff (no flutter at
 flutter at every chi_N up to the coiled filament): the Hopf onsets cannot be lined up there (its
 rows are still served at that grid flow itself).
 
-Error estimate (:meth:`FlowGrid.interpolation_error`): ``SAFETY = 3`` times the change from the
-quadratic to the cubic interpolant in U, plus the grid flows' own estimate in chi_N (the same
-factor times their change from quadratic to cubic). The change alone estimates the quadratic
-interpolant's error; it fell short of the cubic's error by up to 1.9 times against fresh cycles
-at flow spacing 1 (at chi_N = 0, where the chi_N part vanishes), hence the factor. Measured in
-benchmarks/results/bench_table_flow.md and asserted in tests/test_table_flow.py.
+Error estimate (:meth:`FlowGrid.interpolation_error`): ``SAFETY = 2`` times the largest change
+from the quadratic to the cubic interpolant in U over the point's cell (at the point and 1/3 and
+2/3 across the cell in each axis), plus the grid flows' own estimate in chi_N (the same, over the
+interval between rows). The change estimates the quadratic interpolant's error; at the point
+alone it crosses zero inside a cell where the error does not (it fell short of the cubic's
+error by up to 3.4 times against fresh cycles at flow spacing 1), over the cell by up to 1.2
+times, hence the cell and the factor. Measured in benchmarks/results/bench_table_flow.md and
+asserted in tests/test_table_flow.py.
 """
 from __future__ import annotations
 
@@ -191,7 +193,7 @@ class FlowGrid:
         if on:
             return t.cycles(x)[name] if name in FIELDS else t.scalar(name, x, nu)
         if name in ("fx", "fy"):
-            return np.broadcast_to(t.rest("rest_" + name, x)[:, None, :], (x.size, self.n_phase, self.n_s))
+            return t.rest("rest_" + name, x)[:, None, :]
         if name in ("thrust_x", "thrust_y"):
             return t.rest("rest_" + name, x, nu=nu)
         if name in ("alpha", "beta"):
@@ -231,7 +233,9 @@ class FlowGrid:
         if steady and np.any(~on):
             self._check_steady(W[~on], a[~on])
         r = np.where(on, a / np.where(C > 0, C, 1.0), 0.0)
-        out: dict = {}
+        trail = {n: (self.n_phase, self.n_s) if n in FIELDS else (self.n_s,) if n in REST_FIELDS else ()
+                 for n in names}
+        out = {n: np.zeros((a.size,) + trail[n]) for n in names}
         used = []
         for (i, j), t in self.knots.items():
             w = W[:, i, j]
@@ -239,23 +243,20 @@ class FlowGrid:
                 continue
             x = np.clip(r * self.cut[i, j], *self.branch[(i, j)])  # its point on its branch
             used.append((w, x, t))
-            for name in names:
-                val = None
-                for mask, is_on in ((on, True), (~on, False)):
-                    sel = mask & (w != 0)
-                    if not np.any(sel):
-                        continue
+            for mask, is_on in ((on, True), (~on, False)):
+                sel = mask & (w != 0)
+                if not np.any(sel):
+                    continue
+                ws = w[sel]
+                cyc = t.cycles(x[sel]) if is_on and set(names) & set(FIELDS) else None  # once per grid flow
+                for name in names:
                     if is_on and name not in REST_SCALARS + REST_FIELDS:
-                        v = self._knot_values(t, name, x[sel], nu, True)
+                        v = cyc[name] if name in FIELDS else self._knot_values(t, name, x[sel], nu, True)
                         if nu:  # d/dchi_N of g(chi_N c_ij / C)
                             v = v * (self.cut[i, j] / C[sel]) ** nu
                     else:
                         v = self._knot_values(t, name, a[sel], nu, is_on)
-                    if val is None:
-                        val = np.zeros((a.size,) + np.shape(v)[1:])
-                    val[sel] = v
-                contrib = w.reshape((-1,) + (1,) * (val.ndim - 1)) * val
-                out[name] = contrib if name not in out else out[name] + contrib
+                    out[name][sel] += ws.reshape((-1,) + (1,) * len(trail[name])) * v
         return out, on, used
 
     def _scalars(self, names, a, up, uq, nu: int = 0, lower: bool = False) -> tuple[dict, np.ndarray]:
@@ -299,21 +300,52 @@ class FlowGrid:
         v = t.scalar(name, a, nu) if t is not None else self._scalars([name], a, up, uq, nu)[0][name]
         return self._mirror(name, v, neg, nu).reshape(shape)
 
+    def _cell(self, axis: int, x: np.ndarray) -> np.ndarray:
+        """(n, 3): ``x`` and the points 1/3 and 2/3 across its cell of the grid of ``axis``
+        (``x`` three times where it is a grid value: no interpolation in that axis)."""
+        g = self.grids[axis]
+        s = np.repeat(x[:, None], 3, axis=1)
+        if g.size > 1:
+            k = np.clip(np.searchsorted(g, x, side="right") - 1, 0, g.size - 2)
+            lo, hi = g[k], g[k + 1]
+            inside = (x != lo) & (x != hi)
+            s[inside, 1] = (lo + (hi - lo) / 3)[inside]
+            s[inside, 2] = (lo + 2 * (hi - lo) / 3)[inside]
+        return s
+
+    def _U_change(self, names, a, up, uq, on) -> dict:
+        """The largest ``|cubic - quadratic|`` in U over the point and the points 1/3 and 2/3
+        across its cell in each axis, at the same fraction of the cutoff (on the branch) or the
+        same chi_N (off it): the change crosses zero inside a cell where the error does not."""
+        su, sq = self._cell(0, up), self._cell(1, uq)
+        n = a.size
+        up_s = np.repeat(su, 3, axis=1).ravel()  # (n, 9): every pair of the two axes' samples
+        uq_s = np.tile(sq, (1, 3)).ravel()
+        C = self._stencil(up, uq)[1]
+        C_s = self._stencil(up_s, uq_s)[1]
+        r = np.repeat(np.where(on, a / np.where(C > 0, C, 1.0), np.nan), 9)
+        a_s = np.where(np.repeat(on, 9), r * C_s, np.repeat(a, 9))
+        a_s = np.clip(a_s, *self.chi_N_range)
+        full = self._evaluate(names, a_s, up_s, uq_s, steady=False)[0]
+        coarse = self._evaluate(names, a_s, up_s, uq_s, lower=True, steady=False)[0]
+        return {k: np.nanmax(np.abs(full[k] - coarse[k]).reshape(n, 9), axis=1) for k in names}
+
     def interpolation_error(self, name: str, chi_N, U_par, U_perp) -> np.ndarray:
-        """Estimate of ``|scalar(name, ...) - exact|``: ``SAFETY |cubic - quadratic|`` in U plus the
-        grid flows' own estimates in chi_N, weighted by ``|weight|`` (for the thrust's norm and
-        angle, from those of its components: ``e_norm = |(e_x, e_y)|``, ``e_angle = e_norm /
-        |thrust|``)."""
+        """Estimate of ``|scalar(name, ...) - exact|``: ``SAFETY`` times the largest change from
+        the quadratic to the cubic interpolant in U over the point's cell (:meth:`_U_change`),
+        plus the grid flows' own estimates in chi_N, weighted by ``|weight|`` (for the thrust's
+        norm and angle, from those of its components: ``e_norm = |(e_x, e_y)|``,
+        ``e_angle = e_norm / |thrust|``)."""
         a, up, uq, neg, shape = self._points(chi_N, U_par, U_perp)
         t = self._lone(up, uq)
         if t is not None:
             return t.interpolation_error(name, a).reshape(shape)
         names = ["thrust_x", "thrust_y"] if name in _DERIVED else [name]
         full, on, used = self._evaluate(names, a, up, uq)
-        coarse = self._evaluate(names, a, up, uq, lower=True)[0]
+        change = self._U_change(names, a, up, uq, on)
         err = {}
         for n in names:
-            e = SAFETY * np.abs(full[n] - coarse[n])
+            e = SAFETY * change[n]
             for w, x, t in used:  # the grid flows' own chi_N interpolation, on the branch and off it
                 for sel, at in ((on & (w != 0), x), (~on & (w != 0), a)):
                     if np.any(sel):

@@ -445,9 +445,9 @@ class ThrustTable:
     def interpolation_error(self, name: str, chi_N, chi_E: float | None = None, *, U_par=None,
                             U_perp=None) -> np.ndarray:
         """An estimate of the interpolation error of ``scalar(name, chi_N, ...)`` (absolute,
-        same shape): ``SAFETY = 3`` times the change from the quadratic to the cubic interpolant
-        in chi_N (and, for a table over the flow, in U; :mod:`single_cilium.flowtable` says why
-        the factor). Zero at the rows of the grid; it does not include the rows' own
+        same shape): ``SAFETY = 2`` times the largest change from the quadratic to the cubic
+        interpolant in chi_N over the point's interval between rows (and, for a table over the
+        flow, in U over its cell; :mod:`single_cilium.flowtable` says why). Zero at the rows of the grid; it does not include the rows' own
         discretisation error (``*_error`` columns). Not for a table over chi_E."""
         if name not in SCALARS:
             raise KeyError(f"{name!r} is not a scalar column of the table ({', '.join(SCALARS)})")
@@ -460,14 +460,27 @@ class ThrustTable:
         return self._chi_N_error(name, chi_N)
 
     def _chi_N_error(self, name: str, chi_N) -> np.ndarray:
-        """The chi_N part of :meth:`interpolation_error` of a one-flow table: ``|cubic - quadratic|``
-        on the flutter branch and, in a flow, of the steady state's force off it."""
+        """The chi_N part of :meth:`interpolation_error` of a one-flow table: ``SAFETY`` times the
+        largest ``|cubic - quadratic|`` over the point and the points 1/3 and 2/3 across its
+        interval between rows (the change crosses zero inside an interval where the error does
+        not), on the flutter branch and, in a flow, of the steady state's force off it; 0 at a row."""
+        c = self._check(chi_N)
         if name not in self._quadratic and not (self._in_flow and name in _THRUST):
-            return np.zeros(np.shape(chi_N))
-        cubic = self._branch_values(name, chi_N, 0, self._splines)
-        quad = self._branch_values(name, chi_N, 0, {**self._splines, **self._quadratic},
+            return np.zeros(c.shape)
+        a = np.abs(c).ravel()
+        rows = self.ds.chi_N.values
+        s = np.repeat(a[:, None], 3, axis=1)
+        if rows.size >= 2:
+            k = np.clip(np.searchsorted(rows, a, side="right") - 1, 0, rows.size - 2)
+            lo, hi = rows[k], rows[k + 1]
+            inside = (a != lo) & (a != hi)
+            s[inside, 1] = (lo + (hi - lo) / 3)[inside]
+            s[inside, 2] = (lo + 2 * (hi - lo) / 3)[inside]
+        cubic = self._branch_values(name, s, 0, self._splines)
+        quad = self._branch_values(name, s, 0, {**self._splines, **self._quadratic},
                                    self._rest_quadratic if self._rest_quadratic else None)
-        return SAFETY * np.abs(np.where(np.isfinite(cubic - quad), cubic - quad, 0.0))
+        d = np.abs(np.where(np.isfinite(cubic - quad), cubic - quad, 0.0))
+        return SAFETY * d.max(axis=1).reshape(c.shape)
 
     def cycles(self, chi_N, chi_E: float | None = None, *, U_par=None, U_perp=None) -> dict[str, np.ndarray]:
         """The cycle data of many cilia at once: ``x, y, fx, fy`` of shape (n, phase, s) for the

@@ -68,9 +68,10 @@ REGIMES = ("stable", "flutter", "divergence", "no_steady_state", "coiled", "not_
 #: columns that change sign under the mirror image chi_N -> -chi_N (e1 -> -e1)
 ODD = ("thrust_x", "thrust_angle", "theta_lim", "tip_area", "rest_thrust_x", "x", "fx", "rest_fx")
 U_DIMS = ("U_par", "U_perp")
-#: interpolation error estimates are this factor times the change from the quadratic to the cubic
-#: interpolant (the change alone fell short of the measured error by up to 1.9x: flowtable)
-SAFETY = 3.0
+#: interpolation error estimates are this factor times the largest change from the quadratic to
+#: the cubic interpolant over the point's cell (it alone fell short of the error by up to 1.2x:
+#: flowtable)
+SAFETY = 2.0
 FRAME = ("field frame: U = U_par e2 + U_perp e1, e2 along the field, U_perp > 0 along +e1; units L / tau; "
          "CiliumParams(..., background=(U_perp, U_par))")
 
