@@ -15,7 +15,7 @@ import sys
 
 import numpy as np
 
-from . import __version__
+from .version import __version__
 from .files import strict_json
 from .signals import Terminated, exit_status, terminate_as_interrupt
 from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
@@ -145,20 +145,38 @@ def cmd_cycle(args) -> dict:
     return out
 
 
+def _flow_grid(text: str) -> np.ndarray:
+    """A background-flow grid: as :func:`_grid`, or ``default`` (``single_cilium.table.DEFAULT_U``)."""
+    if text.strip().lower() == "default":
+        from .table import DEFAULT_U
+
+        return DEFAULT_U.copy()
+    return _grid(text)
+
+
 def cmd_table(args) -> dict:
     from .table import build_table
+    from .tablefile import REGIMES
 
-    # one value: the table of one field; a grid: a table over chi_E (interpolated in chi_E too)
+    # one value: the table of one field; a grid: a table over chi_E (interpolated in chi_E too);
+    # a flow grid (--U-par, --U-perp): a table over the background flow
     chi_E = float(args.chi_E[0]) if args.chi_E.size == 1 else args.chi_E
-    t = build_table(chi_E, args.eta, args.chi_N, degree=args.degree, n_phase=args.n_phase,
-                    scheduler=args.scheduler, scheduler_timeout=args.scheduler_timeout, path=args.output,
-                    progress=None if args.quiet else TqdmProgress(delay=0.5),
+    flow = args.U_par is not None or args.U_perp is not None
+    t = build_table(chi_E, args.eta, args.chi_N, U_par=args.U_par, U_perp=args.U_perp, degree=args.degree,
+                    n_phase=args.n_phase, scheduler=args.scheduler, scheduler_timeout=args.scheduler_timeout,
+                    path=args.output, progress=None if args.quiet else TqdmProgress(delay=0.5),
                     error_estimate=not args.no_error_estimate, tol=args.tol)
     ds = t.ds
+    regime = ds.regime.values
+    computed = regime != REGIMES.index("not_computed")
     out = {"chi_E": t.chi_E if args.chi_E.size == 1 else ds.chi_E.values.tolist(), "eta": t.eta,
-           "output": args.output, "rows": int(ds.flutter.size), "flutter_rows": int(ds.flutter.sum()),
-           "coiled_rows": int(ds.coiled.sum())}
-    if args.chi_E.size == 1:
+           "output": args.output, "rows": int(computed.sum()), "flutter_rows": int(ds.flutter.sum()),
+           "coiled_rows": int(ds.coiled.values[computed].sum())}
+    if flow:
+        out.update(U_par=ds.U_par.values.tolist(), U_perp=ds.U_perp.values.tolist(),
+                   divergence_rows=int((regime == REGIMES.index("divergence")).sum()),
+                   no_steady_state_rows=int((regime == REGIMES.index("no_steady_state")).sum()))
+    if args.chi_E.size == 1 and not flow:
         out["chi_N_cutoff"] = ds.attrs["chi_N_cutoff"]
     else:
         out["chi_N_cutoff"] = ds.chi_N_cutoff.values.tolist()
@@ -222,13 +240,20 @@ def build_parser() -> argparse.ArgumentParser:
     py.add_argument("--json", action="store_true")
     py.set_defaults(func=cmd_cycle)
 
-    pt = sub.add_parser("table", help="thrust lookup table over chi_N, for one field or a chi_E grid "
-                                      "(resumable; local pool or Dask)")
+    pt = sub.add_parser("table", help="thrust lookup table over chi_N, for one field, a chi_E grid or a grid of "
+                                      "background flows (resumable; local pool or Dask)")
     pt.add_argument("--chi-E", dest="chi_E", type=_grid, required=True,
                     help="one field, or a grid 'start:stop:num' or a list (a table over chi_E, interpolated "
                          "in chi_E by ThrustTable)")
     pt.add_argument("--eta", type=float, required=True)
     pt.add_argument("--chi-N", dest="chi_N", type=_grid, required=True, help="'start:stop:num' or a list")
+    pt.add_argument("--U-par", dest="U_par", type=_flow_grid, default=None, metavar="GRID",
+                    help="background flow along the field (e2, units L/tau): one value, 'start:stop:num', a list "
+                         "or 'default' (-2:2:5); a table over the flow (one field; the other component defaults "
+                         "to 0). A grid that starts with '-' goes after '=': --U-par=-2:2:5")
+    pt.add_argument("--U-perp", dest="U_perp", type=_flow_grid, default=None, metavar="GRID",
+                    help="background flow across the field (+e1, units L/tau), as --U-par; give a grid symmetric "
+                         "about 0 (negative chi_N are served at -U_perp)")
     pt.add_argument("-o", "--output", required=True, help="NetCDF file (rows kept in OUTPUT.parts/ until done)")
     pt.add_argument("--scheduler", help="Dask distributed scheduler address (default: local process pool)")
     pt.add_argument("--scheduler-timeout", dest="scheduler_timeout", type=float, default=None, metavar="SECONDS",
