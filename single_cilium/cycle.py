@@ -36,6 +36,12 @@ Results say how they ended in one way across :mod:`single_cilium`: ``status`` (`
 ``"inaccurate"`` when an error estimate exceeds what was asked, ``"no oscillation"``,
 ``"unchecked"`` without error estimate) and a one-line ``message``; failures raise
 :class:`CycleError` with what to change.
+
+Why one module of about 700 lines: the limit cycle and the mean thrust at a point (chi_N, U) are
+one computation (``mean_thrust`` is ``limit_cycle`` or the steady state, reported alike), and
+the helpers (seeding from the Hopf eigenvector, prediction along a continuation, rephasing to
+the Poincare section, the observables' error estimates) serve only ``limit_cycle``; the orbit
+methods themselves live in :mod:`single_cilium.orbit`.
 """
 from __future__ import annotations
 

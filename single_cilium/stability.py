@@ -34,6 +34,10 @@ equilibrium altogether, and it is stable. This is why a tiny natural curvature r
 for ``chi_E < 0`` (the published claim; reproduced in the tests) but changes nothing for
 ``chi_E > 0``, where ``theta = 0`` is the stable fixed point and the equilibrium depends
 smoothly on ``chi_N``.
+
+Why one module of about 600 lines: the spectrum, the regime, the flutter cutoff, the flutter
+boundary (continuation of the cutoff over chi_E) and the stability map are one linearisation
+(the same pencil and leading-eigenvalue code) asked four ways.
 """
 from __future__ import annotations
 
