@@ -45,6 +45,7 @@ import numpy as np
 import xarray as xr
 from scipy.interpolate import make_interp_spline
 
+from .cycle import thrust_angle
 from .equilibrium import NoLimitAngleError, limit_angle
 from .params import CiliumParams
 from .tablefile import FIELDS, ODD, REGIMES, REST_FIELDS, REST_SCALARS, SAFETY, SCALARS, TableError, coiled
@@ -52,14 +53,14 @@ from .tablefile import FIELDS, ODD, REGIMES, REST_FIELDS, REST_SCALARS, SAFETY, 
 __all__ = ["FlowGrid", "thrust_angle_of"]
 
 _DERIVED = ("thrust_norm", "thrust_angle")
+_THRUST_ANGLE = np.vectorize(thrust_angle, otypes=[float])
 
 
-def thrust_angle_of(x, y):
-    """DESIGN.md's thrust angle of the mean force ``(x, y)``: ``phi_F - pi`` wrapped into
-    (-pi, pi], ``phi_F`` its anticlockwise angle from ``e2`` (NaN for a zero force)."""
+def thrust_angle_of(x, y) -> np.ndarray:
+    """:func:`single_cilium.cycle.thrust_angle` of the mean forces ``(x, y)`` (arrays of one
+    shape), NaN where the force is zero (no direction)."""
     x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-    a = np.arctan2(-x, y) - np.pi
-    a = np.where(a <= -np.pi, a + 2 * np.pi, a)
+    a = _THRUST_ANGLE(x, y)
     return np.where((x == 0) & (y == 0), np.nan, a)
 
 
