@@ -31,7 +31,7 @@ from .params import CiliumParams
 from .tablefile import (FIELDS, ODD, REGIMES, REST_FIELDS, REST_SCALARS, SAFETY, SCALARS, U_DIMS, TableError,
                         coiled, read, regime_of, validate)
 
-__all__ = ["ThrustTable", "TableError", "DEFAULT_FILE"]
+__all__ = ["ThrustTable", "DEFAULT_FILE"]
 
 DEFAULT_FILE = "table_chiE200_eta1.nc"
 _THRUST = ("thrust_x", "thrust_y", "thrust_norm", "thrust_angle")
