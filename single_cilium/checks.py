@@ -10,11 +10,17 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
+
 __all__ = ["finite", "positive"]
 
 
 def finite(name: str, value: Any) -> float:
-    """``value`` as a finite float, or ValueError naming ``name`` (not a real number, NaN, inf)."""
+    """``value`` as a finite float, or ValueError naming ``name`` (not a real number, NaN, inf).
+    A complex value is refused even with a zero imaginary part (``float`` of a numpy complex
+    would drop the imaginary part with only a warning)."""
+    if isinstance(value, (complex, np.complexfloating)):
+        raise ValueError(f"{name} must be a real number, got {value!r}")
     try:
         x = float(value)
     except (TypeError, ValueError):

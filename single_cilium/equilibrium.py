@@ -43,6 +43,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from single_cilium.checks import finite
 from single_cilium.params import CiliumParams
 
 __all__ = ["NoLimitAngleError", "equilibrium", "equilibrium_shape", "limit_angle"]
@@ -75,15 +76,7 @@ def _check_s(s: ArrayLike) -> NDArray[np.float64]:
 
 
 def _check_phi(phi: float) -> float:
-    if isinstance(phi, (complex, np.complexfloating)):
-        raise ValueError(f"phi must be a real number, got {phi!r}")
-    try:
-        x = float(phi)
-    except (TypeError, ValueError):
-        raise ValueError(f"phi must be a real number, got {phi!r}") from None
-    if not math.isfinite(x):
-        raise ValueError(f"phi must be finite, got {x}")
-    return x
+    return finite("phi", phi)
 
 
 def _groups(params: CiliumParams) -> tuple[float, float]:

@@ -1,5 +1,6 @@
 import math
 
+import numpy as np
 import pytest
 
 from single_cilium import CiliumParams, PhysicalCilium
@@ -48,3 +49,14 @@ def test_physical_rejects_nonpositive(name):
     kw[name] = -1.0
     with pytest.raises(ValueError, match=name):
         PhysicalCilium(**kw)
+
+
+@pytest.mark.parametrize("value", [1 + 0j, np.complex128(2.0), np.complex64(1 + 1j)])
+def test_the_shared_validator_refuses_complex_numbers(value):
+    """float() of a numpy complex keeps the real part with only a warning; the one finite-number
+    validator (single_cilium.checks) refuses it by name, and the parameters with it."""
+    from single_cilium.checks import finite
+    with pytest.raises(ValueError, match="x must be a real number"):
+        finite("x", value)
+    with pytest.raises(ValueError, match="eta must be a real number"):
+        CiliumParams(200.0, value, 0.0)
