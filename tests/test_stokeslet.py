@@ -646,3 +646,22 @@ def test_ranged_sums_of_an_evaluator_without_them_run_on_direct_and_say_so(caplo
         b = backend_named(name)
         if not b.ranged_sums:
             assert ranged_evaluator(b).describe().split(" (")[0] in b.describe()
+
+
+def test_a_greens_function_without_its_pair_or_reference_cannot_be_made():
+    """The Kernel contract is enforced: a subclass missing ``pair`` or ``reference`` is refused
+    when instantiated, not discovered later inside a compiled loop."""
+    from dataclasses import dataclass
+
+    from ciliary_carpet.stokes import Kernel
+
+    @dataclass(frozen=True)
+    class Half(Kernel):
+        name = "half"
+        c1, c2, c3 = 1.0, 1.0, 1.0
+
+        def reference(self, x, xi, f):
+            return np.zeros((len(x), 3))
+
+    with pytest.raises(TypeError, match="pair"):
+        Half()

@@ -68,6 +68,7 @@ pair formula, its independent numpy reference and its constants side by side.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -171,7 +172,7 @@ def _wall(value: Any) -> Wall:
 
 
 # --------------------------------------------------------------------------- the contract
-class Kernel:
+class Kernel(ABC):
     """A Green's function of Stokes flow (base class; the module docstring lists them).
 
     A new Green's function is a frozen dataclass subclass, registered in :data:`KERNELS` under its
@@ -213,13 +214,13 @@ class Kernel:
     symmetric: ClassVar[bool] = True
 
     @staticmethod
+    @abstractmethod
     def pair(x, y, z, sx, sy, sz, fx, fy, fz, e2):  # pragma: no cover - the contract only
-        """``G(x, xi) f`` of one pair (class docstring)."""
-        raise NotImplementedError
+        """``G(x, xi) f`` of one pair (class docstring); a compiled function."""
 
+    @abstractmethod
     def reference(self, x: np.ndarray, xi: np.ndarray, f: np.ndarray) -> np.ndarray:
         """``sum_j G(x_i, xi_j) f_j`` (M, 3) in plain numpy (class docstring)."""
-        raise NotImplementedError(f"{type(self).__name__} has no numpy reference")
 
     @property
     def code(self) -> int:
