@@ -59,11 +59,11 @@ from single_cilium.table import ThrustTable
 from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers
 from ciliary_carpet.carpet.cycles import CycleData, ResolvedSources
 from ciliary_carpet.carpet.traversal import Plan, Summed, dense_sum, flow_sum, make_plan
-from ciliary_carpet.stokes import Auto, Backend, Kernel, Wall, make_kernel
+from ciliary_carpet.stokes import Auto, Backend, Kernel, Wall, make_kernel, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Carpet", "Scales", "FlowSample", "Instant", "CycleMean", "When", "BLOB"]
+__all__ = ["Carpet", "Scales", "FlowSample", "Instant", "CycleMean", "When", "BLOB", "sbt_viscosity"]
 
 _AUTO = Auto()
 """The evaluator of a carpet made without ``backend``."""
@@ -72,6 +72,23 @@ _PLANS = 32
 BLOB = 0.02
 """Default blob size eps of the regularised Stokeslets, in units of L: the filament radius of a
 slender filament of aspect ratio L / (2 a) = 25 (scene key ``[carpet] blob``)."""
+_OWN_CHUNK = 512
+"""Cilia whose own cycle-averaged lines are summed at once in :meth:`Carpet.others_mean_flow`."""
+
+
+def sbt_viscosity(eta: float, a: float, length: float = 1.0) -> float:
+    """The fluid viscosity that slender-body theory assigns to the tangential resistive
+    coefficient ``eta`` of a filament of radius ``a`` and length ``length`` (Gray & Hancock 1955,
+    the filament's length as the cut-off; MODEL.md section 2 writes eta = mu_par L^4 / (tau B)):
+
+        c_par = 2 pi mu / (ln(2 L / a) - 1/2)   =>   mu = eta (ln(2 L / a) - 1/2) / (2 pi),
+
+    in the same units as eta (B tau / L^4): 0.653 eta for a = 0.02 L. A carpet's default
+    viscosity (its flow then moves at the speed its filaments' drag implies)."""
+    eta, a, length = float(eta), float(a), float(length)
+    if not (math.isfinite(eta) and eta > 0 and math.isfinite(a) and 0 < a < length / 2):
+        raise ValueError(f"sbt_viscosity needs eta > 0 and 0 < a < L / 2, got eta = {eta!r}, a = {a!r}, L = {length!r}")
+    return eta * (math.log(2.0 * length / a) - 0.5) / (2.0 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -191,13 +208,21 @@ class Carpet:
     table : the ThrustTable of the field (chi_E, eta).
     phases : (N,) phases at t = 0 in [0, 1) (default all 0); see :mod:`ciliary_carpet.carpet.layout`.
     direction : field direction, radians anticlockwise from +y (the scene rotates with it).
-    mu : fluid viscosity in model units (B tau / L^4); 1 by default.
+    viscosity : fluid viscosity of the Stokeslets in model units (B tau / L^4), or None (default):
+        the one the filaments' drag implies, :func:`sbt_viscosity` ``(table.eta, blob or BLOB)``
+        (0.653 eta for the default blob). The value used is :attr:`mu`; :attr:`mu_source` says
+        where it came from (``"filaments"`` or ``"given"``).
     wall : distance h > 0 of a no-slip wall z = -h below the plane, or None (free space).
     scales : optional :class:`Scales` for output in SI units.
     backend : evaluator of the sums (:mod:`ciliary_carpet.stokes`); default Auto.
     blob : regularisation length eps of the Stokeslets (:data:`BLOB`, the filament radius), > 0
         and at most half the smallest distance between base points; None: singular Stokeslets
         (the flow is then unbounded at the filaments).
+    background : (N, 2) or None: the uniform flow each cilium beats in (lab frame, L / tau), read
+        from a table over the background flow (:class:`~ciliary_carpet.carpet.cycles.CycleData`);
+        None: each beats as in still fluid (the uncoupled model). A coupled carpet
+        (:func:`~ciliary_carpet.carpet.coupling.couple`) sets it to the mean flow the other cilia
+        make at each one.
 
     Built once with it: :attr:`cycles` (:class:`~ciliary_carpet.carpet.cycles.CycleData`, the
     cilia's cycles and moments) and :attr:`carriers` (:class:`~ciliary_carpet.carpet.carriers.Carriers`,
@@ -210,14 +235,17 @@ class Carpet:
     table: ThrustTable
     phases: np.ndarray | None = None
     direction: float = 0.0
-    mu: float = 1.0
+    viscosity: float | None = None
     wall: float | None = None
     scales: Scales | None = None
     backend: Backend | None = None
     blob: float | None = BLOB
+    background: np.ndarray | None = None
     cycles: CycleData = field(default=None, init=False, repr=False)
     carriers: Carriers = field(default=None, init=False, repr=False)
     _plans: dict = field(default=None, init=False, repr=False)
+    mu: float = field(default=None, init=False)
+    mu_source: str = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         b = np.asarray(self.bases, dtype=float)
@@ -235,12 +263,14 @@ class Carpet:
         p = np.zeros(n) if self.phases is None else np.asarray(self.phases, dtype=float)
         if p.shape != (n,) or not np.all(np.isfinite(p)):
             raise ValueError(f"phases must be {n} finite numbers, got shape {p.shape}")
-        for k in ("direction", "mu"):
+        if not isinstance(self.table, ThrustTable):
+            raise TypeError(f"table must be a ThrustTable, got {type(self.table).__name__}")
+        for k in ("direction",) + (() if self.viscosity is None else ("viscosity",)):
             v = getattr(self, k)
             if not isinstance(v, (int, float, np.floating)) or not math.isfinite(v):
                 raise ValueError(f"{k} must be a finite number, got {v!r}")
-        if self.mu <= 0:
-            raise ValueError(f"mu must be positive, got {self.mu}")
+        if self.viscosity is not None and self.viscosity <= 0:
+            raise ValueError(f"viscosity must be positive (or None: from the filaments' drag), got {self.viscosity}")
         if self.wall is not None and not (math.isfinite(self.wall) and self.wall > 0):
             raise ValueError(f"wall must be a positive distance below the plane (or None), got {self.wall!r}")
         if self.blob is not None:
@@ -256,14 +286,20 @@ class Carpet:
                     raise ValueError(f"blob = {e:g} is larger than half the smallest spacing of the base points "
                                      f"({gap:g} L): the blobs of neighbouring filaments would overlap")
             object.__setattr__(self, "blob", e)
-        if not isinstance(self.table, ThrustTable):
-            raise TypeError(f"table must be a ThrustTable, got {type(self.table).__name__}")
+        u = None
+        if self.background is not None:
+            u = np.asarray(self.background, dtype=float)
+            if u.shape != (n, 2) or not np.all(np.isfinite(u)):
+                raise ValueError(f"background must be {n} finite in-plane flows, shape ({n}, 2), got shape {u.shape}")
+        object.__setattr__(self, "background", u)
         object.__setattr__(self, "bases", b)
         object.__setattr__(self, "chi_N", c)
         object.__setattr__(self, "phases", np.mod(p, 1.0))
         object.__setattr__(self, "direction", float(self.direction))
-        object.__setattr__(self, "mu", float(self.mu))
-        cycles = CycleData(self.table, self.chi_N, self.bases, self.phases, self.rotation)
+        object.__setattr__(self, "mu_source", "filaments" if self.viscosity is None else "given")
+        object.__setattr__(self, "mu", sbt_viscosity(self.table.eta, self.blob or BLOB) if self.viscosity is None
+                           else float(self.viscosity))
+        cycles = CycleData(self.table, self.chi_N, self.bases, self.phases, self.rotation, u)
         object.__setattr__(self, "cycles", cycles)
         object.__setattr__(self, "carriers", Carriers(cycles, self.kernel))
         object.__setattr__(self, "_plans", {})
@@ -384,6 +420,31 @@ class Carpet:
         """(M, 3) the velocity of :meth:`evaluate` without its error bound (which costs a pass over
         every pair of a point and a cilium): for integrators that evaluate the flow many times."""
         return self._sum(self._targets(points), when, self._tol(tol))[0].velocity
+
+    def others_mean_flow(self, js=None, tol: float = 1e-4) -> np.ndarray:
+        """(len(js), 3) the cycle-mean flow that all the *other* cilia make at the force centres
+        c_j of cilia ``js`` (default all): the carpet's :class:`CycleMean` flow at c_j
+        (:meth:`velocity` at ``tol``) minus cilium j's own cycle-averaged resolved line (the
+        same kernel, blob, wall and weights as the carpet's resolved mean: the carpet resolves a
+        cilium at its own centre, so the subtraction removes exactly that term, to rounding).
+        The background flow a coupled cilium feels (:mod:`~ciliary_carpet.carpet.coupling`)."""
+        js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).ravel()
+        cen = np.concatenate([self.cycles.centre[js], np.zeros((js.size, 1))], axis=1)
+        u = self.velocity(cen, CycleMean(), tol)
+        w = self.cycles.weights
+        for lo in range(0, js.size, _OWN_CHUNK):
+            sl = slice(lo, lo + _OWN_CHUNK)
+            xs, fs = self.cycle_samples(js[sl])  # (m, n_phase, n_s, 2)
+            m, n_p, n_s = xs.shape[:3]
+            src = np.concatenate([xs.reshape(-1, 2), np.zeros((m * n_p * n_s, 1))], axis=1)
+            frc = np.concatenate([(fs * (w / n_p)[None, None, :, None]).reshape(-1, 2), np.zeros((m * n_p * n_s, 1))],
+                                 axis=1)
+            i = np.arange(m, dtype=np.int64)
+            ranges = np.stack([i * n_p * n_s, (i + 1) * n_p * n_s], axis=1)
+            ptr = np.arange(m + 1, dtype=np.int64)
+            u[sl] -= stokeslet_velocity_ranges(cen[sl], src, frc, ptr, ranges, self.mu, kernel=self.kernel,
+                                               backend=self.backend)
+        return u
 
     def _sum(self, x: np.ndarray, when: When, tol: float) -> tuple[Summed, Plan | None, CarrierForces | None]:
         """The sum at targets ``x`` (M, 3), its plan and the carriers' forces (None for tol = 0)."""

@@ -347,6 +347,12 @@ class CycleData:
     chi_N : (N,) signed natural curvatures, each within the table's range (TableError otherwise).
     bases : (N, 2) base points; phases : (N,) phases at t = 0 in [0, 1).
     rotation : (2, 2) from the field frame (field along e2) to the lab frame.
+    background : (N, 2) or None, the uniform flow each cilium beats in (lab frame, L / tau; the
+        table is read at U = rotation^T background, i.e. ``U_par`` along the field e2 and
+        ``U_perp`` along e1: :mod:`single_cilium.flowtable`); None: still fluid. A table over
+        the flow is needed for a non-zero flow. A cilium that does not flutter in its flow keeps
+        the equilibrium shape of still fluid (the table stores no steady shape in a flow) with
+        the steady state's force in the flow (the table's).
 
     Attributes
     ----------
@@ -362,8 +368,12 @@ class CycleData:
     """
 
     def __init__(self, table: ThrustTable, chi_N: np.ndarray, bases: np.ndarray, phases: np.ndarray,
-                 rotation: np.ndarray):
+                 rotation: np.ndarray, background: np.ndarray | None = None):
         n = bases.shape[0]
+        flow = {}
+        if background is not None:  # the field-frame components (U_perp along e1, U_par along e2)
+            u = np.asarray(background, dtype=float) @ rotation
+            flow = {"U_perp": u[:, 0], "U_par": u[:, 1]}
         n_p, n_s = table.ds.sizes["phase"], table.ds.sizes["s"]
         s = table.ds.s.values
         w = simpson(n_s)
@@ -385,7 +395,7 @@ class CycleData:
         Q2 = np.empty((n, n_p))
         for lo in range(0, n, _CHUNK):
             sl = slice(lo, min(n, lo + _CHUNK))
-            cyc = table.cycles(chi_N[sl])  # raises TableError for chi_N outside the table
+            cyc = table.cycles(chi_N[sl], **{k: v[sl] for k, v in flow.items()})  # TableError outside the table
             fl[sl] = cyc["flutter"]
             for i in np.nonzero(~cyc["flutter"])[0]:  # still filaments: equilibrium shape, no force
                 x, y = equilibrium_shape(CiliumParams(table.chi_E, table.eta, float(chi_N[lo + i])), s)
@@ -395,7 +405,7 @@ class CycleData:
             _sample_moments(*xyf, bases[sl], w, centre[sl], radius[sl], F[sl], D[sl], T[sl], Q[sl], Q2[sl])
         period = np.full(n, np.nan)
         if np.any(fl):
-            period[fl] = table.scalar("period", chi_N[fl])
+            period[fl] = table.scalar("period", chi_N[fl], **{k: v[fl] for k, v in flow.items()})
         self.bases, self.phases = bases, phases
         self.flutter, self.period = fl, period
         self.rate = np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0)

@@ -109,15 +109,16 @@ slowly than modelled, by what the single-cilium model with eta scaled by that fa
 (MODEL.md section 4: the frequency falls as eta grows).
 
 The viscosity. The Stokeslets use the carpet's viscosity ``mu`` (in B tau / L^4, the model's
-unit: MODEL.md section 2 writes eta = mu_par L^4 / (tau B), so eta and mu are in the same units),
-a free parameter, while the filaments' tangential coefficient eta already implies, through the
-free-space c_par above,
+unit: MODEL.md section 2 writes eta = mu_par L^4 / (tau B), so eta and mu are in the same units).
+The filaments' tangential coefficient eta already implies, through the free-space c_par above,
 
     mu_sbt = eta (ln(2 L / a) - 1/2) / (2 pi)
 
-(0.653 eta for a = 0.02 L). Flow speeds scale as 1 / mu, so the carpet's flows are
-mu_sbt / mu - 1 too fast (negative: too slow) against the filaments' own drag
-(``flow_speed_error``; -35 % for the default mu = 1 = eta, issue 27).
+(0.653 eta for a = 0.02 L; :func:`~ciliary_carpet.carpet.carpet.sbt_viscosity`), which is the
+carpet's default (``mu_source = "filaments"``). A carpet given another viscosity
+(``mu_source = "given"``, scene key ``[carpet] viscosity``) has flows mu_sbt / mu - 1 too fast
+(negative: too slow) against the filaments' own drag (``flow_speed_error``; it was -35 % for the
+former default mu = 1 = eta, issue 27).
 
 The filament radius a is the carpet's blob (its filament radius, :data:`~ciliary_carpet.carpet.carpet.BLOB`
 when the carpet uses singular Stokeslets).
@@ -129,11 +130,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ciliary_carpet.carpet.carpet import BLOB, Carpet, CycleMean, Instant
+from ciliary_carpet.carpet.carpet import BLOB, Carpet, Instant, sbt_viscosity
 from ciliary_carpet.carpet.cycles import simpson
 from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 
-__all__ = ["Omissions", "omissions", "wall_drag_ratios", "wall_drag_formula", "sbt_viscosity", "N_CILIA", "N_INSTANTS",
+__all__ = ["Omissions", "omissions", "wall_drag_ratios", "wall_drag_formula", "N_CILIA", "N_INSTANTS",
            "TARGET_RATIO", "SPREAD", "SPREAD_SOURCES"]
 
 N_CILIA = 64
@@ -148,13 +149,6 @@ SPREAD_SOURCES = 1_500_000
 """The spread carpet (:data:`SPREAD`) is summed directly at m of the instants, evenly spaced, with
 m x N x n_s (its sources over those instants) at most this: all six instants up to about 3,800
 cilia, two at 100 x 100 (about 1 s an instant there: every cilium's state and the direct sum)."""
-
-
-def sbt_viscosity(eta: float, a: float, length: float = 1.0) -> float:
-    """The fluid viscosity that slender-body theory assigns to a tangential resistive coefficient
-    ``eta`` of a filament of radius ``a`` and length ``length``: eta (ln(2 L / a) - 1/2) / (2 pi)
-    (same units as eta; module docstring)."""
-    return float(eta) * (math.log(2.0 * length / a) - 0.5) / (2.0 * math.pi)
 
 
 def wall_drag_formula(h: float | None, a: float, length: float = 1.0) -> float:
@@ -231,7 +225,8 @@ class Omissions:
     them (:func:`wall_drag_ratios`), ``wall_drag_formula``: the closed form (:func:`wall_drag_formula`),
     ``wall_regime`` (text).
 
-    Viscosity: ``mu`` (the carpet's, B tau / L^4), ``mu_sbt`` (slender-body theory's from eta and
+    Viscosity: ``mu`` (the carpet's, B tau / L^4), ``mu_source`` (``"filaments"``: the default,
+    from eta and the radius; ``"given"``: set by the user), ``mu_sbt`` (slender-body theory's from eta and
     a, same units), ``flow_speed_error`` = mu_sbt / mu - 1 (dimensionless: the carpet's flow
     speeds relative to consistent ones, minus 1).
 
@@ -270,6 +265,7 @@ class Omissions:
     wall_drag_formula: float
     wall_regime: str
     mu: float
+    mu_source: str
     mu_sbt: float
     flow_speed_error: float
 
@@ -302,7 +298,7 @@ class Omissions:
             "wall": {"height_L": f(self.wall_height), "filament_radius_L": f(self.filament_radius),
                      "drag_ratio_along": f(self.wall_drag_along), "drag_ratio_across": f(self.wall_drag_across),
                      "drag_ratio_formula": f(self.wall_drag_formula), "regime": self.wall_regime},
-            "viscosity": {"mu": f(self.mu), "mu_sbt": f(self.mu_sbt), "flow_speed_error": f(self.flow_speed_error)},
+            "viscosity": {"mu": f(self.mu), "source": self.mu_source, "mu_sbt": f(self.mu_sbt), "flow_speed_error": f(self.flow_speed_error)},
             "lines": self.lines(),
         }
 
@@ -355,10 +351,11 @@ class Omissions:
                        "slender-body theory does not apply (lubrication), their drag is far above the model's.")
         direction = "slow" if self.flow_speed_error < 0 else "fast"
         if abs(self.flow_speed_error) < 0.005:
-            out.append(f"The flow's viscosity mu = {self.mu:.3g} is the one the filaments' drag eta implies "
+            how = "set to" if self.mu_source == "filaments" else "given as"
+            out.append(f"The flow's viscosity mu = {self.mu:.3g} is {how} the one the filaments' drag eta implies "
                        f"(slender-body theory, radius {self.filament_radius:.3g} L): flow and filaments agree.")
             return out
-        out.append(f"The flow's viscosity mu = {self.mu:.3g} differs from the {self.mu_sbt:.3g} that the filaments' "
+        out.append(f"The flow's viscosity mu = {self.mu:.3g} (given) differs from the {self.mu_sbt:.3g} that the filaments' "
                    f"drag eta implies (slender-body theory, radius {self.filament_radius:.3g} L): the flow speeds are "
                    f"{100 * abs(self.flow_speed_error):.0f} % too {direction} against the filaments' own drag.")
         return out
@@ -480,10 +477,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
                 spacing_10 = d_nn * max(1.0, (float(np.median(ratio[1])) / TARGET_RATIO) ** (1.0 / exponent))
 
         # the others' mean flow at the force centres against the stream that cancels the thrust
-        cen = _pad(carpet.centres[js])
-        mean_src = _pad(xs.reshape(-1, 2))
-        mean_frc = _pad((fs * (w / n_p)[None, None, :, None]).reshape(-1, 2))
-        um = carpet.velocity(cen, CycleMean(), tol) - _own(carpet, cen, mean_src, mean_frc, 1, n_p * n_s)
+        um = carpet.others_mean_flow(js, tol)
         mean_others = np.linalg.norm(um, axis=1)
         fbar = np.linalg.norm(carpet.mean_thrust[js], axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -517,4 +511,4 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         spacing=d_nn, spacing_exponent=exponent, spacing_10=spacing_10,
         wall_height=h, filament_radius=a, wall_drag_along=along, wall_drag_across=across,
         wall_drag_formula=wall_drag_formula(h, a), wall_regime=regime,
-        mu=float(carpet.mu), mu_sbt=mu_sbt, flow_speed_error=mu_sbt / float(carpet.mu) - 1.0)
+        mu=float(carpet.mu), mu_source=carpet.mu_source, mu_sbt=mu_sbt, flow_speed_error=mu_sbt / float(carpet.mu) - 1.0)

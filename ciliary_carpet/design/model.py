@@ -189,8 +189,8 @@ class NearField:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)
                 ref = Carpet(np.column_stack([10.0 * np.arange(self.grid.size), np.zeros(self.grid.size)]),
-                             self.grid, carpet.table, None, carpet.direction, carpet.mu, carpet.wall,
-                             backend=carpet.backend, blob=carpet.blob)
+                             self.grid, carpet.table, None, carpet.direction, viscosity=carpet.mu,
+                             wall=carpet.wall, backend=carpet.backend, blob=carpet.blob)
             c = ref.cycles
             wgt = c.weights / c.n_phase
             on = np.nonzero(c.flutter)[0]  # a still filament makes no flow

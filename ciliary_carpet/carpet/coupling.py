@@ -1,0 +1,343 @@
+"""Cilia that feel the flow: the self-consistent (coupled) carpet.
+
+The uncoupled carpet superposes filaments that each beat as if the fluid around them were at
+rest. In a coupled carpet each cilium j beats in the uniform background flow U_j that all the
+*other* cilia make, on average over their cycles, at its force centre c_j:
+
+    U_j = M_j(U) = u_others,j(c_j; U),   j = 1 .. N,                                   (1)
+
+where u_others,j is the cycle-mean flow of the carpet whose cilia beat in the flows U minus
+cilium j's own (:meth:`Carpet.others_mean_flow <ciliary_carpet.carpet.carpet.Carpet.others_mean_flow>`),
+and each cilium's cycle, period and thrust come from a thrust table over the background flow
+(:mod:`single_cilium.flowtable`; its ``U_par`` along the field, ``U_perp`` across it) at U_j.
+Only the in-plane components of U_j enter (the filaments beat in the plane; above a wall the
+mean flow at the plane has a small normal component, which the planar model cannot feel and
+:attr:`Coupling.normal_flow` reports). U_j is the flow at one point: how much the others'
+flow varies along a filament is what the omissions' interaction ratio measures.
+
+Solver: Newton's method on R(U) = U - M(U) with an approximate Jacobian, each step solved
+exactly for that approximation,
+
+    (I - A B(U)) dU = -R(U),      U <- U + lambda dU,
+
+where B(U) = blockdiag(d Fbar_j / d U_j) is each cilium's mean-thrust derivative (the table's
+splines, central differences of step :data:`DU`, in the lab frame) and A the cycle-mean flow at
+the other cilia's centres of point forces at the centres (the carpet's kernel, blob and wall;
+no self term): the far field of each cilium, with its dipole and higher moments, and the near
+field of its resolved line frozen at the current step. The error of that Jacobian only slows the
+convergence (it stays linear, with the rate the neglected moments' share of dM/dU); every
+residual is of the full model (1). A carpet much larger than its cilia's reach needs Newton:
+the plain iteration U <- M(U) diverges once |A B| > 1 (measured: about 1 at 10 x 10, spacing
+2 L; 10 at 100 x 100), because every cilium then answers the flow it is pushed with by a
+push back larger than the cause. The step is damped (lambda = 1, 1/2, 1/4, ..., at most
+:data:`MAX_HALVINGS` times) until the residual falls and every U_j lies in the table's flow grid.
+The linear solve is GMRES (matrix-free: one Stokeslet sum over the centres per product; relative
+tolerance :data:`GMRES_RTOL`); I - A B is well conditioned (A B is a push back: its eigenvalues
+have negative real parts), so it takes tens of products.
+
+Stops when the residual ``max_j |R_j| / max_j |M_j|`` is at most ``rtol`` (default
+:data:`RTOL`, ten times the evaluation's tolerance ``tol``: a smaller residual would be below
+the error of M itself), or, unconverged, after ``max_iter`` steps (``status = "max_iter"``) or
+when no damped step lowers it (``"stalled"``); the result says which and what to change. A flow
+outside the table's grid raises :class:`CouplingError` naming the cilium, its flow and the grid.
+
+The linear estimate without a flow table (:func:`coupling_estimate`). A carpet whose table is for
+still fluid cannot be solved, but the size of the coupling can be estimated: with the slender-body
+drag of a straight filament along the field, d Fbar_j / d U_j = -eta L (t t^T + 2 (I - t t^T))
+(t the field direction), the linear coupled flow solves (I - A B) U = M(0): how far the
+uncoupled flow M(0) is from it is the coupling's size in the summary of an uncoupled carpet.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.sparse.linalg import LinearOperator, gmres
+
+from single_cilium.tablefile import TableError
+
+from ciliary_carpet.carpet.carpet import BLOB, Carpet
+from ciliary_carpet.stokes import make_kernel, stokeslet_velocity, Wall
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Coupling", "CouplingError", "couple", "coupling_estimate", "COUPLINGS", "RTOL", "DU", "GMRES_RTOL",
+           "MAX_HALVINGS", "MAX_ITER"]
+
+COUPLINGS = ("none", "mean")
+"""The carpet models of the scene key ``[carpet] coupling``: ``"none"`` (each cilium beats as in
+still fluid), ``"mean"`` (each beats in the others' mean flow at it, solved self-consistently)."""
+RTOL = 1e-3
+"""Default relative residual of the coupled solve."""
+DU = 1e-3
+"""Step (L / tau) of the central differences of the mean thrust in the flow."""
+GMRES_RTOL = 1e-6
+"""Relative tolerance of the Newton step's linear solve."""
+MAX_HALVINGS = 6
+"""Most halvings of a Newton step."""
+MAX_ITER = 20
+"""Default most Newton steps."""
+
+
+class CouplingError(ValueError):
+    """The coupled carpet cannot be solved: the flow it needs lies outside the thrust table's flow
+    grid, or the table is for still fluid."""
+
+
+@dataclass(frozen=True, eq=False)
+class Coupling:
+    """The coupled carpet and how it was found.
+
+    carpet : the coupled :class:`~ciliary_carpet.carpet.carpet.Carpet` (``background`` = U).
+    background : (N, 2) U_j, the others' mean flow at each cilium (lab frame, L / tau).
+    uncoupled : (N, 2) M(0), the others' mean flow at each cilium of the uncoupled carpet.
+    residual : max_j |U_j - M_j(U)| / max_j |M_j(U)| at the end; rtol : the one asked.
+    history : the residual after each Newton step (the first entry is at U = 0).
+    iterations : Newton steps taken; evaluations : full evaluations of M (each one a carpet).
+    status : ``"converged"``, ``"max_iter"`` or ``"stalled"``; message : what happened and what to change.
+    contraction : |A B| estimated by the power method at the solution (> 1: the plain iteration
+        U <- M(U) would diverge).
+    normal_flow : max_j |w_j| / max_j |U_j|, the mean flow's component normal to the plane at the
+        centres (zero in free space), which the planar filaments cannot feel.
+    wall_s : seconds spent."""
+
+    carpet: Carpet
+    background: np.ndarray
+    uncoupled: np.ndarray
+    residual: float
+    rtol: float
+    history: tuple
+    iterations: int
+    evaluations: int
+    status: str
+    message: str
+    contraction: float
+    normal_flow: float
+    wall_s: float
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    def change(self) -> dict:
+        """How far the uncoupled flow at the cilia is from the coupled one: the median and largest
+        |M(0)_j - U_j| / |U_j| over the fluttering cilia, and the median speeds |U_j|, |M(0)_j|."""
+        fl = self.carpet.flutter
+        u, u0 = self.background[fl], self.uncoupled[fl]
+        s, s0 = np.linalg.norm(u, axis=1), np.linalg.norm(u0, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.linalg.norm(u0 - u, axis=1) / s
+        rel = rel[np.isfinite(rel)]
+        return {"median_speed_coupled": float(np.median(s)) if s.size else math.nan,
+                "median_speed_uncoupled": float(np.median(s0)) if s0.size else math.nan,
+                "relative_change_median": float(np.median(rel)) if rel.size else math.nan,
+                "relative_change_max": float(np.max(rel)) if rel.size else math.nan}
+
+    def summary(self) -> dict:
+        return {"model": "mean", "status": self.status, "message": self.message, "residual": self.residual,
+                "rtol": self.rtol, "iterations": self.iterations, "evaluations": self.evaluations,
+                "history": list(self.history), "contraction": self.contraction, "normal_flow": self.normal_flow,
+                "wall_s": self.wall_s, **self.change()}
+
+
+def _operator(carpet: Carpet, centres: np.ndarray):
+    """The product f -> A f, (2N,) -> (2N,) (x, y per cilium): the cycle-mean flow at each centre
+    of point forces f at the other centres (module docstring): the carpet's kernel with its blob
+    (:data:`BLOB` for singular Stokeslets), its wall and viscosity, less the self term."""
+    n = centres.shape[0]
+    kern = make_kernel(None if carpet.wall is None else Wall(z=-float(carpet.wall)), carpet.blob or BLOB)
+    c3 = np.column_stack([centres, np.zeros(n)])
+    # the self term S (the same at every centre: all lie in the plane z = 0), columns e_x, e_y
+    S = np.column_stack([stokeslet_velocity(c3[:1], c3[:1], e[None], carpet.mu, kernel=kern)[0, :2]
+                         for e in np.eye(3)[:2]])
+
+    def apply(f2: np.ndarray) -> np.ndarray:
+        f = f2.reshape(n, 2)
+        u = stokeslet_velocity(c3, c3, np.column_stack([f, np.zeros(n)]), carpet.mu, kernel=kern,
+                               backend=carpet.backend)[:, :2]
+        return (u - f @ S.T).ravel()
+    return apply
+
+
+def _field_frame(carpet: Carpet, U: np.ndarray) -> dict:
+    """The table's keywords for lab-frame flows U (N, 2): U_perp along e1, U_par along e2."""
+    u = U @ carpet.rotation
+    return {"U_perp": u[:, 0], "U_par": u[:, 1]}
+
+
+def _outside(carpet: Carpet, U: np.ndarray) -> np.ndarray:
+    """(N,) whether U_j lies outside the table's flow grid (after the mirror for chi_N < 0)."""
+    (p0, p1), (q0, q1) = carpet.table.U_range
+    k = _field_frame(carpet, U)
+    q = np.where(carpet.chi_N < 0, -k["U_perp"], k["U_perp"])
+    return (k["U_par"] < p0) | (k["U_par"] > p1) | (q < q0) | (q > q1)
+
+
+def _thrust_derivative(carpet: Carpet, U: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) d Fbar_j / d U_j in the lab frame: central differences of step DU of the table's
+    mean thrust (one-sided at the grid's edge)."""
+    t, c, R = carpet.table, carpet.chi_N, carpet.rotation
+    (p0, p1), (q0, q1) = t.U_range
+    k = _field_frame(carpet, U)
+    q, p = k["U_perp"], k["U_par"]
+    sg = np.where(c < 0, -1.0, 1.0)  # the table's U_perp grid serves sg * U_perp
+
+    def thrust(pp, qq):
+        return np.stack([t.scalar("thrust_x", c, U_par=pp, U_perp=qq), t.scalar("thrust_y", c, U_par=pp, U_perp=qq)],
+                        axis=-1)
+    J = np.empty((c.size, 2, 2))
+    for col, (lo, hi, base) in enumerate(((q0, q1, q), (p0, p1, p))):
+        mq = sg * q if col == 0 else base  # the grid coordinate of this component
+        up = np.minimum(mq + DU, hi)
+        dn = np.maximum(mq - DU, lo)
+        h = up - dn
+        a = (sg * up, p) if col == 0 else (q, up)
+        b = (sg * dn, p) if col == 0 else (q, dn)
+        J[:, :, col] = (thrust(a[1], a[0]) - thrust(b[1], b[0])) / (h * (sg if col == 0 else 1.0))[:, None]
+    return R @ J @ R.T
+
+
+def _gmres(matvec, rhs: np.ndarray) -> np.ndarray:
+    n = rhs.size
+    op = LinearOperator((n, n), matvec=matvec, dtype=float)
+    x, info = gmres(op, rhs, rtol=GMRES_RTOL, atol=0.0, restart=60, maxiter=20)
+    if info != 0:
+        logger.warning("the coupled Newton step's linear solve stopped at info = %d (GMRES)", info)
+    return x
+
+
+def _others(carpet: Carpet, U: np.ndarray | None, tol: float) -> tuple[Carpet, np.ndarray]:
+    """The carpet in the flows U and the others' mean flow at its centres (N, 3)."""
+    try:
+        c = replace(carpet, background=U)
+    except TableError as exc:
+        raise CouplingError(f"the coupled carpet cannot be built: {exc}") from None
+    return c, c.others_mean_flow(tol=tol)
+
+
+def _check_table(carpet: Carpet) -> None:
+    (p0, p1), (q0, q1) = carpet.table.U_range
+    if p0 == p1 and q0 == q1:
+        raise CouplingError("coupling = \"mean\" needs a thrust table over the background flow (this one is for still "
+                            "fluid): build one with build_table(chi_E, eta, chi_N, U_par=..., U_perp=...) or, in a "
+                            "scene, [table.build] flow = U_max")
+
+
+def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int = MAX_ITER) -> Coupling:
+    """Solve the coupled carpet (1) of the module docstring by damped Newton steps.
+
+    Parameters
+    ----------
+    carpet : the carpet (its ``background`` is ignored: the solve starts from still fluid); its
+        table must be over the background flow.
+    tol : the tolerance of each evaluation of the mean flow (:meth:`Carpet.others_mean_flow`).
+    rtol : the relative residual to reach (default :data:`RTOL`); at least ``tol``.
+    max_iter : most Newton steps.
+
+    Returns
+    -------
+    Coupling : the coupled carpet, the flows, the residual history and the status.
+
+    Raises
+    ------
+    CouplingError : a table for still fluid, or a flow that leaves the table's grid (the message
+        names the cilium, its flow and the grid).
+    """
+    if not isinstance(carpet, Carpet):
+        raise TypeError(f"carpet must be a Carpet, got {type(carpet).__name__}")
+    rtol, tol = float(rtol), float(tol)
+    if not (math.isfinite(rtol) and rtol > 0) or rtol < tol:
+        raise ValueError(f"rtol must be a positive number, at least tol = {tol:g}, got {rtol!r}")
+    if int(max_iter) < 0:
+        raise ValueError(f"max_iter must be >= 0, got {max_iter!r}")
+    _check_table(carpet)
+    t0 = time.perf_counter()
+    n = carpet.n
+    U = np.zeros((n, 2))
+    cur, m = _others(carpet, U, tol)
+    uncoupled = m[:, :2].copy()
+
+    def residual(U, m):
+        M = m[:, :2]
+        return (U - M), float(np.abs(U - M).max() / max(np.abs(M).max(), 1e-300))
+    R, res = residual(U, m)
+    history, evals, status, it = [res], 1, "max_iter", 0
+    while True:
+        if res <= rtol:
+            status = "converged"
+            break
+        if it >= int(max_iter):
+            break
+        B = _thrust_derivative(cur, U)
+        A = _operator(cur, cur.centres)
+        dU = _gmres(lambda x: x - A(np.einsum("jab,jb->ja", B, x.reshape(n, 2)).ravel()), -R.ravel()).reshape(n, 2)
+        lam, accepted = 1.0, False
+        for _ in range(MAX_HALVINGS + 1):
+            Un = U + lam * dU
+            if not np.any(_outside(carpet, Un)):
+                cn, mn = _others(carpet, Un, tol)
+                evals += 1
+                Rn, rn = residual(Un, mn)
+                if rn < res:
+                    U, cur, m, R, res, accepted = Un, cn, mn, Rn, rn, True
+                    break
+            lam *= 0.5
+        it += 1
+        if not accepted:
+            out = _outside(carpet, U + dU)
+            if np.any(out):
+                j = int(np.flatnonzero(out)[0])
+                k = _field_frame(carpet, (U + dU)[j:j + 1])
+                (p0, p1), (q0, q1) = carpet.table.U_range
+                raise CouplingError(
+                    f"the coupled flow leaves the thrust table's flow grid: cilium {j} needs U_par = "
+                    f"{float(k['U_par'][0]):.3g}, U_perp = {float(k['U_perp'][0]):.3g} L/tau (the grid spans U_par in "
+                    f"[{p0:g}, {p1:g}], U_perp in [{q0:g}, {q1:g}]); build the table over a wider flow grid")
+            status = "stalled"
+            break
+        history.append(res)
+        logger.info("coupled carpet: Newton step %d, step length %g, residual %.3g", it, lam, res)
+    # |A B| at the solution, by the power method (10 products)
+    B = _thrust_derivative(cur, U)
+    A = _operator(cur, cur.centres)
+    x = np.random.default_rng(0).standard_normal(2 * n)
+    rho = 0.0
+    for _ in range(10):
+        y = A(np.einsum("jab,jb->ja", B, x.reshape(n, 2)).ravel())
+        rho = float(np.linalg.norm(y) / np.linalg.norm(x))
+        x = y / max(np.linalg.norm(y), 1e-300)
+    normal = float(np.abs(m[:, 2]).max() / max(np.abs(U).max(), 1e-300))
+    msg = {"converged": f"coupled: residual {res:.2g} <= rtol {rtol:g} after {it} Newton steps ({evals} evaluations)",
+           "max_iter": f"NOT converged: residual {res:.2g} > rtol {rtol:g} after {it} Newton steps; raise max_iter",
+           "stalled": f"NOT converged: no damped Newton step lowered the residual {res:.2g} (rtol {rtol:g}); "
+                      "loosen rtol or tighten tol (the evaluation's error may exceed the residual asked)"}[status]
+    return Coupling(carpet=cur, background=U, uncoupled=uncoupled, residual=res, rtol=rtol, history=tuple(history),
+                    iterations=it, evaluations=evals, status=status, message=msg, contraction=rho, normal_flow=normal,
+                    wall_s=time.perf_counter() - t0)
+
+
+def coupling_estimate(carpet: Carpet, tol: float = 1e-4) -> dict:
+    """The coupling's size without a flow table (module docstring): the linear coupled flow with
+    the straight filament's slender-body drag against the uncoupled flow M(0) at the centres.
+    Returns the medians of |M(0)_j| and |U_j| over the fluttering cilia and the median and largest
+    |M(0)_j - U_j| / |U_j| (the uncoupled flow's error, in this estimate)."""
+    n = carpet.n
+    m0 = carpet.others_mean_flow(tol=tol)[:, :2]
+    t = carpet.rotation[:, 1]
+    P = np.outer(t, t)
+    B = -float(carpet.table.eta) * (P + 2.0 * (np.eye(2) - P))
+    A = _operator(carpet, carpet.centres)
+    U = _gmres(lambda x: x - A((x.reshape(n, 2) @ B.T).ravel()), m0.ravel()).reshape(n, 2)
+    fl = carpet.flutter
+    s, s0 = np.linalg.norm(U[fl], axis=1), np.linalg.norm(m0[fl], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rel = np.linalg.norm(m0[fl] - U[fl], axis=1) / s
+    rel = rel[np.isfinite(rel)]
+    nan = math.nan
+    return {"model": "linear drag estimate", "median_speed_coupled": float(np.median(s)) if s.size else nan,
+            "median_speed_uncoupled": float(np.median(s0)) if s0.size else nan,
+            "relative_change_median": float(np.median(rel)) if rel.size else nan,
+            "relative_change_max": float(np.max(rel)) if rel.size else nan}
