@@ -298,6 +298,18 @@ class ThrustTable:
         """A one-flow table in a background flow (a grid point of a table over the flow)."""
         return self._flow is None and "chi_E" not in self.ds.dims and self._U != (0.0, 0.0)
 
+    def in_still_fluid(self) -> "ThrustTable":
+        """The one-flow table of still fluid: this table, or, for a table over the background
+        flow, its grid flow U = 0 (its own rows, no interpolation). A TableError when U = 0 is not
+        a flow of the grid (an even number of values per component)."""
+        if self._flow is None:
+            return self
+        for (a, b), t in self._flow.knots.items():
+            if self._flow.grids[0][a] == 0 and self._flow.grids[1][b] == 0:
+                return t
+        raise TableError(f"{self._source}: U = 0 is not a flow of the table's grid: build it with an odd number of "
+                         "values per flow component, symmetric about 0")
+
     @property
     def flutter_range(self) -> tuple[float, float]:
         """The |chi_N| interval of the flutter branch (where the table has cycles); a table over

@@ -48,7 +48,7 @@ from __future__ import annotations
 import logging
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import ClassVar, Union
 
 import numpy as np
@@ -223,6 +223,13 @@ class Carpet:
         None: each beats as in still fluid (the uncoupled model). A coupled carpet
         (:func:`~ciliary_carpet.carpet.coupling.couple`) sets it to the mean flow the other cilia
         make at each one.
+    coupling : ``"none"`` (default: each cilium beats in ``background``, still fluid when None) or
+        ``"mean"``: each beats in the mean flow the other cilia make at it, solved self-consistently
+        when the carpet is made (:func:`~ciliary_carpet.carpet.coupling.couple` at its default
+        tolerances; needs a table over the background flow); ``background`` is then that solution
+        (a given one is ignored: the same carpet with other curvatures is solved afresh) and
+        :attr:`coupled` the solve's :class:`~ciliary_carpet.carpet.coupling.Coupling` (status,
+        residual, history).
 
     Built once with it: :attr:`cycles` (:class:`~ciliary_carpet.carpet.cycles.CycleData`, the
     cilia's cycles and moments) and :attr:`carriers` (:class:`~ciliary_carpet.carpet.carriers.Carriers`,
@@ -241,11 +248,13 @@ class Carpet:
     backend: Backend | None = None
     blob: float | None = BLOB
     background: np.ndarray | None = None
+    coupling: str = "none"
     cycles: CycleData = field(default=None, init=False, repr=False)
     carriers: Carriers = field(default=None, init=False, repr=False)
     _plans: dict = field(default=None, init=False, repr=False)
     mu: float = field(default=None, init=False)
     mu_source: str = field(default=None, init=False)
+    coupled: object = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         b = np.asarray(self.bases, dtype=float)
@@ -286,7 +295,21 @@ class Carpet:
                     raise ValueError(f"blob = {e:g} is larger than half the smallest spacing of the base points "
                                      f"({gap:g} L): the blobs of neighbouring filaments would overlap")
             object.__setattr__(self, "blob", e)
+        if self.coupling not in ("none", "mean"):
+            raise ValueError(f"coupling must be \"none\" or \"mean\", got {self.coupling!r}")
         u = None
+        if self.coupling == "mean":
+            from ciliary_carpet.carpet.coupling import couple  # the solve builds uncoupled carpets of this class
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # the bases are checked below
+                res = couple(replace(self, coupling="none", background=None))
+            for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "bases", "chi_N",
+                      "phases", "direction"):
+                object.__setattr__(self, k, getattr(res.carpet, k))
+            object.__setattr__(self, "coupled", res)
+            self._warn_overlaps()
+            return
         if self.background is not None:
             u = np.asarray(self.background, dtype=float)
             if u.shape != (n, 2) or not np.all(np.isfinite(u)):
@@ -297,7 +320,7 @@ class Carpet:
         object.__setattr__(self, "phases", np.mod(p, 1.0))
         object.__setattr__(self, "direction", float(self.direction))
         object.__setattr__(self, "mu_source", "filaments" if self.viscosity is None else "given")
-        object.__setattr__(self, "mu", sbt_viscosity(self.table.eta, self.blob or BLOB) if self.viscosity is None
+        object.__setattr__(self, "mu", sbt_viscosity(self.table.eta, self.filament_radius) if self.viscosity is None
                            else float(self.viscosity))
         cycles = CycleData(self.table, self.chi_N, self.bases, self.phases, self.rotation, u)
         object.__setattr__(self, "cycles", cycles)
@@ -321,6 +344,12 @@ class Carpet:
     def n(self) -> int:
         """Number of cilia."""
         return self.bases.shape[0]
+
+    @property
+    def filament_radius(self) -> float:
+        """The filaments' radius a (L): the blob, or :data:`BLOB` for singular Stokeslets (what
+        the default viscosity and the omissions' slender-body formulas use)."""
+        return float(self.blob) if self.blob is not None else BLOB
 
     @property
     def rotation(self) -> np.ndarray:

@@ -59,7 +59,6 @@ from scipy.sparse.linalg import LinearOperator, gmres
 
 from single_cilium.tablefile import TableError
 
-from ciliary_carpet.carpet.carpet import BLOB, Carpet
 from ciliary_carpet.stokes import make_kernel, stokeslet_velocity, Wall
 
 logger = logging.getLogger(__name__)
@@ -145,10 +144,10 @@ class Coupling:
 
 def _operator(carpet: Carpet, centres: np.ndarray):
     """The product f -> A f, (2N,) -> (2N,) (x, y per cilium): the cycle-mean flow at each centre
-    of point forces f at the other centres (module docstring): the carpet's kernel with its blob
-    (:data:`BLOB` for singular Stokeslets), its wall and viscosity, less the self term."""
+    of point forces f at the other centres (module docstring): the carpet's kernel regularised
+    at its filament radius, its wall and viscosity, less the self term."""
     n = centres.shape[0]
-    kern = make_kernel(None if carpet.wall is None else Wall(z=-float(carpet.wall)), carpet.blob or BLOB)
+    kern = make_kernel(None if carpet.wall is None else Wall(z=-float(carpet.wall)), carpet.filament_radius)
     c3 = np.column_stack([centres, np.zeros(n)])
     # the self term S (the same at every centre: all lie in the plane z = 0), columns e_x, e_y
     S = np.column_stack([stokeslet_velocity(c3[:1], c3[:1], e[None], carpet.mu, kernel=kern)[0, :2]
@@ -231,8 +230,9 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
 
     Parameters
     ----------
-    carpet : the carpet (its ``background`` is ignored: the solve starts from still fluid); its
-        table must be over the background flow.
+    carpet : the :class:`~ciliary_carpet.carpet.carpet.Carpet` (``coupling = "none"``; its
+        ``background`` is ignored: the solve starts from still fluid); its table must be over the
+        background flow. (A carpet made with ``coupling = "mean"`` calls this itself.)
     tol : the tolerance of each evaluation of the mean flow (:meth:`Carpet.others_mean_flow`).
     rtol : the relative residual to reach (default :data:`RTOL`); at least ``tol``.
     max_iter : most Newton steps.
@@ -246,7 +246,7 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
     CouplingError : a table for still fluid, or a flow that leaves the table's grid (the message
         names the cilium, its flow and the grid).
     """
-    if not isinstance(carpet, Carpet):
+    if not hasattr(carpet, "others_mean_flow"):
         raise TypeError(f"carpet must be a Carpet, got {type(carpet).__name__}")
     rtol, tol = float(rtol), float(tol)
     if not (math.isfinite(rtol) and rtol > 0) or rtol < tol:

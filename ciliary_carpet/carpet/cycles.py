@@ -578,7 +578,9 @@ _MOMENTS: dict = {}
 
 
 def cycle_moments(table: ThrustTable) -> CycleMoments:
-    """The :class:`CycleMoments` of ``table`` (cached per table object)."""
+    """The :class:`CycleMoments` of ``table`` in still fluid (cached per table object; a table over
+    the background flow gives its flow U = 0: the design model's cilia beat in still fluid)."""
+    table = table.in_still_fluid()
     key = id(table)
     m = _MOMENTS.get(key)
     if m is None or m[0] is not table:

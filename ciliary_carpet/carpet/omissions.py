@@ -130,7 +130,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ciliary_carpet.carpet.carpet import BLOB, Carpet, Instant, sbt_viscosity
+from ciliary_carpet.carpet.carpet import Carpet, Instant, sbt_viscosity
 from ciliary_carpet.carpet.cycles import simpson
 from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 
@@ -414,7 +414,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
     T = float(np.median(periods[fl])) if fl.size else 1.0
     instants = T * np.arange(int(n_instants)) / int(n_instants)
     eta = float(carpet.table.eta)
-    a = float(carpet.blob) if carpet.blob is not None else BLOB
+    a = carpet.filament_radius
     bases = carpet.bases
     if carpet.n > 1:
         from scipy.spatial import cKDTree

@@ -40,7 +40,7 @@ def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     import matplotlib.pyplot as plt
 
     X, b = d.control, carpet.bases
-    lim = float(carpet.table.flutter_range[1])
+    lim = float(carpet.table.in_still_fluid().flutter_range[1])
     fig, axs = plt.subplots(1, 3, figsize=(17, 6.2))
     h = float(np.median(np.linalg.norm(np.diff(X, axis=0), axis=1))) if len(X) > 1 else 1.0
     scale = 0.8 * max(h, 0.5)

@@ -74,6 +74,7 @@ from single_cilium.files import non_finite, strict_json, write_netcdf
 from single_cilium.threads import threads_in_use
 
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant
+from ciliary_carpet.carpet.coupling import coupling_estimate
 from ciliary_carpet.carpet.omissions import omissions
 from ciliary_carpet.design import Design
 from ciliary_carpet.output import RenderError
@@ -439,6 +440,11 @@ class SummaryOutput(Output):
         # what the model leaves out (interaction between cilia, the wall's drag, the viscosity), sized
         with ctx.timed("omissions"):
             summary["omissions"] = omissions(ctx.carpet, tol=min(scene.tolerance, 1e-3)).summary()
+        # the cilia's coupling through their mean flow: solved ("mean"), or its size estimated ("none")
+        with ctx.timed("coupling"):
+            c = ctx.carpet
+            summary["coupling"] = c.coupled.summary() if c.coupled is not None else \
+                {**coupling_estimate(c, tol=min(scene.tolerance, 1e-3)), "status": "not solved"}
         ctx.clock["total"] = _time.perf_counter() - ctx.started
         summary["seconds"] = ctx.clock
         summary["scene_resolved"] = scene.to_dict()

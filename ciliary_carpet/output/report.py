@@ -105,6 +105,23 @@ def markdown(s: dict) -> str:
         lines.append(txt + ".")
     if s.get("omissions", {}).get("lines"):
         lines += ["", "## What the model leaves out", ""] + [f"- {t}" for t in s["omissions"]["lines"]]
+    cp = s.get("coupling")
+    if cp:
+        lines += ["", "## Cilia that feel the flow", ""]
+        if cp["model"] == "mean":
+            lines.append(f"- Coupled carpet (`coupling = \"mean\"`): each cilium beats in the mean flow the others "
+                         f"make at it, median {_g(cp['median_speed_coupled'])} L/tau at the cilia; {cp['message']}. "
+                         f"Uncoupled, that flow would be {_g(cp['median_speed_uncoupled'])} L/tau: "
+                         f"{cp['relative_change_median']:.0%} off the coupled one (median; largest "
+                         f"{cp['relative_change_max']:.0%}).")
+        else:
+            lines.append(f"- Uncoupled carpet (`coupling = \"none\"`): each cilium beats as in still fluid, although "
+                         f"the others' mean flow at it is {_g(cp['median_speed_uncoupled'])} L/tau (median). "
+                         f"With the filaments' drag against that flow (a linear estimate: slender-body drag of a "
+                         f"straight filament) the flow they can sustain is about {_g(cp['median_speed_coupled'])} "
+                         f"L/tau: the uncoupled flow at the cilia is about {cp['relative_change_median']:.0%} off "
+                         f"(largest {cp['relative_change_max']:.0%}). `coupling = \"mean\"` solves it (needs a "
+                         "table over the background flow).")
     lines += ["", "## How it was computed", ""]
     lines.append(f"- Flow tolerance {s['tolerance']:g} (relative to the carpet's far-field flow); flow sums: "
                  f"{s['backend']}.")

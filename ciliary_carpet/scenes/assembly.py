@@ -105,9 +105,21 @@ def _build(scene: "Scene", p: Path) -> None:
         raise SceneError(f"{scene.source_name}: cannot build a thrust table for chi_E = {f.chi_E:g}, "
                          f"eta = {f.eta:g}: {cut.message}")
     c = cut.chi_N_cutoff
-    grid = np.concatenate([np.linspace(0.0, c, b.n)[:-1], [1.05 * c]])
-    logger.info("building the thrust table %s (chi_E = %g, eta = %g, %d rows)", p, f.chi_E, f.eta, grid.size)
-    _table.build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p)
+    if b.flow is None:
+        grid = np.concatenate([np.linspace(0.0, c, b.n)[:-1], [1.05 * c]])
+        logger.info("building the thrust table %s (chi_E = %g, eta = %g, %d rows)", p, f.chi_E, f.eta, grid.size)
+        _table.build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p)
+        return
+    # over the flow: the rows reach past every corner flow's cutoff (each flow's own is added),
+    # short of the coiled limit
+    U = np.linspace(-b.flow, b.flow, b.flow_points)
+    corners = [flutter_cutoff(f.chi_E, f.eta, degree=b.degree, background=(q, u)).chi_N_cutoff
+               for u in (-b.flow, b.flow) for q in (-b.flow, b.flow)]
+    top = min(1.05 * max([c] + [x for x in corners if math.isfinite(x)]), 0.95 * abs(f.chi_E))
+    grid = np.linspace(0.0, top, b.n)
+    logger.info("building the thrust table %s over the flow (chi_E = %g, eta = %g, %d rows x %d x %d flows)", p,
+                f.chi_E, f.eta, grid.size, U.size, U.size)
+    _table.build_table(f.chi_E, f.eta, grid, U_par=U, U_perp=U, degree=b.degree, path=p)
 
 
 def frame_of(scene: "Scene", bases=None) -> Frame:
@@ -159,7 +171,7 @@ class Assembly:
         return Carpet(self.bases, s.carpet.chi_N if chi_N is None else chi_N, self.table,
                       s.carpet.initial_phases(self.bases), direction=s.field.direction_rad, wall=s.carpet.wall,
                       scales=None if s.units is None else s.units.scales(), blob=s.carpet.blob,
-                      backend=backend_named(s.backend))
+                      backend=backend_named(s.backend), viscosity=s.carpet.viscosity, coupling=s.carpet.coupling)
 
 
 def assemble(scene: "Scene", table: ThrustTable | None = None) -> Assembly:
@@ -170,5 +182,10 @@ def assemble(scene: "Scene", table: ThrustTable | None = None) -> Assembly:
     control-point file)."""
     table = table if table is not None else load_table(scene)
     check_table_range(scene, table)
+    (p0, p1), (q0, q1) = table.U_range
+    if scene.carpet.coupling == "mean" and p0 == p1 and q0 == q1:
+        raise SceneError(f'{scene.source_name}: carpet.coupling = "mean" needs a thrust table over the background '
+                         f"flow, but the table is for still fluid: name a table file with a [table.build] section "
+                         f"that has flow = U_max (e.g. 2), or use coupling = \"none\"")
     bases = scene.carpet.bases()
     return Assembly(scene, table, bases, frame_of(scene, bases), target_of(scene, table))

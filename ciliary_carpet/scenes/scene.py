@@ -40,6 +40,7 @@ import single_cilium.table as _table
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import BLOB
+from ciliary_carpet.carpet.coupling import COUPLINGS
 from ciliary_carpet.scenes.paths import check_name, check_scene_paths
 from ciliary_carpet.transport.flow import FLOWS, MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
@@ -101,6 +102,12 @@ class TableBuild(Section):
                  "cutoff, and write it to `file` (minutes; resumable)", "int", lo=3)
     degree: int = key(inspect.signature(_table.build_table).parameters["degree"].default,  # build_table's own default
                       "mesh degree of that computation (`single_cilium.table.build_table`)", "int", lo=2)
+    flow: float | None = key(None, "U_max: build the table over a grid of background flows, `U_par` and `U_perp` each "
+                             "in [-U_max, U_max] (L/tau) with `flow_points` values (needed by `carpet.coupling = "
+                             "\"mean\"`; the chi_N grid then reaches 1.05 x the largest cutoff of the grid's corners; "
+                             "about 5 minutes on 2 cores for U_max = 2)", lo=0, lo_open=True,
+                             default_shown="- (still fluid)")
+    flow_points: int = key(5, "values per flow component with `flow` (odd: U = 0 is a flow of the grid)", "int", lo=3)
 
 
 @section
@@ -127,6 +134,9 @@ class TableSpec(Section):
         kw["build"] = None
         if r.has("build"):
             kw["build"] = TableBuild(**TableBuild.parse(src, r.data["build"]))
+            if kw["build"].flow is not None and kw["build"].flow_points % 2 == 0:
+                raise SceneError(f"{src}: table.build.flow_points must be odd (U = 0, still fluid, must be a flow of "
+                                 f"the grid), got {kw['build'].flow_points}")
             if file == "default":
                 raise SceneError(f'{src}: [table.build] needs table.file to name where the table is written '
                                  f'(file = "default" is the shipped table)')
@@ -172,6 +182,12 @@ class CarpetSpec(Section):
         what="two numbers [kx, ky] (rad per L)", shown="`[kx, ky]` (rad per L)")
     wall: float | None = key(None, "distance of a no-slip wall below the plane (absent: free space)",
                              lo=0, lo_open=True)
+    viscosity: float | None = key(None, "fluid viscosity of the flow (B tau / L^4, the model's unit); absent: the one "
+                                  "the filaments' drag eta implies (slender-body theory at radius `blob`: 0.653 eta "
+                                  "for the default)", lo=0, lo_open=True, default_shown="- (from eta)")
+    coupling: str = key("none", '`"none"`: each cilium beats as in still fluid; `"mean"`: each beats in the mean flow '
+                        "the others make at it, solved self-consistently (needs a table over the background flow: "
+                        "`[table.build] flow`)", "str", choices=COUPLINGS)
     blob: float = key(BLOB, "blob size of the regularised Stokeslets in L: the filament radius (the flow stays "
                       "bounded at the filaments)", lo=0, lo_open=True, what="a positive length in L (the filament "
                       "radius)", shown="0 < float < spacing / 2")
