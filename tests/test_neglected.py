@@ -196,3 +196,7 @@ def test_render_summary_sizes_what_the_model_leaves_out(tmp_path):
     assert om["viscosity"]["source"] == "filaments"
     md = (res.out_dir / "summary.md").read_text()
     assert "## What the model leaves out" in md and om["lines"][0] in md
+    cp = s["coupling"]  # uncoupled (still-fluid table): the coupling's size by the linear drag estimate
+    assert cp["model"] == "linear drag estimate" and cp["status"] == "not solved"
+    assert 0 < cp["median_speed_coupled"] < cp["median_speed_uncoupled"]
+    assert "## Cilia that feel the flow" in md and "linear estimate" in md

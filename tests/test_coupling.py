@@ -1,0 +1,148 @@
+"""Cilia that feel the flow (issue 27): the carpet's viscosity from its filaments, cilia beating
+in a background flow, and the self-consistent (coupled) carpet of
+:mod:`ciliary_carpet.carpet.coupling`.
+
+The coupled tests use a small, coarse table over the flow (degree 6, 32 phases, 17 s points,
+flows -1, 0, 1 in each component: seconds to build); the coupled flows of a 3 x 3 carpet stay
+well inside it. The benchmark (benchmarks/bench_coupling.py) uses the shipped discretisation.
+"""
+import math
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from single_cilium.table import ThrustTable, build_table
+
+from ciliary_carpet.carpet import layout
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean, sbt_viscosity
+from ciliary_carpet.carpet.coupling import CouplingError, couple, coupling_estimate
+
+FAST = dict(degree=6, n_phase=32, n_s=17, error_estimate=False)
+GRID = [0.0, 40.0, 80.0, 120.0, 160.0]
+CHI = 92.0
+
+
+@pytest.fixture(scope="module")
+def flow():
+    with ThreadPoolExecutor(2) as ex:
+        return build_table(200, 1, GRID, U_par=[-1.0, 0.0, 1.0], U_perp=[-1.0, 0.0, 1.0], executor=ex, **FAST)
+
+
+@pytest.fixture(scope="module")
+def still():
+    return ThrustTable.default()
+
+
+def _carpet(table, sign=1.0, **kw):
+    b = layout.square(3, 3, 2.0)
+    return Carpet(b * np.array([sign, 1.0]), sign * CHI, table, layout.random_phases(9, 0), **kw)
+
+
+def test_viscosity_from_the_filaments_by_default(still):
+    c = _carpet(still)
+    assert c.mu_source == "filaments" and c.mu == sbt_viscosity(1.0, 0.02) == pytest.approx(0.6534, abs=1e-4)
+    given = _carpet(still, viscosity=1.0)
+    assert given.mu == 1.0 and given.mu_source == "given"
+    x = np.array([[1.0, -3.0, 0.2], [5.0, 2.0, 0.0]])
+    # Stokes flow is linear in 1 / mu: the default's flow is 1 / 0.653 times the one at mu = 1
+    np.testing.assert_allclose(c.velocity(x, CycleMean()) * c.mu, given.velocity(x, CycleMean()), rtol=1e-10)
+    assert replace(c, chi_N=np.full(9, 60.0)).mu_source == "filaments"  # a changed carpet keeps the source
+    with pytest.raises(ValueError, match="viscosity must be positive"):
+        _carpet(still, viscosity=-1.0)
+    with pytest.raises(ValueError, match="coupling"):
+        _carpet(still, coupling="full")
+
+
+def test_still_background_is_still_fluid(flow):
+    """U = 0 on a table over the flow is its grid flow U = 0: the same cycles as that one-flow table."""
+    a = _carpet(flow, background=np.zeros((9, 2)))
+    b = _carpet(flow.in_still_fluid())
+    np.testing.assert_allclose(a.others_mean_flow(), b.others_mean_flow(), rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(a.periods, b.periods, rtol=1e-9)
+
+
+def test_a_background_flow_changes_the_beat(flow):
+    """A flow along the field (from clamp to tip) changes the period and the thrust by amounts
+    the table says; the carpet reads them in its field frame (direction rotates U)."""
+    U = np.tile([0.0, 0.5], (9, 1))  # lab frame along +y = along the field (direction 0)
+    a = _carpet(flow, background=U)
+    assert np.allclose(a.periods, flow.scalar("period", CHI, U_par=0.5, U_perp=0.0), rtol=1e-12)
+    turned = Carpet(layout.square(3, 3, 2.0), CHI, flow, direction=math.pi / 2,
+                    background=np.tile([-0.5, 0.0], (9, 1)))  # the field along -x: the same flow along it
+    np.testing.assert_allclose(turned.periods, a.periods, rtol=1e-12)
+
+
+def test_coupled_carpet_solves_its_equation(flow):
+    c = _carpet(flow, coupling="mean")
+    r = c.coupled
+    assert r.converged and r.residual <= 1e-3 and r.iterations <= 4
+    assert all(b < a / 10 for a, b in zip(r.history, r.history[1:]))  # each Newton step gains a digit or more
+    # independently: the others' mean flow at each cilium of the carpet beating in U is U
+    M = replace(c, coupling="none", background=c.background).others_mean_flow()[:, :2]
+    assert np.abs(M - c.background).max() <= 1e-3 * np.abs(M).max()
+    np.testing.assert_array_equal(c.background, r.background)
+    # the cilia push back: the coupled flow is slower than the uncoupled one, and not zero
+    ch = r.change()
+    assert 0.2 < ch["median_speed_coupled"] / ch["median_speed_uncoupled"] < 0.95
+    s = r.summary()
+    assert s["model"] == "mean" and s["status"] == "converged" and "Newton" in s["message"]
+
+
+def test_coupled_flow_converges_with_rtol(flow):
+    """Refinement in the solver's tolerance: the flow at rtol 1e-2 and 1e-3 against rtol 1e-6 (tol
+    1e-7): each within twice its own residual (the Newton system's inverse has norm about 1)."""
+    c = _carpet(flow)
+    ref = couple(c, tol=1e-7, rtol=1e-6)
+    assert ref.converged
+    scale = np.abs(ref.background).max()
+    for rtol in (1e-2, 1e-3):
+        r = couple(c, rtol=rtol)
+        err = np.abs(r.background - ref.background).max() / scale
+        assert r.converged and err <= 2 * r.residual + 2e-4
+
+
+def test_mirror_symmetry(flow):
+    """Bases x -> -x and chi_N -> -chi_N mirror the coupled flow (U_x -> -U_x)."""
+    a = _carpet(flow, coupling="mean")
+    b = _carpet(flow, sign=-1.0, coupling="mean")
+    scale = np.abs(a.background).max()
+    np.testing.assert_allclose(b.background * np.array([-1.0, 1.0]), a.background, atol=2e-3 * scale)
+
+
+def test_linear_estimate_is_near_the_solve(flow):
+    c = _carpet(flow)
+    est = coupling_estimate(c)
+    ch = couple(c).change()
+    assert est["median_speed_uncoupled"] == pytest.approx(ch["median_speed_uncoupled"], rel=1e-3)
+    assert est["median_speed_coupled"] == pytest.approx(ch["median_speed_coupled"], rel=0.25)
+
+
+def test_bad_coupling_inputs(flow, still):
+    with pytest.raises(CouplingError, match="background flow"):
+        _carpet(still, coupling="mean")
+    with pytest.raises(ValueError, match="rtol"):
+        couple(_carpet(flow), rtol=1e-6, tol=1e-4)
+    # a table whose flow grid is too small for the flow the carpet needs
+    small = ThrustTable(flow.ds.sel(U_par=[0.0, 1.0]))
+    with pytest.raises(CouplingError, match="flow grid"):
+        _carpet(small, coupling="mean")
+
+
+def test_scene_keys(tmp_path, still):
+    from ciliary_carpet.scenes.assembly import assemble
+    from ciliary_carpet.scenes.schema import SceneError
+    from ciliary_carpet.scenes.scene import scene_from_dict
+
+    base = {"name": "c", "carpet": {"lattice": "square", "shape": [3, 3], "chi_N": 50.0}}
+    with pytest.raises(SceneError, match="needs a thrust table over the background"):
+        assemble(scene_from_dict({**base, "carpet": {**base["carpet"], "coupling": "mean"}}), still)
+    with pytest.raises(SceneError, match="coupling"):
+        scene_from_dict({**base, "carpet": {**base["carpet"], "coupling": "full"}})
+    with pytest.raises(SceneError, match="viscosity"):
+        scene_from_dict({**base, "carpet": {**base["carpet"], "viscosity": -1.0}})
+    with pytest.raises(SceneError, match="flow_points must be odd"):
+        scene_from_dict({**base, "table": {"file": "t.nc", "build": {"flow": 2.0, "flow_points": 4}}})
+    c = assemble(scene_from_dict({**base, "carpet": {**base["carpet"], "viscosity": 2.0}}), still).carpet()
+    assert c.mu == 2.0 and c.mu_source == "given"
