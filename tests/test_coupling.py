@@ -146,3 +146,31 @@ def test_scene_keys(tmp_path, still):
         scene_from_dict({**base, "table": {"file": "t.nc", "build": {"flow": 2.0, "flow_points": 4}}})
     c = assemble(scene_from_dict({**base, "carpet": {**base["carpet"], "viscosity": 2.0}}), still).carpet()
     assert c.mu == 2.0 and c.mu_source == "given"
+
+
+def test_design_model_answers_through_the_flow(flow):
+    """The design model of a coupled carpet (CouplingResponse): a change of the curvatures moves
+    the control points' mean flow as the coupled carpet does (measured on 6 x 6 cilia with the
+    shipped discretisation, control points among the cilia: 7 % off, against 27 % for the
+    still-fluid model), and its gradient is exact for it."""
+    from ciliary_carpet.carpet.coupling import CouplingResponse
+    from ciliary_carpet.design.model import DesignModel
+
+    n = 4
+    c = Carpet(layout.square(n, n, 2.0), CHI, flow, layout.random_phases(n * n, 0), coupling="mean")
+    X = np.array([[x, y] for x in np.linspace(-2.0, 8.0, 6) for y in (-4.0, 10.0)])  # beyond the near field
+    chi = np.full(n * n, CHI)
+    d = np.random.default_rng(1).standard_normal(n * n) * 3.0
+    truth = (replace(c, chi_N=chi + d).evaluate(X, CycleMean(), tol=1e-6).velocity
+             - c.evaluate(X, CycleMean(), tol=1e-6).velocity)[:, :2]
+    err = {}
+    for name, resp in (("still", None), ("coupled", CouplingResponse(c))):
+        dm = DesignModel(c, X, chi, response=resp)
+        du = dm.velocity(chi + d) - dm.velocity(chi)
+        err[name] = np.linalg.norm(du - truth) / np.linalg.norm(truth)
+    assert err["coupled"] < 0.5 * err["still"] and err["coupled"] < 0.15, err
+    g = np.random.default_rng(2).standard_normal((X.shape[0], 2))
+    e = np.random.default_rng(3).standard_normal(n * n)
+    h = 1e-4
+    fd = (np.sum(g * dm.velocity(chi + d + h * e)) - np.sum(g * dm.velocity(chi + d - h * e))) / (2 * h)
+    assert dm.gradient(chi + d, g) @ e == pytest.approx(fd, rel=1e-6)

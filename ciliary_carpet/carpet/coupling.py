@@ -59,11 +59,11 @@ from scipy.sparse.linalg import LinearOperator, gmres
 
 from single_cilium.tablefile import TableError
 
-from ciliary_carpet.stokes import make_kernel, stokeslet_velocity, Wall
+from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Coupling", "CouplingError", "couple", "coupling_estimate", "COUPLINGS", "RTOL", "DU", "GMRES_RTOL",
+__all__ = ["Coupling", "CouplingError", "CouplingResponse", "couple", "coupling_estimate", "COUPLINGS", "DENSE_CILIA", "RTOL", "DU", "GMRES_RTOL",
            "MAX_HALVINGS", "MAX_ITER"]
 
 COUPLINGS = ("none", "mean")
@@ -73,6 +73,8 @@ RTOL = 1e-3
 """Default relative residual of the coupled solve."""
 DU = 1e-3
 """Step (L / tau) of the central differences of the mean thrust in the flow."""
+DENSE_CILIA = 2000
+"""Most cilia of a :class:`CouplingResponse` (dense: 4 N^2 numbers, 128 MB at 2000)."""
 GMRES_RTOL = 1e-6
 """Relative tolerance of the Newton step's linear solve."""
 MAX_HALVINGS = 6
@@ -341,3 +343,70 @@ def coupling_estimate(carpet: Carpet, tol: float = 1e-4) -> dict:
             "median_speed_uncoupled": float(np.median(s0)) if s0.size else nan,
             "relative_change_median": float(np.median(rel)) if rel.size else nan,
             "relative_change_max": float(np.max(rel)) if rel.size else nan}
+
+
+class CouplingResponse:
+    """How a coupled carpet's mean forces answer a change of its cilia's own (the design model's
+    coupling, :class:`~ciliary_carpet.design.model.DesignModel`).
+
+    At a coupled state (U, the carpet ``carpet`` with ``coupling = "mean"``), a change dF of the
+    cilia's mean forces at fixed flows (a change of curvature: :meth:`forces`, the table's thrust
+    at each cilium's own flow U_j) changes the flows by dU = A dF^c and the forces by P dU,
+    P = blockdiag(d Fbar_j / d U_j), so that to first order (the monopole level of the solver's
+    Jacobian, module docstring)
+
+        dF^c = (I - P A)^{-1} dF,     Q = (I - P A)^{-1} - I:  dF^c = dF + Q dF.
+
+    :meth:`apply` gives Q dF (N, 2) and :meth:`adjoint` Q^T h, each by the LU factors of the
+    dense (2N, 2N) matrix I - P A, made once (for at most :data:`DENSE_CILIA` cilia: 4N^2 numbers;
+    A assembled by one sparse Stokeslet sum of N^2 single-source blocks per force component).
+    """
+
+    def __init__(self, carpet):
+        from scipy.linalg import lu_factor
+
+        if carpet.coupled is None:
+            raise ValueError("CouplingResponse needs a coupled carpet (coupling = \"mean\")")
+        n = carpet.n
+        if n > DENSE_CILIA:
+            raise ValueError(f"CouplingResponse is dense: at most {DENSE_CILIA} cilia, got {n}")
+        self.n = n
+        P = _thrust_derivative(carpet, carpet.background)  # (N, 2, 2)
+        c3 = np.column_stack([carpet.centres, np.zeros(n)])
+        kern = make_kernel(None if carpet.wall is None else Wall(z=-float(carpet.wall)), carpet.filament_radius)
+        t = np.tile(c3, (n, 1))  # target t for source k at row k n + t
+        ptr = np.arange(n * n + 1, dtype=np.int64)
+        k = np.repeat(np.arange(n, dtype=np.int64), n)
+        rng = np.column_stack([k, k + 1])
+        A = np.empty((n, 2, n, 2))  # A[t, a, k, b]: velocity a at centre t of a unit force b at centre k
+        for b in range(2):
+            f = np.zeros((n, 3))
+            f[:, b] = 1.0
+            u = stokeslet_velocity_ranges(t, c3, f, ptr, rng, carpet.mu, kernel=kern, backend=carpet.backend)
+            A[:, :, :, b] = u[:, :2].reshape(n, n, 2).transpose(1, 2, 0)
+        A[np.arange(n), :, np.arange(n), :] = 0.0  # the others only
+        PA = np.einsum("jab,jbkc->jakc", P, A).reshape(2 * n, 2 * n)
+        self._lu = lu_factor(np.eye(2 * n) - PA)
+        self._table, self._rot = carpet.table, carpet.rotation
+        self._flow = _field_frame(carpet, carpet.background)
+
+    def forces(self, chi, nu: int = 0) -> np.ndarray:
+        """(N, 2) the cilia's mean forces (lab frame) at curvatures ``chi`` in the coupled state's
+        flows U (frozen), or their chi derivatives (``nu = 1``): the table's thrust at (chi_j, U_j)."""
+        c = np.asarray(chi, dtype=float)
+        F = np.stack([self._table.scalar(k, c, nu, **self._flow) for k in ("thrust_x", "thrust_y")], axis=-1)
+        return F @ self._rot.T
+
+    def apply(self, dF: np.ndarray) -> np.ndarray:
+        """(N, 2) Q dF."""
+        from scipy.linalg import lu_solve
+
+        x = np.asarray(dF, dtype=float).reshape(-1)
+        return (lu_solve(self._lu, x) - x).reshape(self.n, 2)
+
+    def adjoint(self, h: np.ndarray) -> np.ndarray:
+        """(N, 2) Q^T h."""
+        from scipy.linalg import lu_solve
+
+        x = np.asarray(h, dtype=float).reshape(-1)
+        return (lu_solve(self._lu, x, trans=1) - x).reshape(self.n, 2)

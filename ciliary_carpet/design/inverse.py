@@ -102,6 +102,7 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.scenes.assembly import assemble
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
+from ciliary_carpet.carpet.coupling import DENSE_CILIA, CouplingResponse
 from ciliary_carpet.carpet.cycles import cycle_moments
 from ciliary_carpet.design.model import (NEAR_RADIUS, DesignModel, NearField, angle_objective, angle_terms,
                                          floor_reference, solver_threads, sweep)
@@ -430,10 +431,13 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     best = {"rms": rms_loc, "J": J_loc, "chi": chi0.copy(), "u": u_loc, "resid": r_loc,
             "label": "local", "carpet": c_loc, "res": None, "bound": e_loc}
 
-    u_prev, chi = u_loc, chi0.copy()
+    u_prev, c_prev, chi = u_loc, c_loc, chi0.copy()
     res = None
     for p in range(1, max(1, outer) + 1):
-        dm = DesignModel(carpet, X, chi, moments=mom, near=near)
+        # a coupled carpet: the model's forces answer through the flow (the response at this pass's
+        # coupled state), so its gradient includes the coupling
+        response = CouplingResponse(c_prev) if c_prev.coupled is not None and c_prev.n <= DENSE_CILIA else None
+        dm = DesignModel(carpet, X, chi, moments=mom, near=near, response=response)
         shift = u_prev - dm.velocity(chi)  # defect: full model minus design model at this pass's start
 
         J_scale = 1.0
@@ -490,7 +494,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
         if J_full < best["J"]:
             best = {"rms": rms, "J": J_full, "chi": chi.copy(), "u": u_full, "resid": resid, "label": f"pass {p}",
                     "carpet": c_full, "res": res, "bound": e_full}
-        u_prev = u_full
+        u_prev, c_prev = u_full, c_full
         # settled: the design model agrees with the full model at this layout (so the next pass
         # would minimise nearly the same objective), or the last pass gained under 2%, or (given
         # a threshold) the residual is below GOOD_ENOUGH of it

@@ -189,7 +189,7 @@ class NearField:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)
                 ref = Carpet(np.column_stack([10.0 * np.arange(self.grid.size), np.zeros(self.grid.size)]),
-                             self.grid, carpet.table, None, carpet.direction, viscosity=carpet.mu,
+                             self.grid, carpet.table.in_still_fluid(), None, carpet.direction, viscosity=carpet.mu,
                              wall=carpet.wall, backend=carpet.backend, blob=carpet.blob)
             c = ref.cycles
             wgt = c.weights / c.n_phase
@@ -240,7 +240,7 @@ class DesignModel:
     exact vector-Jacobian product, both one Stokeslet sum of P x 3N pairs."""
 
     def __init__(self, carpet: Carpet, control, chi_geom, moments: CycleMoments | None = None,
-                 near: NearField | None = None):
+                 near: NearField | None = None, response=None):
         self.carpet = carpet
         self.moments = moments if moments is not None else cycle_moments(carpet.table)
         X = np.asarray(control, dtype=float)
@@ -264,6 +264,16 @@ class DesignModel:
             k, j = self.near.k, self.near.j
             npair = k.size
             self.Gc = self.pair_blocks(k, j)
+        # a coupled carpet (CouplingResponse at chi_geom's coupled state): each cilium's mean force
+        # changes as the table says at its own flow U_j, dF_U = F(chi, U) - F(chi_geom, U), and the
+        # others answer through the flow: F^c - F^c_geom = (I + Q) dF_U; the carriers hold the
+        # still-fluid change dF_0, so dF^c - dF_0 is spread over the three carriers (the near
+        # pairs' exact flows stay those of still fluid)
+        self.response = response
+        if response is not None:
+            g = np.asarray(chi_geom, dtype=float)
+            self.F_ref = self.carriers(g).sum(axis=1)
+            self.FU_ref = response.forces(g)
 
     def pair_blocks(self, k: np.ndarray, j: np.ndarray) -> np.ndarray:
         """(n, 2, 3, 2) the kernel blocks of the pairs (control point k, cilium j): the in-plane
@@ -288,6 +298,10 @@ class DesignModel:
         """(P, 2) mean flow at the control points for curvatures ``chi`` (N,)."""
         f3 = self.carriers(chi)
         f = f3.reshape(-1, 2)
+        if self.response is not None:
+            dFU = self.response.forces(chi) - self.FU_ref
+            dq = (dFU + self.response.apply(dFU) - (f3.sum(axis=1) - self.F_ref)) / 3.0
+            f = (f3 + dq[:, None, :]).reshape(-1, 2)
         c = self.carpet
         if self.tree is not None:
             u = self.tree.apply(np.column_stack([f, np.zeros(f.shape[0])]))[:, :2]
@@ -310,13 +324,19 @@ class DesignModel:
         else:
             gp = stokeslet_velocity(self.pos3, self.X3, np.column_stack([g_u, np.zeros(g_u.shape[0])]), c.mu,
                                     wall=self.wall, backend=c.backend)[:, :2].reshape(c.n, 3, 2)
+        d1 = self.carriers(chi, 1)
+        coupled = 0.0
+        if self.response is not None:  # d/dchi_j of the carriers' ((I + Q) dF_U - dF_0) / 3
+            h = gp.sum(axis=1) / 3.0
+            z = h + self.response.adjoint(h)
+            coupled = np.einsum("jb,jb->j", z, self.response.forces(chi, 1)) - np.einsum("jb,jb->j", h, d1.sum(axis=1))
         if self.near is None:
-            return np.einsum("jkb,jkb->j", gp, self.carriers(chi, 1))
+            return np.einsum("jkb,jkb->j", gp, d1) + coupled
         nf = self.near
         gk = g_u[nf.k]
         gp = gp.copy()
         np.subtract.at(gp, nf.j, np.einsum("pa,pamb->pmb", gk, self.Gc))
-        out = np.einsum("jkb,jkb->j", gp, self.carriers(chi, 1))
+        out = np.einsum("jkb,jkb->j", gp, d1) + coupled
         return out + np.bincount(nf.j, np.sum(gk * nf.pair_derivative(chi), axis=1), c.n)
 
 
