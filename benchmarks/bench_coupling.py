@@ -1,7 +1,7 @@
 """Cilia that feel the flow (issue 27): the coupled carpet against the uncoupled one.
 
     python benchmarks/bench_coupling.py --table FLOW_TABLE.nc [--sizes 5 10 20 30 50 100]
-                                        [--sections growth scenes large] [--out FILE]
+                                        [--sections growth scenes large] [--large 30 100] [--out FILE]
 
 FLOW_TABLE.nc: a thrust table over the background flow for chi_E = 200, eta = 1, e.g.
 ``build_table(200, 1, np.linspace(0, 190, 20), U_par=np.linspace(-2, 2, 5), U_perp=...)``
@@ -153,6 +153,7 @@ def main() -> None:
     ap.add_argument("--table", required=True, help="a thrust table over the background flow (chi_E = 200, eta = 1)")
     ap.add_argument("--sizes", type=int, nargs="+", default=[5, 10, 20, 30, 50, 100])
     ap.add_argument("--sections", nargs="+", default=["growth", "scenes", "large"])
+    ap.add_argument("--large", type=int, nargs="+", default=[30, 100], help="sizes n of the n x n uniform_deflection")
     ap.add_argument("--out", type=Path)
     a = ap.parse_args()
     table = ThrustTable.load(a.table)
@@ -166,7 +167,7 @@ def main() -> None:
     if "growth" in a.sections:
         growth(table, a.sizes)
     names = [p.stem for p in sorted((ROOT / "designs").glob("*.toml"))] if "scenes" in a.sections else []
-    large = [("uniform_deflection", (30, 30)), ("uniform_deflection", (100, 100))] if "large" in a.sections else []
+    large = [("uniform_deflection", (n, n)) for n in a.large] if "large" in a.sections else []
     scenes(table, names, large)
     if a.out:
         a.out.write_text("\n".join(OUT) + "\n")
