@@ -92,18 +92,30 @@ class CouplingError(ValueError):
 class Coupling:
     """The coupled carpet and how it was found.
 
-    carpet : the coupled :class:`~ciliary_carpet.carpet.carpet.Carpet` (``background`` = U).
-    background : (N, 2) U_j, the others' mean flow at each cilium (lab frame, L / tau).
-    uncoupled : (N, 2) M(0), the others' mean flow at each cilium of the uncoupled carpet.
-    residual : max_j |U_j - M_j(U)| / max_j |M_j(U)| at the end; rtol : the one asked.
-    history : the residual after each Newton step (the first entry is at U = 0).
-    iterations : Newton steps taken; evaluations : full evaluations of M (each one a carpet).
-    status : ``"converged"``, ``"max_iter"`` or ``"stalled"``; message : what happened and what to change.
-    contraction : |A B| estimated by the power method at the solution (> 1: the plain iteration
+    Attributes
+    ----------
+    carpet : Carpet
+        The coupled carpet (``background`` = U).
+    background : (N, 2) ndarray
+        U_j, the others' mean flow at each cilium (lab frame, L / tau).
+    uncoupled : (N, 2) ndarray
+        M(0), the others' mean flow at each cilium of the uncoupled carpet.
+    residual, rtol : float
+        max_j |U_j - M_j(U)| / max_j |M_j(U)| at the end, and the one asked.
+    history : tuple
+        The residual after each Newton step (the first entry is at U = 0).
+    iterations, evaluations : int
+        Newton steps taken; full evaluations of M (each one a carpet).
+    status, message : str
+        ``"converged"``, ``"max_iter"`` or ``"stalled"``; what happened and what to change.
+    contraction : float
+        abs(A B) estimated by the power method at the solution (above 1 the plain iteration
         U <- M(U) would diverge).
-    normal_flow : max_j |w_j| / max_j |U_j|, the mean flow's component normal to the plane at the
+    normal_flow : float
+        max_j abs(w_j) / max_j abs(U_j), the mean flow's component normal to the plane at the
         centres (zero in free space), which the planar filaments cannot feel.
-    wall_s : seconds spent."""
+    wall_s : float
+        Seconds spent."""
 
     carpet: Carpet
     background: np.ndarray
