@@ -194,8 +194,9 @@ def test_long_time_model_against_time_resolved(table):
     """Over 12 beats of a 2 x 2 carpet the mean-flow path lines end within MEAN_MODEL_ERROR of the
     distance travelled from the time-resolved ones. At viscosity 1, where MEAN_MODEL_ERROR was
     measured: the model's relative error grows like 1 / mu (the drift of the oscillating flow is
-    quadratic in it, the travel linear), and at the default viscosity 0.653 one tracer here ends
-    0.16 of its travel off (its re-calibration at the default viscosity is still to do)."""
+    quadratic in it, the travel linear), and at the default viscosity 0.653 one tracer of this
+    nearly straight 2 x 2 carpet ends 0.16 of its travel off (the render's carpets: 0.030,
+    MEAN_MODEL_ERROR's docstring)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         carpet = Carpet(np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.0], [2.0, 2.0]]), [3.0, 3.0, 3.0, 3.0], table,

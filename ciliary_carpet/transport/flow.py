@@ -78,11 +78,13 @@ STEPS_PER_BEAT = 16
 (:class:`ResolvedFlow`; module docstring for what it buys)."""
 MEAN_MODEL_ERROR = 0.05
 """End-point error of the long-time model (:class:`MeanFlow`) relative to the distance travelled,
-against time-resolved path lines: the largest over the render's 100 tracers of the designed
-10 x 10 uniform_deflection carpet (0.020; median 0.006) and of vortex_turn (0.016), measured with
-``benchmarks/bench_flow.py --sections longtime`` (benchmarks/results/bench_longtime.md, 20 of
-the tracers), with a margin of 2.5. Renders take the model automatically only when the scene's
-tolerance is at least this."""
+against time-resolved path lines: the largest over 20 of the render's tracers of the designed
+10 x 10 uniform_deflection carpet, measured with ``benchmarks/bench_flow.py --sections longtime``
+(benchmarks/results/bench_longtime.md): 0.030 (median 0.009) at the carpet's default viscosity
+(0.653, from its filaments), a margin of 1.7; it was 0.020 (vortex_turn 0.016), a margin of 2.5,
+at the former viscosity 1. The relative error grows like 1 / mu: the drift the model leaves out
+is quadratic in the flow, the travel linear. Renders take the model automatically only when the
+scene's tolerance is at least this."""
 _EVERYWHERE = (-math.inf, math.inf) * 3
 
 
