@@ -271,7 +271,8 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
     t0 = time.perf_counter()
     n = carpet.n
     U = np.zeros((n, 2))
-    cur, m = _others(carpet, U, tol)
+    # still fluid: the carpet itself when it has no background (its cycles are the table's at U = 0)
+    cur, m = (carpet, carpet.others_mean_flow(tol=tol)) if carpet.background is None else _others(carpet, U, tol)
     uncoupled = m[:, :2].copy()
 
     def residual(U, m):
