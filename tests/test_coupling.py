@@ -49,7 +49,7 @@ def test_viscosity_from_the_filaments_by_default(still):
     # Stokes flow is linear in 1 / mu: the default's flow is 1 / 0.653 times the one at mu = 1
     np.testing.assert_allclose(c.velocity(x, CycleMean()) * c.mu, given.velocity(x, CycleMean()), rtol=1e-10)
     assert replace(c, chi_N=np.full(9, 60.0)).mu_source == "filaments"  # a changed carpet keeps the source
-    with pytest.raises(ValueError, match="viscosity must be positive"):
+    with pytest.raises(ValueError, match="viscosity must be > 0"):
         _carpet(still, viscosity=-1.0)
     with pytest.raises(ValueError, match="coupling"):
         _carpet(still, coupling="full")

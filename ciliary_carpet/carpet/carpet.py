@@ -54,6 +54,7 @@ from typing import ClassVar, Union
 import numpy as np
 from scipy.spatial import cKDTree
 
+from single_cilium.checks import finite, positive
 from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers
@@ -104,9 +105,7 @@ class Scales:
 
     def __post_init__(self) -> None:
         for k in ("length_m", "time_s", "viscosity_Pa_s"):
-            v = getattr(self, k)
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"Scales.{k} must be a positive finite number, got {v!r}")
+            object.__setattr__(self, k, positive(f"Scales.{k}", getattr(self, k)))
 
     @property
     def velocity(self) -> float:
@@ -274,12 +273,9 @@ class Carpet:
             raise ValueError(f"phases must be {n} finite numbers, got shape {p.shape}")
         if not isinstance(self.table, ThrustTable):
             raise TypeError(f"table must be a ThrustTable, got {type(self.table).__name__}")
-        for k in ("direction",) + (() if self.viscosity is None else ("viscosity",)):
-            v = getattr(self, k)
-            if not isinstance(v, (int, float, np.floating)) or not math.isfinite(v):
-                raise ValueError(f"{k} must be a finite number, got {v!r}")
-        if self.viscosity is not None and self.viscosity <= 0:
-            raise ValueError(f"viscosity must be positive (or None: from the filaments' drag), got {self.viscosity}")
+        object.__setattr__(self, "direction", finite("direction", self.direction))
+        if self.viscosity is not None:  # None: from the filaments' drag
+            object.__setattr__(self, "viscosity", positive("viscosity", self.viscosity))
         if self.wall is not None and not (math.isfinite(self.wall) and self.wall > 0):
             raise ValueError(f"wall must be a positive distance below the plane (or None), got {self.wall!r}")
         if self.blob is not None:
@@ -318,7 +314,6 @@ class Carpet:
         object.__setattr__(self, "bases", b)
         object.__setattr__(self, "chi_N", c)
         object.__setattr__(self, "phases", np.mod(p, 1.0))
-        object.__setattr__(self, "direction", float(self.direction))
         object.__setattr__(self, "mu_source", "filaments" if self.viscosity is None else "given")
         object.__setattr__(self, "mu", sbt_viscosity(self.table.eta, self.filament_radius) if self.viscosity is None
                            else float(self.viscosity))
