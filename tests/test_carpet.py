@@ -478,3 +478,20 @@ def test_stacked_carriers_in_the_order_of_their_positions(table):
     np.testing.assert_array_equal(got, np.concatenate([F[js], car.f3[js].reshape(-1, 2), car.f6[js].reshape(-1, 2)]))
     np.testing.assert_array_equal(got[4 + 3 * 1:4 + 3 * 2], car.f3[0])  # cilium 0 is the second chosen
     assert c.carriers.positions(js).shape == (40, 3)
+
+
+def test_filament_states_are_the_interpolant(table):
+    """CycleData.state evaluates each cilium's trigonometric interpolant at its phase (one batched
+    product): the same numbers, to rounding, as the interpolant written out term by term."""
+    from ciliary_carpet.carpet.cycles import _trig_basis
+
+    c = Carpet(layout.square(2, 3, 2.0), np.linspace(-40, 40, 6), table, layout.random_phases(6, 2))
+    cy = c.cycles
+    for js in (None, [5, 0, 3]):
+        pos, f, ph = cy.state(0.37, js)
+        j = np.arange(6) if js is None else np.array(js)
+        assert np.array_equal(ph, cy.phase_at(0.37)[j])
+        b = _trig_basis(ph, cy.harmonics)
+        vals = np.einsum("jk,jksq->jsq", b, cy.coef[j].astype(float))
+        np.testing.assert_allclose(pos, vals[..., :2] + cy.bases[j][:, None, :], rtol=0, atol=1e-13)
+        np.testing.assert_allclose(f, vals[..., 2:], rtol=0, atol=1e-13 * np.abs(vals[..., 2:]).max())
