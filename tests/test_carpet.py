@@ -455,3 +455,43 @@ def test_cycle_moments_are_the_carpets(table):
         f = dipole_forces(F, D, delta, u)
         np.testing.assert_allclose(f.sum(axis=1), F, atol=1e-13)
         np.testing.assert_allclose(np.einsum("jma,jmb->jab", delta[:, None, None] * u[None], f), D, atol=1e-13)
+    # the compiled pass is numpy's broadcast formula, to the last bit (a scalar delta broadcasts)
+    inv = np.linalg.inv(np.stack([np.ones(3), u[:, 0], u[:, 1]]))
+    d = delta[:, None, None]
+    want = inv[None, :, 0, None] * F[:, None, :] + inv[None, :, 1, None] * (D[:, None, 0, :] / d) \
+        + inv[None, :, 2, None] * (D[:, None, 1, :] / d)
+    assert np.array_equal(dipole_forces(F, D, delta, u), want)
+    np.testing.assert_allclose(dipole_forces(F, D, 0.5, u), dipole_forces(F, D, np.full(5, 0.5), u), rtol=0, atol=0)
+
+
+def test_stacked_carriers_in_the_order_of_their_positions(table):
+    """Carriers.stacked puts the monopoles, then the dipoles' three, then the quadrupoles' six forces
+    of the chosen cilia in the order Carriers.positions puts their points."""
+    from ciliary_carpet.carpet.carriers import Carriers
+
+    c = Carpet(layout.square(3, 3, 2.0), np.linspace(-20, 20, 9), table, layout.random_phases(9, 1))
+    F, D, T = c.cycles.moments_at(c.cycles.phase_at(0.3))
+    car = c.carriers.forces(F, D, T)
+    js = np.array([4, 0, 8, 2])
+    got = Carriers.stacked(F, car, js)
+    assert got.shape == (40, 2)
+    np.testing.assert_array_equal(got, np.concatenate([F[js], car.f3[js].reshape(-1, 2), car.f6[js].reshape(-1, 2)]))
+    np.testing.assert_array_equal(got[4 + 3 * 1:4 + 3 * 2], car.f3[0])  # cilium 0 is the second chosen
+    assert c.carriers.positions(js).shape == (40, 3)
+
+
+def test_filament_states_are_the_interpolant(table):
+    """CycleData.state evaluates each cilium's trigonometric interpolant at its phase (one batched
+    product): the same numbers, to rounding, as the interpolant written out term by term."""
+    from ciliary_carpet.carpet.cycles import _trig_basis
+
+    c = Carpet(layout.square(2, 3, 2.0), np.linspace(-40, 40, 6), table, layout.random_phases(6, 2))
+    cy = c.cycles
+    for js in (None, [5, 0, 3]):
+        pos, f, ph = cy.state(0.37, js)
+        j = np.arange(6) if js is None else np.array(js)
+        assert np.array_equal(ph, cy.phase_at(0.37)[j])
+        b = _trig_basis(ph, cy.harmonics)
+        vals = np.einsum("jk,jksq->jsq", b, cy.coef[j].astype(float))
+        np.testing.assert_allclose(pos, vals[..., :2] + cy.bases[j][:, None, :], rtol=0, atol=1e-13)
+        np.testing.assert_allclose(f, vals[..., 2:], rtol=0, atol=1e-13 * np.abs(vals[..., 2:]).max())

@@ -306,8 +306,12 @@ def test_render_writes_paraview_ready_path_lines(tmp_path):
     p = s["pathlines"]
     assert p["stopped_early"] == 0 and p["model"] == "resolved" and p["duration_from"] == "scene"
     assert p["outcome"]["reached end time"] + p["outcome"]["left the domain"] == 6
-    e = p["end_point_error"]  # 6 tracers re-integrated at rtol 1e-8, flow tol 1e-4
-    assert e["tracers"] == 6 and "rtol 1e-8" in e["reference"] and 0 <= e["median"] <= e["max"] < 1e-2
+    # the path lines at flow tol 1e-4 (tighter than the scene's 1e-3), rtol 1e-9, atol 1e-7 x spacing 2;
+    # 6 tracers re-integrated with the flow tolerance / 3 and rtol, atol / 10
+    assert (p["flow_tol"], p["rtol"], p["atol"]) == (1e-4, 1e-9, 2e-7)
+    e = p["end_point_error"]
+    assert e["tracers"] == 6 and "flow tol 3.33e-05, rtol 1e-10, atol 2e-08 L" in e["reference"]
+    assert 0 <= e["median"] <= e["max"] < 1e-3
     assert "Their end points are accurate to about" in (res.out_dir / "summary.md").read_text()
     assert {"particles.pvd", "open_in_paraview.py", "ftle.vti", "pathlines.vtp"} <= set(res.files)
     py_compile.compile(str(res.out_dir / "open_in_paraview.py"), doraise=True)
@@ -337,3 +341,27 @@ def test_render_error_estimate_of_the_long_time_model(table):
     travel = np.linalg.norm(pl.end_points[:, :2] - seeds, axis=1)
     assert e["tracers"] == 3 and "long-time model" in e["reference"]
     assert 0 < e["median"] <= e["max"] < travel.max()
+
+
+def test_render_error_estimate_is_the_distance_to_a_tighter_run(table):
+    """For the time-resolved flow the estimate is the end-point distance of the sampled tracers
+    (error_tracers: evenly spread, at most ERROR_SAMPLE) to the same integration with the flow
+    tolerance / 3 and rtol, atol / 10 (REFERENCE_TIGHTER), recomputed here by hand."""
+    from ciliary_carpet.output.outputs import ERROR_SAMPLE, REFERENCE_TIGHTER, error_tracers, pathline_error
+    from ciliary_carpet.transport.flow import ResolvedFlow
+
+    assert list(error_tracers(3)) == [0, 1, 2] and list(error_tracers(100)) == [0, 14, 28, 42, 57, 71, 85, 99]
+    assert error_tracers(1000).size == ERROR_SAMPLE and REFERENCE_TIGHTER == (3.0, 10.0)
+    from ciliary_carpet.carpet import layout
+
+    c = Carpet(layout.square(3, 3, 2.0), np.full(9, 90.0), table, layout.random_phases(9, 0))
+    T = float(np.nanmin(c.periods))
+    seeds = np.array([[-3.0, 6.0], [2.0, 5.0], [6.0, -1.5]])  # a few L away: the levels of detail matter
+    flow = ResolvedFlow(c, 1e-2)
+    pl = pathlines(flow, seeds, (0.0, 3 * T), rtol=1e-3, atol=1e-2)
+    e = pathline_error(c, seeds, 3 * T, pl, "resolved", flow, 0.5, 2.0)
+    ref = pathlines(ResolvedFlow(c, 1e-2 / 3), seeds, (0.0, 3 * T), rtol=1e-4, atol=1e-3, samples_per_period=1)
+    d = np.linalg.norm(pl.end_points - ref.end_points, axis=1)
+    assert e["tracers"] == 3 and e["max"] == pytest.approx(d.max(), rel=1e-12)
+    assert e["median"] == pytest.approx(np.median(d), rel=1e-12) and 1e-6 < e["max"] < 1e-3
+    assert "flow tol 0.00333, rtol 0.0001, atol 0.001 L" in e["reference"]

@@ -45,10 +45,11 @@ exact terms' maxima over the cycle's phase samples times :data:`PHASE_MARGIN`, S
 |F_j(t)|; the reported bound uses the moments at the current phase), :attr:`Carriers.of_mean`
 for the cycle-mean flow (the cycle means, S_j = |Fbar_j|). ``tol`` is relative to the sum of the
 cilia's far-field magnitudes (for a carpet whose cilia push roughly the same way, relative to
-|u| itself). Measured: the error on carpets of 10 x 10 and 30 x 30 cilia stays below
-``0.2 * tol`` times that sum (tested on 10 x 10; ``benchmarks/bench_calibration.py`` for every
-size: the worst-case alignments and signs that the bound adds up do not occur, see
-:data:`LOD_SLACK`). Small carpets average less: 3 x 3 cilia reach 0.73 tol (free space, tol
+|u| itself). Measured: the error on carpets of 10 x 10, 30 x 30 and 100 x 100 cilia stays below
+``0.2 * tol`` times that sum (0.16, 0.15 and 0.05 at most over tol 1e-2 to 1e-4 in free space,
+0.01 or less with a wall; tested on 10 x 10; ``benchmarks/bench_calibration.py`` for every size,
+benchmarks/results/bench_calibration.md: the worst-case alignments and signs that the bound adds
+up do not occur, see :data:`LOD_SLACK`). Small carpets average less: 3 x 3 cilia reach 0.73 tol (free space, tol
 1e-3) and a lone cilium 4.4 tol (tol 1e-2; 2.1 at 1e-3, 0.7 at 1e-4), the rigorous bound holding.
 
 Shapes: per cilium arrays (N,); carrier forces (N, 3, 2) and (N, 6, 2), in-plane, lab frame.
@@ -82,8 +83,11 @@ the cilia's errors add with mixed signs. Measured (tests/test_carpet.py, 10 x 10
 and without wall, tol 1e-2 to 1e-4, four times and the mean flow, points 0.05 L from the swept
 regions and beyond): with 8 the error stays below 0.16 tol sum_j S_j / (8 pi mu |x - c_j|) (free
 space, the dipole order at tol 1e-2; 0.07 with quadrupoles at 1e-3 and 1e-4; 0.01 with a wall),
-while the near pairs fall 3-fold (benchmarks/bench_flow.py, levels). The rigorous bound is still
-what ``error_bound`` reports."""
+while the near pairs fall 3-fold (benchmarks/bench_flow.py, levels). The same on every carpet size
+(benchmarks/bench_calibration.py, random curvatures, free space / wall at 0.5 L, at most over tol
+1e-2, 1e-3, 1e-4): 30 x 30 0.15 / 0.004, 100 x 100 0.05 / 0.001; small carpets average less (3 x 3
+0.73, a lone cilium 4.4). The rigorous bound is still what ``error_bound`` reports, and it held at
+every point of every size."""
 
 
 def triangle(angle: float) -> np.ndarray:
@@ -115,13 +119,27 @@ def dipole_forces(F: np.ndarray, D: np.ndarray, delta: np.ndarray, unit: np.ndar
     x, y). ``unit`` (3, 2): the u_m, an equilateral triangle: the carpet's :data:`DIPOLE` (default)
     or the design model's :data:`DESIGN_DIPOLE`. Linear in (F, D): the derivatives of F and D
     give the carriers' derivatives. The one implementation of the dipole carriers, for the
-    carpet's levels of detail and the design model."""
+    carpet's levels of detail and the design model (one compiled pass over the cilia: every
+    evaluation of a carpet's flow makes them for all its cilia)."""
+    unit = np.asarray(unit, dtype=float)
     inv = np.linalg.inv(np.stack([np.ones(3), unit[:, 0], unit[:, 1]]))
-    F = np.asarray(F, dtype=float)
-    D = np.asarray(D, dtype=float)
-    d = np.asarray(delta, dtype=float)[:, None, None]
-    return (inv[None, :, 0, None] * F[:, None, :] + inv[None, :, 1, None] * (D[:, None, 0, :] / d)
-            + inv[None, :, 2, None] * (D[:, None, 1, :] / d))
+    F = np.ascontiguousarray(F, dtype=float)
+    D = np.ascontiguousarray(D, dtype=float)
+    d = np.ascontiguousarray(np.broadcast_to(np.asarray(delta, dtype=float), (F.shape[0],)))
+    out = np.empty((F.shape[0], 3, 2))
+    _dipole_forces(F, D, d, inv, out)
+    return out
+
+
+@njit(cache=True)
+def _dipole_forces(F, D, delta, inv, out):  # pragma: no cover - compiled
+    """out[j, m] = inv[m, 0] F[j] + inv[m, 1] D[j, 0] / delta[j] + inv[m, 2] D[j, 1] / delta[j]
+    (:func:`dipole_forces`, in the order numpy's broadcast took)."""
+    for j in range(F.shape[0]):
+        d = delta[j]
+        for m in range(3):
+            for k in range(2):
+                out[j, m, k] = inv[m, 0] * F[j, k] + inv[m, 1] * (D[j, 0, k] / d) + inv[m, 2] * (D[j, 1, k] / d)
 
 
 @njit(cache=True, inline="always")
@@ -190,6 +208,21 @@ def _carrier_sets(F, D, T, delta, u3, f3, inv6, f6, nu1, nu2, q3, q6):  # pragma
         fro = D[j, 0, 0] ** 2 + D[j, 0, 1] ** 2 + D[j, 1, 0] ** 2 + D[j, 1, 1] ** 2
         det = D[j, 0, 0] * D[j, 1, 1] - D[j, 0, 1] * D[j, 1, 0]
         nu1[j] = math.sqrt(fro + 2.0 * abs(det))
+
+
+@njit(cache=True)
+def _stack(F, f3, f6, js, out):  # pragma: no cover - compiled
+    """out (10 n, 2) = F[js], then f3[js] (3 per cilium), then f6[js] (6 per cilium), n = len(js)
+    (:meth:`Carriers.stacked`)."""
+    n = js.shape[0]
+    for q in range(n):
+        j = js[q]
+        for k in range(2):
+            out[q, k] = F[j, k]
+            for m in range(3):
+                out[n + 3 * q + m, k] = f3[j, m, k]
+            for m in range(6):
+                out[4 * n + 6 * q + m, k] = f6[j, m, k]
 
 
 @njit(cache=True, parallel=True)
@@ -351,8 +384,12 @@ class Carriers:
 
     @staticmethod
     def stacked(F: np.ndarray, car: CarrierForces, js: np.ndarray) -> np.ndarray:
-        """(10 len(js), 2) the carriers' forces of cilia ``js`` in the order of :meth:`positions`."""
-        return np.concatenate([F[js], car.f3[js].reshape(-1, 2), car.f6[js].reshape(-1, 2)])
+        """(10 len(js), 2) the carriers' forces of cilia ``js`` in the order of :meth:`positions`
+        (one compiled gather: every evaluation of a carpet's flow stacks all its cilia's)."""
+        js = np.ascontiguousarray(js, dtype=np.int64)
+        out = np.empty((10 * js.size, 2))
+        _stack(np.ascontiguousarray(F, dtype=float), car.f3, car.f6, js, out)
+        return out
 
     def error_bound(self, targets: np.ndarray, thresholds: tuple, bounds: Bounds, car: CarrierForces,
                     mu: float) -> np.ndarray:

@@ -444,7 +444,7 @@ class CycleData:
             js = np.asarray(js, dtype=np.int64).reshape(-1)
             ph, coef, bases = ph[js], coef[js], bases[js]
         basis = _trig_basis(ph, self.harmonics)  # (N, 2K-1)
-        vals = np.einsum("jk,jksq->jsq", basis, coef, dtype=float, optimize=True)
+        vals = np.matmul(basis[:, None], coef.reshape(coef.shape[:2] + (-1,))).reshape(coef.shape[:1] + coef.shape[2:])
         return vals[..., :2] + bases[:, None, :], vals[..., 2:], ph
 
     def beat_velocity(self, t, js=None) -> np.ndarray:

@@ -89,7 +89,8 @@ from ciliary_carpet.transport.pathlines import UNDERFLOW, PathLines, pathlines
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Output", "OUTPUTS", "RenderContext", "MeanField", "SUMMARY", "pathline_error", "ERROR_SAMPLE",
+__all__ = ["Output", "OUTPUTS", "RenderContext", "MeanField", "SUMMARY", "pathline_error", "error_tracers",
+           "ERROR_SAMPLE", "PATHLINE_TOL", "PATHLINE_RTOL", "PATHLINE_ATOL", "REFERENCE_TIGHTER",
            "LayoutOutput", "DesignOutput", "MeanFieldOutput", "SnapshotsOutput", "FramesOutput",
            "PathLinesOutput", "FtleOutput", "PreviewOutput", "ParaViewOutput", "SummaryOutput"]
 
@@ -311,30 +312,58 @@ class FramesOutput(Output):
 
 ERROR_SAMPLE = 8
 """Tracers of a render re-integrated to estimate its path lines' end-point error (:func:`pathline_error`)."""
+PATHLINE_TOL = 1e-4
+"""Largest flow tolerance (levels of detail) of a render's time-resolved path lines: the scene's
+tolerance when tighter. The tracers' end points are far more sensitive to the flow's error than
+the fields are: measured on the designed uniform_deflection carpet at 30 x 30 (8 tracers over 142
+beats, against flow tol 1e-5, rtol 1e-9, atol 2e-7 L with the step cap halved;
+``benchmarks/bench_large.py --decompose``, benchmarks/results/bench_large.md), with the integration tight (rtol 1e-9, atol 2e-7 L) the end
+points are off by up to 2.1e-3 L at flow tol 1e-3, 9.5e-4 L at 3e-4 and 5e-5 L at 1e-4."""
+PATHLINE_RTOL = 1e-9
+PATHLINE_ATOL = 1e-7
+"""Local error test of a render's time-resolved path lines: rtol :data:`PATHLINE_RTOL`, atol this
+times the carpet's spacing [L]. The test is per step, the end-point error accumulates over the
+thousands of steps of a render (about 16 per beat): measured as above at flow tol 1e-4, atol
+2e-4 L (the settings before, rtol 1e-6) ends up to 4e-3 L off, 2e-6 L 1.1e-3 L, 2e-7 L 5e-5 L,
+for 22 % more steps than the first."""
+REFERENCE_TIGHTER = (3.0, 10.0)
+"""The reference of a render's end-point error estimate (:func:`pathline_error`): the flow
+tolerance divided by the first, rtol and atol by the second (the step cap unchanged: at these
+tolerances the local error test, not the cap, sets the steps; measured as above, halving the
+cap too moves the reference's end points by at most 4e-5 L)."""
+
+
+def error_tracers(k: int) -> np.ndarray:
+    """The indices of the :data:`ERROR_SAMPLE` tracers (spread evenly over ``k`` seeds) that
+    :func:`pathline_error` re-integrates."""
+    n = min(ERROR_SAMPLE, int(k))
+    return np.unique(np.linspace(0, int(k) - 1, n).round().astype(int))
 
 
 def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model: str, flow, tol: float,
                    spacing: float) -> dict:
-    """End-point error estimate of rendered path lines ``pl``: :data:`ERROR_SAMPLE` of its tracers
-    (spread evenly over the seeds) integrated again, against a more accurate run.
+    """End-point error estimate of rendered path lines ``pl`` in ``flow``: :data:`ERROR_SAMPLE` of
+    its tracers (:func:`error_tracers`) integrated again, against a more accurate run.
 
-    For the time-resolved flow the reference is rtol = 1e-8 (atol 1e-6 spacing) with the flow
-    tolerance ten times tighter: the estimate covers the integration and the levels of detail.
-    For the long-time model (``model == "mean"``, ``flow`` its :class:`MeanFlow`) the reference
-    is the time-resolved flow at the render's settings in the same domain (the flow's box): the
-    estimate is the model's error. Returns max and median of the end-point distances [L], the
-    tracers used and the reference in words."""
-    k = min(ERROR_SAMPLE, seeds.shape[0])
-    idx = np.unique(np.linspace(0, seeds.shape[0] - 1, k).round().astype(int))
+    For the time-resolved flow (``flow`` a :class:`ResolvedFlow`) the reference is the same
+    integration with every tolerance tightened (:data:`REFERENCE_TIGHTER`: the flow tolerance
+    ``flow.tol`` / 3, ``pl.rtol`` and ``pl.atol`` / 10): the estimate covers the integration and
+    the levels of detail. For the long-time model (``model == "mean"``, ``flow`` its
+    :class:`MeanFlow`) the reference is the time-resolved flow at the scene's tolerance ``tol``
+    in the same domain (the flow's box): the estimate is the model's error. Returns max and
+    median of the end-point distances [L], the tracers used and the reference in words."""
+    idx = error_tracers(seeds.shape[0])
     if model == "mean":
         ref = pathlines(ResolvedFlow(carpet, tol), seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing,
                         samples_per_period=1, domain=tuple(float(v) for v in flow.box))
         what = f"the time-resolved flow (rtol 1e-6, flow tol {tol:g}): the long-time model's error"
     else:
-        t_ref = max(tol / 10, 1e-6)
-        ref = pathlines(ResolvedFlow(carpet, t_ref), seeds[idx], (0.0, duration), rtol=1e-8, atol=1e-6 * spacing,
+        ft, ti = REFERENCE_TIGHTER
+        t_ref, rtol, atol = flow.tol / ft, pl.rtol / ti, pl.atol / ti
+        ref = pathlines(ResolvedFlow(carpet, t_ref), seeds[idx], (0.0, duration), rtol=rtol, atol=atol,
                         samples_per_period=1)
-        what = f"rtol 1e-8 and flow tol {t_ref:g}: integration and levels of detail"
+        what = (f"flow tol {t_ref:.3g}, rtol {rtol:.3g}, atol {atol:.3g} L (the render's path lines: flow tol "
+                f"{flow.tol:.3g}, rtol {pl.rtol:.3g}, atol {pl.atol:.3g} L): integration and levels of detail")
     e = np.linalg.norm(pl.end_points[idx] - ref.end_points, axis=1)
     return {"max": float(e.max()), "median": float(np.median(e)), "tracers": int(idx.size), "reference": what}
 
@@ -355,8 +384,11 @@ class PathLinesOutput(Output):
         seeds, duration, model = plan.seeds, plan.duration, plan.pathline_model
         L, T, _ = plan.units
         with ctx.timed("pathlines"):
-            flow = ctx.mean_flow() if model == "mean" else ResolvedFlow(c, tol)
-            pl = pathlines(flow, seeds, (0.0, duration), rtol=1e-6, atol=1e-4 * spacing,
+            if model == "mean":  # the model's own error (MEAN_MODEL_ERROR) is far above the integration's
+                flow, rtol, atol = ctx.mean_flow(), 1e-6, 1e-4 * spacing
+            else:
+                flow, rtol, atol = ResolvedFlow(c, min(tol, PATHLINE_TOL)), PATHLINE_RTOL, PATHLINE_ATOL * spacing
+            pl = pathlines(flow, seeds, (0.0, duration), rtol=rtol, atol=atol,
                            samples_per_period=o.samples_per_period)
             pl.write(ctx.stage / "pathlines.vtp", scales=plan.scales)
             pl.write_particles(ctx.stage / "particles.pvd", scales=plan.scales)
@@ -366,6 +398,7 @@ class PathLinesOutput(Output):
         ctx.summary["pathlines"] = {
             "tracers": int(seeds.shape[0]), "duration": duration * T, "duration_from": plan.duration_from,
             "periods": duration / plan.T0, "beats": duration / plan.beat.period, "model": model,
+            "flow_tol": flow.tol if model != "mean" else None, "rtol": rtol, "atol": atol * L,
             "samples_per_period": o.samples_per_period, "outcome": pl.counts(),
             "stopped_early": int(np.sum(pl.reason == UNDERFLOW)), "status": pl.status, "message": pl.message,
             "work": pl.stats, "end_point_error": dict(err, max=err["max"] * L, median=err["median"] * L)}
