@@ -516,7 +516,11 @@ class ThrustTable:
         if self._branch.size >= 2:
             b0, b1 = self.flutter_range
             flutter = (a >= b0) & (a <= b1)
-            if np.any(flutter):
+            if np.all(flutter):  # the usual case: no gather and scatter
+                u = self._u(a)
+                for k in FIELDS:
+                    out[k] = self._splines[k](u)
+            elif np.any(flutter):
                 u = self._u(a[flutter])
                 for k in FIELDS:
                     out[k][flutter] = self._splines[k](u)

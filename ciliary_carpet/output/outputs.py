@@ -197,7 +197,9 @@ def _looped(files: list, beat: float, span: float) -> list:
 
 
 class LayoutOutput(Output):
-    """``layout.vtp``: the cilia's base points with chi_N, thrust angle, flutter and near_cutoff."""
+    """``layout.vtp``: the cilia's base points with chi_N, thrust angle (in the flow each beats in),
+    flutter and near_cutoff; for a coupled carpet also ``background_flow``, the others' mean flow
+    at each cilium."""
 
     name = "layout"
     files = (r"layout\.vtp",)
@@ -207,13 +209,19 @@ class LayoutOutput(Output):
 
     def write(self, ctx):
         c, d = ctx.carpet, ctx.design
-        L = ctx.plan.units[0]
+        L, _, V = ctx.plan.units
         near = np.zeros(c.n, np.uint8)
         if d is not None:
             near[list(d.near_cutoff)] = 1
-        write_points(ctx.stage / "layout.vtp", np.column_stack([c.bases * L, np.zeros(c.n)]),
-                     {"chi_N": c.chi_N, "thrust_angle": c.table.scalar("thrust_angle", c.chi_N),
-                      "cilium_id": np.arange(c.n), "flutter": c.flutter.astype(np.uint8), "near_cutoff": near})
+        flow = {}
+        if c.background is not None:  # each cilium's thrust in the flow it beats in (field frame)
+            u = c.background @ c.rotation
+            flow = {"U_perp": u[:, 0], "U_par": u[:, 1]}
+        data = {"chi_N": c.chi_N, "thrust_angle": c.table.scalar("thrust_angle", c.chi_N, **flow),
+                "cilium_id": np.arange(c.n), "flutter": c.flutter.astype(np.uint8), "near_cutoff": near}
+        if c.background is not None:  # a coupled carpet: the others' mean flow at each cilium
+            data["background_flow"] = np.column_stack([c.background * V, np.zeros(c.n)])
+        write_points(ctx.stage / "layout.vtp", np.column_stack([c.bases * L, np.zeros(c.n)]), data)
         ctx.summary["layout"] = {"chi_N_min": float(c.chi_N.min()), "chi_N_max": float(c.chi_N.max())}
 
 
