@@ -215,3 +215,17 @@ def test_coupled_render(tmp_path, flow):
     np.testing.assert_allclose(m["background_flow"][:, :2], c.background, rtol=1e-9, atol=1e-12)
     u = c.background @ c.rotation
     np.testing.assert_allclose(m["thrust_angle"], flow.scalar("thrust_angle", c.chi_N, U_par=u[:, 1], U_perp=u[:, 0]))
+
+
+def test_one_cilium_and_a_wall(flow):
+    """One cilium feels nothing (no warning, zero flow); a wall screens the coupling and the planar
+    filaments cannot feel the mean flow's normal component, which the result reports."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        one = Carpet(np.zeros((1, 2)), CHI, flow, coupling="mean")
+    assert one.coupled.converged and one.coupled.contraction == 0.0 and not np.any(one.background)
+    free, wall = _carpet(flow, coupling="mean"), _carpet(flow, wall=0.5, coupling="mean")
+    assert wall.coupled.converged and wall.coupled.normal_flow > 0 and free.coupled.normal_flow == 0
+    assert wall.coupled.change()["relative_change_median"] < free.coupled.change()["relative_change_median"]

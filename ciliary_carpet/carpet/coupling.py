@@ -322,8 +322,11 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
     rho = 0.0
     for _ in range(10):
         y = A(np.einsum("jab,jb->ja", B, x.reshape(n, 2)).ravel())
-        rho = float(np.linalg.norm(y) / np.linalg.norm(x))
-        x = y / max(np.linalg.norm(y), 1e-300)
+        ny = float(np.linalg.norm(y))
+        rho = ny / float(np.linalg.norm(x))
+        if ny == 0.0:  # one cilium, or none beating: no coupling
+            break
+        x = y / ny
     normal = float(np.abs(m[:, 2]).max() / max(np.abs(U).max(), 1e-300))
     msg = {"converged": f"coupled: residual {res:.2g} <= rtol {rtol:g} after {it} Newton steps ({evals} evaluations)",
            "max_iter": f"NOT converged: residual {res:.2g} > rtol {rtol:g} after {it} Newton steps; raise max_iter",
