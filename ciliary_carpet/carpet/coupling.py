@@ -189,6 +189,13 @@ def _outside(carpet: Carpet, U: np.ndarray) -> np.ndarray:
     return (k["U_par"] < p0) | (k["U_par"] > p1) | (q < q0) | (q > q1)
 
 
+def _thrust(table, chi, U_par, U_perp, nu: int = 0) -> np.ndarray:
+    """(N, 2) the table's mean thrust (field frame) at (chi_N, U_par, U_perp), or its ``nu``-th
+    chi_N derivative."""
+    return np.stack([table.scalar(k, chi, nu, U_par=U_par, U_perp=U_perp) for k in ("thrust_x", "thrust_y")],
+                    axis=-1)
+
+
 def _thrust_derivative(carpet: Carpet, U: np.ndarray) -> np.ndarray:
     """(N, 2, 2) d Fbar_j / d U_j in the lab frame: central differences of step DU of the table's
     mean thrust (one-sided at the grid's edge)."""
@@ -198,9 +205,6 @@ def _thrust_derivative(carpet: Carpet, U: np.ndarray) -> np.ndarray:
     q, p = k["U_perp"], k["U_par"]
     sg = np.where(c < 0, -1.0, 1.0)  # the table's U_perp grid serves sg * U_perp
 
-    def thrust(pp, qq):
-        return np.stack([t.scalar("thrust_x", c, U_par=pp, U_perp=qq), t.scalar("thrust_y", c, U_par=pp, U_perp=qq)],
-                        axis=-1)
     J = np.empty((c.size, 2, 2))
     for col, (lo, hi, base) in enumerate(((q0, q1, q), (p0, p1, p))):
         mq = sg * q if col == 0 else base  # the grid coordinate of this component
@@ -209,7 +213,7 @@ def _thrust_derivative(carpet: Carpet, U: np.ndarray) -> np.ndarray:
         h = up - dn
         a = (sg * up, p) if col == 0 else (q, up)
         b = (sg * dn, p) if col == 0 else (q, dn)
-        J[:, :, col] = (thrust(a[1], a[0]) - thrust(b[1], b[0])) / (h * (sg if col == 0 else 1.0))[:, None]
+        J[:, :, col] = (_thrust(t, c, a[1], a[0]) - _thrust(t, c, b[1], b[0])) / (h * (sg if col == 0 else 1.0))[:, None]
     return R @ J @ R.T
 
 
@@ -409,9 +413,7 @@ class CouplingResponse:
     def forces(self, chi, nu: int = 0) -> np.ndarray:
         """(N, 2) the cilia's mean forces (lab frame) at curvatures ``chi`` in the coupled state's
         flows U (frozen), or their chi derivatives (``nu = 1``): the table's thrust at (chi_j, U_j)."""
-        c = np.asarray(chi, dtype=float)
-        F = np.stack([self._table.scalar(k, c, nu, **self._flow) for k in ("thrust_x", "thrust_y")], axis=-1)
-        return F @ self._rot.T
+        return _thrust(self._table, np.asarray(chi, dtype=float), nu=nu, **self._flow) @ self._rot.T
 
     def apply(self, dF: np.ndarray) -> np.ndarray:
         """(N, 2) Q dF."""
