@@ -58,6 +58,7 @@ from single_cilium.checks import finite, positive
 from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers
+from ciliary_carpet.carpet.coupling import COUPLINGS, couple
 from ciliary_carpet.carpet.cycles import CycleData, ResolvedSources
 from ciliary_carpet.carpet.traversal import Plan, Summed, dense_sum, flow_sum, make_plan
 from ciliary_carpet.stokes import Auto, Backend, Kernel, Wall, make_kernel, stokeslet_velocity_ranges
@@ -291,12 +292,10 @@ class Carpet:
                     raise ValueError(f"blob = {e:g} is larger than half the smallest spacing of the base points "
                                      f"({gap:g} L): the blobs of neighbouring filaments would overlap")
             object.__setattr__(self, "blob", e)
-        if self.coupling not in ("none", "mean"):
-            raise ValueError(f"coupling must be \"none\" or \"mean\", got {self.coupling!r}")
+        if self.coupling not in COUPLINGS:
+            raise ValueError(f"coupling must be one of {', '.join(COUPLINGS)}, got {self.coupling!r}")
         u = None
         if self.coupling == "mean":
-            from ciliary_carpet.carpet.coupling import couple  # the solve builds uncoupled carpets of this class
-
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # the bases are checked below
                 res = couple(replace(self, coupling="none", background=None))
