@@ -467,14 +467,13 @@ def test_cycle_moments_are_the_carpets(table):
 def test_stacked_carriers_in_the_order_of_their_positions(table):
     """Carriers.stacked puts the monopoles, then the dipoles' three, then the quadrupoles' six forces
     of the chosen cilia in the order Carriers.positions puts their points."""
-    from ciliary_carpet.carpet.carriers import Carriers
-
     c = Carpet(layout.square(3, 3, 2.0), np.linspace(-20, 20, 9), table, layout.random_phases(9, 1))
     F, D, T = c.cycles.moments_at(c.cycles.phase_at(0.3))
     car = c.carriers.forces(F, D, T)
     js = np.array([4, 0, 8, 2])
-    got = Carriers.stacked(F, car, js)
-    assert got.shape == (40, 2)
+    got = c.carriers.stacked(F, car, js)
+    assert got.shape == (40, 3) and np.all(got[:, 2] == 0.0)  # a planar carpet's forces lie in its plane
+    got = got[:, :2]
     np.testing.assert_array_equal(got, np.concatenate([F[js], car.f3[js].reshape(-1, 2), car.f6[js].reshape(-1, 2)]))
     np.testing.assert_array_equal(got[4 + 3 * 1:4 + 3 * 2], car.f3[0])  # cilium 0 is the second chosen
     assert c.carriers.positions(js).shape == (40, 3)

@@ -143,8 +143,12 @@ def test_wall_validation():
     stokeslet_velocity(T, S, F, wall=Wall(0.0))  # target on the wall: allowed
     with pytest.raises(ValueError, match="targets"):
         stokeslet_velocity(T, S, F, wall=Wall(0.1))
+    on = stokeslet_velocity(T[:1], S, F, wall=Wall(0.5))  # a source on the wall: allowed, and it makes no flow
+    assert np.all(on == 0.0)
+    on = stokeslet_velocity(T[:1], S, F, wall=Wall(0.5), kernel=make_kernel(Wall(0.5), 0.02))
+    assert np.abs(on).max() < 1e-15
     with pytest.raises(ValueError, match="sources"):
-        stokeslet_velocity(T, S, F, wall=Wall(0.5))  # source on the wall: not allowed
+        stokeslet_velocity(T[:1], S, F, wall=Wall(0.55))  # a source below the wall: not allowed
     with pytest.raises(ValueError, match="sources"):
         stokeslet_velocity_numpy(T, S, F, wall=Wall(0.6))
     with pytest.raises(ValueError, match="Wall.z"):

@@ -60,6 +60,8 @@ from single_cilium.table import ThrustTable
 from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers
 from ciliary_carpet.carpet.coupling import COUPLINGS, couple
 from ciliary_carpet.carpet.cycles import CycleData, ResolvedSources
+from ciliary_carpet.carpet.geometry import GEOMETRIES, Embedding
+from ciliary_carpet.carpet.geometry import standing as standing_embedding
 from ciliary_carpet.carpet.traversal import Plan, Summed, dense_sum, flow_sum, make_plan
 from ciliary_carpet.stokes import Auto, Backend, Kernel, Wall, make_kernel, stokeslet_velocity_ranges
 
@@ -223,6 +225,16 @@ class Carpet:
         None: each beats as in still fluid (the uncoupled model). A coupled carpet
         (:func:`~ciliary_carpet.carpet.coupling.couple`) sets it to the mean flow the other cilia
         make at each one.
+    geometry : ``"planar"`` (default: every filament in the plane z = 0, the field in it along
+        ``direction``) or ``"standing"``: cilium j clamped at ``bases[j]`` on the substrate z = 0,
+        the field along +z, its beat plane turned about the normal by ``azimuth[j]``
+        (:mod:`~ciliary_carpet.carpet.geometry`). A standing carpet's ``wall`` is the distance
+        h >= 0 of the no-slip wall below the clamps: 0 (the substrate itself, the device), or
+        None for free space (cilia on a substrate the flow does not see: the comparison with a
+        planar carpet).
+    azimuth : (N,) beat-plane azimuths psi_j of a standing carpet (radians anticlockwise from +x;
+        default all 0): cilium j's tangential thrust points along (cos psi_j, sin psi_j) for
+        chi_N > 0, the other way for chi_N < 0. Planar carpets take none.
     coupling : ``"none"`` (default: each cilium beats in ``background``, still fluid when None) or
         ``"mean"``: each beats in the mean flow the other cilia make at it, solved self-consistently
         when the carpet is made (:func:`~ciliary_carpet.carpet.coupling.couple` at its default
@@ -249,6 +261,8 @@ class Carpet:
     blob: float | None = BLOB
     background: np.ndarray | None = None
     coupling: str = "none"
+    geometry: str = "planar"
+    azimuth: np.ndarray | None = None
     cycles: CycleData = field(default=None, init=False, repr=False)
     carriers: Carriers = field(default=None, init=False, repr=False)
     _plans: dict = field(default=None, init=False, repr=False)
@@ -277,8 +291,29 @@ class Carpet:
         object.__setattr__(self, "direction", finite("direction", self.direction))
         if self.viscosity is not None:  # None: from the filaments' drag
             object.__setattr__(self, "viscosity", positive("viscosity", self.viscosity))
-        if self.wall is not None and not (math.isfinite(self.wall) and self.wall > 0):
-            raise ValueError(f"wall must be a positive distance below the plane (or None), got {self.wall!r}")
+        if self.geometry not in GEOMETRIES:
+            raise ValueError(f"geometry must be one of {', '.join(GEOMETRIES)}, got {self.geometry!r}")
+        standing = self.geometry == "standing"
+        psi = None
+        if standing:
+            psi = np.zeros(n) if self.azimuth is None else np.broadcast_to(
+                np.asarray(self.azimuth, dtype=float), (n,)).copy() if np.ndim(self.azimuth) == 0 \
+                else np.asarray(self.azimuth, dtype=float)
+            if psi.shape != (n,) or not np.all(np.isfinite(psi)):
+                raise ValueError(f"azimuth must be {n} finite angles (radians), got shape {psi.shape}")
+            if self.direction != 0.0:
+                raise ValueError("a standing carpet's field is along +z, normal to its substrate: turn its cilia "
+                                 f"with azimuth, not direction (got direction = {self.direction!r})")
+            if self.coupling != "none" or self.background is not None:
+                raise ValueError("coupling and background flows are modelled for planar carpets only: a standing "
+                                 "carpet's cilia beat as in still fluid (coupling = 'none', no background)")
+            psi = np.mod(psi, 2.0 * math.pi)
+        elif self.azimuth is not None:
+            raise ValueError("azimuth is for standing carpets (geometry = 'standing'); a planar carpet's field "
+                             "direction turns it")
+        if self.wall is not None and not (math.isfinite(self.wall) and (self.wall >= 0 if standing else self.wall > 0)):
+            raise ValueError(f"wall must be a {'distance >= 0 below the clamps' if standing else 'positive distance'} "
+                             f"below the plane (or None), got {self.wall!r}")
         if self.blob is not None:
             try:
                 e = float(self.blob)
@@ -316,17 +351,40 @@ class Carpet:
         object.__setattr__(self, "mu_source", "filaments" if self.viscosity is None else "given")
         object.__setattr__(self, "mu", sbt_viscosity(self.table.eta, self.filament_radius) if self.viscosity is None
                            else float(self.viscosity))
-        cycles = CycleData(self.table, self.chi_N, self.bases, self.phases, self.rotation, u)
+        object.__setattr__(self, "azimuth", psi)
+        if standing:  # each cilium's 2D frame is its beat plane, clamp at the origin
+            cycles = CycleData(self.table, self.chi_N, np.zeros((n, 2)), self.phases, np.eye(2), None,
+                               embedding=standing_embedding(b, psi))
+            self._check_above_substrate(cycles)
+        else:
+            cycles = CycleData(self.table, self.chi_N, self.bases, self.phases, self.rotation, u)
         object.__setattr__(self, "cycles", cycles)
         object.__setattr__(self, "carriers", Carriers(cycles, self.kernel))
         object.__setattr__(self, "_plans", {})
         self._warn_overlaps()
 
+    def _check_above_substrate(self, cycles: CycleData) -> None:
+        """A standing cilium must stay above its substrate (its 2D frame's y is the height)."""
+        low = np.concatenate([np.min(cycles.samples(np.arange(lo, min(lo + 256, self.n)))[0][..., 1], axis=(1, 2))
+                              for lo in range(0, self.n, 256)])
+        bad = np.nonzero(low < -1e-6)[0]
+        if bad.size:
+            j = int(bad[np.argmin(low[bad])])
+            raise ValueError(f"standing cilium {j} (chi_N = {self.chi_N[j]:g}) dips {-low[j]:.3g} L below its "
+                             "substrate during its beat: choose a smaller |chi_N| for it (a planar carpet has no "
+                             "substrate)")
+
     def _warn_overlaps(self) -> None:
         c = self.cycles
-        near = cKDTree(self.bases).query_ball_point(c.centre, c.radius)
-        bad = [(i, j) for j in range(self.n) for i in near[j]
-               if i != j and self.in_swept_region(self.bases[i][None], j)[0]]
+        if self.geometry == "standing":  # a base within a filament radius of another's swept region
+            base3 = np.concatenate([self.bases, np.zeros((self.n, 1))], axis=1)
+            near = cKDTree(self.bases).query_ball_point(c.centre3[:, :2], c.radius + 2 * self.filament_radius)
+            bad = [(i, j) for j in range(self.n) for i in near[j]
+                   if i != j and self.in_swept_region(base3[i][None], j, 2 * self.filament_radius)[0]]
+        else:
+            near = cKDTree(self.bases).query_ball_point(c.centre, c.radius)
+            bad = [(i, j) for j in range(self.n) for i in near[j]
+                   if i != j and self.in_swept_region(self.bases[i][None], j)[0]]
         if bad:
             warnings.warn(f"{len(bad)} cilium base(s) lie inside another cilium's swept region, e.g. base "
                           f"{bad[0][0]} in cilium {bad[0][1]}'s: the model ignores contact and hydrodynamic "
@@ -373,8 +431,31 @@ class Carpet:
 
     @property
     def mean_thrust(self) -> np.ndarray:
-        """(N, 2) cycle-mean force on the fluid, lab frame (the table's thrust, rotated)."""
+        """(N, 2) cycle-mean force on the fluid in each cilium's 2D frame: the lab plane of a
+        planar carpet (the table's thrust, rotated), the beat plane of a standing one (along
+        e_psi, e_z); :attr:`embedding` maps it into space (:meth:`in_space`)."""
         return self.cycles.F_mean.copy()
+
+    @property
+    def embedding(self) -> Embedding:
+        """The map of each cilium's 2D frame into space (:mod:`~ciliary_carpet.carpet.geometry`)."""
+        return self.cycles.embedding
+
+    def in_space(self, what: str, js=None) -> np.ndarray:
+        """``"centres"`` (N, 3): the force centres, or ``"mean_thrust"`` (N, 3): the cycle-mean
+        forces on the fluid, of cilia ``js`` (default all), in space."""
+        js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).reshape(-1)
+        if what == "centres":
+            return self.cycles.centre3[js].copy()
+        if what == "mean_thrust":
+            return self.embedding.vectors(self.cycles.F_mean[js], js)
+        raise ValueError(f"in_space knows 'centres' and 'mean_thrust', got {what!r}")
+
+    def state_in_space(self, t: float, js=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`state` mapped into space: positions (N, n_s, 3), forces per length on the fluid
+        (N, n_s, 3) and phases (N,) at time t (of cilia ``js``)."""
+        pos, frc, ph = self.cycles.state(t, js)
+        return self.embedding.points(pos, js), self.embedding.vectors(frc, js), ph
 
     @property
     def s(self) -> np.ndarray:
@@ -388,7 +469,12 @@ class Carpet:
 
     def filament_distance(self, points, t: float) -> np.ndarray:
         """(M,) distance of ``points`` (M, 2) or (M, 3) from the nearest filament at time ``t``
-        (to the sampled centre lines, the table's s grid; in-plane)."""
+        (to the sampled centre lines, the table's s grid; in-plane for a planar carpet, in
+        space for a standing one)."""
+        if self.geometry == "standing":
+            p = self._targets(points)
+            pos = self.state_in_space(t)[0]
+            return cKDTree(pos.reshape(-1, 3)).query(p)[0]
         p = np.asarray(points, dtype=float)[:, :2]
         pos, _, _ = self.state(t)
         return cKDTree(pos.reshape(-1, 2)).query(p)[0]
@@ -417,9 +503,18 @@ class Carpet:
         return self.cycles.samples(js)
 
     def in_swept_region(self, points, j: int, margin: float = 0.0) -> np.ndarray:
-        """Whether points (M, 2) lie in the convex hull of cilium j's swept region grown by
-        ``margin`` (conservative: the hull covers the region)."""
-        return self.cycles.in_swept_region(points, j, margin)
+        """Whether points (M, 2) (planar carpets: in the plane) or (M, 3) (in space: within
+        ``margin`` of cilium j's frame and, projected on it, in the region) lie in the convex
+        hull of cilium j's swept region grown by ``margin`` (conservative: the hull covers the
+        region)."""
+        p = np.asarray(points, dtype=float)
+        if p.ndim == 2 and p.shape[1] == 3:
+            e = self.embedding
+            rel = p - e.origin[j]
+            q = rel @ e.axes[j]  # (M, 2) in cilium j's frame
+            off = np.linalg.norm(rel - q @ e.axes[j].T, axis=1)
+            return (off <= margin) & self.cycles.in_swept_region(q, j, margin)
+        return self.cycles.in_swept_region(p, j, margin)
 
     # ------------------------------------------------------------------ flow
     def evaluate(self, points, when: When, tol: float = 1e-3) -> FlowSample:
@@ -485,7 +580,7 @@ class Carpet:
         F, D, T = when.moments(self.cycles, ph)
         car = self.carriers.forces(F, D, T)
         evaluator = self.backend if self.backend is not None else _AUTO
-        s = flow_sum(x, plan, Carriers.stacked(F, car, plan.order), sources, self.n, self.kernel, evaluator, self.mu)
+        s = flow_sum(x, plan, self.carriers.stacked(F, car, plan.order), sources, self.n, self.kernel, evaluator, self.mu)
         return s, plan, car
 
     def _targets(self, points) -> np.ndarray:
@@ -495,6 +590,9 @@ class Carpet:
         if not np.all(np.isfinite(p)):
             raise ValueError("points contain NaN or inf")
         if p.shape[1] == 2:
+            if self.geometry == "standing":
+                raise ValueError("a standing carpet's flow is three-dimensional: give points (M, 3) (heights above "
+                                 "its substrate z = 0)")
             p = np.concatenate([p, np.zeros((p.shape[0], 1))], axis=1)
         if self.wall is not None and np.any(p[:, 2] < -self.wall):
             raise ValueError(f"points lie below the wall at z = {-self.wall:g}")

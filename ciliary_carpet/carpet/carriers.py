@@ -52,7 +52,10 @@ benchmarks/results/bench_calibration.md: the worst-case alignments and signs tha
 up do not occur, see :data:`LOD_SLACK`). Small carpets average less: 3 x 3 cilia reach 0.73 tol (free space, tol
 1e-3) and a lone cilium 4.4 tol (tol 1e-2; 2.1 at 1e-3, 0.7 at 1e-4), the rigorous bound holding.
 
-Shapes: per cilium arrays (N,); carrier forces (N, 3, 2) and (N, 6, 2), in-plane, lab frame.
+Shapes: per cilium arrays (N,); carrier forces (N, 3, 2) and (N, 6, 2) in each cilium's 2D frame
+(:mod:`~ciliary_carpet.carpet.geometry`), mapped into space when stacked. A standing carpet's
+frames are vertical: its bounds take the kernel's constants for any direction (larger with a
+wall: :meth:`Kernel.taylor_constants <ciliary_carpet.stokes.kernel.Kernel.taylor_constants>`).
 """
 from __future__ import annotations
 
@@ -211,25 +214,27 @@ def _carrier_sets(F, D, T, delta, u3, f3, inv6, f6, nu1, nu2, q3, q6):  # pragma
 
 
 @njit(cache=True)
-def _stack(F, f3, f6, js, out):  # pragma: no cover - compiled
-    """out (10 n, 2) = F[js], then f3[js] (3 per cilium), then f6[js] (6 per cilium), n = len(js)
-    (:meth:`Carriers.stacked`)."""
+def _stack(F, f3, f6, js, axes, out):  # pragma: no cover - compiled
+    """out (10 n, 3) = F[js], then f3[js] (3 per cilium), then f6[js] (6 per cilium), n = len(js),
+    each mapped into space by its cilium's axes (N, 3, 2) (:meth:`Carriers.stacked`)."""
     n = js.shape[0]
     for q in range(n):
         j = js[q]
-        for k in range(2):
-            out[q, k] = F[j, k]
+        for k in range(3):
+            a0 = axes[j, k, 0]
+            a1 = axes[j, k, 1]
+            out[q, k] = a0 * F[j, 0] + a1 * F[j, 1]
             for m in range(3):
-                out[n + 3 * q + m, k] = f3[j, m, k]
+                out[n + 3 * q + m, k] = a0 * f3[j, m, 0] + a1 * f3[j, m, 1]
             for m in range(6):
-                out[4 * n + 6 * q + m, k] = f6[j, m, k]
+                out[4 * n + 6 * q + m, k] = a0 * f6[j, m, 0] + a1 * f6[j, m, 1]
 
 
 @njit(cache=True, parallel=True)
 def _tier_bound(targets, centre, radius, R1, R2, R3, a1, b1, a2, b2, b3, out):  # pragma: no cover - compiled
     """out[i] = sum over the cilia j summed cheaply for targets[i] (M, 3) of the Taylor bound of
-    their order (times 8 pi mu; module docstring), R the distance from the force centre c_j (in
-    the plane z = 0), d = R - a_j:
+    their order (times 8 pi mu; module docstring), R the distance from the force centre c_j
+    (``centre`` (N, 3), in space), d = R - a_j:
 
     * R >= R1[j] (monopole): a1_j / R^2 + b1_j / d^3;
     * R2[j] <= R < R1[j] (dipole): a2_j / R^3 + b2_j / d^4;
@@ -241,14 +246,15 @@ def _tier_bound(targets, centre, radius, R1, R2, R3, a1, b1, a2, b2, b3, out):  
     for i in prange(targets.shape[0]):
         x = targets[i, 0]
         y = targets[i, 1]
-        z2 = targets[i, 2] * targets[i, 2]
+        z = targets[i, 2]
         acc = 0.0
         for j in range(n):
             if R1[j] < 0.0:
                 continue
             dx = x - centre[j, 0]
             dy = y - centre[j, 1]
-            R = math.sqrt(dx * dx + dy * dy + z2)
+            dz = z - centre[j, 2]
+            R = math.sqrt(dx * dx + dy * dy + dz * dz)
             d = R - radius[j]
             if R >= R1[j]:
                 acc += a1[j] / (R * R) + b1[j] / (d * d * d)
@@ -331,6 +337,10 @@ class Carriers:
     def __init__(self, cycles: CycleData, kernel: Kernel):
         self.cycles, self.kernel = cycles, kernel
         self.delta = 0.5 * np.maximum(cycles.radius, 1e-12)
+        self.constants = kernel.taylor_constants(cycles.embedding.in_plane)
+        """(c1, c2, c3): the kernel's Taylor constants for the directions the cilia's frames take
+        (in the plane of a wall, or any: :meth:`Kernel.taylor_constants
+        <ciliary_carpet.stokes.kernel.Kernel.taylor_constants>`)."""
 
     def forces(self, F: np.ndarray, D: np.ndarray, T: np.ndarray, delta: np.ndarray | None = None) -> CarrierForces:
         """The carriers for moments F (K, 2), D (K, 2, 2), T (K, 2, 2, 2) of cilia of carrier scale
@@ -369,26 +379,28 @@ class Carriers:
         return self._bounds(S, car.nu1, car.nu2, car.q3, car.q6, c.Q2_mean, c.Q_mean, 1.0)
 
     def _bounds(self, S, nu1, nu2, q3, q6, Q2, Q3, margin) -> Bounds:
-        k = self.kernel
-        return Bounds(S=S, a1=margin * k.c1 * nu1, b1=0.5 * k.c2 * Q2, a2=margin * 0.5 * k.c2 * nu2,
-                      b2=k.c3 / 6.0 * (Q3 + q3), b3=k.c3 / 6.0 * (Q3 + q6), Q3=Q3, radius=self.cycles.radius)
+        c1, c2, c3 = self.constants
+        return Bounds(S=S, a1=margin * c1 * nu1, b1=0.5 * c2 * Q2, a2=margin * 0.5 * c2 * nu2,
+                      b2=c3 / 6.0 * (Q3 + q3), b3=c3 / 6.0 * (Q3 + q6), Q3=Q3, radius=self.cycles.radius)
 
     def positions(self, js: np.ndarray) -> np.ndarray:
-        """(10 len(js), 3) the carriers' positions (z = 0) of cilia ``js`` in the order a ranged
+        """(10 len(js), 3) the carriers' positions in space of cilia ``js`` in the order a ranged
         sum reads them: the monopoles (at c_j), then the dipoles' three, then the quadrupoles' six
-        per cilium."""
+        per cilium (placed in each cilium's 2D frame, then embedded:
+        :class:`~ciliary_carpet.carpet.geometry.Embedding`)."""
+        js = np.asarray(js, dtype=np.int64)
         cen, dl = self.cycles.centre[js], self.delta[js][:, None, None]
-        pos = np.concatenate([cen, (cen[:, None] + dl * DIPOLE[None]).reshape(-1, 2),
-                              (cen[:, None] + dl * QUADRUPOLE[None]).reshape(-1, 2)])
-        return np.concatenate([pos, np.zeros((pos.shape[0], 1))], axis=1)
+        emb = self.cycles.embedding
+        parts = [cen[:, None], cen[:, None] + dl * DIPOLE[None], cen[:, None] + dl * QUADRUPOLE[None]]
+        return np.concatenate([emb.points(q, js).reshape(-1, 3) for q in parts])
 
-    @staticmethod
-    def stacked(F: np.ndarray, car: CarrierForces, js: np.ndarray) -> np.ndarray:
-        """(10 len(js), 2) the carriers' forces of cilia ``js`` in the order of :meth:`positions`
-        (one compiled gather: every evaluation of a carpet's flow stacks all its cilia's)."""
+    def stacked(self, F: np.ndarray, car: CarrierForces, js: np.ndarray) -> np.ndarray:
+        """(10 len(js), 3) the carriers' forces in space of cilia ``js`` in the order of
+        :meth:`positions` (one compiled gather: every evaluation of a carpet's flow stacks all its
+        cilia's)."""
         js = np.ascontiguousarray(js, dtype=np.int64)
-        out = np.empty((10 * js.size, 2))
-        _stack(np.ascontiguousarray(F, dtype=float), car.f3, car.f6, js, out)
+        out = np.empty((10 * js.size, 3))
+        _stack(np.ascontiguousarray(F, dtype=float), car.f3, car.f6, js, self.cycles.embedding.axes, out)
         return out
 
     def error_bound(self, targets: np.ndarray, thresholds: tuple, bounds: Bounds, car: CarrierForces,
@@ -396,11 +408,11 @@ class Carriers:
         """(M,) the rigorous bound of |u - u_resolved| at ``targets`` (M, 3): per target the
         Taylor bounds of the cilia summed cheaply at the orders the ``thresholds`` (R1, R2, R3)
         give them (:func:`_tier_bound`), at the current moments (``car``)."""
-        k = self.kernel
-        k3 = k.c3 / 6.0
+        c1, c2, c3 = self.constants
+        k3 = c3 / 6.0
         Q3 = bounds.Q3
         out = np.zeros(targets.shape[0])
         R1, R2, R3 = thresholds
-        _tier_bound(targets, self.cycles.centre, self.cycles.radius, R1, R2, R3, k.c1 * car.nu1, bounds.b1,
-                    0.5 * k.c2 * car.nu2, k3 * (Q3 + car.q3), k3 * (Q3 + car.q6), out)
+        _tier_bound(targets, self.cycles.centre3, self.cycles.radius, R1, R2, R3, c1 * car.nu1, bounds.b1,
+                    0.5 * c2 * car.nu2, k3 * (Q3 + car.q3), k3 * (Q3 + car.q6), out)
         return out / (8 * math.pi * mu)

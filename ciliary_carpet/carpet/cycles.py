@@ -42,6 +42,8 @@ from single_cilium.equilibrium import equilibrium_shape
 from single_cilium.params import CiliumParams
 from single_cilium.table import ThrustTable
 
+from ciliary_carpet.carpet.geometry import Embedding, planar
+
 __all__ = ["CycleData", "CycleMoments", "ResolvedSources", "cycle_moments", "simpson"]
 
 _CHUNK = 128
@@ -302,12 +304,13 @@ def _interpolant(x, y, fx, fy, rot, w, cos_p, sin_p, mk, cos_m, sin_m, coef, mom
 
 
 @njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
-def _blocks(coef, basis, wgt, bases, jc, src, frc):  # pragma: no cover - compiled
+def _blocks(coef, basis, wgt, bases, origin, axes, jc, src, frc):  # pragma: no cover - compiled
     """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
-    ``frc``, (len(jc) * blk, 3), z = 0, blk = P n_s) holds the resolved sources of cilium
+    ``frc``, (len(jc) * blk, 3), blk = P n_s) holds the resolved sources of cilium
     j = jc[i] -- its trigonometric interpolant (coef (N, 2K-1, n_s, 4)) at the P phases whose
     basis rows are ``basis[i]`` (len(jc), P, 2K-1), positions plus the base, forces times
-    ``wgt`` (n_s,)."""
+    ``wgt`` (n_s,) -- embedded in 3D: position origin[j] + axes[j] @ p, force axes[j] @ f
+    (:class:`Embedding`)."""
     n_s = coef.shape[2]
     nk = coef.shape[1]
     P = basis.shape[1]
@@ -328,12 +331,13 @@ def _blocks(coef, basis, wgt, bases, jc, src, frc):  # pragma: no cover - compil
                     v[r] += e * cj[k, r]
             for s in range(n_s):
                 r = o + p * n_s + s
-                src[r, 0] = v[4 * s] + bases[j, 0]
-                src[r, 1] = v[4 * s + 1] + bases[j, 1]
-                src[r, 2] = 0.0
-                frc[r, 0] = v[4 * s + 2] * wgt[s]
-                frc[r, 1] = v[4 * s + 3] * wgt[s]
-                frc[r, 2] = 0.0
+                px = v[4 * s] + bases[j, 0]
+                py = v[4 * s + 1] + bases[j, 1]
+                fx = v[4 * s + 2] * wgt[s]
+                fy = v[4 * s + 3] * wgt[s]
+                for q in range(3):
+                    src[r, q] = origin[j, q] + axes[j, q, 0] * px + axes[j, q, 1] * py
+                    frc[r, q] = axes[j, q, 0] * fx + axes[j, q, 1] * fy
 
 
 
@@ -353,6 +357,8 @@ class CycleData:
         the flow is needed for a non-zero flow. A cilium that does not flutter in its flow keeps
         the equilibrium shape of still fluid (the table stores no steady shape in a flow) with
         the steady state's force in the flow (the table's).
+    embedding : the map of each cilium's 2D frame (where ``bases``, ``rotation`` and every 2D
+        array here live) into space (:mod:`~ciliary_carpet.carpet.geometry`); default planar.
 
     Attributes
     ----------
@@ -368,8 +374,9 @@ class CycleData:
     """
 
     def __init__(self, table: ThrustTable, chi_N: np.ndarray, bases: np.ndarray, phases: np.ndarray,
-                 rotation: np.ndarray, background: np.ndarray | None = None):
+                 rotation: np.ndarray, background: np.ndarray | None = None, embedding: Embedding | None = None):
         n = bases.shape[0]
+        embedding = planar(n) if embedding is None else embedding
         flow = {}
         if background is not None:  # the field-frame components (U_perp along e1, U_par along e2)
             u = np.asarray(background, dtype=float) @ rotation
@@ -406,7 +413,7 @@ class CycleData:
         period = np.full(n, np.nan)
         if np.any(fl):
             period[fl] = table.scalar("period", chi_N[fl], **{k: v[fl] for k, v in flow.items()})
-        self.bases, self.phases = bases, phases
+        self.bases, self.phases, self.embedding = bases, phases, embedding
         self.flutter, self.period = fl, period
         self.rate = np.where(fl, 1.0 / np.where(fl, period, 1.0), 0.0)
         self.s, self.weights, self.n_s, self.n_phase = s, w, n_s, n_p
@@ -423,6 +430,13 @@ class CycleData:
     def n(self) -> int:
         """Number of cilia."""
         return self.coef.shape[0]
+
+    @property
+    def centre3(self) -> np.ndarray:
+        """(N, 3) the force centres in space (:attr:`embedding` of :attr:`centre`)."""
+        if getattr(self, "_centre3", None) is None:
+            self._centre3 = np.ascontiguousarray(self.embedding.points(self.centre))
+        return self._centre3
 
     def phase_at(self, t: float) -> np.ndarray:
         """(N,) phase of every cilium at time t, in [0, 1)."""
@@ -502,7 +516,7 @@ class ResolvedSources:
             self.block = cycles.n_s
 
     def fill(self, jc: np.ndarray, src: np.ndarray, frc: np.ndarray) -> None:
-        """The sources (positions, z = 0) and forces (Simpson weights included) of cilia ``jc``
+        """The sources (positions in space) and forces (Simpson weights included) of cilia ``jc``
         into ``src``, ``frc`` (len(jc) * block, 3), block after block (:func:`_blocks`)."""
         c = self.cycles
         if self.phases is None:
@@ -510,7 +524,8 @@ class ResolvedSources:
         else:
             bs = np.empty((len(jc), 1, c.coef.shape[1]))
             _basis(self.phases[jc], c.harmonics, bs)
-        _blocks(c.coef, bs, self._weights, c.bases, np.asarray(jc, np.int64), src, frc)
+        e = c.embedding
+        _blocks(c.coef, bs, self._weights, c.bases, e.origin, e.axes, np.asarray(jc, np.int64), src, frc)
 
 
 class CycleMoments:

@@ -105,11 +105,11 @@ def _upper(targets, cell_ptr, x0, y0, h, nx, ny, reach, n_always, uptr):  # prag
 
 
 @njit(cache=True, parallel=True)
-def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+def _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
               uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover - compiled
     """Per target i (M, 3) the list of source ranges of one ranged sum: each present cilium q
-    (sorted by grid cell: centres scx, scy, the squares of the thresholds sR1, sR2, sR3, cilium
-    index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
+    (sorted by grid cell: centres scx, scy, scz, the squares of the thresholds sR1, sR2, sR3,
+    cilium index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
     the target: its monopole carrier (row q) when R >= R1, else its three dipole carriers (rows
     n_p + 3q ...) when R >= R2, else its six quadrupole carriers (rows 4 n_p + 6q ...) when R >= R3,
     else its resolved block (an empty range, filled by the caller; the cilium and the range
@@ -117,7 +117,8 @@ def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny,
 
     Only the cilia of the (2 reach + 1)^2 cells around the target's (origin x0, y0, nx x ny
     cells of side h; cell c holds the sorted cilia cell_ptr[c] ... cell_ptr[c + 1]) are looked
-    at: every other cilium is further than reach h and is summed at the order ``far`` (0, 1 or 2),
+    at (the grid is over x, y: a distance in space is at least the one in the plane): every
+    other cilium is further than reach h and is summed at the order ``far`` (0, 1 or 2),
     taken as the runs between those cells; the caller makes reach h at least the threshold of
     that order (max R1 for monopoles, max R2 for dipoles, with R1 = inf). The cilia ``always``
     (no finite threshold) are resolved for every target.
@@ -129,7 +130,7 @@ def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny,
     for i in prange(targets.shape[0]):
         x = targets[i, 0]
         y = targets[i, 1]
-        z2 = targets[i, 2] * targets[i, 2]
+        z = targets[i, 2]
         gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
         r = uptr[i]
         k = uptr[i]
@@ -157,7 +158,8 @@ def _traverse(targets, scx, scy, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny,
             for q in range(a, b):
                 dx = x - scx[q]
                 dy = y - scy[q]
-                R2 = dx * dx + dy * dy + z2  # squared distance against squared thresholds
+                dz = z - scz[q]
+                R2 = dx * dx + dy * dy + dz * dz  # squared distance against squared thresholds
                 if R2 >= sR1[q]:
                     t = 0
                 elif R2 >= sR2[q]:
@@ -233,8 +235,8 @@ class Plan:
     cilia resolved for every target (no finite threshold); ``carriers`` (10 n_p, 3) their
     carriers' positions (:meth:`Carriers.positions <.carriers.Carriers.positions>`); ``far`` the
     order of the cilia beyond the cells around a target (0 monopole, 1 dipole, 2 quadrupole);
-    ``traverse`` the arguments of :func:`_traverse` after the targets (the sorted centres and
-    squared thresholds, the grid: cell pointers, origin, cell side, cells per side, reach)."""
+    ``traverse`` the arguments of :func:`_traverse` after the targets (the sorted centres in
+    space and squared thresholds, the grid: cell pointers, origin, cell side, cells per side, reach)."""
 
     thresholds: tuple
     order: np.ndarray
@@ -246,7 +248,7 @@ class Plan:
     @property
     def grid(self) -> tuple:
         """The arguments of :func:`_upper` that describe the grid (cell_ptr, x0, y0, h, nx, ny, reach)."""
-        return self.traverse[6:13]
+        return self.traverse[7:14]
 
 
 def _far_order(cen: np.ndarray, R: tuple) -> int:
@@ -282,7 +284,8 @@ def make_plan(thresholds: tuple, carriers: Carriers, far: int | None = None) -> 
     chosen per target with cells of side max R_far / 2 (at most 4096 a side), the cheaper orders'
     thresholds made infinite for them, and their carriers' positions in grid order."""
     R1, R2, R3 = thresholds
-    centre = carriers.cycles.centre
+    centre3 = carriers.cycles.centre3
+    centre = centre3[:, :2]
     js = np.nonzero(np.isfinite(R3) & (R3 >= 0))[0]
     always = np.nonzero(np.isinf(R3))[0].astype(np.int64)
     reach = 2
@@ -307,10 +310,11 @@ def make_plan(thresholds: tuple, carriers: Carriers, far: int | None = None) -> 
     else:
         order, cell_ptr, x0, y0, h, nx, ny = np.zeros(0, np.int64), np.zeros(2, np.int64), 0.0, 0.0, 1.0, 1, 1
     sj = js[order].astype(np.int64)
-    cen = centre[sj]
+    cen = centre3[sj]
     return Plan(thresholds=(R1, R2, R3), order=sj, always=always, carriers=carriers.positions(sj), far=f,
-                traverse=(np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1]), R1[sj] ** 2, R2[sj] ** 2,
-                          R3[sj] ** 2, sj, cell_ptr, x0, y0, h, nx, ny, reach, f, always))
+                traverse=(np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1]),
+                          np.ascontiguousarray(cen[:, 2]), R1[sj] ** 2, R2[sj] ** 2, R3[sj] ** 2, sj, cell_ptr, x0, y0,
+                          h, nx, ny, reach, f, always))
 
 
 @dataclass(frozen=True, eq=False)
@@ -353,7 +357,7 @@ def dense_sum(targets: np.ndarray, js: np.ndarray, sources: ResolvedSources, ker
 def flow_sum(targets: np.ndarray, plan: Plan, forces: np.ndarray, sources: ResolvedSources, n: int,
              kernel: Kernel, evaluator, mu: float) -> Summed:
     """Per target (M, 3) one ranged sum (module docstring): every cilium of the ``n`` at the
-    order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 2) (in the
+    order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 3) (in the
     order of ``plan.carriers``), or its resolved ``sources``; ``evaluator`` runs the sums."""
     m = targets.shape[0]
     sj = plan.order
@@ -396,8 +400,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces: np.ndarray, sources: Resol
         src, frc = np.empty((off + jc.size * blk, 3)), np.empty((off + jc.size * blk, 3))
         if k == 0:
             src[:n_car] = plan.carriers
-            frc[:n_car, :2] = forces
-            frc[:n_car, 2] = 0.0
+            frc[:n_car] = forces
             rng, p = ranges, ptr
             _block_ranges(res_j, res_r, local, per, k, off, blk, rng)
         else:

@@ -39,7 +39,7 @@ validated in ``__post_init__``), registered in
 Both sums may assume what :func:`validated` and :func:`validated_ranges` establish: ``targets``
 (M, 3), ``sources`` (N, 3), ``forces`` (N, 3) C-contiguous finite float64 arrays, ``M, N >= 1``
 (``K >= 1`` ranges); ``mu`` a finite float > 0; the points where the kernel is defined
-(:meth:`~ciliary_carpet.stokes.kernel.Kernel.check_points`: sources strictly above / targets on
+(:meth:`~ciliary_carpet.stokes.kernel.Kernel.check_points`: sources and targets on
 or above its wall); valid ``ptr`` (M + 1,) and ``ranges`` (K, 2) int64 arrays. They return the
 (M, 3) float64 velocities, skipping the singular term of a coincident pair (``R = 0``; with a
 wall the image terms of that source are regular and are kept).

@@ -22,7 +22,7 @@ Conventions shared by every function here:
 * a target that coincides with a source (``R = 0``) gets no contribution from that source's
   singular Stokeslet (the term is skipped, i.e. counts as zero); with a wall, the image terms of
   that source are regular and are kept;
-* sources lie strictly above the wall, targets above or on it;
+* sources and targets lie on or above the wall (a source on it makes no flow);
 * ``M = 0`` or ``N = 0`` give zeros of shape ``(M, 3)``.
 
 The evaluators, by the names a scene or the command line gives (:data:`BACKENDS`,
@@ -211,8 +211,8 @@ def stokeslet_velocity(targets: Any, sources: Any, forces: Any, mu: float = 1.0,
     backend : Backend, optional
         Evaluation strategy; default :class:`Auto` ().
     kernel : Kernel, optional
-        The Green's function; default ``make_kernel(wall)``. Sources strictly above its wall,
-        targets on or above it.
+        The Green's function; default ``make_kernel(wall)``. Sources and targets on or above
+        its wall.
 
     Returns
     -------

@@ -77,7 +77,8 @@ from numba import njit
 
 __all__ = ["Wall", "Kernel", "Stokeslet", "Blake", "RegularisedStokeslet", "RegularisedBlake", "KERNELS",
            "PAIRS", "make_kernel", "blake_tensor", "regularised_blake_tensor",
-           "C1_FREE", "C1_WALL", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL",
+           "C1_FREE", "C1_WALL", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL", "C1_WALL_ANY", "C2_WALL_ANY",
+           "C3_WALL_ANY",
            "INV_8PI", "FASTMATH", "PAIR_CONSTANTS", "rsqrt"]
 
 C1_FREE = 2.0
@@ -102,6 +103,16 @@ the Taylor constant of the third-order levels of detail."""
 C3_WALL = 64.0
 """The same for Blake's tensor times R^4, over wall heights and directions (sampled maximum 12.9,
 tested; a wide margin as for C2_WALL)."""
+
+C1_WALL_ANY = 12.0
+"""C1 for Blake's tensor and source displacements and forces of any direction (not only parallel
+to the wall: a standing carpet's vertical beat planes), times R^2 (sampled maximum 5.6 over
+24,000 heights from 10^-2.5 to 10 and directions, singular and regularised, tested; a margin of
+2 as for :data:`C1_WALL`)."""
+C2_WALL_ANY = 48.0
+"""C2 likewise for any direction, times R^3 (sampled maximum 22.5, tested)."""
+C3_WALL_ANY = 256.0
+"""C3 likewise for any direction, times R^4 (sampled maximum 118, tested)."""
 
 INV_8PI = 1.0 / (8.0 * math.pi)
 """The prefactor of every sum, ``u = INV_8PI / mu * sum_j G f_j``."""
@@ -194,7 +205,10 @@ class Kernel(ABC):
         (heights from :attr:`z_origin`, no ``1/(8 pi mu)``), in an algebra independent of
         ``pair`` (the tests compare the two; :mod:`ciliary_carpet.stokes.reference`).
     ``c1``, ``c2``, ``c3`` : float (class attributes)
-        Taylor constants of the levels of detail (module docstring).
+        Taylor constants of the levels of detail (module docstring), for source displacements
+        and forces parallel to the wall (any direction in free space).
+    ``c_any`` : tuple or None (class attribute, default None: the same)
+        The constants for displacements and forces of any direction (:meth:`taylor_constants`).
     ``symmetric`` : bool (class attribute, default True)
         Whether ``G_ij(x, y) = G_ji(y, x)`` (the treecode's adjoint needs it).
     ``eps``, ``wall`` (fields or class attributes)
@@ -212,6 +226,14 @@ class Kernel(ABC):
     c2: ClassVar[float]
     c3: ClassVar[float]
     symmetric: ClassVar[bool] = True
+    c_any: ClassVar[tuple | None] = None
+
+    def taylor_constants(self, in_plane: bool) -> tuple[float, float, float]:
+        """(c1, c2, c3) for source displacements and forces parallel to the wall (``in_plane``:
+        a planar carpet's) or of any direction (a standing carpet's vertical beat planes)."""
+        if in_plane or self.c_any is None:
+            return (self.c1, self.c2, self.c3)
+        return self.c_any
 
     @staticmethod
     @abstractmethod
@@ -239,13 +261,14 @@ class Kernel(ABC):
 
     def check_points(self, targets: np.ndarray, sources: np.ndarray) -> None:
         """Raise ValueError unless the (M, 3) ``targets`` and (N, 3) ``sources`` lie where this
-        Green's function is defined: with a wall, sources strictly above it, targets on or above."""
+        Green's function is defined: with a wall, sources and targets on or above it (a source on
+        the wall, such as a standing cilium's clamp, makes no flow: its image cancels it)."""
         if self.wall is None:
             return
         z = self.wall.z
-        if sources.shape[0] and not np.all(sources[:, 2] > z):
+        if sources.shape[0] and not np.all(sources[:, 2] >= z):
             k = int(np.argmin(sources[:, 2]))
-            raise ValueError(f"sources must lie strictly above the wall z = {z}: sources[{k}] has z = {sources[k, 2]}")
+            raise ValueError(f"sources must lie on or above the wall z = {z}: sources[{k}] has z = {sources[k, 2]}")
         if targets.shape[0] and not np.all(targets[:, 2] >= z):
             k = int(np.argmin(targets[:, 2]))
             raise ValueError(f"targets must lie on or above the wall z = {z}: targets[{k}] has z = {targets[k, 2]}")
@@ -390,6 +413,7 @@ class Blake(Kernel):
     wall: Wall = Wall()
     name = "blake"
     c1, c2, c3 = C1_WALL, C2_WALL, C3_WALL
+    c_any = (C1_WALL_ANY, C2_WALL_ANY, C3_WALL_ANY)
     pair = staticmethod(_pair_wall)
 
     def __post_init__(self) -> None:
@@ -488,6 +512,7 @@ class RegularisedBlake(Kernel):
     wall: Wall = Wall()
     name = "regularised-blake"
     c1, c2, c3 = C1_WALL, C2_WALL, C3_WALL
+    c_any = (C1_WALL_ANY, C2_WALL_ANY, C3_WALL_ANY)
     pair = staticmethod(_pair_regwall)
 
     def __post_init__(self) -> None:
