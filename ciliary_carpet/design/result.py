@@ -48,7 +48,10 @@ class Design:
     swept region (``count``, ``indices`` into the control points as given, ``action`` "use",
     "downweight" or "drop", ``weight``); weights (P,): the control points' weights in the
     objective and in residual_rms (None: all 1; "downweight" gives the inside points
-    :data:`~ciliary_carpet.design.inverse.INSIDE_WEIGHT`), residual_rms = sqrt(sum w_k r_k^2 / sum w_k)."""
+    :data:`~ciliary_carpet.design.inverse.INSIDE_WEIGHT`), residual_rms = sqrt(sum w_k r_k^2 / sum w_k);
+    azimuth (N,) and height: a standing carpet's beat-plane azimuths psi [rad] and the height of its
+    surface-flow plane (:mod:`~ciliary_carpet.design.surface`; None for a planar carpet), whose
+    targets and flows are then absolute directions and velocities in the plane z = height."""
 
     chi_N: np.ndarray
     control: np.ndarray
@@ -74,6 +77,8 @@ class Design:
     threshold: float | None = None
     inside_swept: dict | None = None
     weights: np.ndarray | None = None
+    azimuth: np.ndarray | None = None
+    height: float | None = None
 
     def worst(self, k: int = 5) -> list[tuple[int, float, float, float]]:
         """The ``k`` worst control points: (index, x, y, residual)."""
@@ -103,6 +108,9 @@ class Design:
             out["residual_error_ok"] = bool(self.residual_error <= 0.5 * self.threshold)
         if "final_tol" in self.work:
             out["residual_error_tol"] = self.work["final_tol"]
+        if self.azimuth is not None:
+            out["geometry"] = "standing"
+            out["surface_height"] = self.height
         if self.inside_swept is not None:
             out["inside_swept"] = {"count": self.inside_swept["count"], "action": self.inside_swept["action"],
                                    "weight": self.inside_swept["weight"],
@@ -137,6 +145,11 @@ class Design:
                    "residual_error": self.residual_error, "local_rms": self.local_rms, "returned": self.returned,
                    "status": self.status, "message": self.message,
                    "clipped": np.asarray(self.clipped, dtype=np.int64)})
+        if self.azimuth is not None:
+            ds["azimuth"] = ("cilium", self.azimuth, {"long_name": "beat-plane azimuth psi of a standing cilium "
+                                                      "(anticlockwise from +x)", "units": "rad"})
+            ds.attrs["geometry"] = "standing"
+            ds.attrs["surface_height"] = float(self.height)
         if self.speed_ratio is not None:
             ds["speed_ratio"] = ("control", self.speed_ratio, {"long_name": "speed along the target over the "
                                                                "local layout's", "units": "1"})

@@ -1,0 +1,157 @@
+"""The design of standing carpets for surface flows (ciliary_carpet.design.surface)."""
+import math
+
+import numpy as np
+import pytest
+
+from ciliary_carpet.carpet import layout
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean
+from ciliary_carpet.design import surface as S
+from ciliary_carpet.design.surface_target import SURFACE_KINDS, surface_directions, surface_field
+from ciliary_carpet.design.target import Frame, TargetError, control_points
+from single_cilium.table import ThrustTable
+
+
+@pytest.fixture(scope="module")
+def table():
+    return ThrustTable.default()
+
+
+def _carpet(table, n=6, spacing=2.0, seed=0):
+    b = layout.square(n, n, spacing)
+    b = b - b.mean(axis=0)
+    return Carpet(b, 50.0, table, layout.random_phases(n * n, seed), wall=0.0, geometry="standing")
+
+
+def test_pumping_curvature_is_the_largest_force_layer_moment(table):
+    chi_hi, m = S.pumping_curvature(table)
+    mom = S.cycle_moments(table)
+    assert 0 < chi_hi < mom.cutoff
+    grid = np.linspace(0, mom.cutoff, 1000)
+    assert m(chi_hi) >= m(grid).max() * (1 - 1e-4)
+    v = mom(np.array([chi_hi]))
+    assert m(chi_hi) == pytest.approx(v["F"][0, 0] * v["offset"][0, 1] + v["D"][0, 1, 0], rel=1e-9)
+
+
+def test_response_interpolation_error(table):
+    """The tabulated single-cilium surface flow, rotated to psi, against the resolved mean flow of
+    that cilium: within RESPONSE_ERROR of the largest flow, at random points and curvatures."""
+    c = _carpet(table, 1)
+    rng = np.random.default_rng(1)
+    r, th = 5.5 * np.sqrt(rng.random(250)), rng.uniform(0, 2 * math.pi, 250)
+    r[150:] *= 0.3  # more points near the cilium, where the flow changes fastest
+    X = np.column_stack([r * np.cos(th), r * np.sin(th)])
+    m = S.SurfaceModel(c, X, S.HEIGHT)
+    assert m.pairs == X.shape[0]
+    for chi, psi in zip(rng.uniform(0, m.resp.chi_hi, 3), rng.uniform(0, 2 * math.pi, 3)):
+        un, _, _ = m._near_pairs(np.full(m.pairs, chi), (np.full(m.pairs, math.cos(psi)),
+                                                         np.full(m.pairs, math.sin(psi))))
+        one = Carpet(c.bases, chi, table, wall=0.0, geometry="standing", azimuth=psi)
+        uf = one.evaluate(m.X3[m.pk], CycleMean(), 0.0).velocity
+        err = np.abs(un - uf).max() / np.abs(uf).max()
+        assert 1e-4 < err < S.RESPONSE_ERROR
+
+
+def test_model_against_the_full_flow_and_its_gradient(table):
+    """The design model's surface flow is within 1 % of the full model at random (chi, psi), and
+    its pullback is the exact derivative of the model (central differences)."""
+    c = _carpet(table)
+    X = c.bases + 1.0
+    m = S.SurfaceModel(c, X, S.HEIGHT)
+    rng = np.random.default_rng(0)
+    chi, psi = rng.uniform(5, m.resp.chi_hi - 5, c.n), rng.uniform(0, 2 * math.pi, c.n)
+    u, aux = m.flow(chi, psi)
+    full = Carpet(c.bases, chi, table, c.phases, wall=0.0, geometry="standing", azimuth=psi)
+    uf = full.evaluate(m.X3, CycleMean(), 1e-4).velocity
+    assert np.linalg.norm(u - uf) < 0.01 * np.linalg.norm(uf)
+    w = rng.normal(size=u.shape)
+    g_chi, g_psi = m.pullback(w, aux)
+    e = 1e-4
+    for j in (0, 13, 35):
+        for arr, g in ((chi, g_chi), (psi, g_psi)):
+            up, um = arr.copy(), arr.copy()
+            up[j] += e
+            um[j] -= e
+            args = [(up, psi), (um, psi)] if arr is chi else [(chi, up), (chi, um)]
+            fd = np.sum(w * (m.flow(*args[0])[0] - m.flow(*args[1])[0])) / (2 * e)
+            assert g[j] == pytest.approx(fd, rel=1e-5, abs=1e-9 * np.abs(g).max())
+
+
+@pytest.mark.parametrize("kind", ["vortex", "mixer"])
+def test_design_meets_a_surface_pattern(table, kind):
+    """A vortex and a counter-rotating mixer, which no planar carpet can make, on 6 x 6 standing
+    cilia: the full model's surface flow meets the directions to 0.02 rad rms with an error bar of
+    at most half the threshold, far better than the local layout."""
+    c = _carpet(table)
+    X = control_points(c.bases, Frame(np.zeros(2), np.array([0.0, -1.0]), 2.0), "cells")
+    A, keep = surface_directions(kind, X, (0.0, 0.0), 2.0, separation=5.0)
+    d = S.design_surface(c, X[keep], directions=A, threshold=0.05)
+    assert d.residual_rms < 0.02 < d.local_rms
+    assert d.residual_error <= 0.025
+    assert d.objective <= d.local_objective
+    assert d.azimuth.shape == (c.n,) and d.carpet.geometry == "standing"
+    np.testing.assert_array_equal(d.carpet.azimuth, d.azimuth)
+    # the achieved flow is the designed carpet's (an independent evaluation)
+    u = d.carpet.evaluate(np.column_stack([X[keep], np.full(keep.sum(), d.height)]), CycleMean(), 1e-4).velocity
+    ang = np.arccos(np.clip(np.einsum("pa,pa->p", u[:, :2], np.column_stack([np.cos(A), np.sin(A)]))
+                            / np.linalg.norm(u[:, :2], axis=1), -1, 1))
+    assert math.sqrt(np.mean(ang ** 2)) == pytest.approx(d.residual_rms, abs=d.residual_error + 1e-3)
+
+
+def test_turning_the_problem_turns_the_layout(table):
+    """Carpet, control points and target turned by a about e_z: the design model's flow turns by a
+    (to 1e-3: only its far carriers' fixed tetrahedron does not turn), and so do the designs'
+    flows, to their residuals. The layouts themselves need not: many layouts make the same
+    surface flow to 0.002 rad (their azimuths differ by up to 0.3 rad here), the design returns
+    one of them."""
+    a = 0.9
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    c = _carpet(table, 5)
+    X = control_points(c.bases, Frame(np.zeros(2), np.array([0.0, -1.0]), 2.0), "cells")
+    A, keep = surface_directions("vortex", X, (0.0, 0.0), 2.0)
+    d1 = S.design_surface(c, X[keep], directions=A)
+    turned = Carpet(c.bases @ R.T, 50.0, table, c.phases, wall=0.0, geometry="standing")
+    d2 = S.design_surface(turned, X[keep] @ R.T, directions=A + a)
+    assert max(d1.residual_rms, d2.residual_rms) < 0.01
+    ang = np.angle(np.exp(1j * (np.arctan2(d2.achieved[:, 1], d2.achieved[:, 0])
+                                - np.arctan2(d1.achieved[:, 1], d1.achieved[:, 0]) - a)))
+    assert np.sqrt(np.mean(ang ** 2)) < d1.residual_rms + d2.residual_rms + 1e-3
+    m1, m2 = S.SurfaceModel(c, X[keep], S.HEIGHT), S.SurfaceModel(turned, X[keep] @ R.T, S.HEIGHT)
+    u1, u2 = m1.flow(d1.chi_N, d1.azimuth)[0], m2.flow(d1.chi_N, d1.azimuth + a)[0]
+    assert np.abs(u1[:, :2] @ R.T - u2[:, :2]).max() < 1e-3 * np.abs(u1).max()
+
+
+def test_surface_patterns():
+    X = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [3.0, 3.0]])
+    v, sing = surface_field("vortex", X, (0, 0))
+    np.testing.assert_allclose(v[:3] / np.linalg.norm(v[:3], axis=1)[:, None], [[0, 1], [-1, 0], [0, -1]], atol=1e-15)
+    v, _ = surface_field("vortex", X, (0, 0), sense=-1)
+    assert v[0, 1] < 0
+    v, sing = surface_field("mixer", np.array([[0.0, 0.0]]), (0, 0), angle=0.0, separation=4.0)
+    assert sing.shape == (2, 2) and v[0, 1] > 0 and abs(v[0, 0]) < 1e-15  # the jet between the vortices, along +n
+    v, _ = surface_field("u_turn", np.array([[-5.0, -1.0], [-5.0, 1.0], [1.0, 0.0]]), (0, 0))
+    np.testing.assert_allclose(v / np.linalg.norm(v, axis=1)[:, None], [[1, 0], [-1, 0], [0, 1]], atol=1e-15)
+    v, _ = surface_field("source_sink", np.array([[0.0, 0.0]]), (0, 0), separation=2.0)
+    assert v[0, 0] > 0 and abs(v[0, 1]) < 1e-15
+    A, keep = surface_directions("vortex", np.array([[0.0, 0.0], [2.0, 0.0]]), (0, 0), 2.0)
+    assert keep.tolist() == [False, True] and A[0] == pytest.approx(math.pi / 2)
+    assert set(SURFACE_KINDS) == {"pump", "vortex", "mixer", "u_turn", "source_sink"}
+
+
+def test_bad_surface_input(table):
+    c = _carpet(table, 3)
+    X = c.bases[:4] + 0.5
+    with pytest.raises(TargetError, match="kind must be one of"):
+        surface_field("whirl", X, (0, 0))
+    with pytest.raises(TargetError, match="separation > 0"):
+        surface_field("mixer", X, (0, 0), separation=0.0)
+    with pytest.raises(TargetError, match="every control point"):
+        surface_directions("vortex", np.zeros((1, 2)), (0, 0), 2.0)
+    with pytest.raises(ValueError, match="standing carpets"):
+        S.design_surface(Carpet(c.bases, 50.0, table), X, directions=np.zeros(4))
+    with pytest.raises(ValueError, match="height"):
+        S.design_surface(c, X, directions=np.zeros(4), height=-1.0)
+    with pytest.raises(TargetError, match="NaN"):
+        S.design_surface(c, X, directions=np.array([0.0, np.nan, 0.0, 0.0]))
+    with pytest.raises(TargetError, match="faster than the cilia can pump"):
+        S.design_surface(c, X, velocities=np.full((4, 2), 50.0))
