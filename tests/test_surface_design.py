@@ -155,3 +155,26 @@ def test_bad_surface_input(table):
         S.design_surface(c, X, directions=np.array([0.0, np.nan, 0.0, 0.0]))
     with pytest.raises(TargetError, match="faster than the cilia can pump"):
         S.design_surface(c, X, velocities=np.full((4, 2), 50.0))
+
+
+def test_fabrication_tolerance_in_both_variables(table):
+    """tolerance_study of a standing design samples chi_N and psi errors; its first sample's
+    residual (design model + the defect at the design) matches the full model's for the same
+    perturbed layout, and the errors raise the expected residual."""
+    from ciliary_carpet.design.tolerance import tolerance_study
+
+    c = _carpet(table)
+    X = control_points(c.bases, Frame(np.zeros(2), np.array([0.0, -1.0]), 2.0), "cells")
+    A, keep = surface_directions("vortex", X, (0.0, 0.0), 2.0)
+    d = S.design_surface(c, X[keep], directions=A, threshold=0.05)
+    st = tolerance_study(d.carpet, d, 0.05, samples=6, seed=3, sigma_psi=0.1)
+    assert st.mean_rms > d.residual_rms and st.sigma_psi == 0.1 and "sigma_psi" in st.summary()
+    rng = np.random.default_rng(3)
+    chi = d.chi_N * (1 + 0.05 * rng.standard_normal(c.n))
+    psi = d.azimuth + 0.1 * rng.standard_normal(c.n)
+    full = Carpet(c.bases, chi, table, c.phases, wall=0.0, geometry="standing", azimuth=psi)
+    u = full.evaluate(np.column_stack([d.control, np.full(d.control.shape[0], d.height)]), CycleMean(), 1e-4).velocity
+    r = np.angle((u[:, 0] + 1j * u[:, 1]) * np.exp(-1j * A))
+    assert st.rms[0] == pytest.approx(math.sqrt(np.mean(r ** 2)), rel=0.1)
+    with pytest.raises(ValueError, match="planar"):
+        tolerance_study(c, S.replace(d, azimuth=None), 0.05, sigma_psi=0.1)

@@ -17,9 +17,9 @@ with S the flow on the plane z = h of one cilium at the origin beating in the x-
 (psi = 0), R(psi) the rotation about e_z. :class:`SurfaceResponse` tabulates S once per (table,
 h, viscosity, blob, wall): the resolved mean flow (every phase and arc-length sample of the
 table) on a square grid of half-width :data:`REACH` and step :data:`STEP` at ``n_chi`` curvatures
-from 0 to the pumping maximum chi_hi (the curvature whose force-layer moment F_t c_z + D_zt,
-the flow a uniform carpet of it makes, is largest: :func:`pumping_curvature`; beyond it a cilium
-leans further but pumps less). It is interpolated bilinearly in space and by the cubic spline in
+over the flutter branch. The design chooses chi_N in [0, chi_hi], chi_hi the pumping maximum (the
+curvature whose force-layer moment F_t c_z + D_zt, the flow a uniform carpet of it makes, is
+largest: :func:`pumping_curvature`; beyond it a cilium leans further but pumps less). It is interpolated bilinearly in space and by the cubic spline in
 chi (interpolation error: :data:`RESPONSE_ERROR`, tested), with exact derivatives, so that
 dJ/dchi_j and dJ/dpsi_j are exact for the model.
 
@@ -68,7 +68,8 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.cycles import cycle_moments
-from ciliary_carpet.design.result import Design, DesignError
+from ciliary_carpet.design.inverse import GOOD_ENOUGH, _edges
+from ciliary_carpet.design.result import Design
 from ciliary_carpet.design.target import TargetError
 from ciliary_carpet.stokes import stokeslet_velocity, stokeslet_velocity_ranges
 
@@ -98,7 +99,9 @@ at random points (within :data:`REACH`) and curvatures, relative to the largest 
 (second order: the bilinear interpolation in space dominates; 65 curvatures instead of 33 change
 nothing). The design model's own error, which the defect correction carries: 0.3 % of the flow
 on a 6 x 6 carpet at random (chi, psi)."""
-_N_CHI = 33
+_N_CHI = 49
+"""Curvatures of the tabulated response, uniform over the flutter branch [0, cutoff] (the design
+uses [0, chi_hi]; the tolerance study's perturbed layouts may leave it)."""
 
 TETRA = np.array([[0.0, 0.0, 1.0], [math.sqrt(8.0 / 9.0), 0.0, -1.0 / 3.0],
                   [-math.sqrt(2.0 / 9.0), math.sqrt(2.0 / 3.0), -1.0 / 3.0],
@@ -123,7 +126,7 @@ class SurfaceResponse:
     """The mean flow on the plane z = ``height`` of one standing cilium at the origin beating in
     the x-z plane (psi = 0), tabulated (module docstring): ``values`` (n_chi, n, n, 3) on the grid
     ``x0 + STEP * i`` (both axes), ``slopes`` their chi derivatives (the spline's), ``chi`` (n_chi,)
-    uniform on [0, chi_hi]."""
+    uniform on the flutter branch [0, cutoff]; ``chi_hi`` the pumping maximum."""
 
     chi: np.ndarray
     values: np.ndarray
@@ -140,7 +143,7 @@ class SurfaceResponse:
         """Tabulate the response for the table, viscosity, blob and wall of the standing ``carpet``."""
         t0 = _time.perf_counter()
         chi_hi, _ = pumping_curvature(carpet.table)
-        chi = np.linspace(0.0, chi_hi, int(n_chi))
+        chi = np.linspace(0.0, cycle_moments(carpet.table).cutoff, int(n_chi))
         n = int(round(2 * reach / step)) + 3
         x0 = -step * (n - 1) / 2
         g = x0 + step * np.arange(n)
@@ -195,7 +198,7 @@ def _near(X, bases, pk, pj, chi, cp, sp, V, dV, x0, h, c0, hc, u, du_chi, du_psi
         ty = gy - iy
         gc = (chi[q] - c0) / hc
         ic = min(max(int(math.floor(gc)), 0), nc - 2)
-        t = gc - ic
+        t = min(max(gc - ic, 0.0), 1.0)  # beyond the branch: its end (a still cilium makes no flow)
         t2 = t * t
         t3 = t2 * t
         h00 = 2 * t3 - 3 * t2 + 1
@@ -367,16 +370,12 @@ class SurfaceModel:
         return np.einsum("pa,pa->p", u, directions)
 
 
-def _edges(bases: np.ndarray) -> np.ndarray:
-    from ciliary_carpet.design.inverse import _edges as edges
-
-    return edges(bases)
 
 
 def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, directions=None, velocities=None,
                    tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = 0.2,
                    floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
-                   outer: int = 3, maxiter: int = 400, ftol: float = 1e-7, threshold: float | None = None) -> Design:
+                   outer: int = 3, maxiter: int = 400, ftol: float = 1e-5, threshold: float | None = None) -> Design:
     """Choose (chi_N, psi) for the cilia of the standing ``carpet`` (its bases, phases, table,
     wall are kept) so that its mean flow on the plane z = ``height`` at ``control`` (P, 2) runs
     along ``directions`` (P,) [rad, anticlockwise from +x] or equals ``velocities`` (P, 2).
@@ -385,7 +384,8 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
     chi_hi (:func:`pumping_curvature`): the *local* layout (velocity targets: along U there). See
     the module docstring for the model, the objective (``speed_floor`` sigma, ``floor_weight``,
     ``regularization``, ``smoothness``) and the passes (at most ``outer``, each at most ``maxiter``
-    L-BFGS-B iterations; checks at ``check_tol``, default max(tol, 1e-2)); ``threshold``: the
+    L-BFGS-B iterations, stopped when an iteration lowers J by less than ``ftol`` times its value
+    at the pass's start; checks at ``check_tol``, default max(tol, 1e-2)); ``threshold``: the
     acceptance threshold of the rms residual, whose half the final check's error bar is made to
     meet. Returns a :class:`~ciliary_carpet.design.result.Design` with ``azimuth`` (N,) and
     ``height``; its ``carpet`` is the designed standing carpet."""
@@ -438,7 +438,7 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
         psi0 = th[near]
     chi0 = np.full(N, chi_hi)
     g0 = np.column_stack([np.cos(psi0), np.sin(psi0)]) * float(m_of(chi_hi))
-    edges = _edges(carpet.bases)
+    edges = _edges(carpet.bases)  # the planar design's Delaunay neighbours
 
     def g_of(chi, psi, nu=0):
         m = m_of(chi, nu)
@@ -503,10 +503,12 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
         return np.linalg.norm(uxy - U, axis=1) / math.sqrt(u2 / P)
 
     def full(chi, psi, tol_):
+        t0 = _time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             c = replace(carpet, chi_N=chi, azimuth=psi)
         s = c.evaluate(model.X3, CycleMean(), tol_)
+        work["seconds_checks"] += _time.perf_counter() - t0
         return c, s
 
     def bar(u, bound):
@@ -516,7 +518,7 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
         return float(np.sqrt(np.mean((bound / math.sqrt(u2 / P)) ** 2)))
 
     work = {"iterations": 0, "evaluations": 0, "checks": 0, "pairs_near": model.pairs,
-            "response_seconds": model.resp.seconds}
+            "response_seconds": model.resp.seconds, "seconds_checks": 0.0}
     chi, psi = chi0.copy(), psi0.copy()
     c_full, s_full = full(chi, psi, check_tol)
     work["checks"] += 1
@@ -527,33 +529,45 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
     for k in range(int(outer)):
         u_mod, _ = model.flow(chi, psi)
         defect = s_full.velocity - u_mod
+        scale = 1.0 / max(objective(s_full.velocity, chi, psi, False)[0], 1e-300)  # J of order 1: L-BFGS-B's
+        # first step and its ftol test are scale-dependent (a J of 3e-4 stopped 10^4 cilia after one iteration)
+
+        last = {}
 
         def fun(z):
             ch = np.clip(z[:N], 0.0, 1.0) * chi_hi
             ps = z[N:]
             u, aux = model.flow(ch, ps)
             u = u + defect
+            last["u"] = u
             J, dJ, gc, gp = objective(u, ch, ps, True)
             a_c, a_p = model.pullback(dJ, aux)
-            return J, np.concatenate([(a_c + gc) * chi_hi, a_p + gp])
+            return J * scale, np.concatenate([(a_c + gc) * chi_hi, a_p + gp]) * scale
+
+        def good_enough(intermediate_result):
+            """Stop once the model's rms residual is GOOD_ENOUGH of the threshold (the design's job
+            is the threshold; a full-model check follows)."""
+            if threshold is not None and "u" in last and \
+                    np.sqrt(np.mean(residuals(last["u"]) ** 2)) <= GOOD_ENOUGH * threshold:
+                raise StopIteration
 
         z0 = np.concatenate([chi / chi_hi, psi])
         res = minimize(fun, z0, jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * N + [(None, None)] * N,
-                       options={"maxiter": int(maxiter), "ftol": ftol, "gtol": 1e-10})
+                       options={"maxiter": int(maxiter), "ftol": ftol, "gtol": 1e-10}, callback=good_enough)
         work["iterations"] += int(res.nit)
         work["evaluations"] += int(res.nfev)
-        if not res.success and res.status != 0:
+        if not res.success and res.status not in (0, 99):  # 99: stopped by good_enough
             status, msg = "inaccurate", f"L-BFGS-B stopped in pass {k + 1}: {res.message}"
         chi, psi = np.clip(res.x[:N], 0.0, 1.0) * chi_hi, np.mod(res.x[N:], 2 * math.pi)
         c_full, s_full = full(chi, psi, check_tol)
         work["checks"] += 1
         Jf = objective(s_full.velocity, chi, psi, False)[0]
-        logger.info("surface design pass %d: J model %.4g, full %.4g, rms %.4g", k + 1, res.fun, Jf,
+        logger.info("surface design pass %d: J model %.4g, full %.4g, rms %.4g", k + 1, res.fun / scale, Jf,
                     float(np.sqrt(np.mean(residuals(s_full.velocity) ** 2))))
         gained = best["J"] - Jf
         if Jf < best["J"]:
             best = {"J": Jf, "chi": chi, "psi": psi, "carpet": c_full, "sample": s_full, "returned": f"pass {k + 1}"}
-        if abs(res.fun - Jf) <= 0.05 * Jf or gained < 0.02 * best["J"]:
+        if abs(res.fun / scale - Jf) <= 0.05 * Jf or gained < 0.02 * best["J"]:
             break
     c_best, s_best = best["carpet"], best["sample"]
     err = bar(s_best.velocity, s_best.error_bound)
@@ -561,7 +575,9 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
     if threshold is not None:
         while err > 0.5 * threshold and final_tol > 1e-5:
             final_tol /= 10.0
+            t0 = _time.perf_counter()
             s_best = c_best.evaluate(model.X3, CycleMean(), final_tol)
+            work["seconds_checks"] += _time.perf_counter() - t0
             work["checks"] += 1
             err = bar(s_best.velocity, s_best.error_bound)
         if err > 0.5 * threshold:
