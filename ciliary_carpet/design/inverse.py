@@ -157,7 +157,8 @@ def check_control_points(carpet: Carpet, X: np.ndarray, spacing: float | None = 
     How accurate the model's mean flow is there (its quadrature over arc length and phase, the
     table's 65 x 64 samples, against 4 x finer sums) is measured in tests/test_design.py
     (:data:`INSIDE_ACCURACY`). ``spacing`` default: the median nearest-neighbour distance of
-    the bases (1 for a single cilium)."""
+    the bases (1 for a single cilium). A standing carpet's control points (on a plane above its
+    substrate) get the first check only."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(carpet.bases)
@@ -170,6 +171,8 @@ def check_control_points(carpet: Carpet, X: np.ndarray, spacing: float | None = 
                         for k in far[:5])
         raise TargetError(f"{far.size} control point(s) lie outside the carpet (more than 2 spacings + 1 L = "
                           f"{2 * spacing + 1:.3g} L from every base point): {lst}")
+    if carpet.geometry == "standing":  # its control points lie on a plane above the substrate, where the
+        return np.zeros(0, np.int64)   # design chooses each beat plane's azimuth: no swept region is fixed
     rmax = float(carpet.radii.max()) if carpet.n else 0.0
     ctree = cKDTree(X)
     bad = set()
@@ -582,6 +585,8 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     table, target, bases, frame = built.table, built.target, built.bases, built.frame
     if target.kind == "none":
         return None, built.carpet()
+    if built.carpet().geometry == "standing":
+        return _design_standing(scene, built)
     strict = target.strict
     kw = dict(tol=scene.tolerance, speed_floor=target.speed_floor, smoothness=target.smoothness,
               spacing=scene.carpet.spacing, robust_sigma=target.sigma if target.robust else 0.0,
@@ -649,3 +654,45 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
 
 def _replace(d: Design, **kw) -> Design:
     return replace(d, **kw)
+
+
+def _design_standing(scene, built) -> tuple[Design, Carpet]:
+    """:func:`design` for a standing carpet: (chi_N, psi) for its surface-flow target
+    (:func:`~ciliary_carpet.design.surface.design_surface`) on the plane z = ``[target] height``,
+    the control points the planar rule gives ("cilia": above each base), the same verdict."""
+    from ciliary_carpet.design.surface import design_surface
+
+    target, frame, bases = built.target, built.frame, built.bases
+    carpet = built.carpet()
+    kw = dict(height=target.height, tol=scene.tolerance, speed_floor=target.speed_floor,
+              smoothness=target.smoothness, threshold=float(target.residual))
+    if target.is_surface:
+        X = bases.copy() if target.control == "cilia" else control_points(bases, frame, target.control)
+        A, keep = target.surface_directions(X, frame, bases)
+        if not np.all(keep):
+            logger.info("design: %d control points within half a spacing of the %s pattern's centres left out",
+                        int((~keep).sum()), target.kind)
+        X = X[keep]
+        check_control_points(carpet, X, scene.carpet.spacing)
+        d = design_surface(carpet, X, directions=A, **kw)
+    else:
+        X, U = target.velocities()
+        check_control_points(carpet, X, scene.carpet.spacing)
+        d = design_surface(carpet, X, velocities=U, **kw)
+    unit = "rad" if d.kind == "angle" else "relative"
+    if d.residual_rms > target.residual:
+        lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
+        msg = (f"{scene.source_name}: the cilia cannot make this surface flow: rms residual {d.residual_rms:.3g} "
+               f"{unit} exceeds [target] residual = {target.residual:g}; worst control points {lst}. Move the "
+               f"pattern's centres apart, raise target.height, or use more cilia")
+        if target.strict:
+            raise DesignError(msg)
+        warnings.warn(msg + " (strict = false: returning the closest flow the cilia make)", UserWarning, stacklevel=3)
+        d = _replace(d, message=d.message + f"; target NOT met ([target] residual = {target.residual:g}): the closest "
+                     f"flow the cilia make; worst control points {lst}")
+    else:
+        d = _replace(d, message=d.message + f"; target met ([target] residual = {target.residual:g})")
+    if target.sigma > 0 or target.sigma_psi > 0:
+        d = _replace(d, tolerance=tolerance_study(d.carpet, d, target.sigma, target.samples,
+                                                  sigma_psi=math.radians(target.sigma_psi)).summary())
+    return d, d.carpet

@@ -373,7 +373,7 @@ class SurfaceModel:
 
 
 def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, directions=None, velocities=None,
-                   tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = 0.2,
+                   tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = 0.3,
                    floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
                    outer: int = 3, maxiter: int = 400, ftol: float = 1e-5, threshold: float | None = None) -> Design:
     """Choose (chi_N, psi) for the cilia of the standing ``carpet`` (its bases, phases, table,

@@ -55,7 +55,7 @@ from ciliary_carpet.scenes.schema import Key, SceneError, Section, key, keys_of,
 
 __all__ = ["TargetError", "UnreachableTargetError", "Target", "TargetSpec", "Frame", "Pattern", "PATTERNS",
            "control_points", "reachable_check", "read_target_points", "DEFAULT_ANGLE_FRACTION", "KINDS",
-           "ANGLE_KINDS", "KIND_KEYS", "applies_to", "kinds_table"]
+           "ANGLE_KINDS", "SURFACE_KINDS", "KIND_KEYS", "applies_to", "kinds_table"]
 
 DEFAULT_ANGLE_FRACTION = 0.9
 """Without ``target.angle`` the amplitude is this fraction of the table's reachable maximum."""
@@ -89,7 +89,11 @@ class Pattern:
         ``f(target, points (P, 2), frame) -> delta (P,)`` [rad] for the angle kinds; None for
         "none" and "points".
     signed : bool
-        ``target.angle`` is a signed deflection in [-180, 180] (else an amplitude in (0, 180]).
+        ``target.angle`` is a signed deflection in [-180, 180] (else an amplitude in (0, 180]);
+        for a surface kind a direction in [-180, 180].
+    surface : bool
+        A surface-flow kind of standing carpets: the direction of the mean flow on the plane
+        z = ``height`` (:mod:`~ciliary_carpet.design.surface_target`), any direction.
     two_sided : bool
         The flow turns toward (or away from) a line from both sides: the design's estimate of
         the reachable amplitude of such a pattern applies
@@ -105,6 +109,7 @@ class Pattern:
     deflection: Callable | None = None
     signed: bool = False
     two_sided: bool = False
+    surface: bool = False
 
     @property
     def has_width(self) -> bool:
@@ -141,14 +146,32 @@ PATTERNS: tuple[Pattern, ...] = (
     Pattern("turn", "delta = A times the sine of the angle from d0 to the anticlockwise tangent around `centre`: "
             "full (+-A) upstream and downstream of the centre, zero beside it (the cilia cannot push upstream), "
             "smooth in between; 0 at the centre", ("centre",), deflection=_turn),
-    Pattern("points", "target velocities (lab frame, model units L / tau) at control points read from `file`",
-            ("file",)),
+    Pattern("points", "target velocities (lab frame, model units L / tau) at control points read from `file` "
+            "(a standing carpet: the mean flow on the plane z = `height`)", ("file",)),
+    Pattern("pump", "standing carpets: the surface flow along `angle` (degrees anticlockwise from +x) everywhere",
+            signed=True, surface=True),
+    Pattern("vortex", "standing carpets: the surface flow circling `centre` (`sense`); points within half a "
+            "spacing of the centre are left out", ("centre", "sense"), surface=True),
+    Pattern("mixer", "standing carpets: two counter-rotating vortices at `centre` -+ (`separation` / 2) along "
+            "`angle`, a jet between them; points within half a spacing of either centre are left out",
+            ("centre", "separation", "sense"), signed=True, surface=True),
+    Pattern("u_turn", "standing carpets: the surface flow comes in along `angle` on one side of the axis through "
+            "`centre`, turns about `centre` and goes back on the other side (`sense`)", ("centre", "sense"),
+            signed=True, surface=True),
+    Pattern("source_sink", "standing carpets: out of a source at `centre` - (`separation` / 2) e and into a sink "
+            "at `centre` + (`separation` / 2) e, e along `angle`", ("centre", "separation"), signed=True,
+            surface=True),
 )
 """The registry of target kinds."""
 _PATTERN = {p.name: p for p in PATTERNS}
 KINDS = tuple(_PATTERN)
 ANGLE_KINDS = tuple(p.name for p in PATTERNS if p.deflection is not None)
+SURFACE_KINDS = tuple(p.name for p in PATTERNS if p.surface)
+"""The surface-flow kinds of standing carpets (:mod:`~ciliary_carpet.design.surface_target`)."""
 _DESIGNED = tuple(k for k in KINDS if k != "none")
+_DIRECTION_KINDS = ANGLE_KINDS + SURFACE_KINDS
+_STANDING_KINDS = SURFACE_KINDS + ("points",)
+_PLANAR_DESIGNED = tuple(k for k in _DESIGNED if k not in SURFACE_KINDS)
 
 
 def _uses(name: str) -> tuple[str, ...]:
@@ -166,15 +189,22 @@ class TargetSpec(Section):
 
     kind: str = key("none", 'the target kind (table "Target kinds")', "str", choices=KINDS)
     angle: float | None = key(
-        None, "uniform: the deflection (signed); patterns: the amplitude A (> 0)", "custom",
+        None, "uniform: the deflection (signed); patterns: the amplitude A (> 0); standing carpets' pump, mixer, "
+        "u_turn, source_sink: the direction or axis, anticlockwise from +x (signed; default 0)", "custom",
         shown="float (degrees)", default_shown=f"{DEFAULT_ANGLE_FRACTION:.0%} of the table's reachable maximum",
-        kinds=ANGLE_KINDS)
+        kinds=ANGLE_KINDS + tuple(p.name for p in PATTERNS if p.surface and p.signed))
     line: float = key(0.0, "position of the line along the cross-stream axis, from the carpet's centre (L)",
                       kinds=_uses("line"))
     width: float | None = key(None, "transition width w (L)", lo=0, lo_open=True, default_shown="one spacing",
                               kinds=_uses("width"))
-    centre: tuple[float, float] | None = key(None, "the centre of the turn", "pair",
-                                             default_shown="the carpet's centre", kinds=_uses("centre"))
+    centre: tuple[float, float] | None = key(None, "the centre of the turn, vortex, mixer, U-turn or source-sink "
+                                             "pair", "pair", default_shown="the carpet's centre", kinds=_uses("centre"))
+    sense: str = key("anticlockwise", "which way a vortex, the mixer's first vortex or a U-turn circles", "str",
+                     choices=("anticlockwise", "clockwise"), kinds=_uses("sense"))
+    separation: float | None = key(None, "distance between the mixer's vortices or the source and the sink (L)",
+                                   lo=0, lo_open=True, default_shown="half the carpet's width", kinds=_uses("separation"))
+    height: float = key(1.5, "standing carpets: the height of the surface-flow plane above the substrate (L), "
+                        "above the cilia (which reach at most 1 L)", lo=0, lo_open=True, kinds=_STANDING_KINDS)
     file: str | None = key(
         None, "CSV (header with columns x, y, u, v; `#` comments) or NetCDF (variables x, y, u, v along one "
         "dimension) of control points and target velocities (lab frame, model units L/tau), relative to the "
@@ -184,7 +214,8 @@ class TargetSpec(Section):
         'half a spacing downstream; `"cells"`: the cell centres (circumcentres of the Delaunay triangles of the '
         'base points: square cells\' centres, hexagonal triangles\' centres; a row uses the `"cilia"` rule). '
         "Control points more than 2 spacings + 1 L from every base are an error; those inside a cilium's swept "
-        "region are used (see `inside_swept`)", "pairs", choices=("cells", "cilia"), kinds=ANGLE_KINDS)
+        "region are used (see `inside_swept`); a standing carpet's are at the same points on the plane z = `height`",
+        "pairs", choices=("cells", "cilia"), kinds=_DIRECTION_KINDS)
     residual: float = key(
         0.05, 'acceptance threshold on the design\'s rms residual (rad for angle targets, relative to rms target '
         'speed for `"points"`); the test suite checks it', lo=0, lo_open=True, kinds=_DESIGNED)
@@ -194,7 +225,9 @@ class TargetSpec(Section):
     speed_floor: float = key(
         0.3, "the speed along the target direction each control point keeps, as a fraction of the speed the "
         "straight cilia within 5 spacings make there (keeps the design from switching cilia off; local, so that "
-        "it means the same on every carpet size)", lo=0, hi=1, hi_open=True, kinds=ANGLE_KINDS)
+        "it means the same on every carpet size; standing carpets: of the speed the cilia within 6 L make there "
+        "when all pump along the target at the pumping maximum)", lo=0, hi=1, hi_open=True,
+        kinds=_DIRECTION_KINDS)
     inside_swept: str = key(
         "use", "control points inside a cilium's swept region (any PIV field, grid or random sample over a carpet "
         "has some): `\"use\"` them like the others (the regularised mean flow is bounded there and resolved "
@@ -208,11 +241,15 @@ class TargetSpec(Section):
         0.0, "fabrication tolerance: relative chi_N error of the cilia; > 0 adds the expected residual and its "
         "spread to the design's summary (sampled on the design model with the full model's defect at the "
         "design; the sampling error is reported)", lo=0, kinds=_DESIGNED)
+    sigma_psi: float = key(
+        0.0, "standing carpets: the azimuth error of the cilia (degrees), sampled with `sigma` in the tolerance "
+        "study", lo=0, kinds=_STANDING_KINDS)
     samples: int = key(64, "samples of the tolerance study", "int", lo=1, kinds=_DESIGNED)
     robust: bool = key(
         False, "design for the expected residual under `sigma` instead of the nominal one: the objective is "
         "averaged over 16 fixed samples of chi_N (1 + sigma eps) (a sample average; its error shows in the "
-        "tolerance study, whose samples are independent of them); needs `sigma` > 0", "bool", kinds=_DESIGNED)
+        "tolerance study, whose samples are independent of them); needs `sigma` > 0; planar carpets", "bool",
+        kinds=_PLANAR_DESIGNED)
 
     @classmethod
     def parse(cls, src: str, data, base_dir=None) -> dict:
@@ -226,7 +263,9 @@ class TargetSpec(Section):
                 raise SceneError(f"{src}: target.{k} does not apply to kind = \"{kind}\" (it is used by kind = "
                                  f"{', '.join(repr(x) for x in s.kinds)})")
         kw = values(r, TargetSpec)
-        if _PATTERN[kind].signed:
+        if _PATTERN[kind].surface:
+            angle = Key("float", "", lo=-180, hi=180, what="a direction in degrees in [-180, 180]")
+        elif _PATTERN[kind].signed:
             angle = Key("float", "", lo=-180, hi=180, what="a deflection in degrees in [-180, 180]")
         else:
             angle = Key("float", "", lo=0, hi=180, lo_open=True, what="an amplitude in degrees in (0, 180]")
@@ -377,11 +416,13 @@ class Target:
     kind : str
         One of :data:`KINDS`.
     amplitude : float or None
-        RADIANS: the deflection (uniform, signed) or the pattern amplitude (> 0); None for
-        "none" and "points".
-    line, width, centre, control, residual, strict, speed_floor, inside_swept, smoothness, sigma, samples, robust :
+        RADIANS: the deflection (uniform, signed) or the pattern amplitude (> 0); for the surface
+        kinds the direction or axis (default 0); None for "none" and "points".
+    line, width, centre, control, residual, strict, speed_floor, inside_swept, smoothness, sigma, samples, robust,
+    sense, separation, height, sigma_psi :
         as the keys of :class:`TargetSpec` (same defaults): width None = ``frame.spacing``,
-        centre None = ``frame.centre``; ``control`` see :func:`control_points`; the design
+        centre None = ``frame.centre``, separation None = half the carpet's width along the axis
+        (:meth:`surface_directions`); sigma_psi in DEGREES; ``control`` see :func:`control_points`; the design
         settings go to :func:`~ciliary_carpet.design.inverse.design_layout` (``robust``: its
         ``robust_sigma``) and :func:`~ciliary_carpet.design.tolerance.tolerance_study`.
     data_points, data_velocities : ndarray or None
@@ -404,6 +445,10 @@ class Target:
     sigma: float = spec_default("sigma")
     samples: int = spec_default("samples")
     robust: bool = spec_default("robust")
+    sense: str = spec_default("sense")
+    separation: float | None = spec_default("separation")
+    height: float = spec_default("height")
+    sigma_psi: float = spec_default("sigma_psi")
     data_points: np.ndarray | None = None
     data_velocities: np.ndarray | None = None
     source: str | None = None
@@ -417,6 +462,19 @@ class Target:
             if not self.pattern.signed and self.amplitude <= 0:
                 raise TargetError(f"the amplitude of a {self.kind!r} target must be > 0, got {self.amplitude!r}")
             object.__setattr__(self, "amplitude", float(self.amplitude))
+        if self.is_surface:
+            a = 0.0 if self.amplitude is None else float(self.amplitude)
+            if not math.isfinite(a):
+                raise TargetError(f"target kind {self.kind!r} needs a finite direction (rad), got {self.amplitude!r}")
+            object.__setattr__(self, "amplitude", a)
+        if self.sense not in ("anticlockwise", "clockwise"):
+            raise TargetError(f"target sense must be \"anticlockwise\" or \"clockwise\", got {self.sense!r}")
+        if self.separation is not None and not (math.isfinite(self.separation) and self.separation > 0):
+            raise TargetError(f"target separation must be a positive number, got {self.separation!r}")
+        if not (math.isfinite(self.height) and self.height > 0):
+            raise TargetError(f"target height must be a positive number, got {self.height!r}")
+        if not (math.isfinite(self.sigma_psi) and self.sigma_psi >= 0):
+            raise TargetError(f"target sigma_psi must be a number >= 0 (degrees), got {self.sigma_psi!r}")
         if self.inside_swept not in ("use", "downweight", "drop"):
             raise TargetError(f"target inside_swept must be \"use\", \"downweight\" or \"drop\", got "
                               f"{self.inside_swept!r}")
@@ -447,7 +505,9 @@ class Target:
         which must then be given), and for kind "points" the control file read from ``base_dir``
         (default: the working directory); the other keys are taken as they are."""
         amp = None
-        if spec.kind in ANGLE_KINDS:
+        if spec.kind in SURFACE_KINDS:
+            amp = math.radians(spec.angle) if spec.angle is not None else 0.0
+        elif spec.kind in ANGLE_KINDS:
             if spec.angle is not None:
                 amp = math.radians(spec.angle)
             elif angle_max is None:
@@ -475,6 +535,31 @@ class Target:
     def is_angle(self) -> bool:
         """True for deflection targets (uniform and the patterns)."""
         return self.pattern.deflection is not None
+
+    @property
+    def is_surface(self) -> bool:
+        """True for the surface-flow kinds of standing carpets."""
+        return self.pattern.surface
+
+    def surface_directions(self, points, frame: Frame, bases=None) -> tuple[np.ndarray, np.ndarray]:
+        """(directions (P',) [rad, anticlockwise from +x], keep (P,) bool) of a surface kind at
+        ``points`` (P, 2): the direction of its model field
+        (:func:`~ciliary_carpet.design.surface_target.surface_directions`) at the points kept (those
+        not within half a spacing of the pattern's singular points). ``centre`` None: the frame's;
+        ``separation`` None: half the extent of ``bases`` (default the points) along the axis."""
+        from ciliary_carpet.design.surface_target import surface_directions
+
+        if not self.is_surface:
+            raise TargetError(f"a {self.kind!r} target is not a surface flow (kinds {', '.join(SURFACE_KINDS)})")
+        x = _points("points", points)
+        c = frame.centre if self.centre is None else np.asarray(self.centre)
+        d = self.separation
+        if d is None:
+            b = x if bases is None else _points("bases", bases)
+            e = np.array([math.cos(self.amplitude), math.sin(self.amplitude)])
+            d = 0.5 * float(np.ptp(b @ e)) or frame.spacing
+        return surface_directions(self.kind, x, c, frame.spacing, self.amplitude, d,
+                                  1 if self.sense == "anticlockwise" else -1)
 
     def deflection(self, points, frame: Frame) -> np.ndarray:
         """(P,) target deflection delta [rad] at ``points`` (P, 2) for the angle kinds (the
