@@ -71,7 +71,7 @@ from ciliary_carpet.carpet.carpet import CycleMean, Instant
 if TYPE_CHECKING:
     from ciliary_carpet.carpet.carpet import Carpet
 
-__all__ = ["Flow", "ResolvedFlow", "MeanFlow", "FLOWS", "MEAN_MODEL_ERROR", "STEPS_PER_BEAT"]
+__all__ = ["Flow", "ResolvedFlow", "MeanFlow", "SteadyMeanFlow", "FLOWS", "MEAN_MODEL_ERROR", "STEPS_PER_BEAT"]
 
 STEPS_PER_BEAT = 16
 """The time-resolved flow caps an integrator's steps at the shortest beat period over this
@@ -186,5 +186,41 @@ class MeanFlow(Flow):
         return out
 
 
+@dataclass(frozen=True, eq=False)
+class SteadyMeanFlow(Flow):
+    """The long-time model in space: ``carpet``'s time-averaged (cycle-mean) flow evaluated
+    directly at the tracers (:meth:`Carpet.velocity <ciliary_carpet.carpet.carpet.Carpet.velocity>`
+    of the ``CycleMean`` at the levels-of-detail tolerance ``tol``), valid in ``box`` = (xmin, xmax,
+    ymin, ymax, zmin, zmax), its :attr:`domain`. The flow of a standing carpet is three-dimensional
+    (it vanishes on the substrate and turns over the carpet's edges), so a sampled plane
+    (:class:`MeanFlow`) does not describe it; a render takes this model for a standing carpet's
+    path lines where it takes :class:`MeanFlow` for a planar one (same name, ``"mean"``: it is the
+    same long-time model, with the same neglected Stokes drift). Steady: no step cap."""
+
+    name: ClassVar[str] = "mean"
+    carpet: "Carpet"
+    box: tuple
+    tol: float = 1e-3
+
+    def __post_init__(self) -> None:
+        b = tuple(float(v) for v in self.box)
+        if len(b) != 6 or any(hi <= lo for lo, hi in zip(b[0::2], b[1::2])):
+            raise ValueError(f"SteadyMeanFlow: box must be (xmin, xmax, ymin, ymax, zmin, zmax), got {self.box!r}")
+        object.__setattr__(self, "box", b)
+        t = float(self.tol)
+        if not 0 <= t < 1:
+            raise ValueError(f"SteadyMeanFlow: tol must be in [0, 1), got {self.tol!r}")
+        object.__setattr__(self, "tol", t)
+
+    @property
+    def domain(self) -> np.ndarray:
+        """(6,) the box."""
+        return np.array(self.box)
+
+    def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
+        return self.carpet.velocity(x, CycleMean(), self.tol)
+
+
 FLOWS: dict[str, type[Flow]] = {m.name: m for m in (ResolvedFlow, MeanFlow)}
-"""The flow models by name (the contract: the module docstring)."""
+"""The flow models by name (the contract: the module docstring); :class:`SteadyMeanFlow` is the
+``"mean"`` model of standing carpets (chosen by the geometry, not by name)."""
