@@ -477,11 +477,15 @@ class Scene:
         """A smaller copy for fast tests: at most ``max_cilia`` cilia (same lattice and spacing,
         shape shrunk in proportion, same carpet centre so that absolute coordinates -- explicit
         control points, seeds, turn centre -- still fall on it; a "points" carpet keeps the
-        points nearest its centre), and outputs no larger than the arguments. Never enlarges."""
+        points nearest its centre; per-cilium azimuths go with the original cilium nearest to each
+        kept one), and outputs no larger than the arguments. Never enlarges."""
         c = self.carpet
         m = int(max_cilia)
         if m < 1:
             raise ValueError(f"max_cilia must be >= 1, got {max_cilia!r}")
+        per_cilium = isinstance(c.azimuth, tuple) and c.n_cilia > m
+        if per_cilium:  # one azimuth per cilium: set again below, once the kept cilia are known
+            c = replace(c, azimuth=0.0)
         if c.n_cilia > m:
             centre = c.centre
             if c.lattice == "points":
@@ -508,7 +512,7 @@ class Scene:
                 c = replace(c, shape=shape, origin=(0.0, 0.0))
                 shift = centre - c.centre
                 c = replace(c, origin=(float(shift[0]), float(shift[1])))
-        if isinstance(c.azimuth, tuple):  # one azimuth per cilium: each kept cilium takes its nearest original's
+        if per_cilium:  # each kept cilium takes the azimuth of the original cilium nearest to it
             from scipy.spatial import cKDTree
 
             near = cKDTree(self.carpet.bases()).query(c.bases())[1]
