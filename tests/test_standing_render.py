@@ -3,6 +3,7 @@ ParaView-ready folder out (ciliary_carpet.render, ciliary_carpet.output; MODEL.m
 import json
 import math
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -76,8 +77,14 @@ def test_the_fields_lie_on_the_target_plane_and_the_section_reaches_the_wall(pum
     assert ny == 1 and nz > 2 and sec.GetBounds()[4] == 0.0
     u = vtk_to_numpy(sec.GetPointData().GetArray("velocity")).reshape(nz, nx, 3)
     assert np.abs(u[0]).max() < 1e-12 * max(1.0, np.abs(u).max()) and np.abs(u[-1]).max() > 0
-    mid = u[:, nx // 2, :]  # above the carpet's centre: the speed grows from the wall
-    assert np.linalg.norm(mid[1, :2]) < np.linalg.norm(mid[-1, :2])
+    # over the carpet (its x range) the flow above the cilia runs along the azimuth
+    x = sec.GetOrigin()[0] + sec.GetSpacing()[0] * np.arange(nx)
+    e = np.array([math.cos(math.radians(30)), math.sin(math.radians(30))])
+    lay = _read(res.out_dir / "layout.vtp", "vtp")
+    bx = vtk_to_numpy(lay.GetPoints().GetData())[:, 0]
+    over = (x >= bx.min()) & (x <= bx.max())
+    top = u[-1, over, :2] @ e
+    assert np.all(top > 0) and np.all(np.abs(u[-1, over, :2] @ np.array([-e[1], e[0]])) < top)
     v = vtk_to_numpy(plane.GetPointData().GetArray("velocity"))
     fast = np.linalg.norm(v[:, :2], axis=1) > 0.5 * np.linalg.norm(v[:, :2], axis=1).max()
     ang = np.degrees(np.arctan2(v[fast, 1], v[fast, 0]))
@@ -155,9 +162,13 @@ def test_the_standing_script_opens_in_paraview(pump, tmp_path, request):
     runner = tmp_path / "run_as_script.py"
     runner.write_text(_RUN_AS_SCRIPT)
     shot = tmp_path / "shot.png"
-    p = subprocess.run([pv, str(runner), str(res.out_dir / "open_in_paraview.py"), str(shot)], cwd=tmp_path,
-                       capture_output=True, text=True, timeout=120, env=env)
-    out = p.stdout + p.stderr
+    for attempt in range(4):  # a fresh Xvfb on a busy machine refuses some first connections (test_paraview.py)
+        p = subprocess.run([pv, str(runner), str(res.out_dir / "open_in_paraview.py"), str(shot)], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=120, env=env)
+        out = p.stdout + p.stderr
+        if "bad X server connection" not in out:
+            break
+        time.sleep(2.0 * (attempt + 1))
     assert p.returncode == 0, out
     assert not [ln for ln in out.splitlines() if ln.strip() and not ln.startswith("SOURCES")], out
     sources = out.split("SOURCES", 1)[1].splitlines()[0]
