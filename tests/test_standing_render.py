@@ -110,6 +110,29 @@ def test_layout_nc_carries_the_azimuth_and_the_omissions_are_sized_in_space(pump
     assert "coupling" not in s
 
 
+def test_resolved_path_lines_from_a_line_of_seeds_stay_above_the_wall(tmp_path):
+    """A small standing carpet, time-resolved path lines from the "line" of seeds: the seeds lie
+    upstream of the carpet along its surface flow (the azimuth, 0 here: +x) at the target plane's
+    height; the tracers move downstream and stay in the fluid above the wall, in the plan's domain."""
+    scene = scene_from_dict({"name": "line", "carpet": {"geometry": "standing", "shape": [2, 2], "chi_N": 92.0},
+                             "output": {"seeds": "line", "n_seeds": 4, "height": 1.2, "periods": 2.0,
+                                        "pathline_model": "resolved", "field_shape": [8, 8], "snapshots": 0,
+                                        "frames": 2, "ftle": False, "preview": False}})
+    res = render(scene, tmp_path / "line")
+    pl = _read(res.out_dir / "pathlines.vtp", "vtp")
+    pts = vtk_to_numpy(pl.GetPoints().GetData())
+    t = vtk_to_numpy(pl.GetPointData().GetArray("time"))
+    start = pts[t == 0.0]
+    assert start.shape == (4, 3) and np.allclose(start[:, 2], 1.2) and np.all(start[:, 0] < 0.0)
+    assert np.all(pts[:, 2] > 0.0)
+    cells = [[pl.GetCell(k).GetPointId(i) for i in range(pl.GetCell(k).GetNumberOfPoints())]
+             for k in range(pl.GetNumberOfCells())]
+    first, last = pts[[c[0] for c in cells]], pts[[c[-1] for c in cells]]
+    assert np.all(last[:, 0] > first[:, 0])  # downstream: along +x
+    s = res.summary["pathlines"]
+    assert s["model"] == "resolved" and s["outcome"]["reached end time"] == 4
+
+
 @pytest.mark.parametrize("data, key", [
     ({"field": {"direction": 10.0}, "carpet": {"geometry": "standing"}}, "field.direction"),
     ({"carpet": {"azimuth": 30.0}}, "carpet.azimuth"),

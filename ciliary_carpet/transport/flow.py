@@ -71,7 +71,7 @@ from ciliary_carpet.carpet.carpet import CycleMean, Instant
 if TYPE_CHECKING:
     from ciliary_carpet.carpet.carpet import Carpet
 
-__all__ = ["Flow", "ResolvedFlow", "MeanFlow", "SteadyMeanFlow", "FLOWS", "MEAN_MODEL_ERROR", "STEPS_PER_BEAT"]
+__all__ = ["Flow", "ResolvedFlow", "MeanFlow", "SteadyMeanFlow", "FLOWS", "above_wall", "MEAN_MODEL_ERROR", "STEPS_PER_BEAT"]
 
 STEPS_PER_BEAT = 16
 """The time-resolved flow caps an integrator's steps at the shortest beat period over this
@@ -86,6 +86,22 @@ at the former viscosity 1. The relative error grows like 1 / mu: the drift the m
 is quadratic in the flow, the travel linear. Renders take the model automatically only when the
 scene's tolerance is at least this."""
 _EVERYWHERE = (-math.inf, math.inf) * 3
+
+
+def above_wall(carpet: "Carpet", x: np.ndarray) -> np.ndarray:
+    """``x`` (M, 3) with the points below a standing carpet's wall moved up onto it (a copy; ``x``
+    itself otherwise): the flow there is the wall's, zero (no slip). An integrator's stage may
+    land below the wall for a tracer close to it; the tracer itself stops at the wall, where the
+    path lines' domain ends (a render's standing domain starts at the substrate). Planar carpets,
+    and standing ones in free space, are left alone."""
+    if getattr(carpet, "geometry", "planar") != "standing" or carpet.wall is None:
+        return x
+    z = -float(carpet.wall)
+    if np.all(x[:, 2] >= z):
+        return x
+    x = np.array(x, dtype=float)
+    x[:, 2] = np.maximum(x[:, 2], z)
+    return x
 
 
 class Flow(ABC):
@@ -124,7 +140,7 @@ class ResolvedFlow(Flow):
         object.__setattr__(self, "tol", t)
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
-        return self.carpet.velocity(x, Instant(t), self.tol)
+        return self.carpet.velocity(above_wall(self.carpet, x), Instant(t), self.tol)
 
     @property
     def step_cap(self) -> float:
@@ -218,7 +234,7 @@ class SteadyMeanFlow(Flow):
         return np.array(self.box)
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
-        return self.carpet.velocity(x, CycleMean(), self.tol)
+        return self.carpet.velocity(above_wall(self.carpet, x), CycleMean(), self.tol)
 
 
 FLOWS: dict[str, type[Flow]] = {m.name: m for m in (ResolvedFlow, MeanFlow)}
