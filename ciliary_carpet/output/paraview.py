@@ -343,7 +343,9 @@ t.WindowLocation = "Upper Left Corner"
 t.FontSize = 7
 t.Justification = "Left"
 
-# a 3D view from the front and above: the cilia on the substrate under the plane of the flow
+# a 3D view from the front and above: the cilia on the substrate under the plane of the flow (set
+# after a first render: paraview.simple resets the camera on a view's first render)
+Render(view)
 view.OrientationAxesVisibility = 1
 box = (field or layout or path or cilia).GetDataInformation().GetBounds()
 top = max(box[5], 1.0)
@@ -353,6 +355,7 @@ view.CameraFocalPoint = [cx, cy, 0.3 * top]
 view.CameraPosition = [cx + 0.35 * span, cy - 1.1 * span, 0.3 * top + 0.75 * span]
 view.CameraViewUp = [0.0, 0.0, 1.0]
 view.ResetCamera(box[0], box[1], box[2], box[3], 0.0, top)
+GetActiveCamera().Dolly(1.3)  # closer: the carpet fills the view
 # play through every data time step (cilia frames, particles); nothing here moves the animation
 # (see the planar script: under --script that hangs ParaView 5.11's GUI)
 GetAnimationScene().PlayMode = "Snap To TimeSteps"
