@@ -30,11 +30,12 @@ Outputs
 ===========================  ==================================================================
 ``layout``                   ``layout.vtp``: base points coloured by chi_N (and thrust angle,
                              near_cutoff); a standing carpet's also azimuth and the mean thrust
-                             in space, and ``layout.nc`` (chi_N and azimuth per cilium)
+                             in space
 ``design``                   with a target: ``layout.nc`` (the designed layout: chi_N per cilium,
                              control points, residuals), ``design.vtp`` (control points: target and
                              achieved flow, residual), ``design.png`` (target vs achieved arrows,
-                             residual per control point, the layout coloured by chi_N)
+                             residual per control point, the layout coloured by chi_N); a standing
+                             carpet: ``layout.nc`` (its given layout: chi_N and azimuth per cilium)
 ``mean_field``               ``mean_field.vti``: the time-averaged velocity (active vectors),
                              speed, vorticity and the error bound on the field grid (a standing
                              carpet: the target plane z = h, and ``mean_field_section.vti`` on
@@ -247,10 +248,10 @@ class LayoutOutput(Output):
     flutter and near_cutoff; for a coupled carpet also ``background_flow``, the others' mean flow
     at each cilium. A standing carpet's also has ``azimuth`` [deg] and ``mean_thrust`` (the
     cycle-mean force on the fluid in space, force per length units x L) with its force centres'
-    height ``centre_z``, and ``layout.nc`` holds the layout (:func:`standing_layout_dataset`)."""
+    height ``centre_z`` (its ``layout.nc`` is the ``design`` output's file)."""
 
     name = "layout"
-    files = (r"layout\.vtp", r"layout\.nc")
+    files = (r"layout\.vtp",)
 
     def wanted(self, plan):
         return True
@@ -285,7 +286,6 @@ class LayoutOutput(Output):
                 "cilium_id": np.arange(c.n), "flutter": c.flutter.astype(np.uint8), "near_cutoff": np.zeros(c.n, np.uint8),
                 "mean_thrust": c.in_space("mean_thrust") * f_scale * L, "centre_z": c.in_space("centres")[:, 2] * L}
         write_points(ctx.stage / "layout.vtp", np.column_stack([c.bases * L, np.zeros(c.n)]), data)
-        write_netcdf(standing_layout_dataset(c), ctx.stage / "layout.nc")
         ctx.summary["layout"] = {"chi_N_min": float(c.chi_N.min()), "chi_N_max": float(c.chi_N.max()),
                                  "azimuth_min_deg": float(psi.min()), "azimuth_max_deg": float(psi.max())}
 
@@ -326,15 +326,19 @@ def standing_layout_dataset(c: Carpet):
 
 class DesignOutput(Output):
     """With a target: ``layout.nc``, ``design.vtp`` (control points: target, achieved flow,
-    residual) and ``design.png``."""
+    residual) and ``design.png``. A standing carpet (given its layout, no target): ``layout.nc``
+    alone, chi_N and azimuth per cilium (:func:`standing_layout_dataset`)."""
 
     name = "design"
     files = (r"layout\.nc", r"design\.vtp", r"design\.png")
 
     def wanted(self, plan):
-        return plan.designed
+        return plan.designed or plan.scene.carpet.geometry == "standing"
 
     def write(self, ctx):
+        if ctx.design is None:  # a standing carpet's given layout
+            write_netcdf(standing_layout_dataset(ctx.carpet), ctx.stage / "layout.nc")
+            return
         d, stage = ctx.design, ctx.stage
         L, _, V = ctx.plan.units
         write_netcdf(d.to_dataset(ctx.carpet), stage / "layout.nc")
