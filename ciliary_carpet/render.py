@@ -110,7 +110,7 @@ def _header(plan: RenderPlan, carpet) -> dict:
             "T0": plan.T0 * T, "backend": (carpet.backend if carpet.backend is not None else Auto()).describe(),
             "beat": beat}
     if carpet.geometry == "standing":  # (a planar summary is as it was: no geometry key)
-        psi = np.degrees(carpet.azimuth)
+        psi = np.round(np.degrees(carpet.azimuth), 9)
         head["geometry"] = "standing"
         head["standing"] = {"wall_below_clamps": carpet.wall * plan.units[0] if carpet.wall is not None else None,
                             "azimuth_deg": {"min": float(psi.min()), "max": float(psi.max()),

@@ -205,7 +205,7 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
         cb = fig.colorbar(m, cax=fig.add_axes([0.735 + 0.09 * k, 0.17, 0.016, 0.67]))
         cb.set_label(label, fontsize=9)
         cb.ax.tick_params(labelsize=8)
-    psi = np.degrees(carpet.azimuth)
+    psi = np.round(np.degrees(carpet.azimuth), 9)
     az = f"azimuth {psi.min():.3g} deg" if np.ptp(psi) < 1e-9 else f"azimuths {psi.min():.3g}..{psi.max():.3g} deg"
     ax.set_title(f"{scene.name}: standing cilia ({az}), mean flow at z = {h:.3g} L, seen from above", fontsize=10)
     ax.set_aspect("equal")

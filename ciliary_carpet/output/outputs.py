@@ -281,7 +281,7 @@ class LayoutOutput(Output):
         c = ctx.carpet
         L = ctx.plan.units[0]
         f_scale = _force_scale(ctx.plan, c)
-        psi = np.degrees(c.azimuth)
+        psi = np.round(np.degrees(c.azimuth), 9)
         data = {"chi_N": c.chi_N, "azimuth": psi, "thrust_angle": c.table.scalar("thrust_angle", c.chi_N),
                 "cilium_id": np.arange(c.n), "flutter": c.flutter.astype(np.uint8), "near_cutoff": np.zeros(c.n, np.uint8),
                 "mean_thrust": c.in_space("mean_thrust") * f_scale * L, "centre_z": c.in_space("centres")[:, 2] * L}
@@ -310,8 +310,8 @@ def standing_layout_dataset(c: Carpet):
         {"x": ("cilium", c.bases[:, 0], {"long_name": "base point x", "units": "L"}),
          "y": ("cilium", c.bases[:, 1], {"long_name": "base point y", "units": "L"}),
          "chi_N": ("cilium", c.chi_N, {"long_name": "natural curvature chi_N = L kappa_N", "units": "1"}),
-         "azimuth": ("cilium", np.degrees(c.azimuth), {"long_name": "beat-plane azimuth psi, anticlockwise from +x",
-                                                       "units": "degree"}),
+         "azimuth": ("cilium", np.round(np.degrees(c.azimuth), 9),  # (to 1e-9 deg: 30, not 29.999999999999996)
+                     {"long_name": "beat-plane azimuth psi, anticlockwise from +x", "units": "degree"}),
          "thrust_angle": ("cilium", c.table.scalar("thrust_angle", c.chi_N),
                           {"long_name": "lean of the mean thrust from the normal towards e_psi", "units": "rad"}),
          "phase": ("cilium", c.phases, {"long_name": "beat phase at t = 0", "units": "1"}),
