@@ -203,3 +203,25 @@ def test_the_standing_script_opens_in_paraview(pump, tmp_path, request):
 
 
 from test_paraview import display  # noqa: E402,F401  (the virtual X server fixture, shared)
+
+
+def test_an_integrator_stage_below_the_wall_takes_the_walls_flow():
+    """A stage of a tracer next to a standing carpet's wall may land below it: the flow models
+    give the wall's flow there (zero: no slip) instead of refusing the point; a planar carpet's
+    points below its wall are still refused."""
+    from ciliary_carpet.carpet import layout
+    from ciliary_carpet.carpet.carpet import Carpet
+    from ciliary_carpet.transport.flow import ResolvedFlow, SteadyMeanFlow, above_wall
+    from single_cilium.table import ThrustTable
+
+    table = ThrustTable.default()
+    c = Carpet(layout.square(2, 2, 2.0), 92.0, table, None, wall=0.0, geometry="standing", azimuth=0.5)
+    x = np.array([[1.0, 1.0, -0.3], [1.0, 1.0, 1.5], [5.0, -1.0, -1e-9]])
+    assert np.array_equal(above_wall(c, x)[:, 2], [0.0, 1.5, 0.0]) and x[0, 2] == -0.3
+    for flow in (ResolvedFlow(c, 1e-3), SteadyMeanFlow(c, (-10, 10, -10, 10, 0, 10), 1e-3)):
+        u = flow.velocity(x, 0.1)
+        assert np.abs(u[[0, 2]]).max() < 1e-14 and np.abs(u[1]).max() > 0
+    planar = Carpet(layout.square(2, 2, 2.0), 92.0, table, None, wall=1.0)
+    assert above_wall(planar, x) is x
+    with pytest.raises(ValueError, match="below the wall"):
+        ResolvedFlow(planar, 1e-3).velocity(np.array([[0.0, 0.0, -2.0]]), 0.1)
