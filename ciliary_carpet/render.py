@@ -35,6 +35,8 @@ import time as _time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
+
 from single_cilium.progress import Progress
 
 from ciliary_carpet.design import design
@@ -96,12 +98,22 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
 
 
 def _header(plan: RenderPlan, carpet) -> dict:
-    """The summary's first keys: the scene, the settings, the units and the beat."""
+    """The summary's first keys: the scene, the settings, the units and the beat; a standing
+    carpet's also ``geometry`` ("standing") and ``standing``: the wall's distance below the clamps,
+    the azimuths' range [degrees] and the target plane's height."""
     _, T, _ = plan.units
     beat = {k: (v * T if k != "beating" else v) for k, v in asdict(plan.beat).items()}
     beat["loop_until"] = plan.span * T
     scene = plan.scene
-    return {"scene": scene.name, "source": scene.source_name, "package_version": PACKAGE_VERSION,
+    head = {"scene": scene.name, "source": scene.source_name, "package_version": PACKAGE_VERSION,
             "n_cilia": carpet.n, "tolerance": scene.tolerance, "units": "SI" if plan.scales is not None else "L, tau",
             "T0": plan.T0 * T, "backend": (carpet.backend if carpet.backend is not None else Auto()).describe(),
             "beat": beat}
+    if carpet.geometry == "standing":  # (a planar summary is as it was: no geometry key)
+        psi = np.round(np.degrees(carpet.azimuth), 9)
+        head["geometry"] = "standing"
+        head["standing"] = {"wall_below_clamps": carpet.wall * plan.units[0] if carpet.wall is not None else None,
+                            "azimuth_deg": {"min": float(psi.min()), "max": float(psi.max()),
+                                            "median": float(np.median(psi))},
+                            "target_height": float(scene.output.height) * plan.units[0]}
+    return head

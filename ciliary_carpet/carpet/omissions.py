@@ -35,6 +35,9 @@ given too (median and 90th percentile only: its maximum is unbounded at the turn
 is what issue 27 measured (uniform_deflection: 18 % at mid-length, 32 % at the tip, 90th
 percentile 66-69 %, 12 cilia x 6 instants); here, 64 cilia x 6 instants, 19 %, 29 % and 65 %, and
 the r.m.s.-normalised medians 18 % and 28 % (the two differ little in the median, by design).
+A standing carpet's filament points, forces and force centres are taken in space (each cilium's
+beat plane, :meth:`Carpet.state_in_space <ciliary_carpet.carpet.carpet.Carpet.state_in_space>`);
+the beat speeds are the same in either frame.
 
 Sampling: at most ``n_cilia`` (default 64) fluttering cilia, drawn without replacement by
 ``numpy.random.default_rng(seed)`` (all of them when there are fewer; still cilia neither beat
@@ -102,8 +105,13 @@ ln(2 h / a) <= 1 (h < 1.36 a: the filament touches the wall, lubrication, outsid
 ``wall_regime`` says whether h lies in a << h << L (taken as 5 a <= h <= L / 2).
 
 For a planar carpet every filament point lies at the wall depth h = ``carpet.wall`` above the
-wall, so that is the cilia's mean height; with no wall the ratios are 1. (A standing carpet's
-filaments are not parallel to the wall: these formulas would not apply.) A ratio of 1.5 means
+wall, so that is the cilia's mean height; with no wall the ratios are 1. A standing carpet's
+filaments rise from the wall (clamped on it, or ``carpet.wall`` above it): the same formulas are
+evaluated at each cilium's mean height, its force centre's height above the wall
+(``centre_z + wall``), as the estimate of the wall's effect on the filament as a whole; the
+ratios are reported at the median of those heights and, the largest, at the lowest. The theory
+is for a filament parallel to the wall, so for a standing one it is an order-of-magnitude
+estimate (its base, at the wall, is slowed more; its tip less). A ratio of 1.5 means
 the filament near the wall is 1.5 times as hard to move as its cycle assumes: it beats more
 slowly than modelled, by what the single-cilium model with eta scaled by that factor gives
 (MODEL.md section 4: the frequency falls as eta grows).
@@ -130,7 +138,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ciliary_carpet.carpet.carpet import Carpet, Instant, sbt_viscosity
+from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant, sbt_viscosity
 from ciliary_carpet.carpet.cycles import simpson
 from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 
@@ -225,6 +233,11 @@ class Omissions:
     them (:func:`wall_drag_ratios`), ``wall_drag_formula``: the closed form (:func:`wall_drag_formula`),
     ``wall_regime`` (text).
 
+    A standing carpet (``geometry = "standing"``): ``wall_height`` is the median of the cilia's
+    mean heights above the wall (force centre's z plus the wall's distance below the clamps),
+    ``wall_height_min``, ``wall_height_max`` their range, the drag ratios are at the median
+    height and ``wall_drag_along_max``, ``wall_drag_across_max`` at the lowest.
+
     Viscosity: ``mu`` (the carpet's, B tau / L^4), ``mu_source`` (``"filaments"``: the default,
     from eta and the radius; ``"given"``: set by the user), ``mu_sbt`` (slender-body theory's from eta and
     a, same units), ``flow_speed_error`` = mu_sbt / mu - 1 (dimensionless: the carpet's flow
@@ -268,6 +281,11 @@ class Omissions:
     mu_source: str
     mu_sbt: float
     flow_speed_error: float
+    geometry: str = "planar"
+    wall_height_min: float | None = None
+    wall_height_max: float | None = None
+    wall_drag_along_max: float = math.nan
+    wall_drag_across_max: float = math.nan
 
     def summary(self) -> dict:
         """Strict-JSON-safe dict (floats, ints, strings; NaN as None) of the scalar results and
@@ -297,7 +315,12 @@ class Omissions:
                         "spacing_for_10pct_L": f(self.spacing_10)},
             "wall": {"height_L": f(self.wall_height), "filament_radius_L": f(self.filament_radius),
                      "drag_ratio_along": f(self.wall_drag_along), "drag_ratio_across": f(self.wall_drag_across),
-                     "drag_ratio_formula": f(self.wall_drag_formula), "regime": self.wall_regime},
+                     "drag_ratio_formula": f(self.wall_drag_formula), "regime": self.wall_regime,
+                     **({"geometry": "standing", "height_is": "median mean height (force centre) above the wall",
+                         "height_min_L": f(self.wall_height_min), "height_max_L": f(self.wall_height_max),
+                         "drag_ratio_along_lowest": f(self.wall_drag_along_max),
+                         "drag_ratio_across_lowest": f(self.wall_drag_across_max)}
+                        if self.geometry == "standing" else {})},
             "viscosity": {"mu": f(self.mu), "source": self.mu_source, "mu_sbt": f(self.mu_sbt), "flow_speed_error": f(self.flow_speed_error)},
             "lines": self.lines(),
         }
@@ -333,7 +356,9 @@ class Omissions:
             out.append(f"The other cilia's mean flow at a cilium is {_pct(self.pushback_median)} % (median; max "
                        f"{_pct(self.pushback_max)} %) of the stream that would cancel its own mean thrust "
                        f"(|Fbar| / eta): {verdict}.")
-        if self.wall_height is None:
+        if self.geometry == "standing" and self.wall_height is not None:
+            out.append(self._standing_wall_line())
+        elif self.wall_height is None:
             out.append("No wall: the filaments' free-space drag coefficients are the right ones.")
         elif max(self.wall_drag_along, self.wall_drag_across) < 1.05:
             out.append(f"The wall {self.wall_height:.3g} L below the filaments changes their own drag by less than "
@@ -359,6 +384,41 @@ class Omissions:
                    f"drag eta implies (slender-body theory, radius {self.filament_radius:.3g} L): the flow speeds are "
                    f"{100 * abs(self.flow_speed_error):.0f} % too {direction} against the filaments' own drag.")
         return out
+
+
+    def _standing_wall_line(self) -> str:
+        """The wall's sentence for standing cilia (their mean heights above it)."""
+        where = (f"The cilia stand on the wall: their force centres lie {self.wall_height:.3g} L above it (median; "
+                 f"{self.wall_height_min:.3g} to {self.wall_height_max:.3g} L)")
+        if not math.isfinite(self.wall_drag_across):
+            return (where + ", within a few radii of it: slender-body theory does not apply (lubrication), their "
+                    "drag is far above the model's.")
+        if max(self.wall_drag_along_max, self.wall_drag_across_max) < 1.05:
+            return (where + f"; at those heights the wall changes their drag by less than 5 % (slender-body theory, "
+                    f"{self.wall_drag_across:.3f} across, {self.wall_drag_along:.3f} along): their free-space cycles "
+                    "stand.")
+        return (where + f"; slender-body theory at that mean height makes them {self.wall_drag_across:.2f} times as "
+                f"hard to move across and {self.wall_drag_along:.2f} times along themselves as their free-space "
+                f"cycles assume (up to {self.wall_drag_across_max:.2f} and {self.wall_drag_along_max:.2f} for the "
+                f"lowest; {self.wall_regime}; the theory is for filaments parallel to the wall, so for standing ones "
+                "it is an estimate, larger near the base and smaller at the tip): they beat more slowly than "
+                "modelled.")
+
+
+def _others_mean_flow_in_space(carpet: Carpet, js: np.ndarray, tol: float) -> np.ndarray:
+    """(len(js), 3) the others' cycle-mean flow at the force centres of a standing carpet's cilia
+    ``js``, in space: the carpet's :class:`CycleMean` flow at each centre minus the cilium's own
+    cycle-averaged resolved line (the same weights as the carpet's resolved mean, as
+    :meth:`Carpet.others_mean_flow <ciliary_carpet.carpet.carpet.Carpet.others_mean_flow>` does in a
+    planar carpet's plane)."""
+    cen = carpet.in_space("centres", js)
+    u = carpet.velocity(cen, CycleMean(), tol)
+    w = carpet.cycles.weights
+    xs, fs = carpet.cycle_samples(js)  # (m, n_phase, n_s, 2) in each beat plane
+    m, n_p, n_s = xs.shape[:3]
+    src = carpet.embedding.points(xs.reshape(m, -1, 2), js).reshape(-1, 3)
+    frc = carpet.embedding.vectors((fs * (w / n_p)[None, None, :, None]).reshape(m, -1, 2), js).reshape(-1, 3)
+    return u - _own(carpet, cen, np.ascontiguousarray(src), np.ascontiguousarray(frc), 1, n_p * n_s)
 
 
 def _pct(x: float) -> str:
@@ -400,6 +460,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
     if int(n_cilia) < 1 or int(n_instants) < 1:
         raise ValueError(f"n_cilia and n_instants must be >= 1, got {n_cilia!r}, {n_instants!r}")
     tol = float(tol)
+    standing = carpet.geometry == "standing"
     s = carpet.s
     n_s = s.size
     w = simpson(n_s)
@@ -447,11 +508,17 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         spread_k = set(np.unique(np.linspace(0, instants.size, n_spread, endpoint=False).astype(int)).tolist())
         near, far = [], []
         for k, t in enumerate(instants):
-            pos, frc, _ = carpet.state(t, js)
-            targets = _pad(pos[:, pts].reshape(-1, 2))  # (nj * 2, 3)
+            if standing:  # in space: each cilium in its beat plane
+                pos3, frc3, _ = carpet.state_in_space(t, js)
+                targets = np.ascontiguousarray(pos3[:, pts].reshape(-1, 3))
+                src = np.ascontiguousarray(pos3.reshape(-1, 3))
+                force = np.ascontiguousarray((frc3 * w[None, :, None]).reshape(-1, 3))
+            else:
+                pos, frc, _ = carpet.state(t, js)
+                targets = _pad(pos[:, pts].reshape(-1, 2))  # (nj * 2, 3)
+                src = _pad(pos.reshape(-1, 2))
+                force = _pad((frc * w[None, :, None]).reshape(-1, 2))
             sample = carpet.evaluate(targets, Instant(t), tol)
-            src = _pad(pos.reshape(-1, 2))
-            force = _pad((frc * w[None, :, None]).reshape(-1, 2))
             u = sample.velocity - _own(carpet, targets, src, force, 2, n_s)
             ind = np.linalg.norm(u, axis=1).reshape(nj, 2)
             ratio[:, k] = (ind / vrms).T
@@ -459,7 +526,18 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
             with np.errstate(divide="ignore", invalid="ignore"):
                 pointwise[:, k] = (ind / own).T
             err = max(err, float(np.max(sample.error_bound.reshape(nj, 2) / vrms)))
-            if k in spread_k:  # the same carpet, bases spread by SPREAD: every pair resolved
+            if k in spread_k and standing:  # the same, in space
+                shift = _pad((spread - 1.0) * bases)
+                p_all, f_all, _ = carpet.state_in_space(t)
+                all_src = (p_all + shift[:, None, :]).reshape(-1, 3)
+                all_frc = (f_all * w[None, :, None]).reshape(-1, 3)
+                tg = (pos3[:, pts] + shift[js][:, None, :]).reshape(-1, 3)
+                own_src = (pos3 + shift[js][:, None, :]).reshape(-1, 3)
+                u2 = stokeslet_velocity(tg, all_src, all_frc, carpet.mu, kernel=carpet.kernel, backend=carpet.backend) \
+                    - _own(carpet, tg, own_src, force, 2, n_s)
+                far.append(np.linalg.norm(u2, axis=1).reshape(nj, 2)[:, 1] / vrms[:, 1])
+                near.append(ratio[1, k])
+            elif k in spread_k:  # the same carpet, bases spread by SPREAD: every pair resolved
                 shift = (spread - 1.0) * bases
                 p_all, f_all, _ = carpet.state(t)
                 all_src = _pad((p_all + shift[:, None, :]).reshape(-1, 2))
@@ -477,7 +555,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
                 spacing_10 = d_nn * max(1.0, (float(np.median(ratio[1])) / TARGET_RATIO) ** (1.0 / exponent))
 
         # the others' mean flow at the force centres against the stream that cancels the thrust
-        um = carpet.others_mean_flow(js, tol)
+        um = _others_mean_flow_in_space(carpet, js, tol) if standing else carpet.others_mean_flow(js, tol)
         mean_others = np.linalg.norm(um, axis=1)
         fbar = np.linalg.norm(carpet.mean_thrust[js], axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -487,7 +565,12 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
     pw_mid, pw_tip = _stats(pointwise[0].ravel()), _stats(pointwise[1].ravel())
     pb = _stats(pushback)
     h = None if carpet.wall is None else float(carpet.wall)
+    heights = None
+    if standing and h is not None:  # each cilium's mean height above the wall: its force centre's
+        heights = carpet.in_space("centres")[:, 2] + h
+        h = float(np.median(heights))
     along, across = wall_drag_ratios(h, a)
+    low = wall_drag_ratios(float(heights.min()), a) if heights is not None else (math.nan, math.nan)
     if h is None:
         regime = "no wall"
     elif not math.isfinite(across):
@@ -511,4 +594,8 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         spacing=d_nn, spacing_exponent=exponent, spacing_10=spacing_10,
         wall_height=h, filament_radius=a, wall_drag_along=along, wall_drag_across=across,
         wall_drag_formula=wall_drag_formula(h, a), wall_regime=regime,
-        mu=float(carpet.mu), mu_source=carpet.mu_source, mu_sbt=mu_sbt, flow_speed_error=mu_sbt / float(carpet.mu) - 1.0)
+        mu=float(carpet.mu), mu_source=carpet.mu_source, mu_sbt=mu_sbt, flow_speed_error=mu_sbt / float(carpet.mu) - 1.0,
+        **({} if not standing else dict(
+            geometry="standing", wall_height_min=None if heights is None else float(heights.min()),
+            wall_height_max=None if heights is None else float(heights.max()), wall_drag_along_max=low[0],
+            wall_drag_across_max=low[1])))

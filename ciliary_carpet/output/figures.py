@@ -13,7 +13,7 @@ from single_cilium.files import usual_mode
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.scenes.scene import Scene
 
-__all__ = ["design_picture", "preview"]
+__all__ = ["design_picture", "preview", "standing_preview"]
 
 
 def _savefig(fig, path: Path) -> None:
@@ -136,6 +136,78 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
         unit = f"{np.degrees(d.residual_rms):.2g} deg" if d.kind == "angle" else f"{d.residual_rms:.1%}"
         title += f"  (design: {unit} rms off the target)"
     ax.set_title(title)
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.set_xlabel("x / L")
+    ax.set_ylabel("y / L")
+    _savefig(fig, path)
+
+
+def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -> None:
+    """A standing carpet at a glance, a plan view (looking down -z): the mean flow in the target
+    plane z = h (streamlines of its in-plane velocity, coloured by that speed), the path lines
+    projected on the plane (coloured by time, their end points in black), and the cilia's
+    footprints: each cilium's swept region over its beat projected on the substrate (its
+    positions at the table's phase samples, a band along its beat plane) coloured by chi_N, with
+    its base. A colour bar for each colour. In the model's units (L, tau).
+
+    ``mean_field`` is the render's :class:`~ciliary_carpet.output.outputs.MeanField` on the
+    target plane and ``pl`` its path lines (3D), each None when the render has none."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    fig = plt.figure(figsize=(9.6, 6.5))
+    ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
+    bars = []
+    h = float(scene.output.height)
+    if mean_field is not None:
+        shape, pts, u = mean_field.grid.shape, mean_field.points, mean_field.velocity
+        h = float(pts[0, 2])
+        X = pts[:, 0].reshape(shape[1], shape[0])
+        Y = pts[:, 1].reshape(shape[1], shape[0])
+        U = np.nan_to_num(u[:, 0]).reshape(X.shape)
+        W = np.nan_to_num(u[:, 1]).reshape(X.shape)
+        sp = np.hypot(U, W)
+        norm = matplotlib.colors.Normalize(0.0, float(sp.max()) if sp.max() > 0 else 1.0)
+        ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", norm=norm, density=1.4, linewidth=0.7, arrowsize=0.9)
+        bars.append((matplotlib.cm.ScalarMappable(norm=norm, cmap="Blues"),
+                     f"streamlines: mean speed at z = {h:.3g} L [L/tau]"))
+    if pl is not None and len(pl.points):
+        segs = [np.stack([p[:-1, :2], p[1:, :2]], axis=1) for p in pl.points if len(p) > 1]
+        if segs:
+            tt = np.concatenate([0.5 * (t[:-1] + t[1:]) for p, t in zip(pl.points, pl.times) if len(p) > 1])
+            lc = LineCollection(np.concatenate(segs), cmap="autumn", lw=0.6, alpha=0.85)
+            lc.set_array(tt)
+            ax.add_collection(lc)
+            bars.append((lc, "path lines (seen from above): time [tau]"))
+        e = pl.end_points
+        ax.plot(e[:, 0], e[:, 1], ".", color="k", ms=2)
+    lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
+    cmap = plt.cm.coolwarm
+    for lo in range(0, carpet.n, 256):  # the footprints: the swept samples of each cilium, seen from above
+        js = np.arange(lo, min(lo + 256, carpet.n))
+        xs, _ = carpet.cycle_samples(js)  # (m, n_phase, n_s, 2) in each beat plane
+        xyz = carpet.embedding.points(xs.reshape(js.size, -1, 2), js)  # (m, n_phase n_s, 3)
+        for k, j in enumerate(js):
+            q = xyz[k, :, :2]
+            along = (q - carpet.bases[j]) @ np.array([np.cos(carpet.azimuth[j]), np.sin(carpet.azimuth[j])])
+            ends = carpet.bases[j] + np.outer([along.min(), along.max()],
+                                             [np.cos(carpet.azimuth[j]), np.sin(carpet.azimuth[j])])
+            ax.plot(ends[:, 0], ends[:, 1], color=cmap(0.5 + 0.5 * carpet.chi_N[j] / lim), lw=2.4,
+                    solid_capstyle="round", alpha=0.9, zorder=2)
+    sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim,
+                    s=10, zorder=3, edgecolors="k", linewidths=0.3)
+    bars.insert(0, (sc, "cilia footprints: chi_N"))
+    for k, (m, label) in enumerate(bars):
+        cb = fig.colorbar(m, cax=fig.add_axes([0.735 + 0.09 * k, 0.17, 0.016, 0.67]))
+        cb.set_label(label, fontsize=9)
+        cb.ax.tick_params(labelsize=8)
+    psi = np.round(np.degrees(carpet.azimuth), 9)
+    az = f"azimuth {psi.min():.3g} deg" if np.ptp(psi) < 1e-9 else f"azimuths {psi.min():.3g}..{psi.max():.3g} deg"
+    ax.set_title(f"{scene.name}: standing cilia ({az}), mean flow at z = {h:.3g} L, seen from above", fontsize=10)
     ax.set_aspect("equal")
     ax.autoscale_view()
     ax.set_xlabel("x / L")

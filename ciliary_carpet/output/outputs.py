@@ -29,15 +29,20 @@ Outputs
 -------
 ===========================  ==================================================================
 ``layout``                   ``layout.vtp``: base points coloured by chi_N (and thrust angle,
-                             near_cutoff)
+                             near_cutoff); a standing carpet's also azimuth and the mean thrust
+                             in space
 ``design``                   with a target: ``layout.nc`` (the designed layout: chi_N per cilium,
                              control points, residuals), ``design.vtp`` (control points: target and
                              achieved flow, residual), ``design.png`` (target vs achieved arrows,
-                             residual per control point, the layout coloured by chi_N)
+                             residual per control point, the layout coloured by chi_N); a standing
+                             carpet: ``layout.nc`` (its given layout: chi_N and azimuth per cilium)
 ``mean_field``               ``mean_field.vti``: the time-averaged velocity (active vectors),
-                             speed, vorticity and the error bound on the field grid
+                             speed, vorticity and the error bound on the field grid (a standing
+                             carpet: the target plane z = h, and ``mean_field_section.vti`` on
+                             the vertical x-z section through its centre, down to the wall)
 ``snapshots``                ``snapshot_NNN.vti``: instantaneous fields over one beat of the cilia,
-                             tied by ``snapshots.pvd``
+                             tied by ``snapshots.pvd`` (a standing carpet: also on the section,
+                             ``snapshot_section_NNN.vti``, ``snapshots_section.pvd``)
 ``frames``                   ``cilia_NNN.vtp``: filament shapes over one beat (arc length, drag
                              density), ``cilia.pvd``; both .pvd repeat that beat over the path
                              lines' time range (one clock)
@@ -55,6 +60,17 @@ Outputs
                              error bounds, path-line outcome, what the model leaves out (``.md``:
                              the same in words, :mod:`ciliary_carpet.output.report`)
 ===========================  ==================================================================
+
+Standing carpets (``[carpet] geometry = "standing"``, :mod:`ciliary_carpet.carpet.geometry`) write
+the same files in space: the cilia's frames and the path lines are 3D polylines; the fields lie
+on the target plane z = h above the cilia (``[output] height``) plus the vertical section; the
+path lines follow the 3D flow (the time-resolved flow, or the cycle-mean flow evaluated directly,
+:class:`~ciliary_carpet.transport.flow.SteadyMeanFlow`) from the substrate up, and a tracer that
+reaches the wall ends there ("left the domain"). The FTLE and the mixing number are those of the
+target plane's in-plane mean flow (2D tracers that stay in the plane z = h: the stretching along
+the surface flow, not the fluid's 3D stretching). The preview looks down on the target plane.
+The summary gives the geometry and the azimuths; the coupling estimate (a planar carpet's) is
+left out.
 """
 from __future__ import annotations
 
@@ -78,13 +94,13 @@ from ciliary_carpet.carpet.coupling import coupling_estimate
 from ciliary_carpet.carpet.omissions import omissions
 from ciliary_carpet.design import Design
 from ciliary_carpet.output import RenderError
-from ciliary_carpet.output.figures import design_picture, preview
+from ciliary_carpet.output.figures import design_picture, preview, standing_preview
 from ciliary_carpet.output.paraview import SCRIPT, write_script
 from ciliary_carpet.output.plan import FieldGrid, RenderPlan
 from ciliary_carpet.output.report import markdown
 from ciliary_carpet.output.vtkfiles import write_cilia, write_field, write_points, write_pvd
 from ciliary_carpet.transport.ftle import ftle_field
-from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow
+from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow, SteadyMeanFlow
 from ciliary_carpet.transport.pathlines import UNDERFLOW, PathLines, pathlines
 
 logger = logging.getLogger(__name__)
@@ -115,7 +131,8 @@ class RenderContext:
     ``plan``, ``carpet`` (designed) and ``design`` (None without a target) are fixed; ``stage`` is
     the staging folder to write into and ``out_dir`` the folder as it will be once placed;
     ``summary`` and ``clock`` (seconds by stage, from ``started``) grow as outputs are written;
-    ``mean_field`` and ``pathlines`` are left by their outputs for later ones.
+    ``mean_field`` and ``pathlines`` are left by their outputs for later ones (and a standing
+    carpet's ``section_field``, its vertical section).
     """
 
     plan: RenderPlan
@@ -128,6 +145,7 @@ class RenderContext:
     started: float
     mean_field: MeanField | None = None
     pathlines: PathLines | None = None
+    section_field: MeanField | None = None
     _mean_flow: MeanFlow | None = field(default=None, init=False, repr=False)
 
     @contextmanager
@@ -139,10 +157,19 @@ class RenderContext:
 
     def mean_flow(self) -> MeanFlow:
         """The long-time flow model (made once): from the render's mean field, or the carpet's
-        mean flow evaluated on a grid of the same box and spacing."""
+        mean flow evaluated on a grid of the same box and spacing. For a standing carpet, the
+        in-plane mean flow of its target plane z = h (what its FTLE takes; its path lines follow
+        the 3D flow, :meth:`standing_mean_flow`)."""
         if self._mean_flow is None:
             mf, tol = self.mean_field, self.plan.scene.tolerance
-            if mf is not None:
+            if self.carpet.geometry == "standing":
+                g = self.plan.grid
+                if mf is None:
+                    sample = self.carpet.velocity(g.points(), CycleMean(), tol)
+                    mf = MeanField(g, g.points(), sample)
+                nx, ny = g.shape[:2]
+                self._mean_flow = MeanFlow.from_grid(self.carpet, *g.lines(), mf.velocity.reshape(ny, nx, 3))
+            elif mf is not None:
                 nx, ny = mf.grid.shape[:2]
                 self._mean_flow = MeanFlow.from_grid(self.carpet, *mf.grid.lines(), mf.velocity.reshape(ny, nx, 3))
             else:
@@ -150,6 +177,12 @@ class RenderContext:
                 self._mean_flow = MeanFlow.from_carpet(self.carpet, g.box, spacing=min(g.spacing[:2]),
                                                        tol=max(tol, 1e-6))
         return self._mean_flow
+
+
+    def standing_mean_flow(self) -> SteadyMeanFlow:
+        """A standing carpet's long-time flow in space: its cycle-mean flow evaluated directly at
+        the scene's tolerance, in the path lines' domain (``plan.domain``)."""
+        return SteadyMeanFlow(self.carpet, self.plan.domain, tol=self.plan.scene.tolerance)
 
 
 class Output(ABC):
@@ -178,13 +211,27 @@ def _vorticity(u: np.ndarray, spacing, shape) -> np.ndarray:
     return w
 
 
+def _vorticity_section(u: np.ndarray, spacing, shape) -> np.ndarray:
+    """(n, 3) vorticity (0, du/dz - dw/dx, 0) of a field on a vertical x-z section, the
+    (nx, 1, nz) grid (second-order differences; the section's own derivatives only)."""
+    nx, nz = shape[0], shape[2]
+    U = u[:, 0].reshape(nz, nx)
+    W = u[:, 2].reshape(nz, nx)
+    w = np.zeros((u.shape[0], 3))
+    w[:, 1] = (np.gradient(U, spacing[2], axis=0) - np.gradient(W, spacing[0], axis=1)).ravel()
+    return w
+
+
 def _write_flow(path: Path, grid: FieldGrid, sample, plan: RenderPlan, time: float | None = None) -> Path:
-    """A field file of a flow ``sample`` on ``grid``: velocity, speed, vorticity, error bound."""
+    """A field file of a flow ``sample`` on ``grid``: velocity, speed, vorticity, error bound
+    (a vertical section, shape (nx, 1, nz): its y vorticity)."""
     L, T, V = plan.units
     u = sample.velocity
+    vort = _vorticity_section(u, grid.spacing, grid.shape) if grid.shape[1] == 1 and grid.shape[2] > 1 \
+        else _vorticity(u, grid.spacing, grid.shape)
     return write_field(path, np.asarray(grid.origin) * L, np.asarray(grid.spacing) * L, grid.shape,
                        {"velocity": u * V, "speed": np.linalg.norm(u, axis=1) * V,
-                        "vorticity": _vorticity(u, grid.spacing, grid.shape) / T,
+                        "vorticity": vort / T,
                         "error_bound": sample.error_bound * V}, time=time)
 
 
@@ -199,7 +246,9 @@ def _looped(files: list, beat: float, span: float) -> list:
 class LayoutOutput(Output):
     """``layout.vtp``: the cilia's base points with chi_N, thrust angle (in the flow each beats in),
     flutter and near_cutoff; for a coupled carpet also ``background_flow``, the others' mean flow
-    at each cilium."""
+    at each cilium. A standing carpet's also has ``azimuth`` [deg] and ``mean_thrust`` (the
+    cycle-mean force on the fluid in space, force per length units x L) with its force centres'
+    height ``centre_z`` (its ``layout.nc`` is the ``design`` output's file)."""
 
     name = "layout"
     files = (r"layout\.vtp",)
@@ -208,6 +257,9 @@ class LayoutOutput(Output):
         return True
 
     def write(self, ctx):
+        if ctx.carpet.geometry == "standing":
+            self._standing(ctx)
+            return
         c, d = ctx.carpet, ctx.design
         L, _, V = ctx.plan.units
         near = np.zeros(c.n, np.uint8)
@@ -224,18 +276,69 @@ class LayoutOutput(Output):
         write_points(ctx.stage / "layout.vtp", np.column_stack([c.bases * L, np.zeros(c.n)]), data)
         ctx.summary["layout"] = {"chi_N_min": float(c.chi_N.min()), "chi_N_max": float(c.chi_N.max())}
 
+    @staticmethod
+    def _standing(ctx):
+        c = ctx.carpet
+        L = ctx.plan.units[0]
+        f_scale = _force_scale(ctx.plan, c)
+        psi = np.round(np.degrees(c.azimuth), 9)
+        data = {"chi_N": c.chi_N, "azimuth": psi, "thrust_angle": c.table.scalar("thrust_angle", c.chi_N),
+                "cilium_id": np.arange(c.n), "flutter": c.flutter.astype(np.uint8), "near_cutoff": np.zeros(c.n, np.uint8),
+                "mean_thrust": c.in_space("mean_thrust") * f_scale * L, "centre_z": c.in_space("centres")[:, 2] * L}
+        write_points(ctx.stage / "layout.vtp", np.column_stack([c.bases * L, np.zeros(c.n)]), data)
+        ctx.summary["layout"] = {"chi_N_min": float(c.chi_N.min()), "chi_N_max": float(c.chi_N.max()),
+                                 "azimuth_min_deg": float(psi.min()), "azimuth_max_deg": float(psi.max())}
+
+
+def _force_scale(plan: RenderPlan, c: Carpet) -> float:
+    """The factor from the model's force per length to the files' (1 without SI units)."""
+    sc = plan.scales
+    return sc.viscosity_Pa_s * plan.units[2] / c.mu if sc is not None else 1.0
+
+
+def standing_layout_dataset(c: Carpet):
+    """A standing carpet's layout as an xarray Dataset (dim ``cilium``, CF attributes; what
+    ``layout.nc`` holds): base point x, y [L], chi_N, azimuth psi [degrees anticlockwise from +x],
+    thrust angle [rad], beat phase at t = 0, the cycle-mean force on the fluid in space
+    (``mean_thrust_x``, ``_y``, ``_z``; force per length x L, model units) and the force centre's
+    height ``centre_z`` [L]; attributes: geometry, chi_E, eta, wall (distance below the clamps,
+    -1 for none)."""
+    import xarray as xr
+
+    F = c.in_space("mean_thrust")
+    return xr.Dataset(
+        {"x": ("cilium", c.bases[:, 0], {"long_name": "base point x", "units": "L"}),
+         "y": ("cilium", c.bases[:, 1], {"long_name": "base point y", "units": "L"}),
+         "chi_N": ("cilium", c.chi_N, {"long_name": "natural curvature chi_N = L kappa_N", "units": "1"}),
+         "azimuth": ("cilium", np.round(np.degrees(c.azimuth), 9),  # (to 1e-9 deg: 30, not 29.999999999999996)
+                     {"long_name": "beat-plane azimuth psi, anticlockwise from +x", "units": "degree"}),
+         "thrust_angle": ("cilium", c.table.scalar("thrust_angle", c.chi_N),
+                          {"long_name": "lean of the mean thrust from the normal towards e_psi", "units": "rad"}),
+         "phase": ("cilium", c.phases, {"long_name": "beat phase at t = 0", "units": "1"}),
+         "mean_thrust_x": ("cilium", F[:, 0], {"long_name": "cycle-mean force on the fluid, x", "units": "B/L^2"}),
+         "mean_thrust_y": ("cilium", F[:, 1], {"long_name": "cycle-mean force on the fluid, y", "units": "B/L^2"}),
+         "mean_thrust_z": ("cilium", F[:, 2], {"long_name": "cycle-mean force on the fluid, z", "units": "B/L^2"}),
+         "centre_z": ("cilium", c.in_space("centres")[:, 2], {"long_name": "height of the force centre",
+                                                              "units": "L"})},
+        attrs={"geometry": c.geometry, "chi_E": c.table.chi_E, "eta": c.table.eta,
+               "wall": -1.0 if c.wall is None else float(c.wall)})
+
 
 class DesignOutput(Output):
     """With a target: ``layout.nc``, ``design.vtp`` (control points: target, achieved flow,
-    residual) and ``design.png``."""
+    residual) and ``design.png``. A standing carpet (given its layout, no target): ``layout.nc``
+    alone, chi_N and azimuth per cilium (:func:`standing_layout_dataset`)."""
 
     name = "design"
     files = (r"layout\.nc", r"design\.vtp", r"design\.png")
 
     def wanted(self, plan):
-        return plan.designed
+        return plan.designed or plan.scene.carpet.geometry == "standing"
 
     def write(self, ctx):
+        if ctx.design is None:  # a standing carpet's given layout
+            write_netcdf(standing_layout_dataset(ctx.carpet), ctx.stage / "layout.nc")
+            return
         d, stage = ctx.design, ctx.stage
         L, _, V = ctx.plan.units
         write_netcdf(d.to_dataset(ctx.carpet), stage / "layout.nc")
@@ -249,10 +352,11 @@ class DesignOutput(Output):
 
 
 class MeanFieldOutput(Output):
-    """``mean_field.vti``: the time-averaged flow on the field grid (leaves ``ctx.mean_field``)."""
+    """``mean_field.vti``: the time-averaged flow on the field grid (leaves ``ctx.mean_field``); a
+    standing carpet's also ``mean_field_section.vti`` on its vertical section (``ctx.section_field``)."""
 
     name = "mean_field"
-    files = (r"mean_field\.vti",)
+    files = (r"mean_field\.vti", r"mean_field_section\.vti")
 
     def wanted(self, plan):
         return bool(plan.scene.output.field)
@@ -264,16 +368,30 @@ class MeanFieldOutput(Output):
             s = ctx.carpet.evaluate(pts, CycleMean(), tol=ctx.plan.scene.tolerance)
             ctx.mean_field = MeanField(grid, pts, s.velocity)
             _write_flow(ctx.stage / "mean_field.vti", grid, s, ctx.plan)
+            sec = ctx.plan.section
+            if sec is not None:  # a standing carpet: the vertical section, down to the wall
+                sp = sec.points()
+                ss = ctx.carpet.evaluate(sp, CycleMean(), tol=ctx.plan.scene.tolerance)
+                ctx.section_field = MeanField(sec, sp, ss.velocity)
+                _write_flow(ctx.stage / "mean_field_section.vti", sec, ss, ctx.plan)
         ctx.summary["mean_field"] = {"points": int(pts.shape[0]), "fidelity": s.fidelity,
                                      "max_error_bound": float(s.error_bound.max()),
                                      "max_speed": float(np.nanmax(np.linalg.norm(s.velocity, axis=1))) * V}
+        if sec is not None:
+            L = ctx.plan.units[0]
+            ctx.summary["mean_field"].update(
+                height=float(grid.origin[2]) * L,
+                section={"points": int(sp.shape[0]), "y": float(sec.origin[1]) * L, "top": float(sec.box[3]) * L,
+                         "max_error_bound": float(ss.error_bound.max()) * V,
+                         "max_speed": float(np.nanmax(np.linalg.norm(ss.velocity, axis=1))) * V})
 
 
 class SnapshotsOutput(Output):
-    """``snapshot_NNN.vti`` over one beat of the cilia, ``snapshots.pvd`` repeating it."""
+    """``snapshot_NNN.vti`` over one beat of the cilia, ``snapshots.pvd`` repeating it (a standing
+    carpet: also ``snapshot_section_NNN.vti`` on its vertical section, ``snapshots_section.pvd``)."""
 
     name = "snapshots"
-    files = (r"snapshot_\d+\.vti", r"snapshots\.pvd")
+    files = (r"snapshot_\d+\.vti", r"snapshots\.pvd", r"snapshot_section_\d+\.vti", r"snapshots_section\.pvd")
 
     def wanted(self, plan):
         return plan.scene.output.snapshots > 0
@@ -290,11 +408,20 @@ class SnapshotsOutput(Output):
                 entries.append(_write_flow(ctx.stage / f"snapshot_{k:03d}.vti", plan.grid, s, plan, time=t * T))
                 fid.append(s.fidelity)
             write_pvd(ctx.stage / "snapshots.pvd", _looped(entries, Tb * T, plan.span * T))
+            sec = plan.section
+            if sec is not None:  # a standing carpet: its vertical section too
+                sp, entries = sec.points(), []
+                for k in range(n):
+                    t = k * Tb / n
+                    s = ctx.carpet.evaluate(sp, Instant(t), tol=plan.scene.tolerance)
+                    entries.append(_write_flow(ctx.stage / f"snapshot_section_{k:03d}.vti", sec, s, plan, time=t * T))
+                write_pvd(ctx.stage / "snapshots_section.pvd", _looped(entries, Tb * T, plan.span * T))
         ctx.summary["snapshots"] = {"count": n, "fidelity": fid[0]}
 
 
 class FramesOutput(Output):
-    """``cilia_NNN.vtp``: the filaments over one beat (arc length, drag density), ``cilia.pvd``."""
+    """``cilia_NNN.vtp``: the filaments over one beat (arc length, drag density), ``cilia.pvd`` (a
+    standing carpet's in space, 3D polylines)."""
 
     name = "frames"
     files = (r"cilia_\d+\.vtp", r"cilia\.pvd")
@@ -310,6 +437,11 @@ class FramesOutput(Output):
             entries = []
             for k in range(n):
                 t = k * Tb / n
+                if c.geometry == "standing":  # in space: each beat plane turned by its azimuth
+                    pos, f, ph = c.state_in_space(t)
+                    entries.append(write_cilia(ctx.stage / f"cilia_{k:03d}.vtp", pos * L, c.s * L, np.arange(c.n),
+                                               c.chi_N, ph, drag=f * f_scale, time=t * T))
+                    continue
                 pos, f, ph = c.state(t)
                 z = np.zeros(pos.shape[:2] + (1,))
                 entries.append(write_cilia(ctx.stage / f"cilia_{k:03d}.vtp", np.concatenate([pos * L, z], -1), c.s * L,
@@ -351,7 +483,7 @@ def error_tracers(k: int) -> np.ndarray:
 
 
 def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model: str, flow, tol: float,
-                   spacing: float) -> dict:
+                   spacing: float, domain=None) -> dict:
     """End-point error estimate of rendered path lines ``pl`` in ``flow``: :data:`ERROR_SAMPLE` of
     its tracers (:func:`error_tracers`) integrated again, against a more accurate run.
 
@@ -361,7 +493,9 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
     the levels of detail. For the long-time model (``model == "mean"``, ``flow`` its
     :class:`MeanFlow`) the reference is the time-resolved flow at the scene's tolerance ``tol``
     in the same domain (the flow's box): the estimate is the model's error. Returns max and
-    median of the end-point distances [L], the tracers used and the reference in words."""
+    median of the end-point distances [L], the tracers used and the reference in words.
+    ``domain`` (6,), where given (a standing carpet's, from the substrate up), bounds the time-resolved
+    reference too."""
     idx = error_tracers(seeds.shape[0])
     if model == "mean":
         ref = pathlines(ResolvedFlow(carpet, tol), seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing,
@@ -371,7 +505,7 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
         ft, ti = REFERENCE_TIGHTER
         t_ref, rtol, atol = flow.tol / ft, pl.rtol / ti, pl.atol / ti
         ref = pathlines(ResolvedFlow(carpet, t_ref), seeds[idx], (0.0, duration), rtol=rtol, atol=atol,
-                        samples_per_period=1)
+                        samples_per_period=1, domain=domain)
         what = (f"flow tol {t_ref:.3g}, rtol {rtol:.3g}, atol {atol:.3g} L (the render's path lines: flow tol "
                 f"{flow.tol:.3g}, rtol {pl.rtol:.3g}, atol {pl.atol:.3g} L): integration and levels of detail")
     e = np.linalg.norm(pl.end_points[idx] - ref.end_points, axis=1)
@@ -380,7 +514,8 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
 
 class PathLinesOutput(Output):
     """``pathlines.vtp`` and ``particles.pvd`` (``particles_NNNNN.vtp``): the tracers from the plan's
-    seeds in the plan's path-line model, with an end-point error estimate (leaves ``ctx.pathlines``)."""
+    seeds in the plan's path-line model, with an end-point error estimate (leaves ``ctx.pathlines``).
+    A standing carpet's tracers move in space, in the plan's domain (from the substrate up)."""
 
     name = "pathlines"
     files = (r"pathlines\.vtp", r"particles_\d+\.vtp", r"particles\.pvd")
@@ -395,15 +530,17 @@ class PathLinesOutput(Output):
         L, T, _ = plan.units
         with ctx.timed("pathlines"):
             if model == "mean":  # the model's own error (MEAN_MODEL_ERROR) is far above the integration's
-                flow, rtol, atol = ctx.mean_flow(), 1e-6, 1e-4 * spacing
+                flow = ctx.standing_mean_flow() if c.geometry == "standing" else ctx.mean_flow()
+                rtol, atol = 1e-6, 1e-4 * spacing
             else:
                 flow, rtol, atol = ResolvedFlow(c, min(tol, PATHLINE_TOL)), PATHLINE_RTOL, PATHLINE_ATOL * spacing
             pl = pathlines(flow, seeds, (0.0, duration), rtol=rtol, atol=atol,
-                           samples_per_period=o.samples_per_period)
+                           samples_per_period=o.samples_per_period, **({} if plan.domain is None else
+                                                                       {"domain": plan.domain}))
             pl.write(ctx.stage / "pathlines.vtp", scales=plan.scales)
             pl.write_particles(ctx.stage / "particles.pvd", scales=plan.scales)
         with ctx.timed("pathline_error"):
-            err = pathline_error(c, seeds, duration, pl, model, flow, tol, spacing)
+            err = pathline_error(c, seeds, duration, pl, model, flow, tol, spacing, domain=plan.domain)
         ctx.pathlines = pl
         ctx.summary["pathlines"] = {
             "tracers": int(seeds.shape[0]), "duration": duration * T, "duration_from": plan.duration_from,
@@ -416,7 +553,8 @@ class PathLinesOutput(Output):
 
 class FtleOutput(Output):
     """``ftle.vti``: the FTLE over the carpet in the long-time flow, for a quarter of the path-line
-    duration; the mixing number in the summary."""
+    duration; the mixing number in the summary. A standing carpet's: over its footprint in the
+    target plane z = h, 2D tracers in that plane's in-plane mean flow (:meth:`RenderContext.mean_flow`)."""
 
     name = "ftle"
     files = (r"ftle\.vti",)
@@ -431,7 +569,8 @@ class FtleOutput(Output):
         with ctx.timed("ftle"):
             f = ftle_field(ctx.mean_flow(), (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
                            0.25 * plan.duration, rtol=1e-6,
-                           atol=1e-4 * plan.scene.carpet.spacing)
+                           atol=1e-4 * plan.scene.carpet.spacing,
+                           **({"height": float(plan.grid.origin[2])} if ctx.carpet.geometry == "standing" else {}))
             f.write(ctx.stage / "ftle.vti", scales=plan.scales)
         defined = np.isfinite(f.ftle)
         ctx.summary["mixing"] = {"mixing_number": f.mixing_number,
@@ -451,7 +590,10 @@ class PreviewOutput(Output):
 
     def write(self, ctx):
         with ctx.timed("preview"):
-            preview(ctx.stage / "preview.png", ctx.plan.scene, ctx.carpet, ctx.mean_field, ctx.pathlines, ctx.design)
+            if ctx.carpet.geometry == "standing":
+                standing_preview(ctx.stage / "preview.png", ctx.plan.scene, ctx.carpet, ctx.mean_field, ctx.pathlines)
+            else:
+                preview(ctx.stage / "preview.png", ctx.plan.scene, ctx.carpet, ctx.mean_field, ctx.pathlines, ctx.design)
 
 
 class ParaViewOutput(Output):
@@ -464,7 +606,8 @@ class ParaViewOutput(Output):
         return True
 
     def write(self, ctx):
-        write_script(ctx.stage / SCRIPT, ctx.out_dir, si=ctx.plan.scales is not None, scene=ctx.plan.scene.name)
+        write_script(ctx.stage / SCRIPT, ctx.out_dir, si=ctx.plan.scales is not None, scene=ctx.plan.scene.name,
+                     geometry=ctx.carpet.geometry)
 
 
 class SummaryOutput(Output):
@@ -486,8 +629,9 @@ class SummaryOutput(Output):
         # the cilia's coupling through their mean flow: solved ("mean"), or its size estimated ("none")
         with ctx.timed("coupling"):
             c = ctx.carpet
-            summary["coupling"] = c.coupled.summary() if c.coupled is not None else \
-                {**coupling_estimate(c, tol=min(scene.tolerance, 1e-3)), "status": "not solved"}
+            if c.geometry == "planar":  # (the estimate is a planar carpet's: its cilia's flow in their plane)
+                summary["coupling"] = c.coupled.summary() if c.coupled is not None else \
+                    {**coupling_estimate(c, tol=min(scene.tolerance, 1e-3)), "status": "not solved"}
         ctx.clock["total"] = _time.perf_counter() - ctx.started
         summary["seconds"] = ctx.clock
         summary["scene_resolved"] = scene.to_dict()

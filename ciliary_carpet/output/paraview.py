@@ -24,6 +24,12 @@ Loaded but hidden, ready to switch on with their eye icon: the instantaneous fie
 (``snapshots.pvd``), the FTLE field (``ftle.vti``), the design's control points
 (``design.vtp``, coloured by residual) and the tracers as moving points (``particles.pvd``).
 Each of them lies in the plane z = 0 like the mean field, so only one field is shown at a time.
+
+A standing carpet's script (``geometry="standing"``) shows the same in 3D, from the front and
+above: the target plane z = h (``mean_field.vti``, translucent blue by mean speed, with the
+mean-flow arrows), the path lines in space, and the cilia standing on the substrate (tubes,
+moving) with their bases; the vertical section (``mean_field_section.vti``, down to the wall),
+the snapshots of the plane and of the section, the FTLE and the particles are loaded but hidden.
 """
 from __future__ import annotations
 
@@ -44,7 +50,7 @@ LENGTH, TIME, SPEED = {length!r}, {time!r}, {speed!r}  # units of the files
 SCENE = {scene!r}
 '''
 
-_BODY = '''
+_PRELUDE = '''
 import os
 import sys
 
@@ -138,7 +144,9 @@ def hidden(source):
     if source is not None:
         Hide(source, view)
 
+'''
 
+_PLANAR = '''
 shown = []
 # the mean speed behind everything, with a sparse lattice of mean-flow arrows over it
 field = load("mean_field.vti")
@@ -245,7 +253,118 @@ Render(view)
 '''
 
 
-def write_script(path, folder, *, si: bool = False, scene: str = "") -> Path:
+_STANDING = '''
+shown = []
+# the target plane z = h above the cilia: its mean speed, with a sparse lattice of mean-flow arrows
+field = load("mean_field.vti")
+if field is not None:
+    d = Show(field, view)
+    d.SetRepresentationType("Slice")
+    colour(field, d, "POINTS", "speed", "Blues", "mean speed at the plane [%s]" % SPEED, slot=0)
+    d.Opacity = 0.55
+    b = field.GetDataInformation().GetBounds()
+    lo, hi = field.PointData["speed"].GetRange()
+    n = 20  # arrows along the longer side: about 400 in all
+    h = max(b[1] - b[0], b[3] - b[2]) / (n - 1)
+    lattice = ResampleToImage(registrationName="arrow lattice", Input=field)
+    lattice.UseInputBounds = 0
+    lattice.SamplingBounds = [b[0] + h / 2, b[1] - h / 2, b[2] + h / 2, b[3] - h / 2, b[4], b[5]]
+    lattice.SamplingDimensions = [max(2, int((b[1] - b[0]) / h)), max(2, int((b[3] - b[2]) / h)), 1]
+    arrows = Glyph(registrationName="mean-flow arrows", Input=lattice, GlyphType="Arrow")
+    arrows.OrientationArray = ["POINTS", "velocity"]
+    arrows.ScaleArray = ["POINTS", "speed"]
+    arrows.ScaleFactor = 0.9 * h / hi if hi > 0 else h
+    arrows.GlyphMode = "All Points"
+    a = Show(arrows, view)
+    ColorBy(a, None)
+    a.AmbientColor = a.DiffuseColor = [0.1, 0.1, 0.1]
+    shown.append("plane z = %.3g %s: mean speed; arrows: mean flow" % (b[4], LENGTH))
+# the vertical section through the carpet's centre (down to the wall), the snapshots, the FTLE: hidden
+section = load("mean_field_section.vti")
+if section is not None:
+    d = Show(section, view)
+    d.SetRepresentationType("Slice")
+    colour(section, d, "POINTS", "speed", "Blues", "speed [%s]" % SPEED, separate=True)
+    hidden(section)
+for name in ("snapshots.pvd", "snapshots_section.pvd"):
+    snap = load(name)
+    if snap is not None:
+        d = Show(snap, view)
+        d.SetRepresentationType("Slice")
+        colour(snap, d, "POINTS", "speed", "Blues", "speed [%s]" % SPEED, separate=True)
+        hidden(snap)
+ftle = load("ftle.vti")
+if ftle is not None:
+    d = Show(ftle, view)
+    d.SetRepresentationType("Slice")
+    colour(ftle, d, "POINTS", "FTLE", "Inferno (matplotlib)", "FTLE [1/%s]" % TIME)
+    hidden(ftle)
+path = load("pathlines.vtp")
+if path is not None:
+    d = Show(path, view)
+    colour(path, d, "POINTS", "time", "Viridis (matplotlib)", "path lines: time [%s]" % TIME, slot=1)
+    d.LineWidth = 2.0
+    shown.append("lines: path lines (time)")
+particles = load("particles.pvd")
+if particles is not None:
+    d = Show(particles, view)
+    ColorBy(d, None)
+    d.SetRepresentationType("Points")
+    d.PointSize = 5.0
+    d.RenderPointsAsSpheres = 1
+    d.AmbientColor = d.DiffuseColor = [1.0, 1.0, 1.0]
+    hidden(particles)
+# the cilia standing on the substrate (moving, in 3D) and their bases, coloured by chi_N
+cilia = load("cilia.pvd")
+if cilia is not None:
+    d = Show(cilia, view)
+    colour(cilia, d, "CELLS", "chi_N", "Cool to Warm", "chi_N", slot=2, symmetric=True)
+    d.LineWidth = 3.0
+    d.RenderLinesAsTubes = 1
+layout = load("layout.vtp")
+if layout is not None:
+    d = Show(layout, view)
+    d.SetRepresentationType("Points")
+    d.PointSize = 6.0
+    d.RenderPointsAsSpheres = 1
+    colour(layout, d, "POINTS", "chi_N", "Cool to Warm", "chi_N", slot=2, symmetric=True)
+    shown.insert(0, "standing cilia and bases: chi_N")
+
+clock = AnnotateTime(registrationName="time")
+clock.Format = "t = {time:.3f} " + TIME
+c = Show(clock, view)
+c.WindowLocation = "Lower Left Corner"
+c.FontSize = 8
+label = Text(registrationName="legend")
+label.Text = (SCENE + "\\n" + "\\n".join(shown)
+              + "\\nhidden (eye icon): section y = const, snapshots, FTLE, particles")
+t = Show(label, view)
+t.WindowLocation = "Upper Left Corner"
+t.FontSize = 7
+t.Justification = "Left"
+
+# a 3D view from the front and above: the cilia on the substrate under the plane of the flow (set
+# after a first render: paraview.simple resets the camera on a view's first render)
+Render(view)
+view.OrientationAxesVisibility = 1
+box = (field or layout or path or cilia).GetDataInformation().GetBounds()
+top = max(box[5], 1.0)
+cx, cy = 0.5 * (box[0] + box[1]), 0.5 * (box[2] + box[3])
+span = max(box[1] - box[0], box[3] - box[2], 1e-300)
+view.CameraFocalPoint = [cx, cy, 0.3 * top]
+view.CameraPosition = [cx + 0.35 * span, cy - 1.1 * span, 0.3 * top + 0.75 * span]
+view.CameraViewUp = [0.0, 0.0, 1.0]
+view.ResetCamera(box[0], box[1], box[2], box[3], 0.0, top)
+GetActiveCamera().Dolly(1.3)  # closer: the carpet fills the view
+# play through every data time step (cilia frames, particles); nothing here moves the animation
+# (see the planar script: under --script that hangs ParaView 5.11's GUI)
+GetAnimationScene().PlayMode = "Snap To TimeSteps"
+SetActiveSource(cilia or layout)
+Render(view)
+'''
+
+
+def write_script(path, folder, *, si: bool = False, scene: str = "", geometry: str = "planar") -> Path:
     """Write the ParaView script that opens a render folder.
 
     Parameters
@@ -260,6 +379,9 @@ def write_script(path, folder, *, si: bool = False, scene: str = "") -> Path:
         Whether the files are in SI units (m, s) rather than L and tau.
     scene : str, optional
         The scene's name, shown in the view.
+    geometry : str, optional
+        The carpet's geometry: ``"planar"`` (a 2D top view) or ``"standing"`` (a 3D view: the
+        module docstring).
 
     Returns
     -------
@@ -270,5 +392,6 @@ def write_script(path, folder, *, si: bool = False, scene: str = "") -> Path:
     length, time = ("m", "s") if si else ("L", "tau")
     header = _HEADER.format(folder=str(Path(folder).resolve()), length=length, time=time,
                             speed=f"{length}/{time}", scene=scene)
-    path.write_text(header + _BODY)
+    body = _PRELUDE + (_STANDING if geometry == "standing" else _PLANAR)
+    path.write_text(header + body)
     return path

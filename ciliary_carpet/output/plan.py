@@ -18,6 +18,13 @@ beat or the long-time mean flow (``[output] pathline_model``; "auto" takes the m
 scene's tolerance allows its measured error). ``[output] periods`` counts periods of the straight
 filament, T0 = T(chi_N = 0); the snapshots and frames sample one beat of the cilia themselves
 (each beats with its own period T(chi_N): their median, :class:`Beat`).
+
+Standing carpets (``[carpet] geometry = "standing"``): the field grid is the horizontal target
+plane z = h (``[output] height``) and a vertical x-z section through the carpet's centre is added
+(:meth:`FieldGrid.section`); the seeds lie in the target plane (:func:`seed_points`); the
+crossing the automatic duration is made for runs along the carpet's surface flow (the direction
+of its summed mean thrust, :func:`standing_flow_direction`) at the median mean speed in that
+plane; and the tracers are followed in a box from the substrate up (:func:`standing_domain`).
 """
 from __future__ import annotations
 
@@ -34,22 +41,35 @@ from ciliary_carpet.scenes.scene import Scene
 from ciliary_carpet.transport.flow import MEAN_MODEL_ERROR
 from ciliary_carpet.transport.pathlines import check_output_size, check_seeds
 
-__all__ = ["RenderPlan", "FieldGrid", "Beat", "seed_points", "pathline_duration", "pathline_model"]
+__all__ = ["RenderPlan", "FieldGrid", "Beat", "seed_points", "pathline_duration", "pathline_model",
+           "standing_flow_direction", "SECTION_TOP", "DOMAIN_MARGIN"]
+
+SECTION_TOP = 2.0
+"""A standing carpet's vertical section reaches this many times the target plane's height
+(``[output] height``, at least 1 L) above the substrate."""
+DOMAIN_MARGIN = 10.0
+"""A standing carpet's tracers are followed within this distance [L] of its bases and seeds
+across, and up to this far above the target plane (the planar default domain's margin)."""
 
 
 @dataclass(frozen=True)
 class FieldGrid:
-    """The grid of the field outputs, in the plane z = 0: the bounding box of the carpet's bases
-    widened by ``[output] field_margin`` + 1 L on each side, with ``[output] field_shape`` points.
+    """The grid of the field outputs, in the plane z = 0 (a standing carpet: the target plane
+    z = ``[output] height``): the bounding box of the carpet's bases widened by
+    ``[output] field_margin`` + 1 L on each side, with ``[output] field_shape`` points; or a
+    standing carpet's vertical section (:meth:`section`).
 
     Attributes
     ----------
     origin, spacing : tuple of 3 float
-        The first point and the steps along x, y (and 1 along z) [L].
+        The first point and the steps along x, y (and 1 along z) [L] (a section: along x, 1
+        along y, and along z).
     shape : tuple of 3 int
-        ``(nx, ny, 1)``: VTK's point order, x fastest (:func:`~ciliary_carpet.output.vtkfiles.grid_points`).
+        ``(nx, ny, 1)`` (a section: ``(nx, 1, nz)``): VTK's point order, x fastest
+        (:func:`~ciliary_carpet.output.vtkfiles.grid_points`).
     box : tuple of 4 float
-        ``(x_min, x_max, y_min, y_max)`` [L], the region the grid covers.
+        ``(x_min, x_max, y_min, y_max)`` [L], the region the grid covers (a section: ``(x_min,
+        x_max, z_min, z_max)``).
     """
 
     origin: tuple[float, float, float]
@@ -64,12 +84,29 @@ class FieldGrid:
         m = scene.output.field_margin
         lo, hi = b.min(0) - m - 1.0, b.max(0) + m + 1.0
         nx, ny = scene.output.field_shape
-        return cls(origin=(lo[0], lo[1], 0.0),
+        z = float(scene.output.height) if scene.carpet.geometry == "standing" else 0.0
+        return cls(origin=(lo[0], lo[1], z),
                    spacing=((hi[0] - lo[0]) / max(nx - 1, 1), (hi[1] - lo[1]) / max(ny - 1, 1), 1.0),
                    shape=(nx, ny, 1), box=(lo[0], hi[0], lo[1], hi[1]))
 
+    @classmethod
+    def section(cls, scene: Scene, carpet: Carpet) -> "FieldGrid":
+        """A standing carpet's vertical section: the x-z plane through the centre of its bases
+        (y = y_c), over the x range of :meth:`around` and from the substrate z = 0 up to
+        SECTION_TOP times ``[output] height`` (at least SECTION_TOP L), with about twice as fine
+        a step along z as along x (at most twice ``field_shape``'s ny points)."""
+        plane = cls.around(scene, carpet)
+        b = carpet.bases
+        yc = 0.5 * float(b[:, 1].min() + b[:, 1].max())
+        top = SECTION_TOP * max(float(scene.output.height), 1.0)
+        nx = plane.shape[0]
+        dx = plane.spacing[0]
+        nz = int(min(max(9, round(2.0 * top / dx) + 1), 2 * scene.output.field_shape[1]))
+        return cls(origin=(plane.origin[0], yc, 0.0), spacing=(dx, 1.0, top / (nz - 1)), shape=(nx, 1, nz),
+                   box=(plane.box[0], plane.box[1], 0.0, top))
+
     def points(self) -> np.ndarray:
-        """(nx ny, 3) the grid's points in VTK order [L]."""
+        """(nx ny nz, 3) the grid's points in VTK order [L]."""
         return grid_points(self.origin, self.spacing, self.shape)
 
     def lines(self) -> tuple[np.ndarray, np.ndarray]:
@@ -99,10 +136,12 @@ class Beat:
 
 
 def seed_points(scene: Scene, carpet: Carpet) -> np.ndarray:
-    """(k, 2) the tracers' start points [L]: ``[output] seeds`` as given, or "line" (``n_seeds``
+    """(k, 2) the tracers' start points [L] ((k, 3) for a standing carpet: :func:`_standing_seeds`): ``[output] seeds`` as given, or "line" (``n_seeds``
     across the carpet, one spacing upstream of it) or "grid" (about ``n_seeds`` between the
     cilia); a seed inside a filament is nudged across the flow until two blob sizes clear."""
     o = scene.output
+    if carpet.geometry == "standing":
+        return _standing_seeds(scene, carpet)
     if not isinstance(o.seeds, str):
         return np.asarray(o.seeds, dtype=float)
     b = carpet.bases
@@ -130,6 +169,76 @@ def seed_points(scene: Scene, carpet: Carpet) -> np.ndarray:
     return seeds
 
 
+def standing_flow_direction(carpet: Carpet) -> np.ndarray:
+    """(2,) unit vector: where a standing carpet pushes the fluid along the substrate, the
+    direction of the sum of its cilia's mean thrusts in space projected on the plane (+x when
+    they cancel)."""
+    f = carpet.in_space("mean_thrust")[:, :2].sum(axis=0)
+    n = float(np.linalg.norm(f))
+    return f / n if n > 1e-12 * max(1.0, float(np.abs(carpet.in_space("mean_thrust")).sum())) else np.array([1.0, 0.0])
+
+
+def _standing_seeds(scene: Scene, carpet: Carpet) -> np.ndarray:
+    """(k, 3) a standing carpet's seeds at the target plane's height h = ``[output] height``:
+    explicit points (x, y) lifted to h; "grid": about ``n_seeds`` over the bases' footprint;
+    "line": ``n_seeds`` across the carpet's surface flow (:func:`standing_flow_direction`), one
+    spacing upstream of its bases. Above the cilia's tips (at most L high) for h > 1; a seed
+    within two blob sizes of a filament is lifted until it clears."""
+    o = scene.output
+    h = float(o.height)
+    b = carpet.bases
+    if not isinstance(o.seeds, str):
+        xy = np.asarray(o.seeds, dtype=float)
+    elif o.seeds == "grid":
+        n = max(2, int(round(math.sqrt(o.n_seeds))))
+        X, Y = np.meshgrid(np.linspace(b[:, 0].min(), b[:, 0].max(), n), np.linspace(b[:, 1].min(), b[:, 1].max(), n))
+        xy = np.column_stack([X.ravel(), Y.ravel()])
+    else:
+        d0 = standing_flow_direction(carpet)
+        cross = np.array([-d0[1], d0[0]])
+        c = 0.5 * (b.min(0) + b.max(0))
+        along, across = (b - c) @ d0, (b - c) @ cross
+        s = np.linspace(across.min(), across.max(), o.n_seeds)
+        xy = c + (along.min() - scene.carpet.spacing) * d0 + s[:, None] * cross
+    seeds = np.column_stack([xy, np.full(xy.shape[0], h)])
+    clear = 2.0 * (carpet.blob or BLOB)
+    for _ in range(100):
+        bad = carpet.filament_distance(seeds, 0.0) < clear
+        if not bad.any():
+            break
+        seeds[bad, 2] += clear
+    return seeds
+
+
+def _standing_duration(scene: Scene, carpet: Carpet) -> tuple[float, str]:
+    """:func:`pathline_duration` of a standing carpet without ``[output] periods``: the crossing
+    of its extent along the surface flow plus three spacings at the median mean speed in the
+    target plane over its bases, times 1.25."""
+    b = carpet.bases
+    d0 = standing_flow_direction(carpet)
+    travel = float(np.ptp(b @ d0)) + 3.0 * scene.carpet.spacing
+    probe = b[:: max(1, b.shape[0] // 200)]
+    probe = np.column_stack([probe, np.full(probe.shape[0], float(scene.output.height))])
+    u = carpet.velocity(probe, CycleMean(), max(scene.tolerance, 1e-3))
+    speed = float(np.median(np.linalg.norm(u[:, :2], axis=1)))
+    if not (math.isfinite(speed) and speed > 0):
+        raise RenderError(f"{scene.source_name}: the carpet makes no mean flow at the target plane (median speed "
+                          f"{speed:g}): set [output] periods for the path lines")
+    return 1.25 * travel / speed, (f"auto: crossing {travel:.3g} L at the median mean speed {speed:.3g} L/tau at "
+                                   f"z = {scene.output.height:g} L")
+
+
+def standing_domain(scene: Scene, carpet: Carpet, seeds: np.ndarray | None) -> tuple:
+    """(xmin, xmax, ymin, ymax, zmin, zmax) where a standing carpet's tracers are followed: the
+    bases and seeds widened by :data:`DOMAIN_MARGIN` across, from the substrate z = 0 (a tracer
+    that reaches the wall ends there, "left the domain") to :data:`DOMAIN_MARGIN` above the
+    target plane."""
+    pts = carpet.bases if seeds is None else np.concatenate([carpet.bases, seeds[:, :2]])
+    lo, hi = pts.min(axis=0) - DOMAIN_MARGIN, pts.max(axis=0) + DOMAIN_MARGIN
+    top = max(float(scene.output.height), float(seeds[:, 2].max()) if seeds is not None else 0.0) + DOMAIN_MARGIN
+    return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), 0.0, top)
+
+
 def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, str]:
     """Path-line duration and how it was chosen: ``[output] periods * T0`` when the scene sets
     it, else long enough to cross the carpet: 1.25 (extent along the flow + 3 spacings) / U, with
@@ -137,6 +246,8 @@ def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, s
     o = scene.output
     if o.periods is not None:
         return float(o.periods) * T0, "scene"
+    if carpet.geometry == "standing":
+        return _standing_duration(scene, carpet)
     b = carpet.bases
     d0 = np.asarray(scene.field.flow_direction, dtype=float)
     sp = scene.carpet.spacing
@@ -186,6 +297,12 @@ class RenderPlan:
         The path lines' duration [tau] (with path lines or the FTLE, which runs for a quarter of it).
     duration_from : str or None
         How ``duration`` was chosen, in words.
+    section : FieldGrid or None
+        A standing carpet's vertical section through its centre (:meth:`FieldGrid.section`);
+        None for a planar one.
+    domain : tuple of 6 float or None
+        Where a standing carpet's tracers are followed (:func:`standing_domain`); None for a
+        planar one (the path lines' default domain).
     """
 
     scene: Scene
@@ -199,6 +316,8 @@ class RenderPlan:
     pathline_model: str | None
     duration: float | None
     duration_from: str | None
+    section: FieldGrid | None = None
+    domain: tuple | None = None
 
     @classmethod
     def decide(cls, scene: Scene, carpet: Carpet, *, designed: bool, estimate: Estimate) -> "RenderPlan":
@@ -210,10 +329,12 @@ class RenderPlan:
         duration, how = pathline_duration(scene, carpet, T0) if (o.pathlines or o.ftle) else (None, None)
         if o.pathlines:  # PathLineError (output too large for memory)
             check_output_size(carpet, seeds.shape[0], duration, o.samples_per_period)
+        standing = carpet.geometry == "standing"
         return cls(scene=scene, estimate=estimate, designed=designed, T0=T0, beat=Beat.of(carpet, T0),
                    grid=FieldGrid.around(scene, carpet), scales=carpet.scales, seeds=seeds,
                    pathline_model=pathline_model(scene) if o.pathlines else None, duration=duration,
-                   duration_from=how)
+                   duration_from=how, section=FieldGrid.section(scene, carpet) if standing else None,
+                   domain=standing_domain(scene, carpet, seeds) if standing else None)
 
     @property
     def units(self) -> tuple[float, float, float]:

@@ -50,6 +50,18 @@ def markdown(s: dict) -> str:
     units = ("SI: lengths in m, times in s, speeds in m/s" if si else
              "lengths in L (the cilium's length), times in tau (the filament's relaxation time), speeds in L/tau")
     lines.append(f"Scene `{s['source']}`: {s['n_cilia']} cilia; {units}.")
+    if s.get("geometry") == "standing":
+        st = s["standing"]
+        az = st["azimuth_deg"]
+        turn = (f"all turned to {az['min']:.3g} deg" if az["max"] - az["min"] < 1e-9 else
+                f"turned from {az['min']:.3g} to {az['max']:.3g} deg (median {az['median']:.3g})")
+        wall = ("no wall (free space)" if st["wall_below_clamps"] is None else "the substrate itself, a no-slip wall"
+                if st["wall_below_clamps"] == 0 else f"a no-slip wall {_g(st['wall_below_clamps'])} {Lu} below the clamps")
+        lines.append(f"Standing carpet: each cilium is clamped on the substrate z = 0 ({wall}) with the field along "
+                     f"+z, its beat plane turned about the normal by its azimuth (anticlockwise from +x): {turn}. The "
+                     f"flow is three-dimensional: its mean is shown on the target plane z = {_g(st['target_height'])} "
+                     f"{Lu} (`mean_field.vti`) and on a vertical section through the carpet's centre down to the wall "
+                     "(`mean_field_section.vti`).")
     if beat:
         if beat["beating"] == 0:
             lines.append("None of the cilia beats (every one is beyond the flutter cutoff): they stand still.")
@@ -85,6 +97,8 @@ def markdown(s: dict) -> str:
     if "mixing" in s:
         mx = s["mixing"]
         flow = "the mean flow" if mx["model"] == "mean" else "the time-resolved flow"
+        if s.get("geometry") == "standing":
+            flow += f" in the plane z = {_g(s['standing']['target_height'])} {Lu} (tracers kept in that plane)"
         txt = (f"- **Mixing**: over {dur(mx['duration'])} of {flow}, neighbouring fluid parcels over the carpet "
                f"move apart by a factor {math.exp(mx['mixing_number']):.3f} on average (mixing number "
                f"{_g(mx['mixing_number'])}: the mean log-stretching; 0 for a flow that only carries or turns "

@@ -166,12 +166,17 @@ class Assembly:
     def carpet(self, chi_N=None) -> Carpet:
         """The scene's carpet with curvatures ``chi_N`` (scalar or (N,); default the scene's
         ``carpet.chi_N``): its base points, initial phases, field direction, wall, units, blob
-        size and the evaluator of its sums (the scene's ``backend``)."""
+        size, the evaluator of its sums (the scene's ``backend``) and its geometry (a standing
+        carpet's azimuths, ``carpet.azimuth`` in degrees, converted to radians)."""
         s = self.scene
+        # a standing carpet: its geometry and the azimuths (the scene's degrees, the carpet's radians)
+        standing = {} if s.carpet.geometry == "planar" else dict(
+            geometry=s.carpet.geometry, azimuth=np.radians(s.carpet.azimuths(self.bases.shape[0])))
         return Carpet(self.bases, s.carpet.chi_N if chi_N is None else chi_N, self.table,
                       s.carpet.initial_phases(self.bases), direction=s.field.direction_rad, wall=s.carpet.wall,
                       scales=None if s.units is None else s.units.scales(), blob=s.carpet.blob,
-                      backend=backend_named(s.backend), viscosity=s.carpet.viscosity, coupling=s.carpet.coupling)
+                      backend=backend_named(s.backend), viscosity=s.carpet.viscosity, coupling=s.carpet.coupling,
+                      **standing)
 
 
 def assemble(scene: "Scene", table: ThrustTable | None = None) -> Assembly:

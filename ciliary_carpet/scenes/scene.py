@@ -11,7 +11,13 @@ or inf, out-of-range values, keys that do not apply (e.g. ``carpet.wave_vector``
 ``phases = "wave"``), and malformed TOML (with tomllib's line and column).
 
 Conventions (MODEL.md, DESIGN.md): lab frame (x, y) in the plane z = 0, lengths in filament
-lengths L. ``field.direction`` is in DEGREES, anticlockwise from +y (the flow model,
+lengths L. ``carpet.geometry`` says where the cilia beat (:mod:`ciliary_carpet.carpet.geometry`):
+``"planar"`` (default: in the plane z = 0, the field in it along ``field.direction``) or
+``"standing"`` (clamped on the substrate z = 0, the field along +z, each beat plane turned about
+the normal by ``carpet.azimuth``, DEGREES anticlockwise from +x; ``field.direction`` must be 0,
+``carpet.wall`` is the wall's distance below the clamps, default 0: the substrate; a standing
+scene has no ``[target]`` yet and its cilia are uncoupled). Keys that do not apply to the
+scene's geometry are a SceneError. ``field.direction`` is in DEGREES, anticlockwise from +y (the flow model,
 :class:`~ciliary_carpet.carpet.carpet.Carpet`, takes radians: use :attr:`FieldSpec.direction_rad`). A
 straight filament pushes fluid along ``d0 = -field direction`` (:attr:`FieldSpec.flow_direction`).
 
@@ -41,6 +47,7 @@ import single_cilium.table as _table
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import BLOB
 from ciliary_carpet.carpet.coupling import COUPLINGS
+from ciliary_carpet.carpet.geometry import GEOMETRIES
 from ciliary_carpet.scenes.paths import check_name, check_scene_paths
 from ciliary_carpet.transport.flow import FLOWS, MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
@@ -71,7 +78,8 @@ class FieldSpec(Section):
 
     chi_E: float = key(200.0, "stimulus L kappa_E")
     eta: float = key(1.0, "drag-to-bending ratio", lo=0, lo_open=True)
-    direction: float = key(0.0, "field direction, anticlockwise from +y", shown="float (degrees)")
+    direction: float = key(0.0, "field direction, anticlockwise from +y (planar carpets; a standing carpet's field is "
+                           "along +z: 0 or absent)", shown="float (degrees)")
 
     @property
     def direction_rad(self) -> float:
@@ -180,8 +188,16 @@ class CarpetSpec(Section):
     wave_vector: tuple[float, float] = key(
         (0.0, 0.0), 'metachronal wave: phase = -(k . x) / 2 pi; only with `phases = "wave"`', "pair",
         what="two numbers [kx, ky] (rad per L)", shown="`[kx, ky]` (rad per L)")
-    wall: float | None = key(None, "distance of a no-slip wall below the plane (absent: free space)",
-                             lo=0, lo_open=True)
+    geometry: str = key("planar", '`"planar"`: the cilia lie and beat in the plane z = 0, the field in it; '
+                        '`"standing"`: each cilium is clamped at its base on the substrate z = 0, the field along +z, '
+                        "its beat plane turned about the normal by `azimuth`", "str", choices=GEOMETRIES)
+    azimuth: float | tuple | None = key(
+        None, 'standing carpets only: the beat-plane azimuth psi of every cilium (one number) or of each (a list, '
+        "one per cilium in base-point order), degrees anticlockwise from +x; a positive chi_N pushes the fluid "
+        "along psi", "custom", shown="float or list (degrees)", default_shown="`0.0` (standing)")
+    wall: float | None = key(None, "planar: distance of a no-slip wall below the plane (> 0; absent: free space); "
+                             "standing: distance of the wall below the clamps (absent: 0, the substrate itself)",
+                             lo=0, default_shown="absent (planar), `0.0` (standing)")
     viscosity: float | None = key(None, "fluid viscosity of the flow (B tau / L^4, the model's unit); absent: the one "
                                   "the filaments' drag eta implies (slender-body theory at radius `blob`: 0.653 eta "
                                   "for the default)", lo=0, lo_open=True, default_shown="- (from eta)")
@@ -208,6 +224,14 @@ class CarpetSpec(Section):
         elif r.has("points"):
             raise SceneError(f"{src}: carpet.points applies only to lattice = \"points\" (here "
                              f"lattice = \"{lattice}\")")
+        geometry = r.get("geometry", *spec["geometry"])
+        if geometry == "standing":
+            if r.has("coupling") and r.data["coupling"] != "none":
+                raise SceneError(f'{src}: carpet.coupling applies only to geometry = "planar" (a standing carpet\'s '
+                                 f'cilia beat as in still fluid: coupling = "none"), got {r.data["coupling"]!r}')
+        elif r.has("azimuth"):
+            raise SceneError(f'{src}: carpet.azimuth applies only to geometry = "standing" (a planar carpet is turned '
+                             f'by field.direction)')
         phases = r.get("phases", *spec["phases"])
         if r.has("wave_vector") and phases != "wave":
             raise SceneError(f"{src}: carpet.wave_vector applies only to phases = \"wave\" (here phases = \"{phases}\")")
@@ -228,6 +252,14 @@ class CarpetSpec(Section):
                     or any(isinstance(x, bool) or not isinstance(x, int) or x < 1 for x in v)):
                 raise r.fail("shape", f"two positive integers [nx, ny] for lattice = \"{lattice}\"", v)
             kw["shape"] = (int(v[0]), int(v[1]))
+        n = len(kw["points"]) if lattice == "points" else int(np.prod(kw["shape"]))
+        kw["azimuth"] = _azimuth(r, n) if geometry == "standing" else None
+        if geometry == "standing":
+            if kw["wall"] is None:
+                kw["wall"] = 0.0
+        elif kw["wall"] is not None and kw["wall"] <= 0:
+            raise r.fail("wall", 'a positive number for geometry = "planar" (the wall lies below the plane of the '
+                         "filaments; absent: free space)", r.data["wall"])
         if kw["blob"] >= 0.5 * kw["spacing"]:
             raise r.fail("blob", f"less than half the spacing ({0.5 * kw['spacing']:g} L): the blobs of neighbouring "
                          "filaments would overlap", kw["blob"])
@@ -241,7 +273,17 @@ class CarpetSpec(Section):
             d.pop("origin", None)
         if self.phases != "wave":
             d.pop("wave_vector", None)
+        if self.geometry == "planar":
+            d.pop("geometry", None)
         return d
+
+    def azimuths(self, n: int | None = None) -> np.ndarray:
+        """(N,) the beat-plane azimuths in DEGREES (zeros for a planar carpet, whose cilia take
+        none); ``n`` the number of cilia (default :attr:`n_cilia`)."""
+        n = self.n_cilia if n is None else int(n)
+        if self.azimuth is None:
+            return np.zeros(n)
+        return np.broadcast_to(np.asarray(self.azimuth, dtype=float), (n,)).copy()
 
     def bases(self) -> np.ndarray:
         """(N, 2) base points in the lab frame."""
@@ -281,8 +323,10 @@ class OutputSpec(Section):
     SECTION = "output"
 
     pathlines: bool = key(True, "path lines of tracers", "bool")
-    seeds: str | tuple = key("line", "where tracers start: a line upstream of the carpet, across the flow; a grid "
-                             "over it; or explicit points", "pairs", choices=SEEDS)
+    seeds: str | tuple | None = key(
+        None, "where tracers start: a line upstream of the carpet, across the flow; a grid over it; or explicit "
+        "points (standing carpets: at the height `height`)", "pairs", choices=SEEDS,
+        default_shown='`"line"` (planar), `"grid"` (standing)')
     n_seeds: int = key(100, "number of seeds (ignored with explicit points)", "int", lo=1)
     periods: float | None = key(
         None, "path-line duration in periods of the straight filament (absent: long enough to cross the carpet at "
@@ -301,6 +345,9 @@ class OutputSpec(Section):
     snapshots: int = key(4, "instantaneous velocity-field snapshots", "int", lo=0)
     frames: int = key(40, "cilia shape frames over one period of the straight filament", "int", lo=0)
     preview: bool = key(True, "a preview image", "bool")
+    height: float | None = key(None, "standing carpets only: the height z = h of the target plane above the substrate "
+                               "(L): the mean field's horizontal slice, the seeds, the FTLE", lo=0, lo_open=True,
+                               default_shown="`1.5` (standing)")
 
     @classmethod
     def parse(cls, src: str, data) -> dict:
@@ -380,6 +427,30 @@ class Scene:
                 raise SceneError(f"<Scene>: {k} must be a {cls.__name__}, got {type(v).__name__}")
         if self.source is not None:
             object.__setattr__(self, "source", Path(self.source))
+        self._geometry_rules()
+
+    def _geometry_rules(self) -> None:
+        """The rules between sections that the carpet's geometry sets; resolves the defaults that
+        depend on it (``[output] seeds``, ``[output] height``)."""
+        src = self.source_name if self.source is not None else "<scene>"
+        o = self.output
+        if self.carpet.geometry == "standing":
+            if self.field.direction != 0.0:
+                raise SceneError(f"{src}: field.direction must be 0 (or absent) for carpet.geometry = \"standing\": the "
+                                 f"field is along +z, normal to the substrate; turn the cilia with carpet.azimuth "
+                                 f"(got field.direction = {self.field.direction:g})")
+            if self.target.kind != "none":
+                raise SceneError(f"{src}: [target] (target.kind = \"{self.target.kind}\") is not available for "
+                                 f"carpet.geometry = \"standing\" yet: give the layout directly (carpet.chi_N, "
+                                 f"carpet.azimuth)")
+            o = replace(o, seeds="grid" if o.seeds is None else o.seeds, height=1.5 if o.height is None else o.height)
+        else:
+            if o.height is not None:
+                raise SceneError(f"{src}: output.height applies only to carpet.geometry = \"standing\" (a planar "
+                                 f"carpet's fields lie in its own plane z = 0)")
+            o = replace(o, seeds="line" if o.seeds is None else o.seeds)
+        if o is not self.output:
+            object.__setattr__(self, "output", o)
 
     @property
     def base_dir(self) -> Path:
@@ -406,11 +477,15 @@ class Scene:
         """A smaller copy for fast tests: at most ``max_cilia`` cilia (same lattice and spacing,
         shape shrunk in proportion, same carpet centre so that absolute coordinates -- explicit
         control points, seeds, turn centre -- still fall on it; a "points" carpet keeps the
-        points nearest its centre), and outputs no larger than the arguments. Never enlarges."""
+        points nearest its centre; per-cilium azimuths go with the original cilium nearest to each
+        kept one), and outputs no larger than the arguments. Never enlarges."""
         c = self.carpet
         m = int(max_cilia)
         if m < 1:
             raise ValueError(f"max_cilia must be >= 1, got {max_cilia!r}")
+        per_cilium = isinstance(c.azimuth, tuple) and c.n_cilia > m
+        if per_cilium:  # one azimuth per cilium: set again below, once the kept cilia are known
+            c = replace(c, azimuth=0.0)
         if c.n_cilia > m:
             centre = c.centre
             if c.lattice == "points":
@@ -437,6 +512,11 @@ class Scene:
                 c = replace(c, shape=shape, origin=(0.0, 0.0))
                 shift = centre - c.centre
                 c = replace(c, origin=(float(shift[0]), float(shift[1])))
+        if per_cilium:  # each kept cilium takes the azimuth of the original cilium nearest to it
+            from scipy.spatial import cKDTree
+
+            near = cKDTree(self.carpet.bases()).query(c.bases())[1]
+            c = replace(c, azimuth=tuple(float(self.carpet.azimuth[i]) for i in np.atleast_1d(near)))
         o = self.output
         seeds = o.seeds
         if not isinstance(seeds, str) and len(seeds) > n_seeds:
@@ -514,3 +594,25 @@ def _top_kw(src, data, default_name="scene") -> dict:
     check_name(src, "name", name)
     kw["name"] = name
     return kw
+
+
+def _azimuth(r, n: int):
+    """``carpet.azimuth`` of a standing carpet of ``n`` cilia: one finite number (degrees), or a
+    list of ``n`` of them (a tuple); 0.0 when absent."""
+    if not r.has("azimuth"):
+        return 0.0
+    v = r.data["azimuth"]
+    what = f"a number of degrees or a list of {n} of them (one per cilium)"
+
+    def one(k, x):
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            raise SceneError(f"{r.src}: {k} must be {what}, got {x!r}")
+        if not math.isfinite(x):
+            raise SceneError(f"{r.src}: {k} must be a finite number of degrees, got {float(x)}")
+        return float(x)
+
+    if isinstance(v, (list, tuple)):
+        if len(v) != n:
+            raise SceneError(f"{r.src}: carpet.azimuth must be {what}, got a list of {len(v)}")
+        return tuple(one(f"carpet.azimuth[{i}]", x) for i, x in enumerate(v))
+    return one("carpet.azimuth", v)

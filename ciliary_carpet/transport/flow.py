@@ -71,7 +71,7 @@ from ciliary_carpet.carpet.carpet import CycleMean, Instant
 if TYPE_CHECKING:
     from ciliary_carpet.carpet.carpet import Carpet
 
-__all__ = ["Flow", "ResolvedFlow", "MeanFlow", "FLOWS", "MEAN_MODEL_ERROR", "STEPS_PER_BEAT"]
+__all__ = ["Flow", "ResolvedFlow", "MeanFlow", "SteadyMeanFlow", "FLOWS", "above_wall", "MEAN_MODEL_ERROR", "STEPS_PER_BEAT"]
 
 STEPS_PER_BEAT = 16
 """The time-resolved flow caps an integrator's steps at the shortest beat period over this
@@ -86,6 +86,22 @@ at the former viscosity 1. The relative error grows like 1 / mu: the drift the m
 is quadratic in the flow, the travel linear. Renders take the model automatically only when the
 scene's tolerance is at least this."""
 _EVERYWHERE = (-math.inf, math.inf) * 3
+
+
+def above_wall(carpet: "Carpet", x: np.ndarray) -> np.ndarray:
+    """``x`` (M, 3) with the points below a standing carpet's wall moved up onto it (a copy; ``x``
+    itself otherwise): the flow there is the wall's, zero (no slip). An integrator's stage may
+    land below the wall for a tracer close to it; the tracer itself stops at the wall, where the
+    path lines' domain ends (a render's standing domain starts at the substrate). Planar carpets,
+    and standing ones in free space, are left alone."""
+    if getattr(carpet, "geometry", "planar") != "standing" or carpet.wall is None:
+        return x
+    z = -float(carpet.wall)
+    if np.all(x[:, 2] >= z):
+        return x
+    x = np.array(x, dtype=float)
+    x[:, 2] = np.maximum(x[:, 2], z)
+    return x
 
 
 class Flow(ABC):
@@ -124,7 +140,7 @@ class ResolvedFlow(Flow):
         object.__setattr__(self, "tol", t)
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
-        return self.carpet.velocity(x, Instant(t), self.tol)
+        return self.carpet.velocity(above_wall(self.carpet, x), Instant(t), self.tol)
 
     @property
     def step_cap(self) -> float:
@@ -186,5 +202,41 @@ class MeanFlow(Flow):
         return out
 
 
+@dataclass(frozen=True, eq=False)
+class SteadyMeanFlow(Flow):
+    """The long-time model in space: ``carpet``'s time-averaged (cycle-mean) flow evaluated
+    directly at the tracers (:meth:`Carpet.velocity <ciliary_carpet.carpet.carpet.Carpet.velocity>`
+    of the ``CycleMean`` at the levels-of-detail tolerance ``tol``), valid in ``box`` = (xmin, xmax,
+    ymin, ymax, zmin, zmax), its :attr:`domain`. The flow of a standing carpet is three-dimensional
+    (it vanishes on the substrate and turns over the carpet's edges), so a sampled plane
+    (:class:`MeanFlow`) does not describe it; a render takes this model for a standing carpet's
+    path lines where it takes :class:`MeanFlow` for a planar one (same name, ``"mean"``: it is the
+    same long-time model, with the same neglected Stokes drift). Steady: no step cap."""
+
+    name: ClassVar[str] = "mean"
+    carpet: "Carpet"
+    box: tuple
+    tol: float = 1e-3
+
+    def __post_init__(self) -> None:
+        b = tuple(float(v) for v in self.box)
+        if len(b) != 6 or any(hi <= lo for lo, hi in zip(b[0::2], b[1::2])):
+            raise ValueError(f"SteadyMeanFlow: box must be (xmin, xmax, ymin, ymax, zmin, zmax), got {self.box!r}")
+        object.__setattr__(self, "box", b)
+        t = float(self.tol)
+        if not 0 <= t < 1:
+            raise ValueError(f"SteadyMeanFlow: tol must be in [0, 1), got {self.tol!r}")
+        object.__setattr__(self, "tol", t)
+
+    @property
+    def domain(self) -> np.ndarray:
+        """(6,) the box."""
+        return np.array(self.box)
+
+    def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
+        return self.carpet.velocity(above_wall(self.carpet, x), CycleMean(), self.tol)
+
+
 FLOWS: dict[str, type[Flow]] = {m.name: m for m in (ResolvedFlow, MeanFlow)}
-"""The flow models by name (the contract: the module docstring)."""
+"""The flow models by name (the contract: the module docstring); :class:`SteadyMeanFlow` is the
+``"mean"`` model of standing carpets (chosen by the geometry, not by name)."""

@@ -45,7 +45,8 @@ class FTLEError(ValueError):
 class FTLEField:
     """FTLE on a grid of start points: ``ftle`` (ny, nx) in 1/time (NaN where undefined),
     ``origin`` (x0, y0), ``spacing`` (dx, dy), ``duration`` T, ``model`` of the flow, the mixing
-    number (module docstring), and work counters."""
+    number (module docstring), work counters, and the ``height`` z of the grid's plane (0: the
+    plane of a planar carpet)."""
 
     ftle: np.ndarray
     origin: tuple
@@ -54,6 +55,7 @@ class FTLEField:
     model: str
     mixing_number: float
     stats: dict = field(default_factory=dict)
+    height: float = 0.0
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -66,17 +68,20 @@ class FTLEField:
 
         L, T = (scales.length_m, scales.time_s) if scales is not None else (1.0, 1.0)
         nx, ny = self.shape
-        return write_field(path, (self.origin[0] * L, self.origin[1] * L, 0.0),
+        return write_field(path, (self.origin[0] * L, self.origin[1] * L, self.height * L),
                            (self.spacing[0] * L, self.spacing[1] * L, 1.0), (nx, ny, 1),
                            {"FTLE": self.ftle.ravel() / T})
 
 
 def ftle_field(flow: Flow, box, shape, duration: float, *, rtol: float = 1e-6, atol: float = 1e-6,
-               t0: float = 0.0) -> FTLEField:
+               t0: float = 0.0, height: float = 0.0) -> FTLEField:
     """FTLE of ``flow`` (a :class:`~ciliary_carpet.transport.flow.Flow`, e.g. the long-time
     ``MeanFlow.from_carpet(carpet, box)``) on the ``shape = (nx, ny)`` grid spanning
     ``box = (xmin, xmax, ymin, ymax)``, over ``duration`` (> 0) from ``t0``; the grid points inside
-    a filament of ``flow.carpet`` at ``t0`` are left out. Raises :class:`FTLEError` before any work
+    a filament of ``flow.carpet`` at ``t0`` are left out. The grid lies in the plane z = ``height``
+    (0: a planar carpet's own plane; a standing carpet's target plane above its cilia, where
+    ``flow`` is the plane's in-plane flow: 2D tracers, :class:`~ciliary_carpet.transport.flow.MeanFlow`
+    of that plane). Raises :class:`FTLEError` before any work
     for a grid with fewer than 3 points per side, an empty box or a duration that is not positive."""
     try:
         nx, ny = (int(v) for v in shape)
@@ -94,6 +99,8 @@ def ftle_field(flow: Flow, box, shape, duration: float, *, rtol: float = 1e-6, a
     y = np.linspace(b[2], b[3], ny)
     X, Y = np.meshgrid(x, y)
     pts = np.column_stack([X.ravel(), Y.ravel()])
+    if height != 0.0:  # the grid's plane in space (a standing carpet's flow takes 3D points only)
+        pts = np.column_stack([pts, np.full(pts.shape[0], float(height))])
     carpet = flow.carpet
     blob = carpet.blob if carpet.blob is not None else 0.0
     ok = carpet.filament_distance(pts, t0) >= blob if blob > 0 else np.ones(len(pts), bool)
@@ -120,4 +127,4 @@ def ftle_field(flow: Flow, box, shape, duration: float, *, rtol: float = 1e-6, a
              _time.perf_counter() - clock, "pathlines": pl.stats}
     logger.info("FTLE on %d x %d over %.4g: mixing number %.3g (%.2f s)", nx, ny, duration, mixing, stats["seconds"])
     return FTLEField(ftle=sigma, origin=(float(x[0]), float(y[0])), spacing=(float(dx), float(dy)),
-                     duration=float(duration), model=pl.model, mixing_number=mixing, stats=stats)
+                     duration=float(duration), model=pl.model, mixing_number=mixing, stats=stats, height=float(height))
