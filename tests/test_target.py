@@ -256,6 +256,10 @@ def test_design_targets_are_reachable_and_patterns_right():
         fr = frame_of(s)
         X = control_points(s.carpet.bases(), fr, t.control)
         assert X.shape[0] >= 50
+        if t.is_surface:  # any direction is reachable; most control points keep theirs
+            A, keep = t.surface_directions(X, fr, s.carpet.bases())
+            assert keep.mean() > 0.9 and np.all(np.isfinite(A))
+            continue
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             reachable_check(t.deflection(X, fr), table.thrust_angle_range(), clip=False, points=X)
@@ -292,4 +296,10 @@ def test_registry_drives_the_schema_and_the_readme():
         else:
             assert p.deflection is None
     assert [p.name for p in PATTERNS if p.two_sided] == ["focus", "spread"]
-    assert [p.name for p in PATTERNS if p.signed] == ["uniform"]
+    assert [p.name for p in PATTERNS if p.signed and not p.surface] == ["uniform"]
+    assert [p.name for p in PATTERNS if p.surface] == ["pump", "vortex", "mixer", "u_turn", "source_sink"]
+    for p in PATTERNS:
+        if p.surface:  # a direction field of the plane: unit directions where it is defined
+            t = Target(p.name, 0.4, centre=(0.0, 0.0), separation=3.0)
+            A, keep = t.surface_directions(pts, fr)
+            assert A.shape == (keep.sum(),) and keep.sum() >= 2 and np.all(np.abs(A) <= np.pi)

@@ -74,6 +74,13 @@ def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8)
     fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.85)
     ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g})", fontsize=10)
+    if getattr(d, "azimuth", None) is not None:  # a standing carpet: each cilium's pumping direction
+        e = np.column_stack([np.cos(d.azimuth), np.sin(d.azimuth)]) * np.sign(carpet.chi_N)[:, None]
+        sp = float(np.median(np.linalg.norm(np.diff(b, axis=0), axis=1))) if len(b) > 1 else 1.0
+        ax.quiver(b[:, 0], b[:, 1], e[:, 0], e[:, 1], angles="xy", scale_units="xy", scale=1.4 / sp, width=0.004,
+                  color="k", zorder=3)
+        ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g}); arrows: the beat planes'\nazimuths "
+                     "psi, where each cilium's thrust leans (standing)", fontsize=10)
     for ax in axs:
         ax.set_aspect("equal")
         ax.set_xlabel("x / L")

@@ -81,7 +81,7 @@ import time as _time
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -577,6 +577,32 @@ class FtleOutput(Output):
                                  "ftle_max": float(np.nanmax(f.ftle)) / T if np.any(defined) else None,
                                  "duration": f.duration * T, "grid": [nx, ny], "model": f.model,
                                  "defined_fraction": float(np.mean(defined))}
+        d = ctx.design
+        if ctx.carpet.geometry == "standing" and d is not None and d.azimuth is not None:
+            with ctx.timed("ftle_pump"):
+                ctx.summary["mixing"]["uniform_pump"] = self._uniform_pump(ctx, (nx, ny), f.duration)
+
+    @staticmethod
+    def _uniform_pump(ctx, shape, duration) -> dict:
+        """The mixing number of the same standing carpet pumping uniformly -- every cilium at the
+        pumping maximum chi_hi, every beat plane along the designed layout's mean azimuth (the
+        direction of the sum of the cilia's pumping vectors) -- over the same grid and duration:
+        what the design adds to the mixing a carpet gives by carrying the fluid along."""
+        from ciliary_carpet.design.surface import pumping_curvature
+
+        c, d, plan = ctx.carpet, ctx.design, ctx.plan
+        chi_hi, _ = pumping_curvature(c.table)
+        psi = float(np.angle(np.sum(np.exp(1j * d.azimuth) * np.abs(d.chi_N))))
+        pump = replace(c, chi_N=np.full(c.n, chi_hi), azimuth=np.full(c.n, psi))
+        g = plan.grid
+        mf = MeanField(g, g.points(), pump.velocity(g.points(), CycleMean(), plan.scene.tolerance))
+        nx, ny = g.shape[:2]
+        flow = MeanFlow.from_grid(pump, *g.lines(), mf.velocity.reshape(ny, nx, 3))
+        b = c.bases
+        f = ftle_field(flow, (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), shape, duration,
+                       rtol=1e-6, atol=1e-4 * plan.scene.carpet.spacing, height=float(g.origin[2]))
+        return {"mixing_number": f.mixing_number, "chi_N": chi_hi, "azimuth_deg": math.degrees(psi) % 360.0,
+                "defined_fraction": float(np.mean(np.isfinite(f.ftle)))}
 
 
 class PreviewOutput(Output):

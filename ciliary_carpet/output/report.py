@@ -108,6 +108,11 @@ def markdown(s: dict) -> str:
         if mx["defined_fraction"] < 1:
             txt += (f"; measured on {mx['defined_fraction']:.0%} of the grid (the rest starts inside a cilium "
                     "or leaves the field)")
+        if "uniform_pump" in mx:
+            up = mx["uniform_pump"]
+            txt += (f". The same carpet pumping uniformly (every cilium at chi_N = {_g(up['chi_N'])}, every beat "
+                    f"plane at {up['azimuth_deg']:.0f} deg) over the same grid and time: mixing number "
+                    f"{_g(up['mixing_number'])}")
         lines.append(txt + ".")
     if beat and beat["beating"] and "loop_until" in beat and beat["loop_until"] > 1.5 * beat["period"]:
         txt = (f"- **In ParaView** the cilia and the snapshots repeat one beat ({_g(beat['period'])} {Tu}) until "

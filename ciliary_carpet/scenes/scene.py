@@ -52,7 +52,10 @@ from ciliary_carpet.scenes.paths import check_name, check_scene_paths
 from ciliary_carpet.transport.flow import FLOWS, MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
 from ciliary_carpet.stokes import BACKENDS
-from ciliary_carpet.design.target import KINDS, TargetSpec, kinds_table
+from ciliary_carpet.design.target import KINDS, SURFACE_KINDS, TargetSpec, kinds_table
+
+STANDING_TARGETS = SURFACE_KINDS + ("points",)
+"""The target kinds of a standing carpet: the surface flows and velocities from a file."""
 
 logger = logging.getLogger(__name__)
 
@@ -347,7 +350,7 @@ class OutputSpec(Section):
     preview: bool = key(True, "a preview image", "bool")
     height: float | None = key(None, "standing carpets only: the height z = h of the target plane above the substrate "
                                "(L): the mean field's horizontal slice, the seeds, the FTLE", lo=0, lo_open=True,
-                               default_shown="`1.5` (standing)")
+                               default_shown="`target.height` with a target, else `1.5` (standing)")
 
     @classmethod
     def parse(cls, src: str, data) -> dict:
@@ -439,15 +442,21 @@ class Scene:
                 raise SceneError(f"{src}: field.direction must be 0 (or absent) for carpet.geometry = \"standing\": the "
                                  f"field is along +z, normal to the substrate; turn the cilia with carpet.azimuth "
                                  f"(got field.direction = {self.field.direction:g})")
-            if self.target.kind != "none":
-                raise SceneError(f"{src}: [target] (target.kind = \"{self.target.kind}\") is not available for "
-                                 f"carpet.geometry = \"standing\" yet: give the layout directly (carpet.chi_N, "
-                                 f"carpet.azimuth)")
-            o = replace(o, seeds="grid" if o.seeds is None else o.seeds, height=1.5 if o.height is None else o.height)
+            t = self.target
+            if t.kind != "none" and t.kind not in STANDING_TARGETS:
+                raise SceneError(f"{src}: target.kind = \"{t.kind}\" is a planar carpet's deflection pattern; a "
+                                 f"standing carpet's target is a surface flow: target.kind = "
+                                 f"{', '.join(repr(k) for k in STANDING_TARGETS)}")
+            # the plane the fields and seeds use is the target's, when there is one
+            h = (t.height if t.kind != "none" else 1.5) if o.height is None else o.height
+            o = replace(o, seeds="grid" if o.seeds is None else o.seeds, height=h)
         else:
             if o.height is not None:
                 raise SceneError(f"{src}: output.height applies only to carpet.geometry = \"standing\" (a planar "
                                  f"carpet's fields lie in its own plane z = 0)")
+            if self.target.kind in SURFACE_KINDS:
+                raise SceneError(f"{src}: target.kind = \"{self.target.kind}\" is a surface flow of a standing carpet "
+                                 f"(carpet.geometry = \"standing\"); a planar carpet's targets are deflections")
             o = replace(o, seeds="line" if o.seeds is None else o.seeds)
         if o is not self.output:
             object.__setattr__(self, "output", o)
