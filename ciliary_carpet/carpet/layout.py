@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-__all__ = ["row", "square", "hexagonal", "points", "random_phases", "synchronous_phases", "wave_phases"]
+__all__ = ["row", "square", "hexagonal", "points", "random_phases", "synchronous_phases", "wave_phases", "neighbours"]
 
 
 def _count(name: str, n) -> int:
@@ -84,3 +84,23 @@ def wave_phases(bases, wave_vector) -> np.ndarray:
     if k.shape != (2,) or not np.all(np.isfinite(k)):
         raise ValueError(f"wave_vector must be two finite numbers, got {wave_vector!r}")
     return np.mod(-(b @ k) / (2.0 * math.pi), 1.0)
+
+
+def neighbours(bases) -> np.ndarray:
+    """(E, 2) neighbour pairs i < j of the base points (N, 2): the edges of their Delaunay
+    triangulation (a row, collinear points: consecutive points along it). What the designs'
+    smoothness terms run over."""
+    bases = np.asarray(bases, dtype=float)
+    n = bases.shape[0]
+    if n < 2:
+        return np.zeros((0, 2), np.int64)
+    try:
+        from scipy.spatial import Delaunay
+
+        tri = Delaunay(bases).simplices
+        e = np.vstack([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [0, 2]]])
+    except Exception:  # collinear bases: order along the line
+        o = np.argsort(bases @ (bases[-1] - bases[0]))
+        e = np.column_stack([o[:-1], o[1:]])
+    e = np.sort(e, axis=1)
+    return np.unique(e, axis=0)

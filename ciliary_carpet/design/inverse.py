@@ -101,11 +101,12 @@ from scipy.optimize import minimize
 from single_cilium.table import ThrustTable
 
 from ciliary_carpet.scenes.assembly import assemble
+from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.coupling import DENSE_CILIA, CouplingResponse
 from ciliary_carpet.carpet.cycles import cycle_moments
-from ciliary_carpet.design.model import (NEAR_RADIUS, DesignModel, NearField, angle_objective, angle_terms,
-                                         floor_reference, solver_threads, sweep)
+from ciliary_carpet.design.model import (GOOD_ENOUGH, NEAR_RADIUS, DesignModel, NearField, angle_objective,
+                                         angle_terms, floor_reference, solver_threads, sweep)
 from ciliary_carpet.design.reachability import reachability
 from ciliary_carpet.design.result import Design, DesignError
 from ciliary_carpet.design.target import TargetError, control_points, reachable_check, spec_default
@@ -128,12 +129,6 @@ INSIDE_WEIGHT = 0.1
 the objective and in the rms residual (the others weigh 1)."""
 
 
-GOOD_ENOUGH = 0.2
-"""Given a threshold, :func:`design_layout` starts no further pass once the full-model rms
-residual is at most this fraction of it: the design's job is the threshold, and what a further
-pass gains is then below the error bar the design may state (half the threshold). Measured on
-900 cilia above a wall 0.5 L below (scattered points): a second pass took 10 of 14 s to go from
-0.0061 to 0.0042 against the threshold 0.05."""
 INSIDE_ACCURACY = 5e-3
 """The accuracy of the model's mean flow at points inside a swept region (the table's 65 arc-length x
 64 phase samples), relative to the rms flow there: its difference from sums 4x finer in arc
@@ -190,23 +185,6 @@ def _with_chi(carpet: Carpet, chi: np.ndarray) -> Carpet:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return replace(carpet, chi_N=chi)
-
-
-def _edges(bases: np.ndarray) -> np.ndarray:
-    """Neighbour pairs (E, 2): Delaunay edges of the base points (a row: consecutive points)."""
-    n = bases.shape[0]
-    if n < 2:
-        return np.zeros((0, 2), np.int64)
-    try:
-        from scipy.spatial import Delaunay
-
-        tri = Delaunay(bases).simplices
-        e = np.vstack([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [0, 2]]])
-    except Exception:  # collinear bases: order along the line
-        o = np.argsort(bases @ (bases[-1] - bases[0]))
-        e = np.column_stack([o[:-1], o[1:]])
-    e = np.sort(e, axis=1)
-    return np.unique(e, axis=0)
 
 
 # ------------------------------------------------------------------------------ design
@@ -337,7 +315,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     scaleU = float(np.sum(w_pts[:, None] * target ** 2)) if kind == "velocity" else 1.0
     if kind == "velocity" and scaleU == 0:
         raise TargetError("target velocities are all zero")
-    edges = _edges(carpet.bases) if smoothness > 0 else np.zeros((0, 2), np.int64)
+    edges = layout.neighbours(carpet.bases) if smoothness > 0 else np.zeros((0, 2), np.int64)
     counters = {"iterations": 0, "evaluations": 0, "checks": 0, "seconds_carpets": 0.0, "seconds_checks": 0.0,
                 "seconds_model": 0.0, "sweeps": 0, "swept_cilia": 0}
 

@@ -71,7 +71,7 @@ from ciliary_carpet.stokes import Treecode, Wall, make_kernel, stokeslet_velocit
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["NearField", "DesignModel", "NEAR_RADIUS", "NEAR_CHI_SAMPLES", "TREE_PAIRS", "SERIAL_PAIRS",
+__all__ = ["NearField", "DesignModel", "GOOD_ENOUGH", "NEAR_RADIUS", "NEAR_CHI_SAMPLES", "TREE_PAIRS", "SERIAL_PAIRS",
            "FLOOR_RADIUS_SPACINGS", "SWEEP_RADIUS", "carrier_forces", "floor_reference", "angle_objective",
            "angle_terms", "sweep", "solver_threads"]
 
@@ -80,6 +80,12 @@ FLOOR_RADIUS_SPACINGS = 5.0
 the control point (``floor_radius`` of :func:`~ciliary_carpet.design.inverse.design_layout`; see :mod:`ciliary_carpet.design.inverse`)."""
 SERIAL_PAIRS = 200_000
 """Kernel sums with fewer (target, source) pairs than this run on one numba thread in the design."""
+GOOD_ENOUGH = 0.2
+"""Given a threshold, :func:`design_layout` starts no further pass once the full-model rms
+residual is at most this fraction of it: the design's job is the threshold, and what a further
+pass gains is then below the error bar the design may state (half the threshold). Measured on
+900 cilia above a wall 0.5 L below (scattered points): a second pass took 10 of 14 s to go from
+0.0061 to 0.0042 against the threshold 0.05."""
 TREE_PAIRS = 3e7
 """The design model sums through a :class:`~ciliary_carpet.stokes.treecode.Treecode` (opening angle
 0.3: velocity error below 2e-4 relative, 1.5e-4 rad in angle; tests/test_treecode.py) from this

@@ -66,11 +66,12 @@ from scipy.spatial import cKDTree
 
 from single_cilium.table import ThrustTable
 
+from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.cycles import cycle_moments
-from ciliary_carpet.design.inverse import GOOD_ENOUGH, _edges
+from ciliary_carpet.design.model import GOOD_ENOUGH
 from ciliary_carpet.design.result import Design
-from ciliary_carpet.design.target import TargetError
+from ciliary_carpet.design.errors import TargetError
 from ciliary_carpet.stokes import stokeslet_velocity, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
@@ -438,7 +439,7 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
         psi0 = th[near]
     chi0 = np.full(N, chi_hi)
     g0 = np.column_stack([np.cos(psi0), np.sin(psi0)]) * float(m_of(chi_hi))
-    edges = _edges(carpet.bases)  # the planar design's Delaunay neighbours
+    edges = layout.neighbours(carpet.bases)
 
     def g_of(chi, psi, nu=0):
         m = m_of(chi, nu)

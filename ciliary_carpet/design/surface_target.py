@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from ciliary_carpet.design.target import TargetError
+from ciliary_carpet.design.errors import TargetError
 
 __all__ = ["SURFACE_KINDS", "SINGULAR_RADIUS", "surface_field", "surface_directions"]
 

@@ -51,6 +51,8 @@ from typing import Callable
 
 import numpy as np
 
+from ciliary_carpet.design.errors import TargetError, UnreachableTargetError
+from ciliary_carpet.design.surface_target import surface_directions as _surface_directions
 from ciliary_carpet.scenes.schema import Key, SceneError, Section, key, keys_of, reader, section, values
 
 __all__ = ["TargetError", "UnreachableTargetError", "Target", "TargetSpec", "Frame", "Pattern", "PATTERNS",
@@ -63,12 +65,6 @@ CSV_SUFFIXES = (".csv", ".txt")
 NETCDF_SUFFIXES = (".nc", ".nc4", ".cdf", ".netcdf", ".h5", ".hdf5")
 
 
-class TargetError(ValueError):
-    """A target that cannot be used: unreadable control file, unreachable angles, bad input."""
-
-
-class UnreachableTargetError(TargetError):
-    """Deflections outside the table's reachable range: a target the cilia cannot make."""
 
 
 # ------------------------------------------------------------------------------ the kinds
@@ -547,8 +543,6 @@ class Target:
         (:func:`~ciliary_carpet.design.surface_target.surface_directions`) at the points kept (those
         not within half a spacing of the pattern's singular points). ``centre`` None: the frame's;
         ``separation`` None: half the extent of ``bases`` (default the points) along the axis."""
-        from ciliary_carpet.design.surface_target import surface_directions
-
         if not self.is_surface:
             raise TargetError(f"a {self.kind!r} target is not a surface flow (kinds {', '.join(SURFACE_KINDS)})")
         x = _points("points", points)
@@ -558,7 +552,7 @@ class Target:
             b = x if bases is None else _points("bases", bases)
             e = np.array([math.cos(self.amplitude), math.sin(self.amplitude)])
             d = 0.5 * float(np.ptp(b @ e)) or frame.spacing
-        return surface_directions(self.kind, x, c, frame.spacing, self.amplitude, d,
+        return _surface_directions(self.kind, x, c, frame.spacing, self.amplitude, d,
                                   1 if self.sense == "anticlockwise" else -1)
 
     def deflection(self, points, frame: Frame) -> np.ndarray:
