@@ -94,7 +94,7 @@ def section_plug(table) -> None:
         c = Carpet(b, 92.0, table, wall=0.0, geometry="standing", azimuth=psi)
         F, D, cz = c.cycles.F_mean[0], c.cycles.D_mean[0], c.cycles.centre[0, 1]
         U = (F[0] * cz + D[1, 0]) / sp ** 2 / c.mu
-        s = c.evaluate(np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 3.0]]), CycleMean(), 1e-4)
+        s = c.evaluate(np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 3.0]]), CycleMean(), 1e-5)
         r = s.velocity @ e / U
         rows.append((n * sp, r))
         say(f"| {n * sp:g} | {n * n} | {r[0]:.4f} | {r[1]:.4f} | {s.error_bound.max() / U:.1e} | "
