@@ -178,3 +178,18 @@ def test_fabrication_tolerance_in_both_variables(table):
     assert st.rms[0] == pytest.approx(math.sqrt(np.mean(r ** 2)), rel=0.1)
     with pytest.raises(ValueError, match="planar"):
         tolerance_study(c, S.replace(d, azimuth=None), 0.05, sigma_psi=0.1)
+
+
+def test_velocity_target_made_by_a_known_layout(table):
+    """Velocities that a known standing layout makes (its full model's surface flow) are found
+    again by the design to a few percent (relative rms), from every cilium's own local start."""
+    c = _carpet(table, 5)
+    rng = np.random.default_rng(7)
+    chi = rng.uniform(40, 85, c.n)
+    psi = np.arctan2(c.bases[:, 1], c.bases[:, 0]) + math.pi / 2 + rng.normal(0, 0.2, c.n)
+    known = Carpet(c.bases, chi, table, c.phases, wall=0.0, geometry="standing", azimuth=psi)
+    X = control_points(c.bases, Frame(np.zeros(2), np.array([0.0, -1.0]), 2.0), "cells")
+    U = known.evaluate(np.column_stack([X, np.full(X.shape[0], S.HEIGHT)]), CycleMean(), 1e-4).velocity[:, :2]
+    d = S.design_surface(c, X, velocities=U, threshold=0.05)
+    assert d.kind == "velocity" and d.residual_rms < 0.05 < d.local_rms
+    assert d.residual_error <= 0.025
