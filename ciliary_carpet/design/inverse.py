@@ -643,7 +643,9 @@ def _design_standing(scene, built) -> tuple[Design, Carpet]:
     target, frame, bases = built.target, built.frame, built.bases
     carpet = built.carpet()
     kw = dict(height=target.height, tol=scene.tolerance, speed_floor=target.speed_floor,
-              smoothness=target.smoothness, threshold=float(target.residual))
+              smoothness=target.smoothness, threshold=float(target.residual),
+              robust_sigma=target.sigma if target.robust else 0.0,
+              robust_sigma_psi=math.radians(target.sigma_psi) if target.robust else 0.0)
     if target.is_surface:
         X = bases.copy() if target.control == "cilia" else control_points(bases, frame, target.control)
         A, keep = target.surface_directions(X, frame, bases)

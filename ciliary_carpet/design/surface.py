@@ -376,7 +376,9 @@ class SurfaceModel:
 def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, directions=None, velocities=None,
                    tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = 0.3,
                    floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
-                   outer: int = 3, maxiter: int = 400, ftol: float = 1e-5, threshold: float | None = None) -> Design:
+                   outer: int = 3, maxiter: int = 400, ftol: float = 1e-5, threshold: float | None = None,
+                   robust_sigma: float = 0.0, robust_sigma_psi: float = 0.0, robust_samples: int = 16,
+                   robust_seed: int = 12345) -> Design:
     """Choose (chi_N, psi) for the cilia of the standing ``carpet`` (its bases, phases, table,
     wall are kept) so that its mean flow on the plane z = ``height`` at ``control`` (P, 2) runs
     along ``directions`` (P,) [rad, anticlockwise from +x] or equals ``velocities`` (P, 2).
@@ -388,8 +390,13 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
     L-BFGS-B iterations, stopped when an iteration lowers J by less than ``ftol`` times its value
     at the pass's start; checks at ``check_tol``, default max(tol, 1e-2)); ``threshold``: the
     acceptance threshold of the rms residual, whose half the final check's error bar is made to
-    meet. Returns a :class:`~ciliary_carpet.design.result.Design` with ``azimuth`` (N,) and
-    ``height``; its ``carpet`` is the designed standing carpet."""
+    meet. ``robust_sigma`` > 0 or ``robust_sigma_psi`` > 0 [rad]: design for the expected objective
+    under fabrication errors chi_j (1 + sigma eps_j), psi_j + sigma_psi eps'_j instead of the nominal
+    one: the flow terms averaged over ``robust_samples`` fixed samples (seed ``robust_seed``), each
+    the design model plus the pass's defect, the regularisers at the nominal layout; the passes'
+    layouts are then compared by that expected J (the full model's defect at each). Returns a
+    :class:`~ciliary_carpet.design.result.Design` with ``azimuth`` (N,) and ``height``; its
+    ``carpet`` is the designed standing carpet."""
     clock = _time.perf_counter()
     if carpet.geometry != "standing":
         raise ValueError("design_surface designs standing carpets (geometry = 'standing'); a planar carpet's "
@@ -407,8 +414,18 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
             raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
     if threshold is not None and not (math.isfinite(float(threshold)) and float(threshold) > 0):
         raise ValueError(f"threshold must be a finite number > 0, got {threshold!r}")
+    for name, v in (("robust_sigma", robust_sigma), ("robust_sigma_psi", robust_sigma_psi)):
+        if not (math.isfinite(float(v)) and float(v) >= 0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+    robust = float(robust_sigma) > 0 or float(robust_sigma_psi) > 0
+    if robust and (isinstance(robust_samples, bool) or not isinstance(robust_samples, (int, np.integer))
+                   or robust_samples < 1):
+        raise ValueError(f"robust_samples must be an integer >= 1, got {robust_samples!r}")
     check_tol = max(tol, 1e-2) if check_tol is None else float(check_tol)
     P, N = X.shape[0], carpet.n
+    rs = np.random.default_rng(robust_seed)
+    eps = [(1.0 + float(robust_sigma) * rs.standard_normal(N), float(robust_sigma_psi) * rs.standard_normal(N))
+           for _ in range(int(robust_samples) if robust else 0)]
     model = SurfaceModel(carpet, X, height)
     chi_hi = model.resp.chi_hi
     _, m_of = pumping_curvature(carpet.table)
@@ -447,6 +464,12 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
 
     def objective(u, chi, psi, grad: bool):
         """J and dJ/du (P, 3), dJ/dchi, dJ/dpsi (N,) from the regularisers."""
+        J, dJ = flow_objective(u, grad)
+        Jr, gc, gp = regularisers(chi, psi, grad)
+        return J + Jr, dJ, gc, gp
+
+    def flow_objective(u, grad: bool):
+        """The flow terms of J and dJ/du (P, 3)."""
         uxy = u[:, :2]
         if kind == "angle":
             sp = np.linalg.norm(uxy, axis=1)
@@ -467,6 +490,11 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
             J = float(0.5 * np.sum(d * d) / u2)
             dJ = np.zeros((P, 3))
             dJ[:, :2] = d / u2
+        return J, dJ
+
+    def regularisers(chi, psi, grad: bool):
+        """The regularisers' J, dJ/dchi, dJ/dpsi (N,)."""
+        J = 0.0
         g, m = g_of(chi, psi)
         gc = np.zeros(N)
         gp = np.zeros(N)
@@ -487,7 +515,29 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
                 np.add.at(w, edges[:, 1], -we)
                 gc += _pull_g(w, chi, psi)
                 gp += _pull_g_psi(w, g)
-        return J, dJ, gc, gp
+        return J, gc, gp
+
+    def expected(chi, psi, defect):
+        """The robust objective's flow terms: the mean over the samples of J of the design model
+        plus ``defect``, with the pullbacks' chain to the nominal (chi, psi)."""
+        J, g_c, g_p = 0.0, np.zeros(N), np.zeros(N)
+        for f_c, d_p in eps:
+            ch_k = np.clip(chi * f_c, 0.0, None)
+            u_k, aux = model.flow(ch_k, psi + d_p)
+            J_k, dJ_k = flow_objective(u_k + defect, True)
+            a_c, a_p = model.pullback(dJ_k, aux)
+            J += J_k / len(eps)
+            g_c += a_c * f_c * (chi * f_c >= 0) / len(eps)
+            g_p += a_p / len(eps)
+        return J, g_c, g_p
+
+    def judged(chi, psi, u_full):
+        """J by which layouts are compared: on the full model's flow, or (robust) the expected one
+        with the full model's defect at the layout."""
+        if not robust:
+            return objective(u_full, chi, psi, False)[0]
+        defect = u_full - model.flow(chi, psi)[0]
+        return expected(chi, psi, defect)[0] + regularisers(chi, psi, False)[0]
 
     def _pull_g(w, chi, psi):
         dm = m_of(chi, 1)
@@ -523,14 +573,14 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
     chi, psi = chi0.copy(), psi0.copy()
     c_full, s_full = full(chi, psi, check_tol)
     work["checks"] += 1
-    J_full0 = objective(s_full.velocity, chi, psi, False)[0]
+    J_full0 = judged(chi, psi, s_full.velocity)
     local_rms = float(np.sqrt(np.mean(residuals(s_full.velocity) ** 2)))
     best = {"J": J_full0, "chi": chi, "psi": psi, "carpet": c_full, "sample": s_full, "returned": "local"}
     status, msg = "success", ""
     for k in range(int(outer)):
         u_mod, _ = model.flow(chi, psi)
         defect = s_full.velocity - u_mod
-        scale = 1.0 / max(objective(s_full.velocity, chi, psi, False)[0], 1e-300)  # J of order 1: L-BFGS-B's
+        scale = 1.0 / max(judged(chi, psi, s_full.velocity), 1e-300)  # J of order 1: L-BFGS-B's
         # first step and its ftol test are scale-dependent (a J of 3e-4 stopped 10^4 cilia after one iteration)
 
         last = {}
@@ -538,11 +588,16 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
         def fun(z):
             ch = np.clip(z[:N], 0.0, 1.0) * chi_hi
             ps = z[N:]
-            u, aux = model.flow(ch, ps)
-            u = u + defect
-            last["u"] = u
-            J, dJ, gc, gp = objective(u, ch, ps, True)
-            a_c, a_p = model.pullback(dJ, aux)
+            if robust:
+                J, a_c, a_p = expected(ch, ps, defect)
+                Jr, gc, gp = regularisers(ch, ps, True)
+                J += Jr
+            else:
+                u, aux = model.flow(ch, ps)
+                u = u + defect
+                last["u"] = u
+                J, dJ, gc, gp = objective(u, ch, ps, True)
+                a_c, a_p = model.pullback(dJ, aux)
             return J * scale, np.concatenate([(a_c + gc) * chi_hi, a_p + gp]) * scale
 
         def good_enough(intermediate_result):
@@ -562,7 +617,7 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
         chi, psi = np.clip(res.x[:N], 0.0, 1.0) * chi_hi, np.mod(res.x[N:], 2 * math.pi)
         c_full, s_full = full(chi, psi, check_tol)
         work["checks"] += 1
-        Jf = objective(s_full.velocity, chi, psi, False)[0]
+        Jf = judged(chi, psi, s_full.velocity)
         logger.info("surface design pass %d: J model %.4g, full %.4g, rms %.4g", k + 1, res.fun / scale, Jf,
                     float(np.sqrt(np.mean(residuals(s_full.velocity) ** 2))))
         gained = best["J"] - Jf
@@ -587,7 +642,7 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
             err = 0.0
     r = residuals(s_best.velocity)
     rms = float(np.sqrt(np.mean(r ** 2)))
-    work.update(final_tol=final_tol, model_evaluations=model.evaluations,
+    work.update(final_tol=final_tol, model_evaluations=model.evaluations, robust_samples=len(eps),
                 seconds=_time.perf_counter() - clock)
     speed = None
     if kind == "angle":

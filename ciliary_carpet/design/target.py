@@ -167,7 +167,6 @@ SURFACE_KINDS = tuple(p.name for p in PATTERNS if p.surface)
 _DESIGNED = tuple(k for k in KINDS if k != "none")
 _DIRECTION_KINDS = ANGLE_KINDS + SURFACE_KINDS
 _STANDING_KINDS = SURFACE_KINDS + ("points",)
-_PLANAR_DESIGNED = tuple(k for k in _DESIGNED if k not in SURFACE_KINDS)
 
 
 def _uses(name: str) -> tuple[str, ...]:
@@ -244,8 +243,8 @@ class TargetSpec(Section):
     robust: bool = key(
         False, "design for the expected residual under `sigma` instead of the nominal one: the objective is "
         "averaged over 16 fixed samples of chi_N (1 + sigma eps) (a sample average; its error shows in the "
-        "tolerance study, whose samples are independent of them); needs `sigma` > 0; planar carpets", "bool",
-        kinds=_PLANAR_DESIGNED)
+        "tolerance study, whose samples are independent of them); needs `sigma` > 0 (standing carpets: or "
+        "`sigma_psi` > 0, both sampled)", "bool", kinds=_DESIGNED)
 
     @classmethod
     def parse(cls, src: str, data, base_dir=None) -> dict:
@@ -276,9 +275,9 @@ class TargetSpec(Section):
             p = Path(file).expanduser()
             if base_dir is not None and not (p if p.is_absolute() else base_dir / p).is_file():
                 raise SceneError(f"{src}: target.file '{file}' not found (looked for {(base_dir / p).absolute()})")
-        if kw["robust"] and not kw["sigma"] > 0:
-            raise r.fail("robust", "false unless target.sigma > 0 (it designs for the fabrication tolerance sigma)",
-                         kw["robust"])
+        if kw["robust"] and not (kw["sigma"] > 0 or kw.get("sigma_psi", 0.0) > 0):
+            raise r.fail("robust", "false unless target.sigma > 0 (or, standing carpets, target.sigma_psi > 0: it "
+                         "designs for the fabrication tolerance)", kw["robust"])
         return kw
 
     def to_dict(self) -> dict:
@@ -474,9 +473,9 @@ class Target:
         if self.inside_swept not in ("use", "downweight", "drop"):
             raise TargetError(f"target inside_swept must be \"use\", \"downweight\" or \"drop\", got "
                               f"{self.inside_swept!r}")
-        if self.robust and not self.sigma > 0:
-            raise TargetError(f"target robust = true designs for the fabrication tolerance sigma, which must then be "
-                              f"> 0, got sigma = {self.sigma!r}")
+        if self.robust and not (self.sigma > 0 or self.sigma_psi > 0):
+            raise TargetError(f"target robust = true designs for the fabrication tolerance sigma (or sigma_psi), which "
+                              f"must then be > 0, got sigma = {self.sigma!r}")
         if self.width is not None and not (math.isfinite(self.width) and self.width > 0):
             raise TargetError(f"target width must be a positive number, got {self.width!r}")
         if not math.isfinite(self.line):
