@@ -35,10 +35,10 @@ solve the full model (:meth:`Carpet.evaluate` of the :class:`CycleMean`, levels 
 rigorous bounds) is evaluated at the control points and the next solve minimises the objective
 of ``model + (full - model)`` at the pass's layout; the best layout by J on the full model over
 the local layout and the passes is returned; the residual's error bar is the rms of
-arcsin(b_k / |u_k|) from the check's bound, made at most half the threshold by a final check at
+``arcsin(b_k / |u_k|)`` from the check's bound, made at most half the threshold by a final check at
 a tighter tolerance.
 
-Objective (angle targets), P control points, u_k the surface flow's in-plane part:
+Objective (angle targets), P control points, u_k the surface flow's in-plane part::
 
     J = 1/P sum_k [(1 - uhat_k . t_k) + (w/2) max(0, 1 - (u_k . t_k) / (sigma s_k))^2]
         + mu/E sum_{edges} |g_i - g_j|^2 / g_max^2 + lambda/N sum_j |g_j - g0_j|^2 / g_max^2,
@@ -47,8 +47,8 @@ with s_k the speed the cilia within :data:`REACH` of x_k make along t_k when the
 it at chi_hi (the speed floor's reference), g_j = m(chi_j) e_psi_j the cilium's pumping vector
 (m the force-layer moment: the smoothness and the regulariser act on it, so psi's periodicity is
 respected and a cilium near chi = 0, whose psi does not matter, is not held to its neighbours'
-psi), the edges the Delaunay neighbours of the bases. Velocity targets: J = 1/2 sum |u_k - U_k|^2 /
-sum |U_k|^2 + the regularisers. L-BFGS-B over chi_j / chi_hi in [0, 1] and psi_j (free).
+psi), the edges the Delaunay neighbours of the bases. Velocity targets:
+``J = 1/2 sum |u_k - U_k|^2 / sum |U_k|^2`` + the regularisers. L-BFGS-B over chi_j / chi_hi in [0, 1] and psi_j (free).
 """
 from __future__ import annotations
 
