@@ -146,15 +146,21 @@ class SurfaceResponse:
         chi_hi, _ = pumping_curvature(carpet.table)
         chi = np.linspace(0.0, cycle_moments(carpet.table).cutoff, int(n_chi))
         n = int(round(2 * reach / step)) + 3
+        n += 1 - n % 2  # odd: the grid is symmetric about y = 0 and holds it
         x0 = -step * (n - 1) / 2
         g = x0 + step * np.arange(n)
-        gx, gy = np.meshgrid(g, g, indexing="ij")
+        h = (n - 1) // 2  # the row y = 0
+        gx, gy = np.meshgrid(g, g[h:], indexing="ij")
         pts = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, float(height))])
         vals = np.empty((chi.size, n, n, 3))
         for i, c in enumerate(chi):
             one = Carpet(np.zeros((1, 2)), c, carpet.table, wall=carpet.wall, viscosity=carpet.mu,
                          blob=carpet.blob, geometry="standing")
-            vals[i] = one.evaluate(pts, CycleMean(), 0.0).velocity.reshape(n, n, 3)
+            half = one.evaluate(pts, CycleMean(), 0.0).velocity.reshape(n, n - h, 3)
+            # the cilium beats in the plane y = 0: its mean flow is mirror symmetric about it,
+            # u(x, -y, z) = (u_x, -u_y, u_z)(x, y, z), so half the grid is evaluated
+            vals[i, :, h:] = half
+            vals[i, :, :h] = half[:, :0:-1] * np.array([1.0, -1.0, 1.0])
         sl = CubicSpline(chi, vals, axis=0)(chi, 1)
         return SurfaceResponse(chi=chi, values=np.ascontiguousarray(vals), slopes=np.ascontiguousarray(sl),
                                x0=float(x0), step=float(step), height=float(height), chi_hi=chi_hi,
