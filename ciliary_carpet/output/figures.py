@@ -91,6 +91,24 @@ def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     _savefig(fig, path)
 
 
+def _pathlines_from_above(ax, pl, bars: list, label: str) -> None:
+    """Draw the path lines ``pl`` projected on the plane (x, y), coloured by time, and their end
+    points; append their colour bar (with ``label``) to ``bars``. Nothing without path lines."""
+    from matplotlib.collections import LineCollection
+
+    if pl is None or not len(pl.points):
+        return
+    segs = [np.stack([p[:-1, :2], p[1:, :2]], axis=1) for p in pl.points if len(p) > 1]
+    if segs:
+        tt = np.concatenate([0.5 * (t[:-1] + t[1:]) for p, t in zip(pl.points, pl.times) if len(p) > 1])
+        lc = LineCollection(np.concatenate(segs), cmap="autumn", lw=0.6, alpha=0.85)
+        lc.set_array(tt)
+        ax.add_collection(lc)
+        bars.append((lc, label))
+    e = pl.end_points
+    ax.plot(e[:, 0], e[:, 1], ".", color="k", ms=2)
+
+
 def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None:
     """The render at a glance: the mean flow's streamlines (coloured by mean speed), the path
     lines (coloured by time, their end points in black) and the cilia at t = 0 with their bases
@@ -102,7 +120,6 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
 
     fig = plt.figure(figsize=(9.6, 6.5))
     ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
@@ -117,16 +134,7 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
         norm = matplotlib.colors.Normalize(0.0, float(sp.max()) if sp.max() > 0 else 1.0)
         ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", norm=norm, density=1.4, linewidth=0.6, arrowsize=0.7)
         bars.append((matplotlib.cm.ScalarMappable(norm=norm, cmap="Blues"), "streamlines: mean speed [L/tau]"))
-    if pl is not None and len(pl.points):
-        segs = [np.stack([p[:-1, :2], p[1:, :2]], axis=1) for p in pl.points if len(p) > 1]
-        if segs:
-            tt = np.concatenate([0.5 * (t[:-1] + t[1:]) for p, t in zip(pl.points, pl.times) if len(p) > 1])
-            lc = LineCollection(np.concatenate(segs), cmap="autumn", lw=0.6, alpha=0.85)
-            lc.set_array(tt)
-            ax.add_collection(lc)
-            bars.append((lc, "path lines: time [tau]"))
-        e = pl.end_points
-        ax.plot(e[:, 0], e[:, 1], ".", color="k", ms=2)
+    _pathlines_from_above(ax, pl, bars, "path lines: time [tau]")
     pos, _, _ = carpet.state(0.0)
     lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
     for j in range(carpet.n):
@@ -164,7 +172,6 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
 
     fig = plt.figure(figsize=(9.6, 6.5))
     ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
@@ -182,16 +189,7 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
         ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", norm=norm, density=1.4, linewidth=0.7, arrowsize=0.9)
         bars.append((matplotlib.cm.ScalarMappable(norm=norm, cmap="Blues"),
                      f"streamlines: mean speed at z = {h:.3g} L [L/tau]"))
-    if pl is not None and len(pl.points):
-        segs = [np.stack([p[:-1, :2], p[1:, :2]], axis=1) for p in pl.points if len(p) > 1]
-        if segs:
-            tt = np.concatenate([0.5 * (t[:-1] + t[1:]) for p, t in zip(pl.points, pl.times) if len(p) > 1])
-            lc = LineCollection(np.concatenate(segs), cmap="autumn", lw=0.6, alpha=0.85)
-            lc.set_array(tt)
-            ax.add_collection(lc)
-            bars.append((lc, "path lines (seen from above): time [tau]"))
-        e = pl.end_points
-        ax.plot(e[:, 0], e[:, 1], ".", color="k", ms=2)
+    _pathlines_from_above(ax, pl, bars, "path lines (seen from above): time [tau]")
     lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
     cmap = plt.cm.coolwarm
     for lo in range(0, carpet.n, 256):  # the footprints: the swept samples of each cilium, seen from above
