@@ -494,3 +494,87 @@ def test_filament_states_are_the_interpolant(table):
         vals = np.einsum("jk,jksq->jsq", b, cy.coef[j].astype(float))
         np.testing.assert_allclose(pos, vals[..., :2] + cy.bases[j][:, None, :], rtol=0, atol=1e-13)
         np.testing.assert_allclose(f, vals[..., 2:], rtol=0, atol=1e-13 * np.abs(vals[..., 2:]).max())
+
+
+def test_fused_carriers_are_the_stacked_moments(table):
+    """Carriers.stacked_at (one compiled pass from the moments' interpolant, one time or several)
+    gives Carriers.stacked of Carriers.forces of the moments, to rounding, planar and standing."""
+    rng = np.random.default_rng(5)
+    planar = Carpet(layout.square(3, 4, 2.0), rng.uniform(-100, 100, 12), table, layout.random_phases(12, 3))
+    standing = Carpet(layout.square(3, 4, 2.0), rng.uniform(0, 100, 12), table, layout.random_phases(12, 4),
+                      wall=0.0, geometry="standing", azimuth=rng.uniform(0, 2 * math.pi, 12))
+    for c in (planar, standing):
+        js = np.array([7, 0, 11, 3, 5])
+        times = np.array([0.3, 1.7, 2.25])
+        ph = np.stack([c.cycles.phase_at(t) for t in times])
+        many = c.carriers.stacked_at(ph, js)
+        assert many.shape == (3, 50, 3)
+        for i, t in enumerate(times):
+            F, D, T = c.cycles.moments_at(ph[i])
+            want = c.carriers.stacked(F, c.carriers.forces(F, D, T), js)
+            one = c.carriers.stacked_at(ph[i], js)
+            np.testing.assert_allclose(one, want, rtol=0, atol=1e-13 * np.abs(want).max())
+            np.testing.assert_array_equal(many[i], one)
+
+
+def test_velocity_is_evaluate_without_its_bound(carpet):
+    """Carpet.velocity (the fused carriers, kept per instant, made together by prepare) gives the
+    velocity of Carpet.evaluate (the moments' carriers with the bound's terms) to rounding, at
+    instants prepared or not, and for the cycle mean; preparing changes no number."""
+    rng = np.random.default_rng(11)
+    pts = np.column_stack([rng.uniform(-4, 22, 60), rng.uniform(-4, 22, 60), rng.uniform(-1, 1, 60)])
+    times = [0.1, 0.35, 2.0]
+    for tol in (1e-2, 1e-4):
+        want = [carpet.evaluate(pts, Instant(t), tol).velocity for t in times]
+        scale = max(np.abs(w).max() for w in want)
+        plain = [carpet.velocity(pts, Instant(t), tol) for t in times]
+        carpet.prepare(times, tol)
+        prepared = [carpet.velocity(pts, Instant(t), tol) for t in times]
+        for w, a, b in zip(want, plain, prepared):
+            np.testing.assert_allclose(a, w, rtol=0, atol=1e-13 * scale)
+            np.testing.assert_array_equal(a, b)
+        m = carpet.evaluate(pts, CycleMean(), tol).velocity
+        np.testing.assert_allclose(carpet.velocity(pts, CycleMean(), tol), m, rtol=0, atol=1e-13 * np.abs(m).max())
+    with pytest.raises(ValueError, match="finite"):
+        carpet.prepare([0.0, np.nan], 1e-3)
+
+
+def test_prepared_instants_are_made_together(table, monkeypatch):
+    """prepare makes the carriers of every instant it is given in one pass, and the evaluations at
+    those instants (an integrator's stages) make none of their own."""
+    from ciliary_carpet.carpet.carriers import Carriers
+
+    c = Carpet(layout.square(4, 4, 2.0), np.linspace(-60, 60, 16), table, layout.random_phases(16, 6))
+    calls = []
+    real = Carriers.stacked_at
+    monkeypatch.setattr(Carriers, "stacked_at", lambda self, ph, js: calls.append(np.ndim(ph)) or real(self, ph, js))
+    pts = np.array([[1.0, 1.0, 0.5], [5.0, 3.0, -0.2]])
+    times = 0.4 + np.array([0.2, 0.3, 0.8, 8 / 9, 1.0, 1.0]) * 0.05
+    c.prepare(times, 1e-3)
+    for t in times:
+        c.velocity(pts, Instant(t), 1e-3)
+    assert calls == [2]  # one pass for the five distinct instants
+    c.velocity(pts, Instant(7.0), 1e-3)
+    assert calls == [2, 1]
+
+
+def test_moment_harmonics_kept_reproduce_the_sampled_moments(table, monkeypatch):
+    """The moments' interpolant keeps the harmonics above MOMENT_FLOOR: at any phase it gives the
+    moments of the interpolant with every harmonic to 1e-11 of their size, and at the table's
+    phase samples the moments sampled from the filaments to the sources' own float32 storage (1e-6)."""
+    from ciliary_carpet.carpet import cycles
+
+    chi, ph0 = np.linspace(-90, 90, 6), layout.random_phases(6, 2)
+    c = Carpet(layout.square(2, 3, 2.0), chi, table, ph0)
+    monkeypatch.setattr(cycles, "MOMENT_FLOOR", -1.0)
+    full = Carpet(layout.square(2, 3, 2.0), chi, table, ph0)
+    K = 3 * (c.cycles.harmonics - 1) + 1
+    assert full.cycles.moment_coef.shape[2] == 2 * K - 1 > c.cycles.moment_coef.shape[2]  # some were dropped
+    cy = c.cycles
+    for ph in np.random.default_rng(4).random((5, 6)):
+        for got, want in zip(cy.moments_at(ph), full.cycles.moments_at(ph)):
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * np.abs(want).max())
+    for p in (0, 7, cy.n_phase // 2):
+        F, D, T = cy.moments_at(np.full(6, p / cy.n_phase))
+        for got, want in ((F, cy.F[:, p]), (D, cy.D[:, p]), (T, cy.T[:, p])):
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())

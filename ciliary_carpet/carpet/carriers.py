@@ -126,7 +126,7 @@ def dipole_forces(F: np.ndarray, D: np.ndarray, delta: np.ndarray, unit: np.ndar
     carpet's levels of detail and the design model (one compiled pass over the cilia: every
     evaluation of a carpet's flow makes them for all its cilia)."""
     unit = np.asarray(unit, dtype=float)
-    inv = np.linalg.inv(np.stack([np.ones(3), unit[:, 0], unit[:, 1]]))
+    inv = DIPOLE_INV if unit is DIPOLE else np.linalg.inv(np.stack([np.ones(3), unit[:, 0], unit[:, 1]]))
     F = np.ascontiguousarray(F, dtype=float)
     D = np.ascontiguousarray(D, dtype=float)
     d = np.ascontiguousarray(np.broadcast_to(np.asarray(delta, dtype=float), (F.shape[0],)))
@@ -229,6 +229,84 @@ def _stack(F, f3, f6, js, axes, out):  # pragma: no cover - compiled
                 out[n + 3 * q + m, k] = a0 * f3[j, m, 0] + a1 * f3[j, m, 1]
             for m in range(6):
                 out[4 * n + 6 * q + m, k] = a0 * f6[j, m, 0] + a1 * f6[j, m, 1]
+
+
+_STACK_BLOCK = 32
+"""Cilia per parallel task of :func:`_stacked_at`."""
+DIPOLE_INV = np.linalg.inv(np.stack([np.ones(3), DIPOLE[:, 0], DIPOLE[:, 1]]))
+"""The inverse of the moment matrix (rows 1, x, y) of the carpet's dipole carriers :data:`DIPOLE`."""
+
+
+@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+def _stacked_at(coef_t, ph, delta, inv3, inv6, axes, js, out):  # pragma: no cover - compiled
+    """The carriers' forces in space of cilia ``js`` at each of T sets of phases ``ph`` (T, N), in
+    the order of :meth:`Carriers.positions` (out (T, 10 n, 3), n = len(js)): per cilium (in
+    parallel) and time its moments F, D, T from their trigonometric interpolant (coef_t (N, 14,
+    2K-1), as :func:`~ciliary_carpet.carpet.cycles._moments_at`), the dipole carriers' forces
+    f3 = inv3 (F, D_0 / delta, D_1 / delta) (:func:`dipole_forces`), the quadrupole carriers'
+    f6 = inv6 (F, D / delta, T / delta^2) (:func:`_carrier_sets`), each mapped into space by the
+    cilium's axes (N, 3, 2) (:func:`_stack`). One pass for what :meth:`Carriers.forces` and
+    :meth:`Carriers.stacked` do in four, without the bound terms (which only a reported bound
+    needs). Its cost is reading the coefficients (every cilium's, for every evaluation of a
+    carpet's flow), so the T times share one read."""
+    nk = coef_t.shape[2]
+    K = (nk + 1) // 2
+    n = js.shape[0]
+    nt = ph.shape[0]
+    nb = (n + _STACK_BLOCK - 1) // _STACK_BLOCK
+    for blk in prange(nb):  # scratch once per block: allocation per cilium cost as much as the sums
+        cs = np.empty(K)
+        sn = np.empty(K)
+        b = np.empty((nt, nk))
+        m = np.empty((nt, 14))
+        r = np.empty((6, 2))
+        for q in range(blk * _STACK_BLOCK, min(n, (blk + 1) * _STACK_BLOCK)):
+            j = js[q]
+            for tt in range(nt):
+                th = 2.0 * np.pi * ph[tt, j]
+                c1 = np.cos(th)
+                s1 = np.sin(th)
+                cs[0] = 1.0
+                sn[0] = 0.0
+                for k in range(1, K):
+                    cs[k] = cs[k - 1] * c1 - sn[k - 1] * s1
+                    sn[k] = sn[k - 1] * c1 + cs[k - 1] * s1
+                for k in range(K):
+                    b[tt, k] = cs[k]
+                for k in range(1, K):
+                    b[tt, K - 1 + k] = sn[k]
+            for p in range(14):
+                for tt in range(nt):  # the coefficients' row stays in cache across the times
+                    acc = 0.0
+                    for k in range(nk):
+                        acc += coef_t[j, p, k] * b[tt, k]
+                    m[tt, p] = acc
+            d = delta[j]
+            d2 = d * d
+            for tt in range(nt):
+                # rhs rows: F, D[0] / d, D[1] / d, T[0, 0] / d^2, T[0, 1] / d^2, T[1, 1] / d^2 (x and y each)
+                for k in range(2):
+                    r[0, k] = m[tt, k]
+                    r[1, k] = m[tt, 2 + k] / d
+                    r[2, k] = m[tt, 4 + k] / d
+                    r[3, k] = m[tt, 6 + k] / d2
+                    r[4, k] = m[tt, 8 + k] / d2
+                    r[5, k] = m[tt, 12 + k] / d2
+                for c in range(3):
+                    out[tt, q, c] = axes[j, c, 0] * r[0, 0] + axes[j, c, 1] * r[0, 1]
+                for mm in range(3):
+                    gx = inv3[mm, 0] * r[0, 0] + inv3[mm, 1] * r[1, 0] + inv3[mm, 2] * r[2, 0]
+                    gy = inv3[mm, 0] * r[0, 1] + inv3[mm, 1] * r[1, 1] + inv3[mm, 2] * r[2, 1]
+                    for c in range(3):
+                        out[tt, n + 3 * q + mm, c] = axes[j, c, 0] * gx + axes[j, c, 1] * gy
+                for mm in range(6):
+                    gx = 0.0
+                    gy = 0.0
+                    for w in range(6):
+                        gx += inv6[mm, w] * r[w, 0]
+                        gy += inv6[mm, w] * r[w, 1]
+                    for c in range(3):
+                        out[tt, 4 * n + 6 * q + mm, c] = axes[j, c, 0] * gx + axes[j, c, 1] * gy
 
 
 @njit(cache=True, parallel=True)
@@ -424,6 +502,21 @@ class Carriers:
         out = np.empty((10 * js.size, 3))
         _stack(np.ascontiguousarray(F, dtype=float), car.f3, car.f6, js, self.cycles.embedding.axes, out)
         return out
+
+    def stacked_at(self, phases: np.ndarray, js: np.ndarray) -> np.ndarray:
+        """The carriers' forces in space of cilia ``js`` at the phases ``phases`` (N,) of one
+        instant, (10 len(js), 3), or (T, N) of T instants, (T, 10 len(js), 3): :meth:`stacked` of
+        :meth:`forces` of the moments there, in one compiled pass (:func:`_stacked_at`; equal to
+        rounding; T instants at once cost little more than one). What an evaluation without a
+        reported bound needs."""
+        js = np.ascontiguousarray(js, dtype=np.int64)
+        ph = np.asarray(phases, dtype=float)
+        many = ph.ndim == 2
+        ph = np.ascontiguousarray(ph if many else ph[None])
+        out = np.empty((ph.shape[0], 10 * js.size, 3))
+        c = self.cycles
+        _stacked_at(c.moment_coef, ph, self.delta, DIPOLE_INV, QUADRUPOLE_INV, c.embedding.axes, js, out)
+        return out if many else out[0]
 
     def error_bound(self, targets: np.ndarray, thresholds: tuple, bounds: Bounds, car: CarrierForces,
                     mu: float) -> np.ndarray:

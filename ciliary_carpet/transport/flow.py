@@ -24,6 +24,10 @@ and may override
 ``step_cap`` : float
     The largest time step an integrator may take in it (default inf): a flow that changes on a
     time scale the one-step error estimate does not see sets it.
+``prepare(times)``
+    A hint that ``velocity`` will be called at the few ``times`` next (an integrator's stages;
+    default: nothing): a model whose cost per time is shared work may make it for all of them
+    at once.
 
 :func:`~ciliary_carpet.transport.pathlines.pathlines` and
 :func:`~ciliary_carpet.transport.ftle.ftle_field` ask the flow for these and nothing else, so a new
@@ -124,6 +128,9 @@ class Flow(ABC):
         """The largest time step an integrator may take: none."""
         return math.inf
 
+    def prepare(self, times: np.ndarray) -> None:
+        """A hint: :meth:`velocity` will be called at ``times`` next (default: ignored)."""
+
 
 @dataclass(frozen=True, eq=False)
 class ResolvedFlow(Flow):
@@ -141,6 +148,12 @@ class ResolvedFlow(Flow):
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
         return self.carpet.velocity(above_wall(self.carpet, x), Instant(t), self.tol)
+
+    def prepare(self, times: np.ndarray) -> None:
+        """The carpet's carriers at ``times`` made together (:meth:`Carpet.prepare
+        <ciliary_carpet.carpet.carpet.Carpet.prepare>`; the same numbers, one read of the moments)."""
+        if self.tol > 0:
+            self.carpet.prepare(times, self.tol)
 
     @property
     def step_cap(self) -> float:

@@ -268,6 +268,7 @@ class _Run:
         xa = self.x[idx]
         k = np.empty((7,) + xa.shape)
         k[0] = self.u[idx]
+        self.flow.prepare(t + _C[1:] * h)  # the stages' times, for a flow whose cost per time is shared
         kf = k.reshape(7, -1)  # a view: stage combinations as one small matrix product each
         for i in range(1, 7):
             k[i] = self.velocity(xa + h * (_A_ROWS[i] @ kf[:i]).reshape(xa.shape), t + _C[i] * h)
