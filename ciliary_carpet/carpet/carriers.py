@@ -240,7 +240,7 @@ DIPOLE_INV = np.linalg.inv(np.stack([np.ones(3), DIPOLE[:, 0], DIPOLE[:, 1]]))
 @njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _stacked_at(coef_t, ph, delta, inv3, inv6, axes, js, out):  # pragma: no cover - compiled
     """The carriers' forces in space of cilia ``js`` at each of T sets of phases ``ph`` (T, N), in
-    the order of :meth:`Carriers.positions` (out (T, 10 n, 3), n = len(js)): per cilium (in
+    the order of :meth:`Carriers.positions`, as coordinate rows (out (T, 3, 10 n), n = len(js)): per cilium (in
     parallel) and time its moments F, D, T from their trigonometric interpolant (coef_t (N, 14,
     2K-1), as :func:`~ciliary_carpet.carpet.cycles._moments_at`), the dipole carriers' forces
     f3 = inv3 (F, D_0 / delta, D_1 / delta) (:func:`dipole_forces`), the quadrupole carriers'
@@ -293,12 +293,12 @@ def _stacked_at(coef_t, ph, delta, inv3, inv6, axes, js, out):  # pragma: no cov
                     r[4, k] = m[tt, 8 + k] / d2
                     r[5, k] = m[tt, 12 + k] / d2
                 for c in range(3):
-                    out[tt, q, c] = axes[j, c, 0] * r[0, 0] + axes[j, c, 1] * r[0, 1]
+                    out[tt, c, q] = axes[j, c, 0] * r[0, 0] + axes[j, c, 1] * r[0, 1]
                 for mm in range(3):
                     gx = inv3[mm, 0] * r[0, 0] + inv3[mm, 1] * r[1, 0] + inv3[mm, 2] * r[2, 0]
                     gy = inv3[mm, 0] * r[0, 1] + inv3[mm, 1] * r[1, 1] + inv3[mm, 2] * r[2, 1]
                     for c in range(3):
-                        out[tt, n + 3 * q + mm, c] = axes[j, c, 0] * gx + axes[j, c, 1] * gy
+                        out[tt, c, n + 3 * q + mm] = axes[j, c, 0] * gx + axes[j, c, 1] * gy
                 for mm in range(6):
                     gx = 0.0
                     gy = 0.0
@@ -306,7 +306,7 @@ def _stacked_at(coef_t, ph, delta, inv3, inv6, axes, js, out):  # pragma: no cov
                         gx += inv6[mm, w] * r[w, 0]
                         gy += inv6[mm, w] * r[w, 1]
                     for c in range(3):
-                        out[tt, 4 * n + 6 * q + mm, c] = axes[j, c, 0] * gx + axes[j, c, 1] * gy
+                        out[tt, c, 4 * n + 6 * q + mm] = axes[j, c, 0] * gx + axes[j, c, 1] * gy
 
 
 @njit(cache=True, parallel=True)
@@ -513,9 +513,10 @@ class Carriers:
         ph = np.asarray(phases, dtype=float)
         many = ph.ndim == 2
         ph = np.ascontiguousarray(ph if many else ph[None])
-        out = np.empty((ph.shape[0], 10 * js.size, 3))
+        out = np.empty((ph.shape[0], 3, 10 * js.size))
         c = self.cycles
         _stacked_at(c.moment_coef, ph, self.delta, DIPOLE_INV, QUADRUPOLE_INV, c.embedding.axes, js, out)
+        out = out.transpose(0, 2, 1)  # (T, 10 n, 3) views of coordinate rows, the layout the sums read
         return out if many else out[0]
 
     def error_bound(self, targets: np.ndarray, thresholds: tuple, bounds: Bounds, car: CarrierForces,

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numba import njit, prange
@@ -245,6 +246,11 @@ class Plan:
     far: int
     traverse: tuple
 
+    @cached_property
+    def carriers_soa(self) -> np.ndarray:
+        """(3, 10 n_p) :attr:`carriers` as coordinate rows (the layout the sums read)."""
+        return np.ascontiguousarray(self.carriers.T)
+
     @property
     def grid(self) -> tuple:
         """The arguments of :func:`_upper` that describe the grid (cell_ptr, x0, y0, h, nx, ny, reach)."""
@@ -358,7 +364,9 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces: np.ndarray, sources: Resol
              kernel: Kernel, evaluator, mu: float) -> Summed:
     """Per target (M, 3) one ranged sum (module docstring): every cilium of the ``n`` at the
     order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 3) (in the
-    order of ``plan.carriers``), or its resolved ``sources``; ``evaluator`` runs the sums."""
+    order of ``plan.carriers``), or its resolved ``sources``; ``evaluator`` runs the sums. The
+    sources are laid out as coordinate rows (3, K) and handed over as their (K, 3) transposes:
+    the direct sums read that layout without a copy."""
     m = targets.shape[0]
     sj = plan.order
     n_car = 10 * sj.size
@@ -397,20 +405,20 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces: np.ndarray, sources: Resol
     for k in range(max(1, -(-used.size // per))):
         jc = used[k * per:(k + 1) * per]
         off = n_car if k == 0 else 0
-        src, frc = np.empty((off + jc.size * blk, 3)), np.empty((off + jc.size * blk, 3))
+        src, frc = np.empty((3, off + jc.size * blk)), np.empty((3, off + jc.size * blk))
         if k == 0:
-            src[:n_car] = plan.carriers
-            frc[:n_car] = forces
+            src[:, :n_car] = plan.carriers_soa
+            frc[:, :n_car] = forces.T
             rng, p = ranges, ptr
             _block_ranges(res_j, res_r, local, per, k, off, blk, rng)
         else:
             rng, p = np.empty((res_j.size, 2), np.int64), rptr
             _block_ranges(res_j, np.zeros(0, np.int64), local, per, k, off, blk, rng)
         if jc.size:
-            sources.fill(jc, src[off:], frc[off:])
-        if src.shape[0] and rng.shape[0]:
+            sources.fill(jc, src[:, off:].T, frc[:, off:].T)
+        if src.shape[1] and rng.shape[0]:
             # the evaluator directly: every array here is made and checked by this function
-            u += evaluator.ranged(kernel, targets, src, frc, p, rng, mu)
+            u += evaluator.ranged(kernel, targets, src.T, frc.T, p, rng, mu)
     cnt = counts.sum(axis=0)
     return Summed(velocity=u, orders=cnt, resolved=int(res_j.size), ranges=int(ptr[-1]),
                   sources=int(cnt[0] + 3 * cnt[1] + 6 * cnt[2] + res_j.size * blk))

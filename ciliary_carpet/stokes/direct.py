@@ -179,12 +179,14 @@ _guard_cache()
 
 # --------------------------------------------------------------------------- the evaluator
 def _soa(a: np.ndarray, z_shift: float | None = None) -> np.ndarray:
-    """(K, 3) -> a new C-contiguous (3, K) array (structure of arrays), z shifted by
-    ``-z_shift`` (always a copy: the caller's array is never modified)."""
-    out = np.array(a.T, order="C", copy=True)
+    """(K, 3) -> a C-contiguous (3, K) float64 array (structure of arrays), z shifted by
+    ``-z_shift``: a copy where the layout or the shift needs one (the caller's array is never
+    modified), else ``a.T`` itself (the transpose of coordinate rows, as the carpet's sums pass)."""
     if z_shift:
+        out = np.array(a.T, dtype=np.float64, order="C", copy=True)
         out[2] -= z_shift
-    return out
+        return out
+    return np.ascontiguousarray(a.T, dtype=np.float64)
 
 
 @dataclass(frozen=True)
