@@ -91,6 +91,10 @@ def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     _savefig(fig, path)
 
 
+PREVIEW_POINTS = 400
+"""Most samples of one tracer the preview draws (evenly strided, its end point kept)."""
+
+
 def _pathlines_from_above(ax, pl, bars: list, label: str) -> None:
     """Draw the path lines ``pl`` projected on the plane (x, y), coloured by time, and their end
     points; append their colour bar (with ``label``) to ``bars``. Nothing without path lines."""
@@ -98,9 +102,15 @@ def _pathlines_from_above(ax, pl, bars: list, label: str) -> None:
 
     if pl is None or not len(pl.points):
         return
-    segs = [np.stack([p[:-1, :2], p[1:, :2]], axis=1) for p in pl.points if len(p) > 1]
+    # at most PREVIEW_POINTS samples a tracer (its last kept): a picture shows no more, and
+    # matplotlib makes a path per segment (a million of them took 6 s)
+    keep = [np.unique(np.append(np.arange(0, len(p), max(1, -(-len(p) // PREVIEW_POINTS))), len(p) - 1))
+            for p in pl.points]
+    pts = [p[k] for p, k in zip(pl.points, keep)]
+    tms = [t[k] for t, k in zip(pl.times, keep)]
+    segs = [np.stack([p[:-1, :2], p[1:, :2]], axis=1) for p in pts if len(p) > 1]
     if segs:
-        tt = np.concatenate([0.5 * (t[:-1] + t[1:]) for p, t in zip(pl.points, pl.times) if len(p) > 1])
+        tt = np.concatenate([0.5 * (t[:-1] + t[1:]) for p, t in zip(pts, tms) if len(p) > 1])
         lc = LineCollection(np.concatenate(segs), cmap="autumn", lw=0.6, alpha=0.85)
         lc.set_array(tt)
         ax.add_collection(lc)
