@@ -1,0 +1,129 @@
+"""The cost of one evaluation of a carpet's flow at an instant, what path lines pay tens of
+thousands of times (issue 23).
+
+The designed uniform_deflection carpet scaled to N x N cilia (``bench_large.scaled_scene``),
+evaluated at M random points over it at an instant (flow tol 1e-4, the render's path-line
+tolerance), one numba thread, three ways in the same run:
+
+* **moments**: the carriers' forces as before the fused pass (what ``Carpet.evaluate`` still does
+  for its reported bound): the moments from their interpolant, the carriers with the bound's
+  terms, then stacked (``Carpet._sum(..., bound=True)``);
+* **fused**: ``Carpet.velocity`` at an instant not prepared (``Carriers.stacked_at``: one compiled
+  pass from the moments' interpolant to the stacked forces);
+* **prepared**: ``Carpet.velocity`` after ``Carpet.prepare`` of the five distinct stage times of a
+  Dormand-Prince step, as the path lines call it (the cost of the ``prepare`` shared among them).
+
+Times are per evaluation (median of repeats), with the largest difference of the velocities
+from the moments' path relative to the largest speed (the three give the same numbers to
+rounding). ``--sizes`` carpets, ``--points`` M.
+
+    python benchmarks/bench_evaluation.py [--sizes 30 100] [--points 1 8 100]
+
+Writes ``benchmarks/results/bench_evaluation.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+OUT = ROOT / "benchmarks" / "results" / "bench_evaluation.md"
+TOL = 1e-4
+STAGES = np.array([0.2, 0.3, 0.8, 8 / 9, 1.0])
+"""The distinct stage times of a Dormand-Prince step, in steps (the last two stages share 1)."""
+
+
+def _load() -> str:
+    return " ".join(Path("/proc/loadavg").read_text().split()[:3]) if Path("/proc/loadavg").exists() else "?"
+
+
+def _median_time(fn, repeats: int) -> float:
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts))
+
+
+def measure(n: int, points: list[int], repeats: int) -> list[str]:
+    import bench_large
+    from ciliary_carpet.carpet.carpet import Instant
+    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.scene import load_scene
+
+    with tempfile.TemporaryDirectory() as tmp:
+        _, c = design(load_scene(bench_large.scaled_scene(n, Path(tmp)), allow_outside=True))
+    rng = np.random.default_rng(0)
+    lo, hi = c.bases.min(axis=0), c.bases.max(axis=0)
+    h = 0.06  # a step of a sixteenth of the beat period, about
+    rows = []
+    for m in points:
+        x = np.column_stack([rng.uniform(lo[0], hi[0], m), rng.uniform(lo[1], hi[1], m), np.zeros(m)])
+        c.velocity(x, Instant(0.0), TOL)  # plans and compiled code made
+        t0 = [0.0]
+
+        def moments():
+            t0[0] += h
+            return c._sum(x, Instant(t0[0]), TOL, bound=True)[0].velocity
+
+        def fused():
+            t0[0] += h
+            return c.velocity(x, Instant(t0[0]), TOL)
+
+        def prepared():
+            t0[0] += h
+            ts = t0[0] + STAGES * h
+            c.prepare(ts, TOL)
+            return [c.velocity(x, Instant(t), TOL) for t in ts]
+
+        t_m = _median_time(moments, repeats)
+        t_f = _median_time(fused, repeats)
+        t_p = _median_time(prepared, max(3, repeats // 5)) / STAGES.size
+        t = 12.345
+        ref = c._sum(x, Instant(t), TOL, bound=True)[0].velocity
+        scale = float(np.abs(ref).max())
+        d_f = float(np.abs(c.velocity(x, Instant(t), TOL) - ref).max()) / scale
+        c.prepare([t], TOL)
+        d_p = float(np.abs(c.velocity(x, Instant(t), TOL) - ref).max()) / scale
+        rows.append(f"| {n} x {n} | {m} | {1e3 * t_m:.3f} | {1e3 * t_f:.3f} | {1e3 * t_p:.3f} | "
+                    f"{t_m / t_p:.2f} | {d_f:.1e} / {d_p:.1e} | {_load()} |")
+        print(rows[-1], flush=True)
+    return rows
+
+
+def main(argv=None) -> str:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[30, 100])
+    ap.add_argument("--points", type=int, nargs="+", default=[1, 8, 100])
+    ap.add_argument("--repeats", type=int, default=200)
+    ap.add_argument("--out", type=Path, default=OUT)
+    a = ap.parse_args(argv)
+    import numba
+
+    numba.set_num_threads(1)
+    head = [f"# One evaluation of a carpet's flow at an instant (issue 23)\n",
+            f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, one numba thread, "
+            f"Python {platform.python_version()}; load average at the start {_load()} (1, 5, 15 min). "
+            f"`python benchmarks/bench_evaluation.py --sizes {' '.join(map(str, a.sizes))} --points "
+            f"{' '.join(map(str, a.points))}`; flow tol {TOL:g}; ms per evaluation, median of {a.repeats}.\n",
+            "| carpet | points | moments (ms) | fused (ms) | prepared (ms) | moments / prepared | "
+            "difference fused / prepared (rel.) | load |", "|---|---:|---:|---:|---:|---:|---|---|"]
+    rows = []
+    for n in a.sizes:
+        rows += measure(n, a.points, a.repeats)
+    text = "\n".join(head + rows) + "\n"
+    a.out.write_text(text)
+    return text
+
+
+if __name__ == "__main__":
+    main()
