@@ -217,15 +217,21 @@ def _atomic_write(path: Path, make: Callable[[], bytes]) -> Path:
     return path
 
 
+COMPRESSION = "lz4"
+"""The compressor of the VTK XML files: VTK's LZ4 (VTK >= 8.1; Debian's ParaView 5.11 opens every
+file of a render, tests/test_paraview.py). Measured on a 30 x 30 carpet's cilia frame (58 500 points), 19 ms and 3.2 MB
+against zlib's 67 ms and 2.6 MB (uncompressed 23 ms, 5.0 MB)."""
+
+
 def _mesh_bytes(mesh: pv.DataObject, path: Path) -> bytes:
-    """The VTK XML file of ``mesh`` (binary, zlib, appended data base64-encoded: what
-    ``mesh.save(path, binary=True)`` writes), made in memory; the writer is picked from
-    ``path``'s extension. VTK's errors (which pyvista's save only logs) raise
-    ``pv.VTKExecutionError``."""
+    """The VTK XML file of ``mesh`` (binary, :data:`COMPRESSION`, appended data
+    base64-encoded: what ``mesh.save(path, binary=True)`` writes with that compressor), made in
+    memory; the writer is picked from ``path``'s extension. VTK's errors (which pyvista's save
+    only logs) raise ``pv.VTKExecutionError``."""
     if hasattr(mesh, "_store_metadata"):  # as pyvista's save does (complex and bit arrays as field data)
         mesh._store_metadata()
     writer = mesh._WRITERS[path.suffix.lower()](path, mesh)
-    writer._apply_kwargs_safely(texture=None, data_format="binary", compression="zlib")
+    writer._apply_kwargs_safely(texture=None, data_format="binary", compression=COMPRESSION)
     vtk_writer = writer.writer
     vtk_writer.EncodeAppendedDataOn()  # text-safe: the string VTK returns is ASCII
     vtk_writer.WriteToOutputStringOn()
@@ -236,7 +242,7 @@ def _mesh_bytes(mesh: pv.DataObject, path: Path) -> bytes:
 
 
 def _save_mesh(mesh: pv.DataObject, path: Path) -> Path:
-    """Write ``mesh`` (binary, zlib) atomically; the writer is picked from ``path``'s extension."""
+    """Write ``mesh`` (binary, :data:`COMPRESSION`) atomically; the writer is picked from ``path``'s extension."""
     return _atomic_write(path, lambda: _mesh_bytes(mesh, path))
 
 
