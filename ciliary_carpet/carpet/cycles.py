@@ -362,6 +362,24 @@ def _blocks(coef, basis, wgt, bases, origin, axes, jc, src, frc):  # pragma: no 
 
 
 
+@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+def _state(coef, basis, js, out):  # pragma: no cover - compiled
+    """out[i] (n_s, 4) = sum_k basis[i, k] coef[js[i], k] (float32 coefficients read as they are,
+    summed in float64; numpy's matmul would first copy every cilium's coefficients to float64)."""
+    nk = coef.shape[1]
+    R = 4 * coef.shape[2]
+    for i in prange(js.shape[0]):
+        cj = coef[js[i]].reshape(nk, R)  # the inner loop over R contiguous numbers
+        o = out[i].reshape(R)
+        e = basis[i, 0]
+        for r in range(R):
+            o[r] = e * cj[0, r]
+        for k in range(1, nk):
+            e = basis[i, k]
+            for r in range(R):
+                o[r] += e * cj[k, r]
+
+
 class CycleData:
     """The limit cycles of a carpet's cilia in the lab frame and their moments (module
     docstring), built once per carpet.
@@ -474,13 +492,12 @@ class CycleData:
         """Positions (N, n_s, 2) (lab frame), force per length on the fluid (N, n_s, 2) and phases
         (N,) of all cilia (or of cilia ``js``: N = len(js)) at time t."""
         ph = self.phase_at(t)
-        coef, bases = self.coef, self.bases
-        if js is not None:
-            js = np.asarray(js, dtype=np.int64).reshape(-1)
-            ph, coef, bases = ph[js], coef[js], bases[js]
+        js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).reshape(-1)
+        ph = ph[js]
         basis = _trig_basis(ph, self.harmonics)  # (N, 2K-1)
-        vals = np.matmul(basis[:, None], coef.reshape(coef.shape[:2] + (-1,))).reshape(coef.shape[:1] + coef.shape[2:])
-        return vals[..., :2] + bases[:, None, :], vals[..., 2:], ph
+        vals = np.empty((js.size,) + self.coef.shape[2:])
+        _state(self.coef, basis, js, vals)
+        return vals[..., :2] + self.bases[js][:, None, :], vals[..., 2:], ph
 
     def beat_velocity(self, t, js=None) -> np.ndarray:
         """(len(js), n_s, 2) velocity d r_j / dt of the filaments ``js`` (default all) at time
