@@ -578,3 +578,29 @@ def test_moment_harmonics_kept_reproduce_the_sampled_moments(table, monkeypatch)
         F, D, T = cy.moments_at(np.full(6, p / cy.n_phase))
         for got, want in ((F, cy.F[:, p]), (D, cy.D[:, p]), (T, cy.T[:, p])):
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
+
+
+def test_kept_mean_blocks_give_the_same_flow(table, monkeypatch):
+    """The cycle-mean flow's resolved blocks are kept for the next evaluations (MeanBlocks, up to
+    its budget): evaluations that copy kept blocks, make new ones, or both, give the numbers of a
+    carpet that keeps none; a pickled carpet leaves its kept blocks behind."""
+    import pickle
+
+    from ciliary_carpet.carpet import cycles
+
+    rng = np.random.default_rng(8)
+    chi, ph = rng.uniform(-90, 90, 16), layout.random_phases(16, 9)
+    c = Carpet(layout.square(4, 4, 2.0), chi, table, ph)
+    block_bytes = 48 * c.cycles.n_phase * c.cycles.n_s
+    small = Carpet(layout.square(4, 4, 2.0), chi, table, ph)
+    object.__setattr__(small, "_mean_blocks", cycles.MeanBlocks(small.cycles, budget=3 * block_bytes))
+    none = Carpet(layout.square(4, 4, 2.0), chi, table, ph)
+    object.__setattr__(none, "_mean_blocks", None)
+    a = np.array([[1.0, 1.0, 0.3], [2.5, 5.0, -0.2]])
+    b = np.array([[5.0, 5.5, 0.1], [0.5, 3.0, 0.4], [6.5, 1.0, 0.0]])
+    for x in (a, b, np.concatenate([a, b]), a):
+        want = none.velocity(x, CycleMean(), 1e-3)
+        for k in (c, small):
+            np.testing.assert_array_equal(k.velocity(x, CycleMean(), 1e-3), want)
+    assert c._mean_blocks.count > 3 and small._mean_blocks.count == 3
+    assert pickle.loads(pickle.dumps(c))._mean_blocks.count == 0

@@ -59,7 +59,7 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers
 from ciliary_carpet.carpet.coupling import COUPLINGS, couple
-from ciliary_carpet.carpet.cycles import CycleData, ResolvedSources
+from ciliary_carpet.carpet.cycles import CycleData, MeanBlocks, ResolvedSources
 from ciliary_carpet.carpet.geometry import GEOMETRIES, Embedding
 from ciliary_carpet.carpet.geometry import standing as standing_embedding
 from ciliary_carpet.carpet.traversal import Plan, Summed, dense_sum, flow_sum, make_plan
@@ -269,6 +269,7 @@ class Carpet:
     carriers: Carriers = field(default=None, init=False, repr=False)
     _plans: dict = field(default=None, init=False, repr=False)
     _forces: dict = field(default=None, init=False, repr=False)
+    _mean_blocks: MeanBlocks = field(default=None, init=False, repr=False)
     mu: float = field(default=None, init=False)
     mu_source: str = field(default=None, init=False)
     coupled: object = field(default=None, init=False, repr=False)
@@ -337,7 +338,8 @@ class Carpet:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", UserWarning)  # the bases are checked below
                 res = couple(replace(self, coupling="none", background=None))
-            for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces", "bases", "chi_N",
+            for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces",
+                      "_mean_blocks", "bases", "chi_N",
                       "phases", "direction"):
                 object.__setattr__(self, k, getattr(res.carpet, k))
             object.__setattr__(self, "coupled", res)
@@ -365,7 +367,16 @@ class Carpet:
         object.__setattr__(self, "carriers", Carriers(cycles, self.kernel))
         object.__setattr__(self, "_plans", {})
         object.__setattr__(self, "_forces", {})
+        object.__setattr__(self, "_mean_blocks", MeanBlocks(cycles))
         self._warn_overlaps()
+
+    def __getstate__(self) -> dict:
+        """A pickled carpet (sent to a worker process) leaves its kept plans, carriers and mean
+        blocks behind: they are remade where needed, and the blocks can take hundreds of MB."""
+        state = dict(self.__dict__)
+        if self.cycles is not None:
+            state.update(_plans={}, _forces={}, _mean_blocks=MeanBlocks(self.cycles))
+        return state
 
     def _check_above_substrate(self, cycles: CycleData) -> None:
         """A standing cilium must stay above its substrate (its 2D frame's y is the height)."""
@@ -573,7 +584,7 @@ class Carpet:
         """The sum at targets ``x`` (M, 3), its plan and the carriers' forces with the terms of
         the reported bound (``bound``; None for tol = 0 or without ``bound``)."""
         ph = when.phases(self.cycles)
-        sources = ResolvedSources(self.cycles, ph)
+        sources = ResolvedSources(self.cycles, ph, self._mean_blocks)
         if tol == 0:  # the resolved sum itself: every source of every cilium that makes a flow
             js = np.nonzero(when.bounds(self.carriers).S > 0)[0]
             return dense_sum(x, js, sources, self.kernel, self.backend, self.mu), None, None
