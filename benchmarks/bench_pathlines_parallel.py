@@ -88,7 +88,10 @@ def _stage(plan, carpet, d, how: str) -> tuple[float, dict]:
     return wall, ctx.summary["pathlines"]
 
 
-def stage_table(keys, repeat: int, folder: Path) -> list[str]:
+MODES = ("1", "2-pool", "2-threads")
+
+
+def stage_table(keys, repeat: int, folder: Path, modes=MODES) -> list[str]:
     lines = ["## The render's path-line stage, in one process (stage only)", "",
              "Seconds of `PathLinesOutput.write` (path lines, their files, the error estimate's reference run), "
              "each scene designed once; the three ways alternate, minimum of the repeats; load average "
@@ -100,16 +103,21 @@ def stage_table(keys, repeat: int, folder: Path) -> list[str]:
         best: dict = {}
         runs = []
         for r in range(repeat):
-            for how in ("1", "2-pool", "2-threads"):
+            for how in modes:
                 load = _load()
                 sec, summ = _stage(plan, carpet, d, how)
                 best[how] = min(best.get(how, float("inf")), sec)
                 runs.append(f"{how} {sec:.1f} s ({load})")
                 print(f"{key} {how}: {sec:.1f} s  load {load}  work {summ['work']}  "
                       f"ref {summ['end_point_error'].get('work')}  parallel {summ['parallel']}", flush=True)
+        def f(how, ratio=False):
+            if how not in best or (ratio and "1" not in best):
+                return "-"
+            return f"{best['1'] / best[how]:.2f}" if ratio else f"{best[how]:.1f}"
+
         lines.append(f"| {key} ({scene.carpet.shape[0]} x {scene.carpet.shape[1]}) | {plan.seeds.shape[0]} | "
-                     f"{best['1']:.1f} | {best['2-threads']:.1f} | {best['2-pool']:.1f} | "
-                     f"{best['1'] / best['2-threads']:.2f} | {best['1'] / best['2-pool']:.2f} | {'; '.join(runs)} |")
+                     f"{f('1')} | {f('2-threads')} | {f('2-pool')} | {f('2-threads', True)} | {f('2-pool', True)} | "
+                     f"{'; '.join(runs)} |")
     return lines
 
 
@@ -179,6 +187,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", nargs="+", default=["focusing", "ud30"])
     ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES, help="ways of the stage table")
     ap.add_argument("--renders", action="store_true", help="also whole renders in fresh processes")
     ap.add_argument("--no-stage", action="store_true", help="skip the stage-only table")
     ap.add_argument("--chunks", nargs="*", type=int, default=[], help="chunk sizes of the serial-work table")
@@ -195,7 +204,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         if not a.no_stage:
-            body += stage_table(a.scenes, a.repeat, folder) + [""]
+            body += stage_table(a.scenes, a.repeat, folder, a.modes) + [""]
         if a.renders:
             body += render_table(a.scenes, a.repeat, folder) + [""]
         if a.chunks:

@@ -143,3 +143,43 @@ def test_interrupt_stops_the_workers():
     for pid in pool.pids:
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
+
+
+def test_lent_threads_are_kept_only_while_they_pay(monkeypatch):
+    """The governor of a place's lent cores: one thread measured first, then the lent threads;
+    given back when they evaluate slower (a busy machine), tried again later, kept when faster,
+    and given back at once when the budget shrinks."""
+    from ciliary_carpet.transport import parallel
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread here")
+    clock = [0.0]
+    monkeypatch.setattr(parallel._time, "perf_counter", lambda: clock[0])
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        arr = [2]
+        share = parallel._Share(arr, 0, 1)
+
+        def run(seconds, per_eval):  # evaluations of 50 points (2 units each), per_eval seconds apiece
+            for _ in range(int(round(seconds / per_eval))):
+                clock[0] += per_eval
+                share.tick(50)
+
+        run(0.4, 0.01)  # one thread: 200 units/s measured, then the lent thread is taken
+        assert share.current == 2 and numba.get_num_threads() == 2
+        run(0.4, 0.02)  # slower with two: given back
+        assert share.current == 1 and numba.get_num_threads() == 1
+        retry_at = share.retry_at
+        run(parallel.RETRY_S / 2, 0.01)
+        assert share.current == 1  # not yet tried again
+        while share.current == 1 and clock[0] < retry_at + 1.0:
+            run(0.01, 0.01)
+        assert share.current == 2 and clock[0] >= retry_at  # tried again
+        run(1.0, 0.005)  # twice as fast: kept
+        assert share.current == 2
+        arr[0] = 1  # a place became busy: back to its share at once
+        share.tick(50)
+        assert share.current == 1 and numba.get_num_threads() == 1
+    finally:
+        numba.set_num_threads(before)

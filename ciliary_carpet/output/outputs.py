@@ -544,7 +544,10 @@ def end_point_error(pl, ref, idx: np.ndarray, what: str) -> dict:
 class PathLinesOutput(Output):
     """``pathlines.vtp`` and ``particles.pvd`` (``particles_NNNNN.vtp``): the tracers from the plan's
     seeds in the plan's path-line model, with an end-point error estimate (leaves ``ctx.pathlines``).
-    A standing carpet's tracers move in space, in the plan's domain (from the substrate up)."""
+    A standing carpet's tracers move in space, in the plan's domain (from the substrate up).
+    The tracers' chunks (:data:`~ciliary_carpet.transport.pathlines.CHUNK_SIZE`) and the estimate's
+    reference run (:func:`error_reference`) go to ``ctx.pool`` together, biggest first: on two
+    cores the reference runs beside the path lines (the numbers do not depend on the pool)."""
 
     name = "pathlines"
     files = (r"pathlines\.vtp", r"particles_\d+\.vtp", r"particles\.pvd")

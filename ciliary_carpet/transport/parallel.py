@@ -50,24 +50,67 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["Task", "TaskResult", "InProcess", "ProcessPool", "WorkerDied", "pool_for_threads", "worker_context"]
 
-_PLACE = threading.local()  # .allow: (shared int array, this place's index) while a pool task runs here
+_PLACE = threading.local()  # .state: this thread's _Share while a pool task runs here
+
+WINDOW_S = 0.3
+"""Seconds of flow evaluations over which a place measures its throughput (lent cores)."""
+GAIN = 1.1
+"""Lent numba threads are kept only while they evaluate this much faster than one thread."""
+RETRY_S = 15.0
+"""Seconds before a place tries lent threads again that did not pay."""
 
 
-def adjust_threads() -> None:
-    """Take this place's share of the pool's cores now (numba threads): called between flow
-    evaluations by long tasks (:func:`~ciliary_carpet.transport.pathlines.pathlines`). Outside a
-    pool task, or when the share has not changed, it does nothing."""
-    allow = getattr(_PLACE, "allow", None)
-    if allow is None:
-        return
-    arr, k = allow
-    n = int(arr[k])
-    if n != _PLACE.current:
+class _Share:
+    """One place's share of a pool's cores (``arr[k]`` numba threads allowed now), and the
+    governor that takes lent threads only while they pay: threads parallel regions of 0.1 ms
+    wait at every barrier for a thread the system has descheduled, so on a machine that other
+    jobs keep busy two threads can run many times slower than one (issue 23). The throughput
+    (work units per second, an evaluation of m points counting ``1 + m / 50``) is measured over
+    windows of :data:`WINDOW_S`; lent threads that do not beat one thread by :data:`GAIN` are given
+    back for :data:`RETRY_S`."""
+
+    def __init__(self, arr, k: int, current: int) -> None:
+        self.arr, self.k, self.current = arr, k, current
+        self.t0 = _time.perf_counter()
+        self.units = 0.0
+        self.rate: dict[int, float] = {}
+        self.retry_at = 0.0
+
+    def _set(self, n: int) -> None:
         import numba
 
-        n = max(1, min(n, int(numba.config.NUMBA_NUM_THREADS)))
-        numba.set_num_threads(n)
-        _PLACE.current = n
+        n = max(1, min(int(n), int(numba.config.NUMBA_NUM_THREADS)))
+        if n != self.current:
+            numba.set_num_threads(n)
+            self.current = n
+
+    def tick(self, points: int) -> None:
+        allowed = int(self.arr[self.k])
+        if self.current > allowed:  # the budget first: give back at once
+            self._set(allowed)
+            self.t0, self.units = _time.perf_counter(), 0.0
+        self.units += 1.0 + points / 50.0
+        now = _time.perf_counter()
+        if now - self.t0 < WINDOW_S:
+            return
+        n = self.current
+        self.rate[n] = self.units / (now - self.t0)
+        self.t0, self.units = now, 0.0
+        if n > 1 and self.rate[n] < GAIN * self.rate.get(1, 0.0):  # lent threads do not pay here now
+            self._set(1)
+            self.retry_at = now + RETRY_S
+        elif allowed > n and now >= self.retry_at and 1 in self.rate:
+            self._set(allowed)
+
+
+def adjust_threads(points: int = 1) -> None:
+    """Called before each flow evaluation of ``points`` points by long tasks
+    (:func:`~ciliary_carpet.transport.pathlines.pathlines`): in a pool task with ``lend_idle``,
+    take this place's share of the pool's idle cores while it pays (:class:`_Share`); elsewhere
+    it does nothing."""
+    st = getattr(_PLACE, "state", None)
+    if st is not None:
+        st.tick(points)
 
 
 def _placed(arr, k: int):
@@ -79,11 +122,11 @@ def _placed(arr, k: int):
         import numba
 
         before = numba.get_num_threads()
-        _PLACE.allow, _PLACE.current = (arr, k), before
+        _PLACE.state = _Share(arr, k, before)
         try:
             yield
         finally:
-            _PLACE.allow = None
+            _PLACE.state = None
             numba.set_num_threads(before)
 
     return cm()
@@ -434,7 +477,6 @@ class _PoolRun:
                         if not self.queue:
                             self.idle.set()
                         try:
-                            adjust_threads()
                             res = _call(self.tasks[i], "parent")
                         except Exception as exc:
                             new = _relabel(exc, self.tasks[i].label)

@@ -24,6 +24,13 @@ Termination (:data:`REASONS`): the end time, leaving the domain, or a step size 
 flow is not resolved). With the regularised kernel the velocity is bounded everywhere, so
 tracers pass between and through the filaments' swept regions; nothing stops them there.
 Seeds closer than one blob size to a filament at the start time are refused (:class:`SeedError`).
+
+Chunks: ``pathlines(..., chunk_size=n, pool=...)`` integrates the tracers in independent chunks of
+about ``n`` (:func:`chunks`: consecutive seeds, the membership fixed by the number of seeds and
+``n`` alone), each its own integration with its own steps (:func:`pathline_tasks`), joined in seed
+order (:func:`join_pathlines`); ``pool`` (:mod:`~ciliary_carpet.transport.parallel`) says where
+they run, in this process or in worker processes, with the same numbers. Each chunk pays the
+per-time overhead of its own flow evaluations (:data:`CHUNK_SIZE` for what that costs).
 """
 from __future__ import annotations
 
@@ -252,7 +259,7 @@ class _Run:
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
         self.n_eval += 1
-        adjust_threads()  # in a process pool: the cores of idle places, if any (transport.parallel)
+        adjust_threads(x.shape[0])  # in a process pool: idle places' cores while they pay (transport.parallel)
         u = self.flow.velocity(x, t)
         if not np.all(np.isfinite(u)):
             raise FloatingPointError(f"path lines: non-finite velocity at t = {t:.6g}")
