@@ -13,7 +13,9 @@ alternating, ``--repeat`` times each way:
 * ``2 threads, in process``: in this process, two numba threads (how a ``--threads 2`` render ran
   before the process pool);
 * ``2 cores, pool``: :func:`~ciliary_carpet.transport.parallel.pool_for_threads` ``(2)``: this
-  process and one worker process (what ``--threads 2`` does now).
+  process and one worker process (what ``--threads 2`` does now);
+* ``2 cores, pool, no cores lent``: the same with ``lend_idle=False`` (one numba thread in each
+  process throughout).
 
 Renders (``--renders``): ``ciliary-carpet render SCENE -o DIR --threads T --overwrite`` in a fresh
 process, T = 1, 2, 1, 2, ...; the stage's seconds from summary.json.
@@ -49,6 +51,22 @@ def _load() -> str:
     return " ".join(Path("/proc/loadavg").read_text().split()[:3]) if Path("/proc/loadavg").exists() else "?"
 
 
+def _busy() -> tuple[float, float]:
+    """(busy, all) CPU ticks of the whole machine so far (/proc/stat)."""
+    try:
+        v = [int(x) for x in Path("/proc/stat").read_text().split("\n")[0].split()[1:]]
+    except (OSError, ValueError):
+        return 0.0, 0.0
+    idle = v[3] + (v[4] if len(v) > 4 else 0)
+    return float(sum(v) - idle), float(sum(v))
+
+
+def _cores_busy(before, seconds: float) -> float:
+    """Cores the whole machine kept busy since ``before`` (``_busy()``) over ``seconds``."""
+    b = _busy()
+    return (b[0] - before[0]) / max(seconds, 1e-9) / (os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100)
+
+
 def _scene_path(key: str, folder: Path) -> Path:
     if key == "focusing":
         return ROOT / "designs" / "focusing.toml"
@@ -78,8 +96,12 @@ def _stage(plan, carpet, d, how: str) -> tuple[float, dict]:
     from ciliary_carpet.transport.parallel import InProcess, pool_for_threads
     from single_cilium.threads import ThreadBudget
 
+    from ciliary_carpet.transport.parallel import ProcessPool
+
     threads = 1 if how == "1" else 2
     pool = InProcess() if how == "2-threads" else pool_for_threads(threads)
+    if how == "2-pool-nolend":
+        pool = ProcessPool(1, parent_works=True, lend_idle=False)
     with tempfile.TemporaryDirectory() as tmp, ThreadBudget(1, threads, 1).applied():
         ctx = RenderContext(plan, carpet, d, Path(tmp), Path(tmp), {}, {}, time.perf_counter(), pool=pool)
         t = time.perf_counter()
@@ -88,27 +110,30 @@ def _stage(plan, carpet, d, how: str) -> tuple[float, dict]:
     return wall, ctx.summary["pathlines"]
 
 
-MODES = ("1", "2-pool", "2-threads")
+MODES = ("1", "2-pool", "2-threads", "2-pool-nolend")
 
 
 def stage_table(keys, repeat: int, folder: Path, modes=MODES) -> list[str]:
     lines = ["## The render's path-line stage, in one process (stage only)", "",
              "Seconds of `PathLinesOutput.write` (path lines, their files, the error estimate's reference run), "
-             "each scene designed once; the three ways alternate, minimum of the repeats; load average "
-             "(1, 5, 15 min) before each run.", "",
-             "| scene | tracers | 1 core | 2 threads, in process (before) | 2 cores, pool (now) | ratio before | "
-             "ratio now | runs (load) |", "|---|---|---|---|---|---|---|---|"]
+             "each scene designed once; the ways alternate, minimum of the repeats; with each run the load "
+             "average (1, 5, 15 min) before it and the cores the whole machine kept busy during it (this "
+             "benchmark's own: 1 for a 1-core run, up to 2 for a pool; more means other jobs ran beside it).", "",
+             "| scene | tracers | 1 core | 2 threads, in process (before) | 2 cores, pool (now) | "
+             "2 cores, pool, no cores lent | ratio before | ratio now | ratio no lending | runs (load) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for key in keys:
         scene, plan, carpet, d = _prepared(_scene_path(key, folder))
         best: dict = {}
         runs = []
         for r in range(repeat):
             for how in modes:
-                load = _load()
+                load, b0 = _load(), _busy()
                 sec, summ = _stage(plan, carpet, d, how)
+                busy = _cores_busy(b0, sec)
                 best[how] = min(best.get(how, float("inf")), sec)
-                runs.append(f"{how} {sec:.1f} s ({load})")
-                print(f"{key} {how}: {sec:.1f} s  load {load}  work {summ['work']}  "
+                runs.append(f"{how} {sec:.1f} s ({load}; {busy:.1f} cores busy)")
+                print(f"{key} {how}: {sec:.1f} s  load {load}  machine busy {busy:.2f} cores  work {summ['work']}  "
                       f"ref {summ['end_point_error'].get('work')}  parallel {summ['parallel']}", flush=True)
         def f(how, ratio=False):
             if how not in best or (ratio and "1" not in best):
@@ -116,7 +141,8 @@ def stage_table(keys, repeat: int, folder: Path, modes=MODES) -> list[str]:
             return f"{best['1'] / best[how]:.2f}" if ratio else f"{best[how]:.1f}"
 
         lines.append(f"| {key} ({scene.carpet.shape[0]} x {scene.carpet.shape[1]}) | {plan.seeds.shape[0]} | "
-                     f"{f('1')} | {f('2-threads')} | {f('2-pool')} | {f('2-threads', True)} | {f('2-pool', True)} | "
+                     f"{f('1')} | {f('2-threads')} | {f('2-pool')} | {f('2-pool-nolend')} | {f('2-threads', True)} | "
+                     f"{f('2-pool', True)} | {f('2-pool-nolend', True)} | "
                      f"{'; '.join(runs)} |")
     return lines
 

@@ -183,3 +183,21 @@ def test_lent_threads_are_kept_only_while_they_pay(monkeypatch):
         assert share.current == 1 and numba.get_num_threads() == 1
     finally:
         numba.set_num_threads(before)
+
+
+def test_flow_is_the_same_on_any_thread_count(carpet):
+    """What lets a place take lent threads mid-run without changing the numbers: the flow's
+    kernels give bit-identical velocities on one and on two numba threads."""
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread here")
+    x = np.random.default_rng(0).uniform([-4, -3, 0.05], [7, 3, 2], (40, 3))
+    flow = ResolvedFlow(carpet, 1e-4)
+    before = numba.get_num_threads()
+    try:
+        out = []
+        for n in (1, 2):
+            numba.set_num_threads(n)
+            out.append(flow.velocity(x, 0.37))
+    finally:
+        numba.set_num_threads(before)
+    assert np.array_equal(out[0], out[1])

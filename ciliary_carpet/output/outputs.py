@@ -519,7 +519,7 @@ def error_reference(carpet: Carpet, seeds: np.ndarray, duration: float, rtol: fl
     :data:`ERROR_SAMPLE` tracers integrated together): ``(task, tracer indices, the reference in
     words)``; :func:`end_point_error` compares its result with the path lines."""
     idx = error_tracers(seeds.shape[0])
-    label = f"path lines' error estimate: the reference run ({idx.size} tracers)"
+    label = "path lines' error estimate: the reference run"
     if model == "mean":
         (task,) = pathline_tasks(ResolvedFlow(carpet, tol), seeds[idx], (0.0, duration), chunk_size=None, label=label,
                                  rtol=1e-6, atol=1e-4 * spacing, samples_per_period=1,
@@ -575,8 +575,8 @@ class PathLinesOutput(Output):
             clock = _time.perf_counter()
             results = pool.run(tasks + [ref_task], shared=[c])
             wall = _time.perf_counter() - clock
-            pl = join_pathlines([r.value for r in results[:-1]], wall=wall, where=[r.where for r in results[:-1]],
-                                workers=pool.workers)
+            pl = join_pathlines([r.value for r in results[:-1]], t_end=duration, wall=wall,
+                                where=[r.where for r in results[:-1]], workers=pool.workers)
             ref = results[-1]
             pl.write(ctx.stage / "pathlines.vtp", scales=plan.scales)
             pl.write_particles(ctx.stage / "particles.pvd", scales=plan.scales)
@@ -591,8 +591,9 @@ class PathLinesOutput(Output):
             "samples_per_period": o.samples_per_period, "outcome": pl.counts(),
             "stopped_early": int(np.sum(pl.reason == UNDERFLOW)), "status": pl.status, "message": pl.message,
             "work": pl.stats, "end_point_error": dict(err, max=err["max"] * L, median=err["median"] * L),
-            "parallel": {"where": repr(pool), "places": pool.workers, "startup_seconds": dict(getattr(pool, "startup", {})),
-                         "wall_seconds": wall}}
+            "parallel": {"where": repr(pool), "places": pool.workers,
+                         "threads": (pool.budget.as_dict() if pool.budget is not None else threads_in_use()),
+                         "startup_seconds": dict(getattr(pool, "startup", {})), "wall_seconds": wall}}
 
 
 class FtleOutput(Output):

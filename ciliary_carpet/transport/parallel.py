@@ -18,9 +18,15 @@ that says where they run:
   (:attr:`Task.cost`). Large objects named in ``shared`` (a carpet) are pickled once and sent
   once to each worker, however many tasks use them. Workers write no files.
 
-Both give the same numbers for the same tasks: a task runs the same code with one numba thread
-and one BLAS thread wherever it runs (:func:`pool_for_threads` picks the strategy of a thread
-count, so a render's numbers do not depend on ``--threads``).
+With ``lend_idle`` (the default), the cores of places left without a task go to the places still
+running one, as numba threads, while they pay (:class:`_Share`): on two cores a render's path lines
+and their error estimate's reference run side by side, and the one that ends first lends its core
+to the other.
+
+Both give the same numbers for the same tasks: a task runs the same code with one BLAS thread
+wherever it runs, and the flow's kernels give the same numbers on any numba thread count (each
+target's sum is one thread's; checked by tests/test_parallel.py), so a render's numbers do not
+depend on ``--threads`` (:func:`pool_for_threads` picks the strategy of a thread count).
 
 Failures: a task that raises is re-raised in the caller, its message prefixed with the task's
 label (e.g. ``"path lines: chunk 2 of 4 (tracers 50-74)"``), the worker's traceback chained; a
@@ -272,8 +278,10 @@ def _dumps(obj, keys: dict[int, int]) -> bytes:
 
 def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) -> None:
     """A worker process: shared objects and tasks from ``conn``, results back, until told to stop
-    (None) or the parent goes away. Ctrl-C (which reaches the whole process group) ends it
-    quietly: the parent reports the interruption."""
+    (None) or the parent goes away (its end of ``conn`` closes: between tasks the worker reads
+    EOF, during a task a watcher thread sees it and exits at once, so that a parent killed with
+    SIGKILL leaves no worker computing on). Ctrl-C (which reaches the whole process group) ends
+    it quietly: the parent reports the interruption."""
     blobs: dict[int, bytes] = {}
     objects: dict[int, Any] = {}
 
@@ -282,6 +290,18 @@ def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) ->
             objects[key] = pickle.loads(blobs.pop(key))
         return objects[key]
 
+    in_task = threading.Event()
+
+    def orphaned():  # the parent sends nothing while a task runs: input then is its end (it died)
+        while True:
+            in_task.wait()
+            try:
+                if conn.poll(0.5) and in_task.is_set():
+                    os._exit(1)
+            except (OSError, EOFError):
+                os._exit(1)
+
+    threading.Thread(target=orphaned, name="orphan-watch", daemon=True).start()
     try:
         with budget.applied(), (_placed(allow, place) if allow is not None else _nothing()):
             while True:
@@ -298,7 +318,11 @@ def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) ->
                 payload = conn.recv_bytes()
                 try:
                     task = _SharedUnpickler(io.BytesIO(payload), lookup).load()
-                    res = _call(task, name)
+                    in_task.set()
+                    try:
+                        res = _call(task, name)
+                    finally:
+                        in_task.clear()
                     reply = ("ok", key, res)
                 except Exception as exc:  # noqa: BLE001 -- sent back to the parent, which raises it
                     tb = traceback.format_exc()

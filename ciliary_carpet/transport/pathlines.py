@@ -451,7 +451,7 @@ def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e
             pool = InProcess()
         clock = _time.perf_counter()
         results = pool.run(tasks, shared=[flow.carpet], progress=progress)
-        return join_pathlines([r.value for r in results], wall=_time.perf_counter() - clock,
+        return join_pathlines([r.value for r in results], t_end=float(t_span[1]), wall=_time.perf_counter() - clock,
                               where=[r.where for r in results], workers=pool.workers)
     x0, (t0, t1), n_out, t_beat, dom = _prepare(flow, seeds, t_span, rtol, atol, samples_per_period, domain,
                                                 max_step)
@@ -565,15 +565,20 @@ def pathline_tasks(flow: Flow, seeds, t_span, *, chunk_size: int | None = CHUNK_
     kwargs = dict(rtol=rtol, atol=atol, samples_per_period=samples_per_period, domain=tuple(float(v) for v in dom),
                   h0=h0, max_step=max_step, max_steps=max_steps)
     scale = 1.0 if flow.name == "resolved" else 0.01  # the other models are far cheaper per evaluation
-    return [Task(f"{label}: chunk {k + 1} of {len(parts)} (tracers {int(p[0])}-{int(p[-1])})", pathlines,
+    def name(k, p):
+        what = f"tracers {int(p[0])}-{int(p[-1])}" if p.size > 1 else f"tracer {int(p[0])}"
+        return f"{label}: chunk {k + 1} of {len(parts)} ({what})" if len(parts) > 1 else f"{label} ({what})"
+
+    return [Task(name(k, p), pathlines,
                  (flow, x0[p], (t0, t1)), kwargs, cost=scale * task_cost(p.size, rtol, atol, t1 - t0))
             for k, p in enumerate(parts)]
 
 
-def join_pathlines(parts: list, *, wall: float | None = None, where: list | None = None,
+def join_pathlines(parts: list, *, t_end: float | None = None, wall: float | None = None, where: list | None = None,
                    workers: int = 1) -> PathLines:
     """One :class:`PathLines` from the runs of consecutive chunks of seeds (:func:`pathline_tasks`),
-    in their order: tracers in seed order (``seed_ids`` 0..K-1), work counters summed
+    in their order (``t_end``: the runs' end time, for the message): tracers in seed order
+    (``seed_ids`` 0..K-1), work counters summed
     (``seconds`` is the work of all chunks; ``wall`` the elapsed time, if given), ``chunks`` and
     ``workers`` counted and, given ``where`` (each chunk's place: "parent", "worker N"), the
     chunks by place; status ``"inaccurate"`` if any chunk's is, the message for all tracers."""
@@ -581,7 +586,7 @@ def join_pathlines(parts: list, *, wall: float | None = None, where: list | None
         raise ValueError("join_pathlines: no parts")
     first = parts[0]
     reason = np.concatenate([p.reason for p in parts])
-    t1 = max(float(t[-1]) for p in parts for t in p.times if t.size) if any(p.times for p in parts) else 0.0
+    t1 = float(t_end) if t_end is not None else max(float(t[-1]) for p in parts for t in p.times if t.size)
     status, message = _outcome(reason, first.model, t1)
     if any(p.status != "success" for p in parts):
         status = "inaccurate"
