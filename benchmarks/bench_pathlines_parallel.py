@@ -25,7 +25,7 @@ scene's path lines in chunks of these sizes, summed: what each chunk's own per-t
 costs.
 
     python benchmarks/bench_pathlines_parallel.py [--repeat 2] [--renders] [--chunks 100 50 25]
-        [--scenes focusing ud30]
+        [--scenes focusing ud30] [--modes 1 2-pool 2-threads 2-pool-nolend] [--no-stage] [--append]
 
 Writes ``benchmarks/results/bench_pathlines_parallel.md``. The machine may be shared: the load
 average is printed with each timing.
@@ -193,8 +193,8 @@ def chunk_table(sizes, folder: Path) -> list[str]:
              f"{plan.seeds.shape[0]} tracers over {plan.duration:.1f} time units, one numba and one BLAS thread, "
              "in this process; each chunk its own integration (`pathlines(..., chunk_size=n)`); work = the "
              "chunks' seconds summed.", "",
-             "| chunk size | chunks | work [s] | x one chunk | evaluations | steps (substeps) | chunks' seconds | load |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| chunk size | chunks | work [s] | x one chunk | evaluations | steps (substeps) | load |",
+             "|---|---|---|---|---|---|---|"]
     first = None
     numba.set_num_threads(1)
     with threadpool_limits(1, user_api="blas"):
@@ -204,7 +204,7 @@ def chunk_table(sizes, folder: Path) -> list[str]:
             st = pl.stats
             first = first or st["seconds"]
             lines.append(f"| {size} | {st['chunks']} | {st['seconds']:.1f} | {st['seconds'] / first:.2f} | "
-                         f"{st['evaluations']} | {st['steps']} ({st['substeps']}) | | {load} |")
+                         f"{st['evaluations']} | {st['steps']} ({st['substeps']}) | {load} |")
             print(lines[-1], flush=True)
     return lines
 
@@ -218,6 +218,7 @@ def main() -> None:
     ap.add_argument("--no-stage", action="store_true", help="skip the stage-only table")
     ap.add_argument("--chunks", nargs="*", type=int, default=[], help="chunk sizes of the serial-work table")
     ap.add_argument("--out", type=Path, default=OUT)
+    ap.add_argument("--append", action="store_true", help="add the tables to --out (after a header line)")
     a = ap.parse_args()
     rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT).stdout.strip()
     dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True,
@@ -238,6 +239,9 @@ def main() -> None:
     text = "\n".join(head + body)
     print(text)
     a.out.parent.mkdir(parents=True, exist_ok=True)
+    if a.append and a.out.exists():
+        text = a.out.read_text().rstrip("\n") + "\n\n" + "\n".join(
+            [f"(appended: git {rev}{' (modified)' if dirty else ''}, load average at start {_load()})", ""] + body)
     a.out.write_text(text)
 
 

@@ -291,14 +291,18 @@ def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) ->
         return objects[key]
 
     in_task = threading.Event()
+    generation = [0]  # counts the tasks started
 
     def orphaned():  # the parent sends nothing while a task runs: input then is its end (it died)
         while True:
             in_task.wait()
+            g = generation[0]
             try:
-                if conn.poll(0.5) and in_task.is_set():
-                    os._exit(1)
+                ready = conn.poll(0.5)
             except (OSError, EOFError):
+                ready = True
+            # still the same task: the input came while it ran (not the next task's messages)
+            if ready and in_task.is_set() and generation[0] == g:
                 os._exit(1)
 
     threading.Thread(target=orphaned, name="orphan-watch", daemon=True).start()
@@ -318,6 +322,7 @@ def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) ->
                 payload = conn.recv_bytes()
                 try:
                     task = _SharedUnpickler(io.BytesIO(payload), lookup).load()
+                    generation[0] += 1
                     in_task.set()
                     try:
                         res = _call(task, name)

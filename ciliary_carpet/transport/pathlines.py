@@ -531,12 +531,15 @@ def chunks(n_tracers: int, chunk_size: int | None) -> list[np.ndarray]:
 
 CHUNK_SIZE = 200
 """Tracers per chunk of a render's path lines (:func:`chunks`; ``ciliary_carpet.output.outputs``).
-Each chunk pays the per-time overhead of its own steps: measured on the 30 x 30 uniform_deflection
-carpet (the render's 100 tracers over 23 time units, flow tol 1e-4, one thread,
-benchmarks/results/bench_pathlines_parallel.md), in chunks of 100 they take 41 s, of 50 54 s, of 25
-71 s: a chunk costs about 11 s plus 0.3 s per tracer there. Chunks of 200 cost at most about 15 %
-more than one run of all tracers; fewer tracers than that run as one chunk (alongside the error
-estimate's reference run on another core, :func:`~ciliary_carpet.output.outputs.pathline_error`)."""
+Each chunk pays the per-time overhead of its own steps (and its tracers lose the substeps they
+shared): measured on the 30 x 30 uniform_deflection carpet (the render's 100 tracers over 23.5 time
+units, flow tol 1e-4, one thread, benchmarks/results/bench_pathlines_parallel.md) the work is
+39.5 s in one chunk, 49.4 s (x 1.25) in chunks of 50 and 65.0 s (x 1.65) in chunks of 25: about
+10 s per chunk plus 0.3 s per tracer there. A render's 100 tracers therefore run as one chunk,
+beside the error estimate's reference run on another core
+(:func:`~ciliary_carpet.output.outputs.pathline_error`); more than 200 are split into chunks of
+100 to 200, which cost about 10-15 % more work than one run of all (by that estimate) and run on
+as many cores as the render has."""
 PER_POINT_COST = 1 / 50
 """A flow evaluation's cost per point relative to its per-time overhead (measured on the 30 x 30
 uniform_deflection carpet at flow tol 1e-4, one thread: about 0.85 ms per time plus 15-20 us per
