@@ -201,3 +201,25 @@ def test_flow_is_the_same_on_any_thread_count(carpet):
     finally:
         numba.set_num_threads(before)
     assert np.array_equal(out[0], out[1])
+
+
+def test_render_is_the_same_on_a_pool(tmp_path):
+    """A render's path lines and error estimate are the same, bit for bit, in this process and on
+    a pool (the reference run in a worker); the summary says where each ran."""
+    import json
+
+    from ciliary_carpet.render import render
+    from ciliary_carpet.scenes.scene import load_scene
+
+    scene_file = tmp_path / "tiny.toml"
+    scene_file.write_text('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\n'
+                          'snapshots = 0\nframes = 1\npreview = false\nftle = false\n')
+    scene = load_scene(scene_file)
+    render(scene, tmp_path / "one", pool=pool_for_threads(1))
+    render(scene, tmp_path / "two", pool=ProcessPool(1, parent_works=False))
+    assert (tmp_path / "one" / "pathlines.vtp").read_bytes() == (tmp_path / "two" / "pathlines.vtp").read_bytes()
+    s1, s2 = (json.loads((tmp_path / d / "summary.json").read_text())["pathlines"] for d in ("one", "two"))
+    e1, e2 = s1["end_point_error"], s2["end_point_error"]
+    assert (e1["max"], e1["median"]) == (e2["max"], e2["median"])
+    assert e1["work"]["where"] == "parent" and e2["work"]["where"] == "worker 1"
+    assert s2["work"]["chunks_by_place"] == {"worker 1": 1} and s2["parallel"]["places"] == 1

@@ -306,8 +306,10 @@ def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) ->
                 os._exit(1)
 
     threading.Thread(target=orphaned, name="orphan-watch", daemon=True).start()
-    try:
-        with budget.applied(), (_placed(allow, place) if allow is not None else _nothing()):
+    from single_cilium.signals import terminate_as_interrupt
+
+    try:  # SIGTERM (the parent stopping it) ends it like Ctrl-C: cleanly, its finalizers run
+        with terminate_as_interrupt(), budget.applied(), (_placed(allow, place) if allow is not None else _nothing()):
             while True:
                 try:
                     msg = conn.recv()
