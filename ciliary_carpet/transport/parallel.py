@@ -590,6 +590,7 @@ class _PoolRun:
                 except (BrokenPipeError, OSError):
                     pass  # died at once: seen below
                 self.feed(proc, here, running, keys, place)
+            del blobs  # every worker has its copy (a large carpet's pickle is hundreds of MB)
             while running:
                 ready = wait_any([conns[p] for p in running] + [p.sentinel for p in running], timeout=0.1)
                 if self.abort.is_set():
