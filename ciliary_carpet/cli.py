@@ -33,7 +33,7 @@ from single_cilium.files import strict_json, write_netcdf
 from single_cilium.progress import TqdmProgress
 from single_cilium.signals import Terminated, exit_status, terminate_as_interrupt
 from single_cilium.table import TableError
-from single_cilium.threads import ThreadBudget
+from single_cilium.threads import ThreadBudget, threads_in_use
 
 from ciliary_carpet.design import DesignError, design
 from ciliary_carpet.design.target import TargetError, UnreachableTargetError
@@ -43,6 +43,7 @@ from ciliary_carpet.render import SUMMARY, RenderError, check_resources, is_comp
 from ciliary_carpet.scenes.paths import ALLOW_ENV
 from ciliary_carpet.scenes.scene import Scene, SceneError, load_scene
 from ciliary_carpet.stokes import BACKENDS, CudaUnavailableError, backend_named
+from ciliary_carpet.transport.parallel import pool_for_threads
 
 logger = logging.getLogger(__name__)
 
@@ -80,9 +81,9 @@ def _cmd_render(a) -> int:
     budget = ThreadBudget.for_task()  # every core, or this Dask worker's share
     if a.threads is not None:
         budget = replace(budget, numba=a.threads)
-    with budget.applied():
+    with budget.applied():  # the path lines on as many processes as numba threads (one: in this process)
         res = render(scene, a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5),
-                     max_seconds=a.max_hours * 3600)
+                     max_seconds=a.max_hours * 3600, pool=pool_for_threads(budget.numba))
     s = res.summary
     if a.json:
         print(strict_json({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
@@ -139,7 +140,8 @@ def _render_task(scene_path: str, out_root: str, overwrite: bool, reduced: bool,
             # a render interrupted while replacing a folder leaves its manifest without summary.json:
             # finish it (only the files it wrote are replaced)
             resume = out.is_dir() and owned_files(out) is not None and not (out / SUMMARY).is_file()
-            render(scene, out, overwrite=overwrite or resume, max_seconds=max_seconds, within=out_root)
+            render(scene, out, overwrite=overwrite or resume, max_seconds=max_seconds, within=out_root,
+                   pool=pool_for_threads(threads_in_use()["numba"]))
             rec.update(status="done", message="rendered")
     except Exception as exc:  # noqa: BLE001 -- one failing scene must not stop the others
         rec.update(status="failed", message=_one_line(exc, scene_path))

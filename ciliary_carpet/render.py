@@ -47,6 +47,7 @@ from ciliary_carpet.output.plan import RenderPlan
 from ciliary_carpet.output.resources import ResourceError, check_resources
 from ciliary_carpet.scenes.scene import Scene
 from ciliary_carpet.stokes import Auto, backend_named
+from ciliary_carpet.transport.parallel import InProcess
 
 logger = logging.getLogger(__name__)
 
@@ -64,7 +65,7 @@ class RenderResult:
 
 
 def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress | None = None,
-           max_seconds: float = 86400.0, within=None) -> RenderResult:
+           max_seconds: float = 86400.0, within=None, pool=None) -> RenderResult:
     """Render ``scene`` into ``out_dir`` (see the module docstring for what is written and
     :mod:`ciliary_carpet.output.folder` for the output-folder rules). Raises SceneError, TargetError,
     TableError or DesignError for a scene that cannot be rendered, ResourceError when it
@@ -73,7 +74,11 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     False, when a file it would replace was not written by a render (or was changed since), when
     another render is writing ``out_dir``, when ``out_dir`` resolves outside ``within`` (a
     batch's output root), or when the result is not finite; nothing in ``out_dir`` is changed
-    then."""
+    then. ``pool`` (:mod:`~ciliary_carpet.transport.parallel`: :class:`InProcess
+    <ciliary_carpet.transport.parallel.InProcess>`, the default, or a :class:`ProcessPool
+    <ciliary_carpet.transport.parallel.ProcessPool>`, e.g. ``pool_for_threads(n)`` for ``n`` cores)
+    says where the path lines' chunks and their error estimate's reference run; the numbers are
+    the same wherever they run."""
     with OutputFolder(out_dir, overwrite=overwrite, scene=scene, within=within) as folder:
         estimate = check_resources(scene, max_seconds=max_seconds)
         backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError here, before any work
@@ -83,7 +88,8 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         clock = {"design": _time.perf_counter() - t0}
         plan = RenderPlan.decide(scene, carpet, designed=d is not None, estimate=estimate)  # errors before any output
         outputs = [o for o in (cls() for cls in OUTPUTS.values()) if o.wanted(plan)]
-        ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, _header(plan, carpet), clock, t0)
+        ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, _header(plan, carpet), clock, t0,
+                            pool=pool if pool is not None else InProcess())
         progress.start(len(outputs), f"render {scene.name}")
         try:
             for k, o in enumerate(outputs, 1):

@@ -101,11 +101,13 @@ from ciliary_carpet.output.report import markdown
 from ciliary_carpet.output.vtkfiles import write_cilia, write_field, write_points, write_pvd
 from ciliary_carpet.transport.ftle import ftle_field
 from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow, SteadyMeanFlow
-from ciliary_carpet.transport.pathlines import UNDERFLOW, PathLines, pathlines
+from ciliary_carpet.transport.parallel import InProcess
+from ciliary_carpet.transport.pathlines import CHUNK_SIZE, UNDERFLOW, PathLines, join_pathlines, pathline_tasks
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["Output", "OUTPUTS", "RenderContext", "MeanField", "SUMMARY", "pathline_error", "error_tracers",
+           "error_reference", "end_point_error",
            "ERROR_SAMPLE", "PATHLINE_TOL", "PATHLINE_RTOL", "PATHLINE_ATOL", "REFERENCE_TIGHTER",
            "LayoutOutput", "DesignOutput", "MeanFieldOutput", "SnapshotsOutput", "FramesOutput",
            "PathLinesOutput", "FtleOutput", "PreviewOutput", "ParaViewOutput", "SummaryOutput"]
@@ -132,7 +134,9 @@ class RenderContext:
     the staging folder to write into and ``out_dir`` the folder as it will be once placed;
     ``summary`` and ``clock`` (seconds by stage, from ``started``) grow as outputs are written;
     ``mean_field`` and ``pathlines`` are left by their outputs for later ones (and a standing
-    carpet's ``section_field``, its vertical section).
+    carpet's ``section_field``, its vertical section). ``pool`` says where the path lines' chunks
+    and their error estimate's reference run (:mod:`~ciliary_carpet.transport.parallel`; None:
+    in this process).
     """
 
     plan: RenderPlan
@@ -146,6 +150,7 @@ class RenderContext:
     mean_field: MeanField | None = None
     pathlines: PathLines | None = None
     section_field: MeanField | None = None
+    pool: object = None
     _mean_flow: MeanFlow | None = field(default=None, init=False, repr=False)
 
     @contextmanager
@@ -483,7 +488,7 @@ def error_tracers(k: int) -> np.ndarray:
 
 
 def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model: str, flow, tol: float,
-                   spacing: float, domain=None) -> dict:
+                   spacing: float, domain=None, pool=None) -> dict:
     """End-point error estimate of rendered path lines ``pl`` in ``flow``: :data:`ERROR_SAMPLE` of
     its tracers (:func:`error_tracers`) integrated again, against a more accurate run.
 
@@ -495,19 +500,43 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
     in the same domain (the flow's box): the estimate is the model's error. Returns max and
     median of the end-point distances [L], the tracers used and the reference in words.
     ``domain`` (6,), where given (a standing carpet's, from the substrate up), bounds the time-resolved
-    reference too."""
+    reference too. The reference run is one task (:func:`error_reference`), in this process
+    unless ``pool`` says where (a render runs it beside its path lines' chunks)."""
+    task, idx, what = error_reference(carpet, seeds, duration, pl.rtol, pl.atol, model, flow, tol, spacing,
+                                      domain=domain)
+    if pool is None:
+        from ciliary_carpet.transport.parallel import InProcess
+
+        pool = InProcess()
+    ref = pool.run([task], shared=[carpet])[0].value
+    return end_point_error(pl, ref, idx, what)
+
+
+def error_reference(carpet: Carpet, seeds: np.ndarray, duration: float, rtol: float, atol: float, model: str, flow,
+                    tol: float, spacing: float, domain=None):
+    """The reference run of :func:`pathline_error` for path lines integrated with ``rtol`` and
+    ``atol`` in ``flow``, as one :class:`~ciliary_carpet.transport.parallel.Task` (its
+    :data:`ERROR_SAMPLE` tracers integrated together): ``(task, tracer indices, the reference in
+    words)``; :func:`end_point_error` compares its result with the path lines."""
     idx = error_tracers(seeds.shape[0])
+    label = "path lines' error estimate: the reference run"
     if model == "mean":
-        ref = pathlines(ResolvedFlow(carpet, tol), seeds[idx], (0.0, duration), rtol=1e-6, atol=1e-4 * spacing,
-                        samples_per_period=1, domain=tuple(float(v) for v in flow.box))
+        (task,) = pathline_tasks(ResolvedFlow(carpet, tol), seeds[idx], (0.0, duration), chunk_size=None, label=label,
+                                 rtol=1e-6, atol=1e-4 * spacing, samples_per_period=1,
+                                 domain=tuple(float(v) for v in flow.box))
         what = f"the time-resolved flow (rtol 1e-6, flow tol {tol:g}): the long-time model's error"
     else:
         ft, ti = REFERENCE_TIGHTER
-        t_ref, rtol, atol = flow.tol / ft, pl.rtol / ti, pl.atol / ti
-        ref = pathlines(ResolvedFlow(carpet, t_ref), seeds[idx], (0.0, duration), rtol=rtol, atol=atol,
-                        samples_per_period=1, domain=domain)
-        what = (f"flow tol {t_ref:.3g}, rtol {rtol:.3g}, atol {atol:.3g} L (the render's path lines: flow tol "
-                f"{flow.tol:.3g}, rtol {pl.rtol:.3g}, atol {pl.atol:.3g} L): integration and levels of detail")
+        t_ref, r_rtol, r_atol = flow.tol / ft, rtol / ti, atol / ti
+        (task,) = pathline_tasks(ResolvedFlow(carpet, t_ref), seeds[idx], (0.0, duration), chunk_size=None,
+                                 label=label, rtol=r_rtol, atol=r_atol, samples_per_period=1, domain=domain)
+        what = (f"flow tol {t_ref:.3g}, rtol {r_rtol:.3g}, atol {r_atol:.3g} L (the render's path lines: flow tol "
+                f"{flow.tol:.3g}, rtol {rtol:.3g}, atol {atol:.3g} L): integration and levels of detail")
+    return task, idx, what
+
+
+def end_point_error(pl, ref, idx: np.ndarray, what: str) -> dict:
+    """The estimate of :func:`pathline_error` from its reference run ``ref`` of tracers ``idx``."""
     e = np.linalg.norm(pl.end_points[idx] - ref.end_points, axis=1)
     return {"max": float(e.max()), "median": float(np.median(e)), "tracers": int(idx.size), "reference": what}
 
@@ -515,7 +544,10 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
 class PathLinesOutput(Output):
     """``pathlines.vtp`` and ``particles.pvd`` (``particles_NNNNN.vtp``): the tracers from the plan's
     seeds in the plan's path-line model, with an end-point error estimate (leaves ``ctx.pathlines``).
-    A standing carpet's tracers move in space, in the plan's domain (from the substrate up)."""
+    A standing carpet's tracers move in space, in the plan's domain (from the substrate up).
+    The tracers' chunks (:data:`~ciliary_carpet.transport.pathlines.CHUNK_SIZE`) and the estimate's
+    reference run (:func:`error_reference`) go to ``ctx.pool`` together, biggest first: on two
+    cores the reference runs beside the path lines (the numbers do not depend on the pool)."""
 
     name = "pathlines"
     files = (r"pathlines\.vtp", r"particles_\d+\.vtp", r"particles\.pvd")
@@ -528,19 +560,29 @@ class PathLinesOutput(Output):
         o, tol, spacing = plan.scene.output, plan.scene.tolerance, plan.scene.carpet.spacing
         seeds, duration, model = plan.seeds, plan.duration, plan.pathline_model
         L, T, _ = plan.units
+        pool = ctx.pool if ctx.pool is not None else InProcess()
         with ctx.timed("pathlines"):
             if model == "mean":  # the model's own error (MEAN_MODEL_ERROR) is far above the integration's
                 flow = ctx.standing_mean_flow() if c.geometry == "standing" else ctx.mean_flow()
                 rtol, atol = 1e-6, 1e-4 * spacing
             else:
                 flow, rtol, atol = ResolvedFlow(c, min(tol, PATHLINE_TOL)), PATHLINE_RTOL, PATHLINE_ATOL * spacing
-            pl = pathlines(flow, seeds, (0.0, duration), rtol=rtol, atol=atol,
-                           samples_per_period=o.samples_per_period, **({} if plan.domain is None else
-                                                                       {"domain": plan.domain}))
+            # the path lines' chunks and the error estimate's reference run, together, biggest first
+            tasks = pathline_tasks(flow, seeds, (0.0, duration), chunk_size=CHUNK_SIZE, rtol=rtol, atol=atol,
+                                   samples_per_period=o.samples_per_period, domain=plan.domain)
+            ref_task, idx, what = error_reference(c, seeds, duration, rtol, atol, model, flow, tol, spacing,
+                                                  domain=plan.domain)
+            clock = _time.perf_counter()
+            results = pool.run(tasks + [ref_task], shared=[c])
+            wall = _time.perf_counter() - clock
+            pl = join_pathlines([r.value for r in results[:-1]], t_end=duration, wall=wall,
+                                where=[r.where for r in results[:-1]], workers=pool.workers)
+            ref = results[-1]
             pl.write(ctx.stage / "pathlines.vtp", scales=plan.scales)
             pl.write_particles(ctx.stage / "particles.pvd", scales=plan.scales)
-        with ctx.timed("pathline_error"):
-            err = pathline_error(c, seeds, duration, pl, model, flow, tol, spacing, domain=plan.domain)
+        with ctx.timed("pathline_error"):  # (its reference ran with the path lines above)
+            err = end_point_error(pl, ref.value, idx, what)
+        err["work"] = {**ref.value.stats, "where": ref.where}
         ctx.pathlines = pl
         ctx.summary["pathlines"] = {
             "tracers": int(seeds.shape[0]), "duration": duration * T, "duration_from": plan.duration_from,
@@ -548,7 +590,10 @@ class PathLinesOutput(Output):
             "flow_tol": flow.tol if model != "mean" else None, "rtol": rtol, "atol": atol * L,
             "samples_per_period": o.samples_per_period, "outcome": pl.counts(),
             "stopped_early": int(np.sum(pl.reason == UNDERFLOW)), "status": pl.status, "message": pl.message,
-            "work": pl.stats, "end_point_error": dict(err, max=err["max"] * L, median=err["median"] * L)}
+            "work": pl.stats, "end_point_error": dict(err, max=err["max"] * L, median=err["median"] * L),
+            "parallel": {"where": repr(pool), "places": pool.workers,
+                         "threads": (pool.budget.as_dict() if pool.budget is not None else threads_in_use()),
+                         "startup_seconds": dict(getattr(pool, "startup", {})), "wall_seconds": wall}}
 
 
 class FtleOutput(Output):

@@ -24,6 +24,13 @@ Termination (:data:`REASONS`): the end time, leaving the domain, or a step size 
 flow is not resolved). With the regularised kernel the velocity is bounded everywhere, so
 tracers pass between and through the filaments' swept regions; nothing stops them there.
 Seeds closer than one blob size to a filament at the start time are refused (:class:`SeedError`).
+
+Chunks: ``pathlines(..., chunk_size=n, pool=...)`` integrates the tracers in independent chunks of
+about ``n`` (:func:`chunks`: consecutive seeds, the membership fixed by the number of seeds and
+``n`` alone), each its own integration with its own steps (:func:`pathline_tasks`), joined in seed
+order (:func:`join_pathlines`); ``pool`` (:mod:`~ciliary_carpet.transport.parallel`) says where
+they run, in this process or in worker processes, with the same numbers. Each chunk pays the
+per-time overhead of its own flow evaluations (:data:`CHUNK_SIZE` for what that costs).
 """
 from __future__ import annotations
 
@@ -39,6 +46,7 @@ import numpy as np
 from single_cilium.progress import Progress
 
 from ciliary_carpet.transport.flow import Flow
+from ciliary_carpet.transport.parallel import adjust_threads
 
 if TYPE_CHECKING:
     from ciliary_carpet.carpet.carpet import Carpet
@@ -46,7 +54,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 __all__ = ["PathLines", "pathlines", "check_seeds", "check_output_size", "REASONS", "SeedError", "PathLineError",
-           "MAX_DEPTH", "MAX_OUTPUT_BYTES"]
+           "MAX_DEPTH", "MAX_OUTPUT_BYTES", "chunks", "pathline_tasks", "join_pathlines", "task_cost", "CHUNK_SIZE"]
 
 REASONS = ("reached end time", "left the domain", "step size underflow")
 END, DOMAIN, UNDERFLOW = range(3)
@@ -251,6 +259,7 @@ class _Run:
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
         self.n_eval += 1
+        adjust_threads(x.shape[0])  # in a process pool: idle places' cores while they pay (transport.parallel)
         u = self.flow.velocity(x, t)
         if not np.all(np.isfinite(u)):
             raise FloatingPointError(f"path lines: non-finite velocity at t = {t:.6g}")
@@ -361,9 +370,36 @@ class _Run:
         return h
 
 
+def _prepare(flow: Flow, seeds, t_span, rtol, atol, samples_per_period, domain, max_step=None):
+    """Check a run's input before any work: the seeds (K, 3), (t0, t1), the dense output's
+    size and time scale, and the domain (6,) within the flow's."""
+    if not isinstance(flow, Flow):
+        raise TypeError(f"flow must be a Flow (ciliary_carpet.transport.flow), got {type(flow).__name__}")
+    carpet = flow.carpet
+    t0, t1 = (float(v) for v in t_span)
+    if not (math.isfinite(t0) and math.isfinite(t1) and t1 > t0):
+        raise ValueError(f"t_span must be finite with t1 > t0, got {t_span!r}")
+    x0 = check_seeds(carpet, seeds, t0)
+    for k, v in (("rtol", rtol), ("atol", atol)):
+        if not (math.isfinite(v) and v >= 0):
+            raise ValueError(f"{k} must be a non-negative number, got {v!r}")
+    if rtol == 0 and atol == 0:
+        raise ValueError("rtol and atol cannot both be 0")
+    if int(samples_per_period) < 1:
+        raise ValueError(f"samples_per_period must be >= 1, got {samples_per_period!r}")
+    if max_step is not None and not (math.isfinite(max_step) and max_step > 0):
+        raise ValueError(f"max_step must be > 0, got {max_step!r}")
+    n_out, t_beat = check_output_size(carpet, x0.shape[0], t1 - t0, samples_per_period)
+    dom = _domain(domain, carpet, x0)
+    valid = np.asarray(flow.domain, dtype=float)  # within the flow's own domain
+    dom = np.concatenate([np.maximum(dom[0::2], valid[0::2])[:, None], np.minimum(dom[1::2], valid[1::2])[:, None]],
+                         axis=1).ravel()
+    return x0, (t0, t1), n_out, t_beat, dom
+
+
 def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e-6, samples_per_period: int = 16,
               domain=None, h0: float | None = None, max_step: float | None = None, max_steps: int = 1_000_000,
-              progress: Progress | None = None) -> PathLines:
+              progress: Progress | None = None, chunk_size: int | None = None, pool=None) -> PathLines:
     """Integrate tracers from ``seeds`` (K, 2) or (K, 3) over ``t_span = (t0, t1)`` in ``flow``.
 
     Parameters
@@ -387,6 +423,14 @@ def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e
     max_step : float, optional
         Largest step; default ``flow.step_cap`` (for the time-resolved flow a sixteenth of the
         shortest beat period: :mod:`~ciliary_carpet.transport.flow`).
+    chunk_size : int, optional
+        Integrate the tracers in independent chunks of about this many (:func:`chunks`: the
+        membership depends on the number of seeds and ``chunk_size`` only), each its own
+        integration with its own steps, joined into one result (:func:`join_pathlines`); default
+        all together (one chunk). ``max_steps`` then holds per chunk.
+    pool : InProcess or ProcessPool, optional
+        Where the chunks run (:mod:`~ciliary_carpet.transport.parallel`); default in this
+        process, one after another. The numbers are the same wherever they run.
 
     Returns
     -------
@@ -398,26 +442,21 @@ def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e
         Before any work: malformed or in-filament seeds; an output that would exceed
         :data:`MAX_OUTPUT_BYTES`; bad tolerances, span or domain; a ``flow`` that is not a Flow.
     """
-    if not isinstance(flow, Flow):
-        raise TypeError(f"flow must be a Flow (ciliary_carpet.transport.flow), got {type(flow).__name__}")
-    carpet = flow.carpet
-    t0, t1 = (float(v) for v in t_span)
-    if not (math.isfinite(t0) and math.isfinite(t1) and t1 > t0):
-        raise ValueError(f"t_span must be finite with t1 > t0, got {t_span!r}")
-    x0 = check_seeds(carpet, seeds, t0)
-    for k, v in (("rtol", rtol), ("atol", atol)):
-        if not (math.isfinite(v) and v >= 0):
-            raise ValueError(f"{k} must be a non-negative number, got {v!r}")
-    if rtol == 0 and atol == 0:
-        raise ValueError("rtol and atol cannot both be 0")
-    if int(samples_per_period) < 1:
-        raise ValueError(f"samples_per_period must be >= 1, got {samples_per_period!r}")
-    n_out, t_beat = check_output_size(carpet, x0.shape[0], t1 - t0, samples_per_period)
+    if chunk_size is not None or pool is not None:
+        tasks = pathline_tasks(flow, seeds, t_span, chunk_size=chunk_size, rtol=rtol, atol=atol,
+                               samples_per_period=samples_per_period, domain=domain, h0=h0, max_step=max_step,
+                               max_steps=max_steps)
+        if pool is None:
+            from ciliary_carpet.transport.parallel import InProcess
+
+            pool = InProcess()
+        clock = _time.perf_counter()
+        results = pool.run(tasks, shared=[flow.carpet], progress=progress)
+        return join_pathlines([r.value for r in results], t_end=float(t_span[1]), wall=_time.perf_counter() - clock,
+                              where=[r.where for r in results], workers=pool.workers)
+    x0, (t0, t1), n_out, t_beat, dom = _prepare(flow, seeds, t_span, rtol, atol, samples_per_period, domain,
+                                                max_step)
     t_out = np.linspace(t0, t1, n_out)
-    dom = _domain(domain, carpet, x0)
-    valid = np.asarray(flow.domain, dtype=float)  # within the flow's own domain
-    dom = np.concatenate([np.maximum(dom[0::2], valid[0::2])[:, None], np.minimum(dom[1::2], valid[1::2])[:, None]],
-                         axis=1).ravel()
     name = flow.name
     progress = progress if progress is not None else Progress()
     clock = _time.perf_counter()
@@ -425,8 +464,6 @@ def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e
     try:
         run = _Run(flow, x0, t0, t1, t_out, dom, float(rtol), float(atol), int(max_steps), progress)
         if max_step is not None:
-            if not (math.isfinite(max_step) and max_step > 0):
-                raise ValueError(f"max_step must be > 0, got {max_step!r}")
             run.max_h = float(max_step)
         else:
             run.max_h = float(flow.step_cap)
@@ -457,12 +494,8 @@ def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e
         tms.append(tt)
         vel.append(v)
     reason = run.reason
-    status = "inaccurate" if np.any(reason == UNDERFLOW) else "success"
-    counts = ", ".join(f"{int(np.sum(reason == k))} {r}" for k, r in enumerate(REASONS) if np.any(reason == k))
-    message = f"integrated {K} tracers ({name} flow) to t = {t1:.6g}: {counts}"
+    status, message = _outcome(reason, name, t1)
     if status != "success":
-        message += ("; the step size underflowed for some tracers: the flow is not resolved there (raise the "
-                    "blob size or loosen rtol/atol)")
         logger.warning(message)
     stats = {"steps": run.n_steps, "rejected": run.n_rej, "substeps": run.n_sub, "evaluations": run.n_eval,
              "seconds": seconds}
@@ -471,3 +504,110 @@ def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e
     return PathLines(points=pts, times=tms, velocities=vel, seed_ids=np.arange(K), reason=reason,
                      rtol=float(rtol), atol=float(atol), dt=float(t_out[1] - t_out[0]),
                      model=name, stats=stats, status=status, message=message)
+
+
+def _outcome(reason: np.ndarray, name: str, t1: float) -> tuple[str, str]:
+    """The status and message of a run whose tracers ended for ``reason``."""
+    status = "inaccurate" if np.any(reason == UNDERFLOW) else "success"
+    counts = ", ".join(f"{int(np.sum(reason == k))} {r}" for k, r in enumerate(REASONS) if np.any(reason == k))
+    message = f"integrated {reason.size} tracers ({name} flow) to t = {t1:.6g}: {counts}"
+    if status != "success":
+        message += ("; the step size underflowed for some tracers: the flow is not resolved there (raise the "
+                    "blob size or loosen rtol/atol)")
+    return status, message
+
+
+def chunks(n_tracers: int, chunk_size: int | None) -> list[np.ndarray]:
+    """The tracer indices of each chunk: ``ceil(n / chunk_size)`` chunks of consecutive tracers,
+    as equal in size as they can be (sizes differ by at most one). The membership depends on
+    ``n_tracers`` and ``chunk_size`` only (not on where the chunks run), so the numbers do not
+    change with the number of workers. None: one chunk."""
+    n = int(n_tracers)
+    if chunk_size is None:
+        return [np.arange(n)]
+    if not (int(chunk_size) == chunk_size and chunk_size >= 1):
+        raise ValueError(f"chunk_size must be an integer >= 1, got {chunk_size!r}")
+    return np.array_split(np.arange(n), max(1, -(-n // int(chunk_size))))
+
+
+CHUNK_SIZE = 200
+"""Tracers per chunk of a render's path lines (:func:`chunks`; ``ciliary_carpet.output.outputs``).
+Each chunk pays the per-time overhead of its own steps (and its tracers lose the substeps they
+shared): measured on the 30 x 30 uniform_deflection carpet (the render's 100 tracers over 23.5 time
+units, flow tol 1e-4, one thread, benchmarks/results/bench_pathlines_parallel.md) the work is
+39.5 s in one chunk, 49.4 s (x 1.25) in chunks of 50 and 65.0 s (x 1.65) in chunks of 25: about
+10 s per chunk plus 0.3 s per tracer there. A render's 100 tracers therefore run as one chunk,
+beside the error estimate's reference run on another core
+(:func:`~ciliary_carpet.output.outputs.pathline_error`); more than 200 are split into chunks of
+100 to 200, which cost about 10-15 % more work than one run of all (by that estimate) and run on
+as many cores as the render has."""
+PER_POINT_COST = 1 / 50
+"""A flow evaluation's cost per point relative to its per-time overhead (measured on the 30 x 30
+uniform_deflection carpet at flow tol 1e-4, one thread: about 0.85 ms per time plus 15-20 us per
+point): sets :attr:`Task.cost <ciliary_carpet.transport.parallel.Task.cost>`, which orders tasks."""
+
+
+def task_cost(n_tracers: int, rtol: float, atol: float, duration: float) -> float:
+    """An estimate (arbitrary unit) of the work of integrating ``n_tracers`` together for
+    ``duration``: steps grow as ``tol^(-1/5)`` and with the duration, each evaluation costs its
+    per-time overhead plus :data:`PER_POINT_COST` per tracer."""
+    return float(duration) * max(float(rtol) + float(atol), 1e-300) ** -0.2 * (1.0 + PER_POINT_COST * int(n_tracers))
+
+
+def pathline_tasks(flow: Flow, seeds, t_span, *, chunk_size: int | None = CHUNK_SIZE, label: str = "path lines",
+                   rtol: float = 1e-6, atol: float = 1e-6, samples_per_period: int = 16, domain=None,
+                   h0: float | None = None, max_step: float | None = None, max_steps: int = 1_000_000) -> list:
+    """The chunks of a path-line run (the arguments of :func:`pathlines`) as
+    :class:`~ciliary_carpet.transport.parallel.Task` s, checked as :func:`pathlines` checks them
+    before any work: each ``pathlines(flow, seeds[chunk], t_span, ...)`` over the tracers of
+    one of :func:`chunks`, all in the domain of the whole run (the default: from all seeds);
+    join their results with :func:`join_pathlines`. ``label`` names them in errors."""
+    from ciliary_carpet.transport.parallel import Task
+
+    x0, (t0, t1), _, _, dom = _prepare(flow, seeds, t_span, rtol, atol, samples_per_period, domain, max_step)
+    parts = chunks(x0.shape[0], chunk_size)
+    kwargs = dict(rtol=rtol, atol=atol, samples_per_period=samples_per_period, domain=tuple(float(v) for v in dom),
+                  h0=h0, max_step=max_step, max_steps=max_steps)
+    scale = 1.0 if flow.name == "resolved" else 0.01  # the other models are far cheaper per evaluation
+    def name(k, p):
+        what = f"tracers {int(p[0])}-{int(p[-1])}" if p.size > 1 else f"tracer {int(p[0])}"
+        return f"{label}: chunk {k + 1} of {len(parts)} ({what})" if len(parts) > 1 else f"{label} ({what})"
+
+    return [Task(name(k, p), pathlines,
+                 (flow, x0[p], (t0, t1)), kwargs, cost=scale * task_cost(p.size, rtol, atol, t1 - t0))
+            for k, p in enumerate(parts)]
+
+
+def join_pathlines(parts: list, *, t_end: float | None = None, wall: float | None = None, where: list | None = None,
+                   workers: int = 1) -> PathLines:
+    """One :class:`PathLines` from the runs of consecutive chunks of seeds (:func:`pathline_tasks`),
+    in their order (``t_end``: the runs' end time, for the message): tracers in seed order
+    (``seed_ids`` 0..K-1), work counters summed
+    (``seconds`` is the work of all chunks; ``wall`` the elapsed time, if given), ``chunks`` and
+    ``workers`` counted and, given ``where`` (each chunk's place: "parent", "worker N"), the
+    chunks by place; status ``"inaccurate"`` if any chunk's is, the message for all tracers."""
+    if not parts:
+        raise ValueError("join_pathlines: no parts")
+    first = parts[0]
+    reason = np.concatenate([p.reason for p in parts])
+    t1 = float(t_end) if t_end is not None else max(float(t[-1]) for p in parts for t in p.times if t.size)
+    status, message = _outcome(reason, first.model, t1)
+    if any(p.status != "success" for p in parts):
+        status = "inaccurate"
+    stats: dict = {}
+    for p in parts:
+        for k, v in p.stats.items():
+            stats[k] = stats.get(k, 0) + v
+    stats["chunks"] = len(parts)
+    stats["workers"] = int(workers)
+    if wall is not None:
+        stats["wall_seconds"] = float(wall)
+    if where is not None:
+        by: dict = {}
+        for w in where:
+            by[w] = by.get(w, 0) + 1
+        stats["chunks_by_place"] = by
+    return PathLines(points=[x for p in parts for x in p.points], times=[x for p in parts for x in p.times],
+                     velocities=[x for p in parts for x in p.velocities], seed_ids=np.arange(reason.size),
+                     reason=reason, rtol=first.rtol, atol=first.atol, dt=first.dt, model=first.model, stats=stats,
+                     status=status, message=message)

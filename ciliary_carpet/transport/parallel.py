@@ -1,0 +1,672 @@
+"""Where independent pieces of work run: in this process, or in a pool of worker processes.
+
+A path-line run's tracers are independent of each other, and a render's end-point error estimate
+(its reference run) is independent of its path lines; but one flow evaluation costs a fixed
+per-time overhead (the carpet's state at that time, numba parallel regions too short for threads
+to help) plus a cost per point, so threads barely speed them up (issue 23). Processes do: the
+work is cut into :class:`Task` s (e.g. chunks of tracers,
+:func:`~ciliary_carpet.transport.pathlines.pathline_tasks`) and handed to a small strategy object
+that says where they run:
+
+* :class:`InProcess`: one after another in this process, with the numba threads it has (what a
+  render with ``--threads 1``, and every batch worker with one thread, does).
+* :class:`ProcessPool`: ``processes`` worker processes, and this process as one more worker while
+  they start (``parent_works``). Workers start from a fork server (never by forking this
+  process: a process that has run the OpenMP-parallel kernels cannot fork safely), each with
+  one numba thread and one BLAS thread (:class:`~single_cilium.threads.ThreadBudget`: workers x
+  numba x BLAS threads never exceed the cores the caller gives). The biggest tasks go first
+  (:attr:`Task.cost`). Large objects named in ``shared`` (a carpet) are pickled once and sent
+  once to each worker, however many tasks use them. Workers write no files.
+
+With ``lend_idle`` (the default), the cores of places left without a task go to the places still
+running one, as numba threads, while they pay (:class:`_Share`): on two cores a render's path lines
+and their error estimate's reference run side by side, and the one that ends first lends its core
+to the other.
+
+Both give the same numbers for the same tasks: a task runs the same code with one BLAS thread
+wherever it runs, and the flow's kernels give the same numbers on any numba thread count (each
+target's sum is one thread's; checked by tests/test_parallel.py), so a render's numbers do not
+depend on ``--threads`` (:func:`pool_for_threads` picks the strategy of a thread count).
+
+Failures: a task that raises is re-raised in the caller, its message prefixed with the task's
+label (e.g. ``"path lines: chunk 2 of 4 (tracers 50-74)"``), the worker's traceback chained; a
+worker that dies (killed, out of memory) is a :class:`WorkerDied` naming the task it ran. Either
+stops the pool at once (no hang). Ctrl-C, or SIGTERM / SIGHUP under the command line
+(:func:`~single_cilium.signals.terminate_as_interrupt`), reaches the caller as a
+KeyboardInterrupt: the workers are stopped (SIGTERM, then SIGKILL after a grace period) before it
+propagates, and the pool is closed on every path.
+"""
+from __future__ import annotations
+
+import io
+import logging
+import os
+import pickle
+import signal
+import threading
+import time as _time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+from single_cilium.progress import Progress
+from single_cilium.threads import ThreadBudget
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["Task", "TaskResult", "InProcess", "ProcessPool", "WorkerDied", "pool_for_threads", "worker_context"]
+
+_PLACE = threading.local()  # .state: this thread's _Share while a pool task runs here
+
+WINDOW_S = 0.3
+"""Seconds of flow evaluations over which a place measures its throughput (lent cores)."""
+GAIN = 1.1
+"""Lent numba threads are kept only while they evaluate this much faster than one thread."""
+RETRY_S = 15.0
+"""Seconds before a place tries lent threads again that did not pay."""
+
+
+class _Share:
+    """One place's share of a pool's cores (``arr[k]`` numba threads allowed now), and the
+    governor that takes lent threads only while they pay: threads parallel regions of 0.1 ms
+    wait at every barrier for a thread the system has descheduled, so on a machine that other
+    jobs keep busy two threads can run many times slower than one (issue 23). The throughput
+    (work units per second, an evaluation of m points counting ``1 + m / 50``) is measured over
+    windows of :data:`WINDOW_S`; lent threads that do not beat one thread by :data:`GAIN` are given
+    back for :data:`RETRY_S`."""
+
+    def __init__(self, arr, k: int, current: int) -> None:
+        self.arr, self.k, self.current = arr, k, current
+        self.t0 = _time.perf_counter()
+        self.units = 0.0
+        self.rate: dict[int, float] = {}
+        self.retry_at = 0.0
+
+    def _set(self, n: int) -> None:
+        import numba
+
+        n = max(1, min(int(n), int(numba.config.NUMBA_NUM_THREADS)))
+        if n != self.current:
+            numba.set_num_threads(n)
+            self.current = n
+
+    def tick(self, points: int) -> None:
+        allowed = int(self.arr[self.k])
+        if self.current > allowed:  # the budget first: give back at once
+            self._set(allowed)
+            self.t0, self.units = _time.perf_counter(), 0.0
+        self.units += 1.0 + points / 50.0
+        now = _time.perf_counter()
+        if now - self.t0 < WINDOW_S:
+            return
+        n = self.current
+        self.rate[n] = self.units / (now - self.t0)
+        self.t0, self.units = now, 0.0
+        if n > 1 and self.rate[n] < GAIN * self.rate.get(1, 0.0):  # lent threads do not pay here now
+            self._set(1)
+            self.retry_at = now + RETRY_S
+        elif allowed > n and now >= self.retry_at and 1 in self.rate:
+            self._set(allowed)
+
+
+def adjust_threads(points: int = 1) -> None:
+    """Called before each flow evaluation of ``points`` points by long tasks
+    (:func:`~ciliary_carpet.transport.pathlines.pathlines`): in a pool task with ``lend_idle``,
+    take this place's share of the pool's idle cores while it pays (:class:`_Share`); elsewhere
+    it does nothing."""
+    st = getattr(_PLACE, "state", None)
+    if st is not None:
+        st.tick(points)
+
+
+def _placed(arr, k: int):
+    """Context: pool tasks run in this thread take place ``k``'s share of ``arr``."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def cm():
+        import numba
+
+        before = numba.get_num_threads()
+        _PLACE.state = _Share(arr, k, before)
+        try:
+            yield
+        finally:
+            _PLACE.state = None
+            numba.set_num_threads(before)
+
+    return cm()
+
+
+PRELOAD = ["ciliary_carpet.render"]
+"""Modules the fork server imports once, before it forks any worker (the same as the batch's)."""
+
+
+@dataclass(frozen=True)
+class Task:
+    """One piece of work: ``func(*args, **kwargs)``, a module-level function (pickled by name).
+
+    ``label`` names it in errors and summaries; ``cost`` (any unit, the same for all tasks of a
+    run) orders them: the biggest first."""
+
+    label: str
+    func: Callable
+    args: tuple = ()
+    kwargs: dict = field(default_factory=dict)
+    cost: float = 1.0
+
+
+@dataclass(frozen=True)
+class TaskResult:
+    """What a task returned, where it ran (``"parent"`` or ``"worker N"``) and its seconds."""
+
+    value: Any
+    where: str
+    seconds: float
+
+
+class WorkerDied(RuntimeError):
+    """A worker process died (killed, out of memory) while it ran a task."""
+
+
+def _call(task: Task, where: str) -> TaskResult:
+    t = _time.perf_counter()
+    value = task.func(*task.args, **task.kwargs)
+    return TaskResult(value, where, _time.perf_counter() - t)
+
+
+def _relabel(exc: BaseException, label: str) -> BaseException:
+    """``exc`` with its message prefixed by ``label`` (the same type where it can be rebuilt from
+    one message, else a RuntimeError naming the type)."""
+    msg = f"{label}: {exc}"
+    try:
+        new = type(exc)(msg)
+        if str(new) != msg:
+            raise TypeError
+    except Exception:  # noqa: BLE001 -- an exception type with another constructor
+        new = RuntimeError(f"{label}: {type(exc).__name__}: {exc}")
+    return new
+
+
+class InProcess:
+    """Tasks one after another in this process, with its numba and BLAS threads as they are set.
+
+    Parameters
+    ----------
+    budget : ThreadBudget, optional
+        Applied around each task (:meth:`ThreadBudget.applied`); default none (the threads the
+        caller has)."""
+
+    processes = 0
+
+    def __init__(self, budget: ThreadBudget | None = None) -> None:
+        self.budget = budget
+
+    def __repr__(self) -> str:
+        return "InProcess()"
+
+    @property
+    def workers(self) -> int:
+        """Places tasks run in at once (1)."""
+        return 1
+
+    def run(self, tasks: Sequence[Task], *, shared: Sequence = (), progress: Progress | None = None
+            ) -> list[TaskResult]:
+        """Run ``tasks`` (biggest first) and return their results in the order of ``tasks``.
+        ``shared`` is ignored (nothing is copied)."""
+        progress = progress if progress is not None else Progress()
+        out: list = [None] * len(tasks)
+        progress.start(len(tasks), "tasks")
+        try:
+            for n, i in enumerate(_order(tasks), 1):
+                try:
+                    if self.budget is not None:
+                        with self.budget.applied():
+                            out[i] = _call(tasks[i], "parent")
+                    else:
+                        out[i] = _call(tasks[i], "parent")
+                except Exception as exc:
+                    raise _relabel(exc, tasks[i].label) from exc
+                progress.update(n)
+        finally:
+            progress.close()
+        return out
+
+
+def _order(tasks: Sequence[Task]) -> list[int]:
+    """Task indices, the biggest cost first (ties: in the given order)."""
+    return sorted(range(len(tasks)), key=lambda i: (-float(tasks[i].cost), i))
+
+
+def worker_context():
+    """The multiprocessing context of worker processes: a fork server (preloading
+    :data:`PRELOAD`), or spawn where there is none; never fork."""
+    import multiprocessing as mp
+
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(PRELOAD)
+        return ctx
+    return mp.get_context("spawn")
+
+
+class _SharedPickler(pickle.Pickler):
+    """Pickles the objects in ``shared`` as references (sent to each worker once)."""
+
+    def __init__(self, file, keys: dict[int, int]) -> None:
+        super().__init__(file, protocol=pickle.HIGHEST_PROTOCOL)
+        self._keys = keys
+
+    def persistent_id(self, obj):
+        return self._keys.get(id(obj))
+
+
+class _SharedUnpickler(pickle.Unpickler):
+    def __init__(self, file, lookup: Callable[[int], Any]) -> None:
+        super().__init__(file)
+        self._lookup = lookup
+
+    def persistent_load(self, pid):
+        return self._lookup(int(pid))
+
+
+def _dumps(obj, keys: dict[int, int]) -> bytes:
+    buf = io.BytesIO()
+    _SharedPickler(buf, keys).dump(obj)
+    return buf.getvalue()
+
+
+def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) -> None:
+    """A worker process: shared objects and tasks from ``conn``, results back, until told to stop
+    (None) or the parent goes away (its end of ``conn`` closes: between tasks the worker reads
+    EOF, during a task a watcher thread sees it and exits at once, so that a parent killed with
+    SIGKILL leaves no worker computing on). Ctrl-C (which reaches the whole process group) ends
+    it quietly: the parent reports the interruption."""
+    blobs: dict[int, bytes] = {}
+    objects: dict[int, Any] = {}
+
+    def lookup(key: int):
+        if key not in objects:
+            objects[key] = pickle.loads(blobs.pop(key))
+        return objects[key]
+
+    in_task = threading.Event()
+    generation = [0]  # counts the tasks started
+
+    def orphaned():  # the parent sends nothing while a task runs: input then is its end (it died)
+        while True:
+            in_task.wait()
+            g = generation[0]
+            try:
+                ready = conn.poll(0.5)
+            except (OSError, EOFError):
+                ready = True
+            # still the same task: the input came while it ran (not the next task's messages)
+            if ready and in_task.is_set() and generation[0] == g:
+                os._exit(1)
+
+    threading.Thread(target=orphaned, name="orphan-watch", daemon=True).start()
+    from single_cilium.signals import terminate_as_interrupt
+
+    try:  # SIGTERM (the parent stopping it) ends it like Ctrl-C: cleanly, its finalizers run
+        with terminate_as_interrupt(), budget.applied(), (_placed(allow, place) if allow is not None else _nothing()):
+            while True:
+                try:
+                    msg = conn.recv()
+                except EOFError:
+                    return
+                if msg is None:
+                    return
+                kind, key = msg
+                if kind == "shared":
+                    blobs[key] = conn.recv_bytes()
+                    continue
+                payload = conn.recv_bytes()
+                try:
+                    task = _SharedUnpickler(io.BytesIO(payload), lookup).load()
+                    generation[0] += 1
+                    in_task.set()
+                    try:
+                        res = _call(task, name)
+                    finally:
+                        in_task.clear()
+                    reply = ("ok", key, res)
+                except Exception as exc:  # noqa: BLE001 -- sent back to the parent, which raises it
+                    tb = traceback.format_exc()
+                    try:
+                        pickle.dumps(exc)
+                    except Exception:  # noqa: BLE001 -- an exception that cannot be pickled: its words
+                        exc = RuntimeError(f"{type(exc).__name__}: {exc}")
+                    reply = ("error", key, (exc, tb))
+                try:
+                    conn.send(reply)
+                except (BrokenPipeError, EOFError, OSError):
+                    return
+    except KeyboardInterrupt:
+        pass
+    finally:
+        conn.close()
+
+
+def _nothing():
+    import contextlib
+
+    return contextlib.nullcontext()
+
+
+class _RemoteTraceback(Exception):
+    def __init__(self, tb: str) -> None:
+        super().__init__(tb)
+        self.tb = tb
+
+    def __str__(self) -> str:
+        return self.tb
+
+
+def _exit_reason(code: int | None) -> str:
+    if code is not None and code < 0:
+        try:
+            name = signal.Signals(-code).name
+        except ValueError:
+            name = f"signal {-code}"
+        return f"killed by {name}" + (", e.g. out of memory" if -code == signal.SIGKILL else "")
+    return f"exit status {code}"
+
+
+class ProcessPool:
+    """Tasks in ``processes`` worker processes (and this one, with ``parent_works``).
+
+    Parameters
+    ----------
+    processes : int >= 1
+        Worker processes, started from a fork server for each :meth:`run` and stopped at its end.
+    parent_works : bool
+        This process runs tasks too while the workers start and after: it is warm (imports,
+        compiled kernels) where a worker needs seconds first.
+    lend_idle : bool
+        The cores of idle places (a worker with no task left, or this process when it has
+        finished its own) go to the places still running a task, as numba threads
+        (:func:`adjust_threads`, between flow evaluations): the last, longest task of a run
+        does not run on one core while the others wait. Off: one numba thread in each place.
+    start_after : float
+        With ``parent_works``: seconds to wait before starting workers (none start if this
+        process has taken every task by then: a short run is not slowed by starting a pool).
+    grace : float
+        Seconds stopped workers get to exit after SIGTERM before SIGKILL.
+
+    The thread budget: ``workers = processes + parent_works`` places, one BLAS thread each, one
+    numba thread each while all are busy; the numba threads of all places together never exceed
+    ``workers`` (:func:`pool_for_threads` sizes the pool from the cores a caller may use). A
+    task's numbers do not depend on where it runs or on its numba threads as long as the flow's
+    kernels give the same numbers on any thread count (checked by tests/test_parallel.py)."""
+
+    def __init__(self, processes: int, *, parent_works: bool = True, lend_idle: bool = True,
+                 start_after: float = 0.5, grace: float = 2.0) -> None:
+        if not (isinstance(processes, int) and processes >= 1):
+            raise ValueError(f"ProcessPool: processes must be an integer >= 1, got {processes!r}")
+        self.processes = processes
+        self.parent_works = bool(parent_works)
+        self.lend_idle = bool(lend_idle)
+        self.start_after = float(start_after)
+        self.grace = float(grace)
+        self.startup: dict[str, float] = {}  # by worker: seconds from a run's start to its first task
+        self.pids: list[int] = []  # the last run's worker processes
+
+    def __repr__(self) -> str:
+        return f"ProcessPool({self.processes}, parent_works={self.parent_works}, lend_idle={self.lend_idle})"
+
+    @property
+    def workers(self) -> int:
+        """Places tasks run in at once: the processes, and this one if it works."""
+        return self.processes + int(self.parent_works)
+
+    @property
+    def budget(self) -> ThreadBudget:
+        """One numba and one BLAS thread in each place (more numba threads while others idle,
+        with ``lend_idle``)."""
+        return ThreadBudget(workers=self.workers, numba=1, blas=1)
+
+    def run(self, tasks: Sequence[Task], *, shared: Sequence = (), progress: Progress | None = None
+            ) -> list[TaskResult]:
+        """Run ``tasks`` (biggest first) and return their results in the order of ``tasks``.
+
+        ``shared``: objects that tasks' arguments refer to (e.g. a carpet), pickled once and
+        sent once to each worker. A task that raises, or a worker that dies, stops the others
+        and raises here (module docstring); so does a KeyboardInterrupt."""
+        tasks = list(tasks)
+        progress = progress if progress is not None else Progress()
+        self.startup, self.pids = {}, []
+        run = _PoolRun(self, tasks, shared, progress)
+        progress.start(len(tasks), "tasks")
+        try:
+            return run.go()
+        finally:
+            progress.close()
+
+
+class _PoolRun:
+    """One :meth:`ProcessPool.run`: a dispatcher thread feeds the workers while the main thread
+    works on tasks itself (with ``parent_works``). Places: 0 this process (if it works), then the
+    workers; ``allow[place]`` its numba threads now."""
+
+    def __init__(self, pool: ProcessPool, tasks: list[Task], shared: Sequence, progress: Progress) -> None:
+        self.pool, self.tasks, self.shared, self.progress = pool, tasks, list(shared), progress
+        self.queue = _order(tasks)
+        self.results: list = [None] * len(tasks)
+        self.lock = threading.Lock()
+        self.abort = threading.Event()
+        self.idle = threading.Event()  # set when this process has taken the last task
+        self.failure: BaseException | None = None
+        self.procs: list = []
+        self.done = 0
+        self.t0 = _time.perf_counter()
+        self.ctx = worker_context()
+        self.allow = self.ctx.Array("i", [1] * pool.workers, lock=False)
+        self.busy: set[int] = set()
+
+    def take(self) -> int | None:
+        with self.lock:
+            if self.abort.is_set() or not self.queue:
+                return None
+            return self.queue.pop(0)
+
+    def set_busy(self, place: int, busy: bool) -> None:
+        """Mark ``place`` busy or idle and share the idle places' cores among the busy ones."""
+        with self.lock:
+            (self.busy.add if busy else self.busy.discard)(place)
+            n = self.pool.workers
+            running = sorted(self.busy)
+            spare = n - len(running) if self.pool.lend_idle and not self.queue else 0
+            for p in range(n):
+                self.allow[p] = 1
+            for r, p in enumerate(running):
+                self.allow[p] = 1 + spare // len(running) + (1 if r < spare % len(running) else 0)
+
+    def finished(self, i: int, res: TaskResult) -> None:
+        with self.lock:
+            self.results[i] = res
+            self.done += 1
+            n = self.done
+        self.progress.update(n)
+
+    def fail(self, exc: BaseException) -> None:
+        with self.lock:
+            if self.failure is None:
+                self.failure = exc
+        self.abort.set()
+        self.idle.set()
+
+    def go(self) -> list[TaskResult]:
+        budget = self.pool.budget
+        dispatcher = threading.Thread(target=self.dispatch, args=(budget,), name="pool-dispatcher", daemon=True)
+        dispatcher.start()
+        try:
+            if self.pool.parent_works:
+                with budget.applied(), _placed(self.allow, 0):
+                    while (i := self.take()) is not None:
+                        self.set_busy(0, True)
+                        if not self.queue:
+                            self.idle.set()
+                        try:
+                            res = _call(self.tasks[i], "parent")
+                        except Exception as exc:
+                            new = _relabel(exc, self.tasks[i].label)
+                            new.__cause__ = exc
+                            self.fail(new)
+                            break
+                        finally:
+                            self.set_busy(0, False)
+                        self.finished(i, res)
+            self.idle.set()
+            while dispatcher.is_alive():
+                dispatcher.join(0.1)
+        except BaseException:  # Ctrl-C, SIGTERM: stop the workers before it propagates
+            self.abort.set()
+            self.stop_all()
+            while dispatcher.is_alive():
+                dispatcher.join(0.1)
+            raise
+        if self.failure is not None:
+            raise self.failure
+        missing = [self.tasks[i].label for i, r in enumerate(self.results) if r is None]
+        if missing:  # cannot happen without a failure; never return a partial result
+            raise RuntimeError(f"tasks not run: {', '.join(missing)}")
+        return self.results
+
+    def stop_all(self) -> None:
+        """SIGTERM the workers still alive, SIGKILL them after the grace period, reap them."""
+        with self.lock:
+            procs = list(self.procs)
+        alive = [p for p in procs if p.is_alive()]
+        for p in alive:
+            try:
+                os.kill(p.pid, signal.SIGTERM)
+            except (ProcessLookupError, TypeError):
+                pass
+        end = _time.monotonic() + self.pool.grace
+        for p in alive:
+            p.join(max(0.0, end - _time.monotonic()))
+        for p in alive:
+            if p.is_alive():
+                try:
+                    os.kill(p.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                p.join(5.0)
+
+    def dispatch(self, budget: ThreadBudget) -> None:
+        """The dispatcher thread: start the workers, send each the shared objects, then a task
+        whenever it is idle; collect results; stop the workers at the end (or on a failure)."""
+        from multiprocessing.connection import wait as wait_any
+
+        conns: dict = {}  # proc -> parent's end of its pipe
+        running: dict = {}  # proc -> task index
+        places: dict = {}  # proc -> (name, place)
+        try:
+            if self.pool.parent_works:  # short runs end in this process before a worker could start
+                self.idle.wait(self.pool.start_after)
+                if self.abort.is_set() or not self.queue:
+                    return
+            keys = {id(obj): k for k, obj in enumerate(self.shared)}
+            blobs = [pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL) for obj in self.shared]
+            first = int(self.pool.parent_works)
+            for w in range(1, self.pool.processes + 1):
+                if self.abort.is_set() or not self.queue:
+                    break
+                name, place = f"worker {w}", first + w - 1
+                here, there = self.ctx.Pipe(duplex=True)
+                proc = self.ctx.Process(target=_serve, args=(there, budget, name, self.allow, place),
+                                        name=f"ciliary-carpet {name}", daemon=True)
+                proc.start()
+                there.close()
+                with self.lock:
+                    self.procs.append(proc)
+                    self.pool.pids.append(proc.pid)
+                conns[proc], places[proc] = here, (name, place)
+                try:
+                    for k, blob in enumerate(blobs):
+                        here.send(("shared", k))
+                        here.send_bytes(blob)
+                except (BrokenPipeError, OSError):
+                    pass  # died at once: seen below
+                self.feed(proc, here, running, keys, place)
+            del blobs  # every worker has its copy (a large carpet's pickle is hundreds of MB)
+            while running:
+                ready = wait_any([conns[p] for p in running] + [p.sentinel for p in running], timeout=0.1)
+                if self.abort.is_set():
+                    return
+                for proc in list(running):
+                    conn, (name, place) = conns[proc], places[proc]
+                    i = running[proc]
+                    if conn not in ready and proc.sentinel not in ready:
+                        continue
+                    try:
+                        msg = conn.recv() if conn.poll() else None
+                    except (EOFError, OSError):
+                        msg = None
+                    if msg is None:
+                        proc.join(1.0)
+                        self.fail(WorkerDied(f"{self.tasks[i].label}: the worker process running it died "
+                                             f"({_exit_reason(proc.exitcode)})"))
+                        return
+                    kind, j, body = msg
+                    del running[proc]
+                    self.set_busy(place, False)
+                    if kind == "ok":
+                        # a worker's start-up: from the run's start to its first result, less the task
+                        self.pool.startup.setdefault(name, _time.perf_counter() - self.t0 - body.seconds)
+                        self.finished(j, body)
+                    else:
+                        exc, tb = body
+                        new = _relabel(exc, self.tasks[j].label)
+                        new.__cause__ = _RemoteTraceback(tb)
+                        self.fail(new)
+                        return
+                    self.feed(proc, conn, running, keys, place)
+        except BaseException as exc:  # noqa: BLE001 -- the main thread raises it
+            self.fail(exc)
+        finally:
+            for proc, conn in conns.items():
+                if proc not in running:
+                    try:
+                        conn.send(None)
+                    except (BrokenPipeError, OSError):
+                        pass
+            if running or self.abort.is_set():
+                self.stop_all()
+            for proc, conn in conns.items():
+                proc.join(self.pool.grace)
+                conn.close()
+            self.stop_all()
+
+    def feed(self, proc, conn, running: dict, keys: dict, place: int) -> None:
+        """Send ``proc`` the next task, if any."""
+        i = self.take()
+        if i is None:
+            self.set_busy(place, False)  # the queue is empty: its core goes to the busy places
+            return
+        try:
+            payload = _dumps(self.tasks[i], keys)
+        except Exception as exc:  # noqa: BLE001 -- an argument that cannot be pickled
+            self.fail(_relabel(exc, self.tasks[i].label))
+            return
+        self.set_busy(place, True)
+        try:
+            conn.send(("task", i))
+            conn.send_bytes(payload)
+        except (BrokenPipeError, OSError):
+            pass  # it died: its sentinel says so
+        running[proc] = i
+
+
+def pool_for_threads(threads: int) -> InProcess | ProcessPool:
+    """The strategy for a caller that may use ``threads`` cores: :class:`InProcess` (one numba and
+    one BLAS thread) for one, or in a daemonic process (which cannot start processes); else a
+    :class:`ProcessPool` of ``threads - 1`` workers and this process (one numba and one BLAS
+    thread each, idle places' cores lent to the busy ones: ``threads`` threads in all)."""
+    import multiprocessing as mp
+
+    threads = int(threads)
+    if threads <= 1 or mp.current_process().daemon:  # (a daemonic process, e.g. a Dask worker's, has no children)
+        return InProcess(ThreadBudget(workers=1, numba=1, blas=1))
+    return ProcessPool(threads - 1, parent_works=True)
