@@ -1,7 +1,8 @@
-"""Standing carpets (issue 26): the surface-flow design at scale, and the force-layer check.
+"""Standing carpets (issue 26): the surface-flow design at scale, the force-layer check, renders.
 
-    python benchmarks/bench_standing.py [--sizes 10 30 50 100] [--sections design plug]
+    python benchmarks/bench_standing.py [--sizes 10 30 50 100] [--sections design plug render]
                                         [--out benchmarks/results/bench_standing.md]
+                                        [--render-sizes 30] [--threads 2 1]
 
 1. ``design``: square standing carpets of n x n cilia (spacing 2 L, wall at the clamps, random
    phases seed 0), a vortex about the carpet's centre on the plane z = 1.5 L, control points at the
@@ -14,6 +15,11 @@
 2. ``plug``: a uniform standing carpet (chi_N = 92, psi = 0.3 rad, spacing 1.5 L) of width W:
    its mean flow at z = 2 and 3 L above the middle over the force-layer plug U = n (F_t c_z + D_zt)
    / mu (MODEL.md section 6), for W = 30, 60, 90 L, and the extrapolation in 1/W.
+3. ``render`` (not by default; its own table, ``benchmarks/results/bench_standing_render.md``): the
+   bundled ``designs/standing_vortex.toml`` with ``shape = [n, n]`` (every other key as bundled)
+   rendered as a user runs it, ``ciliary-carpet render SCENE -o DIR --threads T`` in a fresh process
+   under ``/usr/bin/time -v``, for each ``--threads`` in turn: wall time, the summary's stage times,
+   peak memory, the design's residual and the path lines' end-point error estimate.
 """
 from __future__ import annotations
 
@@ -107,10 +113,50 @@ def section_plug(table) -> None:
     say()
 
 
+RENDER_OUT = ROOT / "benchmarks" / "results" / "bench_standing_render.md"
+STAGES = ("design", "mean_field", "snapshots", "frames", "pathlines", "ftle", "ftle_pump", "preview", "total")
+
+
+def section_render(sizes, threads) -> None:
+    """Renders of the bundled standing vortex scaled to n x n (module docstring), own table."""
+    import re
+    import tempfile
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_large import render
+
+    lines = ["# bench_standing --sections render: the standing vortex scaled, rendered as a user does", "",
+             f"Machine: {os.cpu_count()} cores, {platform.processor() or platform.machine()}, Python "
+             f"{platform.python_version()}; load average (1/5/15 min) at the start: {load()}. Seconds; "
+             "`pathlines` holds the path lines and their error estimate's reference run (side by side on a "
+             "pool with --threads 2).", "",
+             "| carpet | --threads | wall | " + " | ".join(STAGES) + " | peak memory | design rms | end-point "
+             "estimate (max) | load after |", "|---|---:|---:|" + "---:|" * len(STAGES) + "---:|---|---|---|"]
+    text = (ROOT / "designs" / "standing_vortex.toml").read_text()
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sizes:
+            scene = Path(tmp) / f"standing_vortex_{n}.toml"
+            t, k = re.subn(r"^shape = \[12, 12\]", f"shape = [{n}, {n}]", text, flags=re.M)
+            if k != 1:
+                raise RuntimeError("designs/standing_vortex.toml: no 'shape = [12, 12]' line to scale")
+            scene.write_text(re.sub(r'^name = "standing_vortex"', f'name = "standing_vortex_{n}x{n}"', t, flags=re.M))
+            for T in threads:
+                summary, wall, rss = render(scene, Path(tmp) / f"out_{n}_{T}", T)
+                sec = summary["seconds"]
+                d = summary.get("design") or {}
+                ep = summary["pathlines"]["end_point_error"]["max"]
+                lines.append(f"| {n} x {n} | {T} | {wall:.1f} | " + " | ".join(f"{sec.get(q, 0.0):.1f}" for q in STAGES)
+                             + f" | {rss:.2f} GB | {d.get('residual_rms', float('nan')):.4f} | {ep:.3g} L | {load()} |")
+                print(lines[-1], flush=True)
+    RENDER_OUT.write_text("\n".join(lines) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10, 30, 50, 100])
-    ap.add_argument("--sections", nargs="+", default=["design", "plug"], choices=["design", "plug"])
+    ap.add_argument("--sections", nargs="+", default=["design", "plug"], choices=["design", "plug", "render"])
+    ap.add_argument("--render-sizes", type=int, nargs="+", default=[30])
+    ap.add_argument("--threads", type=int, nargs="+", default=[2, 1])
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "bench_standing.md"))
     a = ap.parse_args()
     table = ThrustTable.default()
@@ -123,7 +169,10 @@ def main() -> None:
         section_design(table, a.sizes)
     if "plug" in a.sections:
         section_plug(table)
-    Path(a.out).write_text("\n".join(OUT) + "\n")
+    if "render" in a.sections:
+        section_render(a.render_sizes, a.threads)
+    if set(a.sections) - {"render"}:
+        Path(a.out).write_text("\n".join(OUT) + "\n")
 
 
 if __name__ == "__main__":
