@@ -43,7 +43,7 @@ from ciliary_carpet.render import SUMMARY, RenderError, check_resources, is_comp
 from ciliary_carpet.scenes.paths import ALLOW_ENV
 from ciliary_carpet.scenes.scene import Scene, SceneError, load_scene
 from ciliary_carpet.stokes import BACKENDS, CudaUnavailableError, backend_named
-from ciliary_carpet.transport.parallel import pool_for_threads
+from ciliary_carpet.transport.parallel import exit_reason, pool_for_threads, worker_context
 
 logger = logging.getLogger(__name__)
 
@@ -183,28 +183,6 @@ def _died(scene_path: str, why: str) -> dict:
                        f"unchanged"}
 
 
-def _exit_reason(code: int | None) -> str:
-    if code is not None and code < 0:
-        try:
-            name = signal.Signals(-code).name
-        except ValueError:
-            name = f"signal {-code}"
-        return f"killed by {name}" + (", e.g. out of memory" if -code == signal.SIGKILL else "")
-    return f"exit status {code}"
-
-
-def _worker_context():
-    """Workers start from a fork server (spawn where there is none), never by forking this
-    process: a process that has run the OpenMP-parallel kernels cannot fork safely."""
-    import multiprocessing as mp
-
-    if "forkserver" in mp.get_all_start_methods():
-        ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(["ciliary_carpet.render"])  # imported once, in the server
-        return ctx
-    return mp.get_context("spawn")
-
-
 def _worker(func, task, conn) -> None:
     """A batch worker process: one task, its record sent back on ``conn``. SIGTERM and SIGHUP
     (a scheduler stopping the whole job) interrupt it like Ctrl-C, so that its render removes its
@@ -225,7 +203,7 @@ def _run_local(tasks, jobs: int, on_done, grace: float = 2.0) -> None:
     killed after a grace period."""
     from multiprocessing.connection import wait as wait_any
 
-    ctx = _worker_context()
+    ctx = worker_context()
     pending = list(tasks)
     running: dict = {}  # process -> (task, receiving end)
     try:
@@ -247,7 +225,7 @@ def _run_local(tasks, jobs: int, on_done, grace: float = 2.0) -> None:
                     rec = None
                 proc.join()
                 recv.close()
-                on_done(rec if rec is not None else _died(t[0], _exit_reason(proc.exitcode)))
+                on_done(rec if rec is not None else _died(t[0], exit_reason(proc.exitcode)))
     finally:
         _stop(list(running), grace)
 

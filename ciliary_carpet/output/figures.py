@@ -91,6 +91,22 @@ def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     _savefig(fig, path)
 
 
+def _streamlines(ax, mean_field, bars: list, label: str, lw: float, arrowsize: float) -> None:
+    """Draw the in-plane streamlines of ``mean_field`` (a MeanField on a plane) coloured by their
+    speed, and append their colour bar (with ``label``) to ``bars``."""
+    import matplotlib
+
+    shape, pts, u = mean_field.grid.shape, mean_field.points, mean_field.velocity
+    X = pts[:, 0].reshape(shape[1], shape[0])
+    Y = pts[:, 1].reshape(shape[1], shape[0])
+    U = np.nan_to_num(u[:, 0]).reshape(X.shape)
+    W = np.nan_to_num(u[:, 1]).reshape(X.shape)
+    sp = np.hypot(U, W)
+    norm = matplotlib.colors.Normalize(0.0, float(sp.max()) if sp.max() > 0 else 1.0)
+    ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", norm=norm, density=1.4, linewidth=lw, arrowsize=arrowsize)
+    bars.append((matplotlib.cm.ScalarMappable(norm=norm, cmap="Blues"), label))
+
+
 PREVIEW_POINTS = 400
 """Most samples of one tracer the preview draws (evenly strided, its end point kept)."""
 
@@ -135,15 +151,7 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
     ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
     bars = []
     if mean_field is not None:
-        shape, pts, u = mean_field.grid.shape, mean_field.points, mean_field.velocity
-        X = pts[:, 0].reshape(shape[1], shape[0])
-        Y = pts[:, 1].reshape(shape[1], shape[0])
-        U = np.nan_to_num(u[:, 0]).reshape(X.shape)
-        W = np.nan_to_num(u[:, 1]).reshape(X.shape)
-        sp = np.hypot(U, W)
-        norm = matplotlib.colors.Normalize(0.0, float(sp.max()) if sp.max() > 0 else 1.0)
-        ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", norm=norm, density=1.4, linewidth=0.6, arrowsize=0.7)
-        bars.append((matplotlib.cm.ScalarMappable(norm=norm, cmap="Blues"), "streamlines: mean speed [L/tau]"))
+        _streamlines(ax, mean_field, bars, "streamlines: mean speed [L/tau]", 0.6, 0.7)
     _pathlines_from_above(ax, pl, bars, "path lines: time [tau]")
     pos, _, _ = carpet.state(0.0)
     lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
@@ -188,17 +196,8 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
     bars = []
     h = float(scene.output.height)
     if mean_field is not None:
-        shape, pts, u = mean_field.grid.shape, mean_field.points, mean_field.velocity
-        h = float(pts[0, 2])
-        X = pts[:, 0].reshape(shape[1], shape[0])
-        Y = pts[:, 1].reshape(shape[1], shape[0])
-        U = np.nan_to_num(u[:, 0]).reshape(X.shape)
-        W = np.nan_to_num(u[:, 1]).reshape(X.shape)
-        sp = np.hypot(U, W)
-        norm = matplotlib.colors.Normalize(0.0, float(sp.max()) if sp.max() > 0 else 1.0)
-        ax.streamplot(X, Y, U, W, color=sp, cmap="Blues", norm=norm, density=1.4, linewidth=0.7, arrowsize=0.9)
-        bars.append((matplotlib.cm.ScalarMappable(norm=norm, cmap="Blues"),
-                     f"streamlines: mean speed at z = {h:.3g} L [L/tau]"))
+        h = float(mean_field.points[0, 2])
+        _streamlines(ax, mean_field, bars, f"streamlines: mean speed at z = {h:.3g} L [L/tau]", 0.7, 0.9)
     _pathlines_from_above(ax, pl, bars, "path lines (seen from above): time [tau]")
     lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
     cmap = plt.cm.coolwarm

@@ -54,7 +54,8 @@ from single_cilium.threads import ThreadBudget
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Task", "TaskResult", "InProcess", "ProcessPool", "WorkerDied", "pool_for_threads", "worker_context"]
+__all__ = ["Task", "TaskResult", "InProcess", "ProcessPool", "WorkerDied", "pool_for_threads", "worker_context",
+           "exit_reason"]
 
 _PLACE = threading.local()  # .state: this thread's _Share while a pool task runs here
 
@@ -363,7 +364,9 @@ class _RemoteTraceback(Exception):
         return self.tb
 
 
-def _exit_reason(code: int | None) -> str:
+def exit_reason(code: int | None) -> str:
+    """How a worker process ended, from its exit code: "killed by SIGKILL, e.g. out of memory" or
+    "exit status N" (the batch's and the pool's messages)."""
     if code is not None and code < 0:
         try:
             name = signal.Signals(-code).name
@@ -607,7 +610,7 @@ class _PoolRun:
                     if msg is None:
                         proc.join(1.0)
                         self.fail(WorkerDied(f"{self.tasks[i].label}: the worker process running it died "
-                                             f"({_exit_reason(proc.exitcode)})"))
+                                             f"({exit_reason(proc.exitcode)})"))
                         return
                     kind, j, body = msg
                     del running[proc]
