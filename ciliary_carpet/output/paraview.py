@@ -146,6 +146,38 @@ def hidden(source):
 
 '''
 
+_TRACERS = '''ftle = load("ftle.vti")
+if ftle is not None:
+    d = Show(ftle, view)
+    d.SetRepresentationType("Slice")
+    colour(ftle, d, "POINTS", "FTLE", "Inferno (matplotlib)", "FTLE [1/%s]" % TIME)
+    hidden(ftle)
+path = load("pathlines.vtp")
+if path is not None:
+    d = Show(path, view)
+    colour(path, d, "POINTS", "time", "Viridis (matplotlib)", "path lines: time [%s]" % TIME, slot=1)
+    d.LineWidth = 2.0
+    shown.append("lines: path lines (time)")
+particles = load("particles.pvd")
+if particles is not None:
+    d = Show(particles, view)
+    ColorBy(d, None)
+    d.SetRepresentationType("Points")
+    d.PointSize = 5.0
+    d.RenderPointsAsSpheres = 1
+    d.AmbientColor = d.DiffuseColor = [1.0, 1.0, 1.0]
+    hidden(particles)
+'''
+"""The FTLE, the path lines and the particles, in both views (the FTLE and the particles hidden)."""
+
+_CLOCK = '''clock = AnnotateTime(registrationName="time")
+clock.Format = "t = {time:.3f} " + TIME
+c = Show(clock, view)
+c.WindowLocation = "Lower Left Corner"
+c.FontSize = 8
+'''
+"""The time in the lower left corner, in both views."""
+
 _PLANAR = '''
 shown = []
 # the mean speed behind everything, with a sparse lattice of mean-flow arrows over it
@@ -178,28 +210,7 @@ if snap is not None:
     d.SetRepresentationType("Slice")
     colour(snap, d, "POINTS", "speed", "light greys", "speed [%s]" % SPEED, separate=True)
     hidden(snap)
-ftle = load("ftle.vti")
-if ftle is not None:
-    d = Show(ftle, view)
-    d.SetRepresentationType("Slice")
-    colour(ftle, d, "POINTS", "FTLE", "Inferno (matplotlib)", "FTLE [1/%s]" % TIME)
-    hidden(ftle)
-path = load("pathlines.vtp")
-if path is not None:
-    d = Show(path, view)
-    colour(path, d, "POINTS", "time", "Viridis (matplotlib)", "path lines: time [%s]" % TIME, slot=1)
-    d.LineWidth = 2.0
-    shown.append("lines: path lines (time)")
-particles = load("particles.pvd")
-if particles is not None:
-    d = Show(particles, view)
-    ColorBy(d, None)
-    d.SetRepresentationType("Points")
-    d.PointSize = 5.0
-    d.RenderPointsAsSpheres = 1
-    d.AmbientColor = d.DiffuseColor = [1.0, 1.0, 1.0]
-    hidden(particles)
-design = load("design.vtp")
+''' + _TRACERS + '''design = load("design.vtp")
 if design is not None:
     d = Show(design, view)
     d.SetRepresentationType("Points")
@@ -222,12 +233,7 @@ if layout is not None:
     colour(layout, d, "POINTS", "chi_N", "Cool to Warm", "chi_N", slot=2, symmetric=True)
     shown.insert(0, "cilia and bases: chi_N")
 
-clock = AnnotateTime(registrationName="time")
-clock.Format = "t = {time:.3f} " + TIME
-c = Show(clock, view)
-c.WindowLocation = "Lower Left Corner"
-c.FontSize = 8
-label = Text(registrationName="legend")
+''' + _CLOCK + '''label = Text(registrationName="legend")
 label.Text = SCENE + "\\n" + "\\n".join(shown) + "\\nhidden (eye icon): snapshots, FTLE, design, particles"
 t = Show(label, view)
 t.WindowLocation = "Upper Left Corner"
@@ -293,28 +299,7 @@ for name in ("snapshots.pvd", "snapshots_section.pvd"):
         d.SetRepresentationType("Slice")
         colour(snap, d, "POINTS", "speed", "Blues", "speed [%s]" % SPEED, separate=True)
         hidden(snap)
-ftle = load("ftle.vti")
-if ftle is not None:
-    d = Show(ftle, view)
-    d.SetRepresentationType("Slice")
-    colour(ftle, d, "POINTS", "FTLE", "Inferno (matplotlib)", "FTLE [1/%s]" % TIME)
-    hidden(ftle)
-path = load("pathlines.vtp")
-if path is not None:
-    d = Show(path, view)
-    colour(path, d, "POINTS", "time", "Viridis (matplotlib)", "path lines: time [%s]" % TIME, slot=1)
-    d.LineWidth = 2.0
-    shown.append("lines: path lines (time)")
-particles = load("particles.pvd")
-if particles is not None:
-    d = Show(particles, view)
-    ColorBy(d, None)
-    d.SetRepresentationType("Points")
-    d.PointSize = 5.0
-    d.RenderPointsAsSpheres = 1
-    d.AmbientColor = d.DiffuseColor = [1.0, 1.0, 1.0]
-    hidden(particles)
-# the cilia standing on the substrate (moving, in 3D) and their bases, coloured by chi_N
+''' + _TRACERS + '''# the cilia standing on the substrate (moving, in 3D) and their bases, coloured by chi_N
 cilia = load("cilia.pvd")
 if cilia is not None:
     d = Show(cilia, view)
@@ -330,12 +315,7 @@ if layout is not None:
     colour(layout, d, "POINTS", "chi_N", "Cool to Warm", "chi_N", slot=2, symmetric=True)
     shown.insert(0, "standing cilia and bases: chi_N")
 
-clock = AnnotateTime(registrationName="time")
-clock.Format = "t = {time:.3f} " + TIME
-c = Show(clock, view)
-c.WindowLocation = "Lower Left Corner"
-c.FontSize = 8
-label = Text(registrationName="legend")
+''' + _CLOCK + '''label = Text(registrationName="legend")
 label.Text = (SCENE + "\\n" + "\\n".join(shown)
               + "\\nhidden (eye icon): section y = const, snapshots, FTLE, particles")
 t = Show(label, view)
