@@ -8,14 +8,16 @@ tolerance), one numba thread, three ways in the same run:
 * **moments**: the carriers' forces as before the fused pass (what ``Carpet.evaluate`` still does
   for its reported bound): the moments from their interpolant, the carriers with the bound's
   terms, then stacked (``Carpet._sum(..., bound=True)``);
-* **fused**: ``Carpet.velocity`` at an instant not prepared (``Carriers.stacked_at``: one compiled
-  pass from the moments' interpolant to the stacked forces);
+* **fused**: ``Carpet.velocity`` at an instant not prepared (``InstantCarriers``: one compiled
+  pass from the moments' interpolant, its harmonics cut at ``Carriers.harmonics(tol)``, to the
+  stacked forces; where the far cilia are dipoles, the quadrupoles made only for the cilia read);
 * **prepared**: ``Carpet.velocity`` after ``Carpet.prepare`` of the five distinct stage times of a
   Dormand-Prince step, as the path lines call it (the cost of the ``prepare`` shared among them).
 
 Times are per evaluation (median of repeats), with the largest difference of the velocities
-from the moments' path relative to the largest speed (the three give the same numbers to
-rounding). ``--sizes`` carpets, ``--points`` M.
+from the moments' path relative to the largest speed (the fused and prepared ones equal each
+other; they differ from the moments' path by the harmonics cut, at most ``HARMONIC_TAIL`` tol of
+the far-field sum). ``--sizes`` carpets, ``--points`` M.
 
     python benchmarks/bench_evaluation.py [--sizes 30 100] [--points 1 8 100]
 

@@ -57,7 +57,7 @@ from scipy.spatial import cKDTree
 from single_cilium.checks import finite, positive
 from single_cilium.table import ThrustTable
 
-from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers
+from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers, InstantCarriers
 from ciliary_carpet.carpet.coupling import COUPLINGS, couple
 from ciliary_carpet.carpet.cycles import CycleData, MeanBlocks, ResolvedSources
 from ciliary_carpet.carpet.geometry import GEOMETRIES, Embedding
@@ -583,8 +583,11 @@ class Carpet:
              ) -> tuple[Summed, Plan | None, CarrierForces | None]:
         """The sum at targets ``x`` (M, 3), its plan and the carriers' forces with the terms of
         the reported bound (``bound``; None for tol = 0 or without ``bound``)."""
-        ph = when.phases(self.cycles)
-        sources = ResolvedSources(self.cycles, ph, self._mean_blocks)
+        if tol > 0 and not bound and isinstance(when, Instant):  # the phases of the cilia resolved only
+            ph, sources = None, ResolvedSources(self.cycles, None, t=when.t)
+        else:
+            ph = when.phases(self.cycles)
+            sources = ResolvedSources(self.cycles, ph, self._mean_blocks)
         if tol == 0:  # the resolved sum itself: every source of every cilium that makes a flow
             js = np.nonzero(when.bounds(self.carriers).S > 0)[0]
             return dense_sum(x, js, sources, self.kernel, self.backend, self.mu), None, None
@@ -595,27 +598,36 @@ class Carpet:
             car = self.carriers.forces(F, D, T)
             forces = self.carriers.stacked(F, car, plan.order)
         else:
-            forces = self._carrier_forces(when, ph, key, plan)
+            forces = self._carrier_forces(when, key, plan)
         evaluator = self.backend if self.backend is not None else _AUTO
         s = flow_sum(x, plan, forces, sources, self.n, self.kernel, evaluator, self.mu)
         return s, plan, car
 
-    def _carrier_forces(self, when: When, ph, key: tuple, plan: Plan) -> np.ndarray:
-        """The stacked carrier forces of ``plan`` for ``when``, kept: the cycle-mean's for as long
-        as the plan (its moments do not change), an instant's for its time until other instants
-        are prepared (:meth:`prepare`; a Runge-Kutta step evaluates the flow twice at its end time). At an
-        instant one compiled pass from the moments' interpolant (:meth:`Carriers.stacked_at`)."""
+    def _carrier_forces(self, when: When, key: tuple, plan: Plan):
+        """The stacked carrier forces of ``plan`` for ``when``, kept: the cycle-mean's (an array)
+        for as long as the plan (its moments do not change), an instant's for its time until other
+        instants are prepared (:meth:`prepare`; a Runge-Kutta step evaluates the flow twice at its
+        end time). At an instant one compiled pass from the first :meth:`Carriers.harmonics
+        <ciliary_carpet.carpet.carriers.Carriers.harmonics>` of the moments' interpolant, the
+        quadrupoles made when a sum reads them unless the far cilia are quadrupoles
+        (:class:`~ciliary_carpet.carpet.carriers.InstantCarriers`)."""
         k = key + ((when.t,) if isinstance(when, Instant) else ())
         f = self._forces.get(k)
         if f is None:
             if isinstance(when, Instant):
-                f = self.carriers.stacked_at(ph, plan.order)
+                f = self._instants(self.cycles.phase_at(when.t), key, plan).at(0)
                 self._drop_instants(_INSTANTS - 1)
             else:
-                F, D, T = when.moments(self.cycles, ph)
+                F, D, T = when.moments(self.cycles, when.phases(self.cycles))
                 f = self.carriers.stacked(F, self.carriers.forces(F, D, T), plan.order)
             self._forces[k] = f
         return f
+
+    def _instants(self, ph: np.ndarray, key: tuple, plan: Plan, spare: np.ndarray | None = None) -> InstantCarriers:
+        """The carriers of ``plan``'s cilia at the phases ``ph`` ((N,) or (T, N)) of instants (into
+        ``spare``, a buffer of instants dropped, when it fits)."""
+        return InstantCarriers(self.carriers, ph, plan.order, self.carriers.harmonics(key[1]), eager=plan.far == 2,
+                               out=spare)
 
     def prepare(self, times, tol: float = 1e-3) -> None:
         """Say that the flow will be evaluated at the instants ``times`` (a few) with ``tol``
@@ -630,12 +642,13 @@ class Carpet:
         if not np.all(np.isfinite(ts)):
             raise ValueError("prepare: times must be finite")
         key, plan = self._plan(Instant(0.0), tol)
+        kept = [f.group.out for q, f in self._forces.items() if len(q) == 3 and q[:2] == key]
         self._drop_instants(0)
         todo = ts[:_INSTANTS]
         ph = np.mod(self.cycles.phases[None] + todo[:, None] * self.cycles.rate[None], 1.0)  # as phase_at
-        f = self.carriers.stacked_at(ph, plan.order)
+        group = self._instants(ph, key, plan, spare=kept[0] if kept else None)
         for i, t in enumerate(todo):
-            self._forces[key + (float(t),)] = f[i]
+            self._forces[key + (float(t),)] = group.at(i)
 
     def _plan(self, when: When, tol: float) -> tuple[tuple, Plan]:
         """The key and the :class:`~.traversal.Plan` of evaluations of ``when`` at ``tol`` (made once)."""

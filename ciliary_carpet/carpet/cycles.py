@@ -622,13 +622,15 @@ class ResolvedSources:
     """The resolved line sources of the cilia for one evaluation: cilium j's line distribution at
     its phase ``phases[j]`` ((N,): the flow at an instant), or at every phase sample of the table
     with weight 1 / n_phase (``phases`` None: the cycle-mean flow, its blocks taken from and kept
-    in ``kept`` where given, :class:`MeanBlocks`). ``block``: the sources per cilium (n_s, or
-    n_phase n_s); :meth:`fill` writes them."""
+    in ``kept`` where given, :class:`MeanBlocks`), or at time ``t`` (given instead of ``phases``:
+    the phases of the cilia filled only, :meth:`CycleData.phase_at`'s numbers). ``block``: the
+    sources per cilium (n_s, or n_phase n_s); :meth:`fill` writes them."""
 
-    def __init__(self, cycles: CycleData, phases: np.ndarray | None, kept: MeanBlocks | None = None):
-        self.cycles, self.phases = cycles, phases
-        self.kept = kept if phases is None else None
-        if phases is None:
+    def __init__(self, cycles: CycleData, phases: np.ndarray | None, kept: MeanBlocks | None = None,
+                 t: float | None = None):
+        self.cycles, self.phases, self.t = cycles, phases, t
+        self.kept = kept if phases is None and t is None else None
+        if phases is None and t is None:
             self._all = _trig_basis(np.arange(cycles.n_phase) / cycles.n_phase, cycles.harmonics)[None]
             self._weights = cycles.weights / cycles.n_phase
             self.block = cycles.n_phase * cycles.n_s
@@ -652,7 +654,10 @@ class ResolvedSources:
                     _scatter_blocks(rows, s_m, f_m, src, frc)
                 self.kept.keep(jc, rows, src, frc)
             return
-        if self.phases is None:
+        if self.t is not None:
+            bs = np.empty((len(jc), 1, c.coef.shape[1]))
+            _basis(np.mod(c.phases[jc] + float(self.t) * c.rate[jc], 1.0), c.harmonics, bs)  # as phase_at
+        elif self.phases is None:
             bs = np.ascontiguousarray(np.broadcast_to(self._all, (len(jc),) + self._all.shape[1:]))
         else:
             bs = np.empty((len(jc), 1, c.coef.shape[1]))

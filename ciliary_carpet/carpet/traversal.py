@@ -3,11 +3,12 @@
 Given the thresholds R1, R2, R3 of every cilium (:meth:`~.carriers.Bounds.thresholds`), each
 target x (M, 3) sums cilium j at the cheapest order its distance |x - c_j| reaches: its monopole
 carrier (R >= R1), its three dipole carriers (R >= R2), its six quadrupole carriers (R >= R3), or
-its resolved line sources (closer; :class:`~.cycles.ResolvedSources`). All of it is one sparse
-"ranged" sum of the evaluator (:meth:`Backend.ranged <ciliary_carpet.stokes.backend.Backend.ranged>`): the
-sources are the carriers of every cilium (monopoles, then dipoles, then quadrupoles, cilia
-sorted by grid cell: :meth:`~.carriers.Carriers.positions`) followed by the resolved blocks, and
-each target reads a list of row ranges of them (CSR: ``ptr`` (M + 1,), ``ranges`` (R, 2)).
+its resolved line sources (closer; :class:`~.cycles.ResolvedSources`). All of it is two sparse
+"ranged" sums of the evaluator (:meth:`Backend.ranged <ciliary_carpet.stokes.backend.Backend.ranged>`):
+one over the carriers of every cilium (monopoles, then dipoles, then quadrupoles, cilia sorted
+by grid cell: :meth:`~.carriers.Carriers.positions`), read where they lie, one over the
+resolved blocks; each target reads a list of row ranges of them (CSR: ``ptr`` (M + 1,),
+``ranges`` (R, 2)).
 
 :class:`Plan` is what an evaluation at one tolerance reuses: the thresholds, a grid of the force
 centres and the order ``far`` of the cilia beyond the (2 reach + 1)^2 cells around a target,
@@ -113,7 +114,7 @@ def _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx
     cilium index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
     the target: its monopole carrier (row q) when R >= R1, else its three dipole carriers (rows
     n_p + 3q ...) when R >= R2, else its six quadrupole carriers (rows 4 n_p + 6q ...) when R >= R3,
-    else its resolved block (an empty range, filled by the caller; the cilium and the range
+    else its resolved block (an empty range, summed apart by the caller; the cilium and the range
     go to res_j, res_r). Consecutive cilia at the same order make one range.
 
     Only the cilia of the (2 reach + 1)^2 cells around the target's (origin x0, y0, nx x ny
@@ -210,22 +211,18 @@ def _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_
 
 
 @njit(cache=True, parallel=True)
-def _block_ranges(res_j, res_r, local, per, k, off, blk, out):  # pragma: no cover - compiled
-    """The source range of each resolved pair q (cilium res_j[q]) in the sum of chunk k of the
-    resolved blocks (cilia of local index l in chunk l // per, rows off + (l % per) blk ...),
-    empty for another chunk's cilium: at row res_r[q] of ``out`` (the first chunk: the ranges of
-    :func:`_traverse`), or at row q (``res_r`` empty: a later chunk's own ranges)."""
-    direct = res_r.shape[0] == 0
+def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compiled
+    """out[q] = the source range of resolved pair q (cilium res_j[q]) in the sum of chunk k of the
+    resolved blocks (cilia of local index l in chunk l // per, rows (l % per) blk ...), empty
+    for another chunk's cilium."""
     for q in prange(res_j.shape[0]):
         loc = local[res_j[q]]
-        row = np.int64(q) if direct else res_r[q]
         if loc // per == k:
-            out[row, 0] = off + (loc % per) * blk
-            out[row, 1] = out[row, 0] + blk
+            out[q, 0] = (loc % per) * blk
+            out[q, 1] = out[q, 0] + blk
         else:
-            out[row, 0] = 0
-            out[row, 1] = 0
-
+            out[q, 0] = 0
+            out[q, 1] = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -360,7 +357,7 @@ def dense_sum(targets: np.ndarray, js: np.ndarray, sources: ResolvedSources, ker
                   sources=m * js.size * blk)
 
 
-def flow_sum(targets: np.ndarray, plan: Plan, forces: np.ndarray, sources: ResolvedSources, n: int,
+def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, n: int,
              kernel: Kernel, evaluator, mu: float) -> Summed:
     """Per target (M, 3) one ranged sum (module docstring): every cilium of the ``n`` at the
     order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 3) (in the
@@ -372,7 +369,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces: np.ndarray, sources: Resol
     n_car = 10 * sj.size
     blk = sources.block
     # the ranges of every point, written into rows bounded by _upper, then packed (the
-    # resolved blocks' ranges filled later); targets in parts when the bound is very large
+    # resolved blocks' ranges left empty: summed apart); targets in parts when the bound is very large
     uptr = np.zeros(m + 1, np.int64)
     _upper(targets, *plan.grid, plan.always.size, uptr)
     np.cumsum(uptr, out=uptr)
@@ -391,34 +388,32 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces: np.ndarray, sources: Resol
     ranges = np.empty((int(ptr[-1]), 2), np.int64)
     res_j, res_r = np.empty(int(rptr[-1]), np.int64), np.empty(int(rptr[-1]), np.int64)
     _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
+    # The carriers: one ranged sum over the plan's carriers as they are (coordinate rows, no
+    # copy; the resolved cilia's ranges left empty), their forces made where the sum reads
+    # quadrupoles not made yet (InstantForces).
+    if not isinstance(forces, np.ndarray):
+        forces = forces.for_ranges(ranges)
+    u = np.zeros((m, 3))
+    if n_car and ptr[-1]:
+        # the evaluator directly: every array here is made and checked by this function
+        u += evaluator.ranged(kernel, targets, plan.carriers_soa.T, forces, ptr, ranges, mu)
     # The resolved blocks are made and summed in chunks of cilia of at most _CHUNK_SOURCES
     # sources (the resolved mean flow has 4160 per cilium: a whole carpet's would take hundreds
-    # of MB, and fresh memory costs more than the sum); the first chunk carries the carriers
-    # too, so that an instantaneous flow (65 sources per cilium: one chunk) is one ranged sum.
+    # of MB, and fresh memory costs more than the sum); an instantaneous flow's (65 sources per
+    # cilium) are one chunk.
     used = np.zeros(n, bool)
     used[res_j] = True
     used = np.flatnonzero(used)
     per = max(1, _CHUNK_SOURCES // blk)
     local = np.zeros(n, np.int64)
     local[used] = np.arange(used.size)
-    u = np.zeros((m, 3))
-    for k in range(max(1, -(-used.size // per))):
+    for k in range(-(-used.size // per)):
         jc = used[k * per:(k + 1) * per]
-        off = n_car if k == 0 else 0
-        src, frc = np.empty((3, off + jc.size * blk)), np.empty((3, off + jc.size * blk))
-        if k == 0:
-            src[:, :n_car] = plan.carriers_soa
-            frc[:, :n_car] = forces.T
-            rng, p = ranges, ptr
-            _block_ranges(res_j, res_r, local, per, k, off, blk, rng)
-        else:
-            rng, p = np.empty((res_j.size, 2), np.int64), rptr
-            _block_ranges(res_j, np.zeros(0, np.int64), local, per, k, off, blk, rng)
-        if jc.size:
-            sources.fill(jc, src[:, off:].T, frc[:, off:].T)
-        if src.shape[1] and rng.shape[0]:
-            # the evaluator directly: every array here is made and checked by this function
-            u += evaluator.ranged(kernel, targets, src.T, frc.T, p, rng, mu)
+        src, frc = np.empty((3, jc.size * blk)), np.empty((3, jc.size * blk))
+        rng = np.empty((res_j.size, 2), np.int64)
+        _block_ranges(res_j, local, per, k, blk, rng)
+        sources.fill(jc, src.T, frc.T)
+        u += evaluator.ranged(kernel, targets, src.T, frc.T, rptr, rng, mu)
     cnt = counts.sum(axis=0)
     return Summed(velocity=u, orders=cnt, resolved=int(res_j.size), ranges=int(ptr[-1]),
                   sources=int(cnt[0] + 3 * cnt[1] + 6 * cnt[2] + res_j.size * blk))

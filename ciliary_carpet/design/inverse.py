@@ -472,7 +472,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
         J_model = float(res.fun) * J_scale
         logger.info("design pass %d: objective %.4g on the full model, %.4g on the design model", p, J_full, J_model)
         gain = (best["J"] - J_full) / max(best["J"], 1e-300)
-        if J_full < best["J"]:
+        if gain > 1e-12:  # better by more than rounding (a pass that did not move ties with the layout before)
             best = {"rms": rms, "J": J_full, "chi": chi.copy(), "u": u_full, "resid": resid, "label": f"pass {p}",
                     "carpet": c_full, "res": res, "bound": e_full}
         u_prev, c_prev = u_full, c_full
