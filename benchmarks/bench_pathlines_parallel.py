@@ -102,6 +102,7 @@ def _stage(plan, carpet, d, how: str) -> tuple[float, dict]:
     pool = InProcess() if how == "2-threads" else pool_for_threads(threads)
     if how == "2-pool-nolend":
         pool = ProcessPool(1, parent_works=True, lend_idle=False)
+    pool.warm()  # as a render does before its design: the fork server's start is not the stage's
     with tempfile.TemporaryDirectory() as tmp, ThreadBudget(1, threads, 1).applied():
         ctx = RenderContext(plan, carpet, d, Path(tmp), Path(tmp), {}, {}, time.perf_counter(), pool=pool)
         t = time.perf_counter()

@@ -78,10 +78,13 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     <ciliary_carpet.transport.parallel.InProcess>`, the default, or a :class:`ProcessPool
     <ciliary_carpet.transport.parallel.ProcessPool>`, e.g. ``pool_for_threads(n)`` for ``n`` cores)
     says where the path lines' chunks and their error estimate's reference run; the numbers are
-    the same wherever they run."""
+    the same wherever they run (a pool's workers are made ready while the carpet is designed:
+    ``pool.warm()``)."""
     with OutputFolder(out_dir, overwrite=overwrite, scene=scene, within=within) as folder:
         estimate = check_resources(scene, max_seconds=max_seconds)
         backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError here, before any work
+        pool = pool if pool is not None else InProcess()
+        pool.warm()  # a process pool's fork server starts while the carpet is designed
         progress = progress if progress is not None else Progress()
         t0 = _time.perf_counter()
         d, carpet = design(scene)  # table, range check, target and carpet: assembly.assemble
@@ -89,7 +92,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         plan = RenderPlan.decide(scene, carpet, designed=d is not None, estimate=estimate)  # errors before any output
         outputs = [o for o in (cls() for cls in OUTPUTS.values()) if o.wanted(plan)]
         ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, _header(plan, carpet), clock, t0,
-                            pool=pool if pool is not None else InProcess())
+                            pool=pool)
         progress.start(len(outputs), f"render {scene.name}")
         try:
             for k, o in enumerate(outputs, 1):

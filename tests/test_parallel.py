@@ -111,6 +111,20 @@ def test_workers_take_the_thread_budget():
         assert r.value == 2
 
 
+def test_warm_starts_the_fork_server_ahead():
+    """ProcessPool.warm starts the fork server the workers come from (a render calls it before its
+    design); a run after it uses that server; InProcess has nothing to start."""
+    from multiprocessing import forkserver
+
+    assert InProcess().warm() is None
+    pool = ProcessPool(1, parent_works=False)
+    pool.warm()
+    pid = forkserver._forkserver._forkserver_pid
+    assert pid is not None and os.path.exists(f"/proc/{pid}")
+    res = pool.run([Task("t", _threads_here)])
+    assert res[0].where == "worker 1" and forkserver._forkserver._forkserver_pid == pid
+
+
 def test_a_chunk_whose_flow_raises_is_named(carpet):
     for pool in (InProcess(), ProcessPool(1, parent_works=False)):
         with pytest.raises(FloatingPointError, match=r"path lines: chunk 3 of 3 \(tracers 8-11\): the flow failed"):
