@@ -388,8 +388,8 @@ def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
 
 
 def test_chunked_sums_match_one_sum(carpet, monkeypatch):
-    """The near blocks summed in chunks of a few cilia (each chunk its own ranged sum; the first
-    also carries the carriers) give the one-chunk velocities and the same work counters, for the
+    """The near blocks summed in chunks of a few cilia (each chunk its own ranged sum, the carriers
+    one sum apart) give the one-chunk velocities and the same work counters, for the
     instantaneous and the mean flow."""
     import ciliary_carpet.carpet.traversal as cm
 

@@ -1,4 +1,4 @@
-"""One ranged sum per evaluation: which carriers or sources each target sums, and the sum.
+"""The ranged sums of an evaluation: which carriers or sources each target sums, and the sums.
 
 Given the thresholds R1, R2, R3 of every cilium (:meth:`~.carriers.Bounds.thresholds`), each
 target x (M, 3) sums cilium j at the cheapest order its distance |x - c_j| reaches: its monopole
@@ -359,9 +359,10 @@ def dense_sum(targets: np.ndarray, js: np.ndarray, sources: ResolvedSources, ker
 
 def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, n: int,
              kernel: Kernel, evaluator, mu: float) -> Summed:
-    """Per target (M, 3) one ranged sum (module docstring): every cilium of the ``n`` at the
+    """Per target (M, 3) the ranged sums (module docstring): every cilium of the ``n`` at the
     order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 3) (in the
-    order of ``plan.carriers``), or its resolved ``sources``; ``evaluator`` runs the sums. The
+    order of ``plan.carriers``; or an :class:`~.carriers.InstantForces`, whose quadrupoles the
+    ranges read are made first), or its resolved ``sources``; ``evaluator`` runs the sums. The
     sources are laid out as coordinate rows (3, K) and handed over as their (K, 3) transposes:
     the direct sums read that layout without a copy."""
     m = targets.shape[0]
