@@ -14,12 +14,19 @@ tolerance), one numba thread, three ways in the same run:
 * **prepared**: ``Carpet.velocity`` after ``Carpet.prepare`` of the five distinct stage times of a
   Dormand-Prince step, as the path lines call it (the cost of the ``prepare`` shared among them).
 
+``--pathlines F``: the render's own path-line call on each carpet (its 100 seeds, flow tol,
+rtol and atol: ``PATHLINE_TOL``, ``PATHLINE_RTOL``, ``PATHLINE_ATOL`` x spacing) over the
+fraction F of its duration, one thread, with where its time goes: the flow's ``prepare`` (the
+carriers of a step's instants) and its evaluations by the number of tracers they carry (the
+common steps carry them all, the substeps of tracers near a filament one to a few). Run it on
+two checkouts (``PYTHONPATH``) to compare code.
+
 Times are per evaluation (median of repeats), with the largest difference of the velocities
 from the moments' path relative to the largest speed (the fused and prepared ones equal each
 other; they differ from the moments' path by the harmonics cut, at most ``HARMONIC_TAIL`` tol of
 the far-field sum). ``--sizes`` carpets, ``--points`` M.
 
-    python benchmarks/bench_evaluation.py [--sizes 30 100] [--points 1 8 100]
+    python benchmarks/bench_evaluation.py [--sizes 30 100] [--points 1 8 100] [--pathlines 0.25]
 
 Writes ``benchmarks/results/bench_evaluation.md``.
 """
@@ -102,11 +109,58 @@ def measure(n: int, points: list[int], repeats: int) -> list[str]:
     return rows
 
 
+def pathline_split(n: int, fraction: float) -> list[str]:
+    """The render's path-line call on the N x N carpet over ``fraction`` of its duration, one
+    thread: its seconds and evaluations, and their split (module docstring)."""
+    import bench_large
+    from ciliary_carpet.output.outputs import PATHLINE_ATOL, PATHLINE_RTOL, PATHLINE_TOL
+    from ciliary_carpet.transport.flow import ResolvedFlow
+    from ciliary_carpet.transport.pathlines import pathlines
+
+    with tempfile.TemporaryDirectory() as tmp:
+        c, plan, spacing = bench_large._design(bench_large.scaled_scene(n, Path(tmp)))
+
+    class Timed(ResolvedFlow):
+        def __post_init__(self) -> None:
+            super().__post_init__()
+            object.__setattr__(self, "log", {"prepare": [0.0, 0], "evals": []})
+
+        def prepare(self, times) -> None:
+            t = time.perf_counter()
+            super().prepare(times)
+            self.log["prepare"][0] += time.perf_counter() - t
+            self.log["prepare"][1] += 1
+
+        def velocity(self, x, t):
+            t0 = time.perf_counter()
+            u = super().velocity(x, t)
+            self.log["evals"].append((x.shape[0], time.perf_counter() - t0))
+            return u
+
+    kw = dict(rtol=PATHLINE_RTOL, atol=PATHLINE_ATOL * spacing, samples_per_period=16)
+    pathlines(ResolvedFlow(c, PATHLINE_TOL), plan.seeds, (0.0, 0.01), **kw)  # compiled, plans made
+    flow = Timed(c, PATHLINE_TOL)
+    t = time.perf_counter()
+    pl = pathlines(flow, plan.seeds, (0.0, plan.duration * fraction), **kw)
+    wall = time.perf_counter() - t
+    ev = np.array(flow.log["evals"])
+    few = ev[:, 0] < 20
+    prep_s, prep_n = flow.log["prepare"]
+    row = (f"| {n} x {n} | {fraction:g} | {wall:.2f} | {ev.shape[0]} | {prep_s:.2f} ({prep_n}) | "
+           f"{ev[~few, 1].sum():.2f} ({int((~few).sum())}) | {ev[few, 1].sum():.2f} ({int(few.sum())}) | "
+           f"{wall - prep_s - ev[:, 1].sum():.2f} | {pl.stats['steps']} / {pl.stats['substeps']} / "
+           f"{pl.stats['rejected']} | {_load()} |")
+    print(row, flush=True)
+    return [row]
+
+
 def main(argv=None) -> str:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[30, 100])
     ap.add_argument("--points", type=int, nargs="+", default=[1, 8, 100])
     ap.add_argument("--repeats", type=int, default=200)
+    ap.add_argument("--pathlines", type=float, default=None, metavar="F",
+                    help="also the render's path lines over this fraction of their duration, and their split")
     ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args(argv)
     import numba
@@ -122,6 +176,15 @@ def main(argv=None) -> str:
     rows = []
     for n in a.sizes:
         rows += measure(n, a.points, a.repeats)
+    if a.pathlines is not None:
+        rows += ["", f"The render's path lines over a fraction of their duration (`--pathlines {a.pathlines:g}`), one "
+                 "thread: seconds in all, in the flow's prepare (calls), in evaluations of 20 tracers or more "
+                 "(the common steps) and of fewer (the substeps), and the rest (the integrator).", "",
+                 "| carpet | fraction | seconds | evaluations | prepare | evaluations >= 20 tracers | "
+                 "evaluations < 20 tracers | rest | steps / substeps / rejected | load |",
+                 "|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+        for n in a.sizes:
+            rows += pathline_split(n, a.pathlines)
     text = "\n".join(head + rows) + "\n"
     a.out.write_text(text)
     return text
