@@ -646,7 +646,7 @@ class Carpet:
         kept = [f.group.out for q, f in self._forces.items() if len(q) == 3 and q[:2] == key]
         self._drop_instants(0)
         todo = ts[:_INSTANTS]
-        ph = np.mod(self.cycles.phases[None] + todo[:, None] * self.cycles.rate[None], 1.0)  # as phase_at
+        ph = np.stack([self.cycles.phase_at(t) for t in todo])
         group = self._instants(ph, key, plan, spare=kept[0] if kept else None)
         for i, t in enumerate(todo):
             self._forces[key + (float(t),)] = group.at(i)

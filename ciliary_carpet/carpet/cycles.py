@@ -477,9 +477,11 @@ class CycleData:
             self._centre3 = np.ascontiguousarray(self.embedding.points(self.centre))
         return self._centre3
 
-    def phase_at(self, t: float) -> np.ndarray:
-        """(N,) phase of every cilium at time t, in [0, 1)."""
-        return np.mod(self.phases + float(t) * self.rate, 1.0)
+    def phase_at(self, t: float, js=None) -> np.ndarray:
+        """(N,) phase of every cilium (or of cilia ``js``) at time t, in [0, 1)."""
+        if js is None:
+            return np.mod(self.phases + float(t) * self.rate, 1.0)
+        return np.mod(self.phases[js] + float(t) * self.rate[js], 1.0)
 
     def moments_at(self, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """F (N, 2), D (N, 2, 2), T (N, 2, 2, 2) of every cilium at its phase ``phases`` (N,),
@@ -491,9 +493,8 @@ class CycleData:
     def state(self, t: float, js=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions (N, n_s, 2) (lab frame), force per length on the fluid (N, n_s, 2) and phases
         (N,) of all cilia (or of cilia ``js``: N = len(js)) at time t."""
-        ph = self.phase_at(t)
         js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).reshape(-1)
-        ph = ph[js]
+        ph = self.phase_at(t, js)
         basis = _trig_basis(ph, self.harmonics)  # (N, 2K-1)
         vals = np.empty((js.size,) + self.coef.shape[2:])
         _state(self.coef, basis, js, vals)
@@ -656,7 +657,7 @@ class ResolvedSources:
             return
         if self.t is not None:
             bs = np.empty((len(jc), 1, c.coef.shape[1]))
-            _basis(np.mod(c.phases[jc] + float(self.t) * c.rate[jc], 1.0), c.harmonics, bs)  # as phase_at
+            _basis(c.phase_at(self.t, jc), c.harmonics, bs)
         elif self.phases is None:
             bs = np.ascontiguousarray(np.broadcast_to(self._all, (len(jc),) + self._all.shape[1:]))
         else:
