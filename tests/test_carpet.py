@@ -589,6 +589,43 @@ def test_prepared_instants_are_made_together(table, monkeypatch):
     np.testing.assert_array_equal(lazy, [c.velocity(pts, Instant(t), 1e-3) for t in times])
 
 
+def test_prepared_instants_keep_their_blocks(table, monkeypatch):
+    """The resolved blocks of prepared instants are made once per cilium for all of them together
+    (one read of its coefficients) and kept until other instants are prepared; the velocities are
+    those made block by block (bit-equal), also when the blocks would exceed their budget."""
+    from ciliary_carpet.carpet import cycles
+
+    c = Carpet(layout.square(4, 4, 2.0), np.linspace(-60, 60, 16), table, layout.random_phases(16, 6))
+    made = []
+    real = cycles._instant_blocks
+    monkeypatch.setattr(cycles, "_instant_blocks",
+                        lambda coef, basis, *a: made.append(basis.shape[:2]) or real(coef, basis, *a))
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(0, 6, 8), rng.uniform(0, 6, 8), rng.uniform(-0.5, 0.5, 8)])
+    times = 0.4 + np.array([0.2, 0.3, 0.8, 8 / 9, 1.0, 1.0]) * 0.05
+    plain = [c.velocity(pts, Instant(t), 1e-4) for t in times]
+    assert made == []  # instants not prepared: block by block, nothing kept
+    c.prepare(times, 1e-4)
+    kept = [c.velocity(pts, Instant(t), 1e-4) for t in times]
+    np.testing.assert_array_equal(kept, plain)
+    ib = c._instant_blocks
+    assert made and all(P == 5 for _, P in made)  # every distinct instant at once
+    assert sum(m for m, _ in made) == ib.count  # each cilium made once
+    resolved = c.evaluate(pts, Instant(times[0]), 1e-4).pairs["resolved"]
+    assert 0 < ib.count <= min(16, resolved)
+    n_made = len(made)
+    np.testing.assert_array_equal([c.velocity(pts[:3], Instant(t), 1e-4) for t in times], [k[:3] for k in kept])
+    assert len(made) == n_made  # the subset's cilia are kept already
+    c.prepare(times, 1e-4)  # the same instants: kept
+    assert ib.count > 0
+    c.prepare(times + 1.0, 1e-4)  # others: forgotten
+    assert ib.count == 0 and not np.any(ib.slot >= 0)
+    monkeypatch.setattr(ib, "budget", 0)  # over the budget: block by block, the same numbers
+    c.prepare(times, 1e-4)
+    np.testing.assert_array_equal([c.velocity(pts, Instant(t), 1e-4) for t in times], plain)
+    assert ib.count == 0
+
+
 def test_moment_harmonics_kept_reproduce_the_sampled_moments(table, monkeypatch):
     """The moments' interpolant keeps the harmonics above MOMENT_FLOOR: at any phase it gives the
     moments of the interpolant with every harmonic to 1e-11 of their size, and at the table's

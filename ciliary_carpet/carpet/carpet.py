@@ -49,6 +49,7 @@ import logging
 import math
 import warnings
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import ClassVar, Union
 
 import numpy as np
@@ -59,7 +60,7 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers, InstantCarriers
 from ciliary_carpet.carpet.coupling import COUPLINGS, couple
-from ciliary_carpet.carpet.cycles import CycleData, MeanBlocks, ResolvedSources
+from ciliary_carpet.carpet.cycles import CycleData, InstantBlocks, MeanBlocks, ResolvedSources
 from ciliary_carpet.carpet.geometry import GEOMETRIES, Embedding
 from ciliary_carpet.carpet.geometry import standing as standing_embedding
 from ciliary_carpet.carpet.traversal import Plan, Summed, dense_sum, flow_sum, make_plan
@@ -270,6 +271,7 @@ class Carpet:
     _plans: dict = field(default=None, init=False, repr=False)
     _forces: dict = field(default=None, init=False, repr=False)
     _mean_blocks: MeanBlocks = field(default=None, init=False, repr=False)
+    _instant_blocks: InstantBlocks = field(default=None, init=False, repr=False)
     mu: float = field(default=None, init=False)
     mu_source: str = field(default=None, init=False)
     coupled: object = field(default=None, init=False, repr=False)
@@ -339,7 +341,7 @@ class Carpet:
                 warnings.simplefilter("ignore", UserWarning)  # the bases are checked below
                 res = couple(replace(self, coupling="none", background=None))
             for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces",
-                      "_mean_blocks", "bases", "chi_N",
+                      "_mean_blocks", "_instant_blocks", "bases", "chi_N",
                       "phases", "direction"):
                 object.__setattr__(self, k, getattr(res.carpet, k))
             object.__setattr__(self, "coupled", res)
@@ -368,6 +370,7 @@ class Carpet:
         object.__setattr__(self, "_plans", {})
         object.__setattr__(self, "_forces", {})
         object.__setattr__(self, "_mean_blocks", MeanBlocks(cycles))
+        object.__setattr__(self, "_instant_blocks", InstantBlocks(cycles))
         self._warn_overlaps()
 
     def __getstate__(self) -> dict:
@@ -375,7 +378,8 @@ class Carpet:
         blocks behind: they are remade where needed, and the blocks can take hundreds of MB."""
         state = dict(self.__dict__)
         if self.cycles is not None:
-            state.update(_plans={}, _forces={}, _mean_blocks=MeanBlocks(self.cycles))
+            state.update(_plans={}, _forces={}, _mean_blocks=MeanBlocks(self.cycles),
+                         _instant_blocks=InstantBlocks(self.cycles))
         return state
 
     def _check_above_substrate(self, cycles: CycleData) -> None:
@@ -477,7 +481,7 @@ class Carpet:
         """(n_s,) the arc-length samples of the filaments."""
         return self.cycles.s.copy()
 
-    @property
+    @cached_property
     def kernel(self) -> Kernel:
         """The Green's function of the flow: regularised (blob) or singular, free or with the wall."""
         return make_kernel(None if self.wall is None else Wall(z=-float(self.wall)), self.blob or 0.0)
@@ -584,7 +588,7 @@ class Carpet:
         """The sum at targets ``x`` (M, 3), its plan and the carriers' forces with the terms of
         the reported bound (``bound``; None for tol = 0 or without ``bound``)."""
         if tol > 0 and not bound and isinstance(when, Instant):  # the phases of the cilia resolved only
-            ph, sources = None, ResolvedSources(self.cycles, None, t=when.t)
+            ph, sources = None, ResolvedSources(self.cycles, None, t=when.t, prepared=self._instant_blocks)
         else:
             ph = when.phases(self.cycles)
             sources = ResolvedSources(self.cycles, ph, self._mean_blocks)
@@ -650,6 +654,7 @@ class Carpet:
         group = self._instants(ph, key, plan, spare=kept[0] if kept else None)
         for i, t in enumerate(todo):
             self._forces[key + (float(t),)] = group.at(i)
+        self._instant_blocks.reset(todo)
 
     def _plan(self, when: When, tol: float) -> tuple[tuple, Plan]:
         """The key and the :class:`~.traversal.Plan` of evaluations of ``when`` at ``tol`` (made once)."""

@@ -44,7 +44,7 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.geometry import Embedding, planar
 
-__all__ = ["CycleData", "CycleMoments", "ResolvedSources", "cycle_moments", "simpson"]
+__all__ = ["CycleData", "CycleMoments", "InstantBlocks", "ResolvedSources", "cycle_moments", "simpson"]
 
 _CHUNK = 128
 """Cilia whose table cycles are read and reduced at once (the full cycle data of a large carpet
@@ -324,6 +324,49 @@ def _interpolant(x, y, fx, fy, rot, w, cos_p, sin_p, mk, cos_m, sin_m, coef, mom
         mom_coef[j] = mc
 
 
+@njit(cache=True, fastmath={"reassoc", "contract", "nsz", "arcp"}, inline="always")
+def _harmonic_sum(cj, b, v):  # pragma: no cover - compiled
+    """v[p] (P, R) = sum_k b[p, k] cj[k] of a cilium's coefficients cj (2K-1, R) (float32, summed
+    in float64) at the P basis rows b (P, 2K-1): two harmonics and two rows per pass over R (each
+    coefficient read feeds four products; one at a time the loop waits on memory, 1.5 times slower)."""
+    nk = cj.shape[0]
+    R = cj.shape[1]
+    P = b.shape[0]
+    c0 = cj[0]
+    for p in range(P):
+        e = b[p, 0]
+        vp = v[p]
+        for r in range(R):
+            vp[r] = e * c0[r]
+    k = 1
+    while k < nk:
+        k1 = k + 1 if k + 1 < nk else k
+        w = 1.0 if k1 > k else 0.0  # an odd count: the last harmonic alone
+        c0 = cj[k]
+        c1 = cj[k1]
+        p = 0
+        while p + 1 < P:
+            a0 = b[p, k]
+            a1 = w * b[p, k1]
+            b0 = b[p + 1, k]
+            b1 = w * b[p + 1, k1]
+            va = v[p]
+            vb = v[p + 1]
+            for r in range(R):
+                x0 = c0[r]
+                x1 = c1[r]
+                va[r] += a0 * x0 + a1 * x1
+                vb[r] += b0 * x0 + b1 * x1
+            p += 2
+        if p < P:
+            a0 = b[p, k]
+            a1 = w * b[p, k1]
+            va = v[p]
+            for r in range(R):
+                va[r] += a0 * c0[r] + a1 * c1[r]
+        k += 2
+
+
 @njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _blocks(coef, basis, wgt, bases, origin, axes, jc, src, frc):  # pragma: no cover - compiled
     """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
@@ -340,26 +383,44 @@ def _blocks(coef, basis, wgt, bases, origin, axes, jc, src, frc):  # pragma: no 
     for i in prange(jc.shape[0]):
         j = jc[i]
         o = i * blk
-        cj = coef[j].reshape(nk, R)  # (k, (s, q)): the inner loop runs over R contiguous numbers
-        v = np.empty(R)
+        v = np.empty((P, R))
+        _harmonic_sum(coef[j].reshape(nk, R), basis[i], v)  # (k, (s, q)): R contiguous numbers
         for p in range(P):
-            e = basis[i, p, 0]
-            for r in range(R):
-                v[r] = e * cj[0, r]
-            for k in range(1, nk):
-                e = basis[i, p, k]
-                for r in range(R):
-                    v[r] += e * cj[k, r]
             for s in range(n_s):
                 r = o + p * n_s + s
-                px = v[4 * s] + bases[j, 0]
-                py = v[4 * s + 1] + bases[j, 1]
-                fx = v[4 * s + 2] * wgt[s]
-                fy = v[4 * s + 3] * wgt[s]
+                px = v[p, 4 * s] + bases[j, 0]
+                py = v[p, 4 * s + 1] + bases[j, 1]
+                fx = v[p, 4 * s + 2] * wgt[s]
+                fy = v[p, 4 * s + 3] * wgt[s]
                 for q in range(3):
                     src[r, q] = origin[j, q] + axes[j, q, 0] * px + axes[j, q, 1] * py
                     frc[r, q] = axes[j, q, 0] * fx + axes[j, q, 1] * fy
 
+
+@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+def _instant_blocks(coef, basis, wgt, bases, origin, axes, jc, slots, src, frc):  # pragma: no cover - compiled
+    """The resolved sources of cilia ``jc`` at P instants at once: cilium j = jc[i] at instant p
+    (its basis row ``basis[i, p]``, (len(jc), P, 2K-1)) into columns slots[i] n_s ... of
+    ``src[p]``, ``frc[p]`` ((P, 3, K): coordinate rows), the numbers of :func:`_blocks` (the same
+    sums in the same order), its coefficients read once for the P instants."""
+    n_s = coef.shape[2]
+    nk = coef.shape[1]
+    P = basis.shape[1]
+    R = 4 * n_s
+    for i in prange(jc.shape[0]):
+        j = jc[i]
+        v = np.empty((P, R))
+        _harmonic_sum(coef[j].reshape(nk, R), basis[i], v)
+        o = slots[i] * n_s
+        for p in range(P):
+            for s in range(n_s):
+                px = v[p, 4 * s] + bases[j, 0]
+                py = v[p, 4 * s + 1] + bases[j, 1]
+                fx = v[p, 4 * s + 2] * wgt[s]
+                fy = v[p, 4 * s + 3] * wgt[s]
+                for q in range(3):
+                    src[p, q, o + s] = origin[j, q] + axes[j, q, 0] * px + axes[j, q, 1] * py
+                    frc[p, q, o + s] = axes[j, q, 0] * fx + axes[j, q, 1] * fy
 
 
 @njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
@@ -619,18 +680,96 @@ class MeanBlocks:
         self.count += rows.size
 
 
+INSTANT_BLOCKS_BYTES = 256 * 2 ** 20
+"""Memory the resolved blocks of a few prepared instants may take (:class:`InstantBlocks`)."""
+
+
+class InstantBlocks:
+    """The resolved blocks of the cilia at a few instants (an integrator step's stages, said
+    ahead by :meth:`Carpet.prepare <ciliary_carpet.carpet.carpet.Carpet.prepare>`): a cilium's
+    block is made at all of them the first time an evaluation at one of them needs it, in one read
+    of its coefficients (:func:`_instant_blocks`; one instant at a time reads them once per
+    instant, and reading them is most of the cost), and kept until :meth:`reset` names other
+    instants. The numbers are those of :meth:`ResolvedSources.fill`. At most
+    :data:`INSTANT_BLOCKS_BYTES` are kept: an evaluation that needs more cilia makes its own."""
+
+    def __init__(self, cycles: CycleData, budget: int = INSTANT_BLOCKS_BYTES):
+        self.cycles = cycles
+        self.times = np.zeros(0)
+        self._index: dict = {}
+        self.budget = int(budget)
+        self.slot = np.full(cycles.n, -1, np.int64)
+        self.cilia = np.zeros(0, np.int64)
+        self.count = 0
+        self.src = self.frc = None  # (P, 3, capacity n_s)
+
+    def reset(self, times: np.ndarray) -> None:
+        """Keep the blocks of the instants ``times`` (unique, finite) from now on: the blocks kept
+        are forgotten (their memory reused) unless the times are the same."""
+        times = np.asarray(times, dtype=float).ravel()
+        if times.shape == self.times.shape and np.array_equal(times, self.times):
+            return
+        self.slot[self.cilia[:self.count]] = -1
+        self.count = 0
+        self.times = times.copy()
+        self._index = {float(t): i for i, t in enumerate(self.times)}
+        if self.src is not None and self.src.shape[0] != times.size:
+            self.src = self.frc = None
+
+    def index(self, t: float) -> int | None:
+        """The instant ``t``'s index among the kept instants (None: not one of them)."""
+        return self._index.get(t)
+
+    def located(self, p: int, jc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The sources and forces of instant ``p`` as (K, 3) views of coordinate rows, and the
+        slots (N,) of the blocks in them (cilium j's block: rows slot[j] n_s ...), the blocks of
+        cilia ``jc`` made at every kept instant where missing; None when they would take more
+        than the budget."""
+        c = self.cycles
+        n_s = c.n_s
+        miss = jc[self.slot[jc] < 0]
+        need = self.count + miss.size
+        P = self.times.size
+        if need * n_s * P * 48 > self.budget:
+            return None
+        if miss.size:
+            if self.src is None or need * n_s > self.src.shape[2]:
+                cap = max(64, 2 * need) * n_s
+                src, frc = np.empty((P, 3, cap)), np.empty((P, 3, cap))
+                if self.src is not None and self.count:
+                    src[:, :, :self.count * n_s] = self.src[:, :, :self.count * n_s]
+                    frc[:, :, :self.count * n_s] = self.frc[:, :, :self.count * n_s]
+                self.src, self.frc = src, frc
+            slots = np.arange(self.count, need, dtype=np.int64)
+            if self.cilia.size < need:
+                self.cilia = np.concatenate([self.cilia[:self.count], np.empty(max(need, 2 * self.cilia.size) -
+                                                                                 self.count, np.int64)])
+            self.cilia[self.count:need] = miss
+            self.slot[miss] = slots
+            self.count = need
+            bs = np.empty((miss.size * P, 1, c.coef.shape[1]))
+            _basis(np.stack([c.phase_at(t, miss) for t in self.times], axis=1).ravel(), c.harmonics, bs)
+            e = c.embedding
+            _instant_blocks(c.coef, bs.reshape(miss.size, P, -1), c.weights, c.bases, e.origin, e.axes, miss, slots,
+                            self.src, self.frc)
+        return self.src[p].T, self.frc[p].T, self.slot
+
+
 class ResolvedSources:
     """The resolved line sources of the cilia for one evaluation: cilium j's line distribution at
     its phase ``phases[j]`` ((N,): the flow at an instant), or at every phase sample of the table
     with weight 1 / n_phase (``phases`` None: the cycle-mean flow, its blocks taken from and kept
     in ``kept`` where given, :class:`MeanBlocks`), or at time ``t`` (given instead of ``phases``:
-    the phases of the cilia filled only, :meth:`CycleData.phase_at`'s numbers). ``block``: the
-    sources per cilium (n_s, or n_phase n_s); :meth:`fill` writes them."""
+    the phases of the cilia filled only, :meth:`CycleData.phase_at`'s numbers; at an instant kept
+    in ``prepared``, :meth:`located` finds the blocks there). ``block``: the sources per cilium
+    (n_s, or n_phase n_s); :meth:`fill` writes them."""
 
     def __init__(self, cycles: CycleData, phases: np.ndarray | None, kept: MeanBlocks | None = None,
-                 t: float | None = None):
+                 t: float | None = None, prepared: InstantBlocks | None = None):
         self.cycles, self.phases, self.t = cycles, phases, t
         self.kept = kept if phases is None and t is None else None
+        self._at = prepared.index(t) if prepared is not None and t is not None else None
+        self.prepared = prepared if self._at is not None else None
         if phases is None and t is None:
             self._all = _trig_basis(np.arange(cycles.n_phase) / cycles.n_phase, cycles.harmonics)[None]
             self._weights = cycles.weights / cycles.n_phase
@@ -638,6 +777,13 @@ class ResolvedSources:
         else:
             self._weights = cycles.weights
             self.block = cycles.n_s
+
+    def located(self, jc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The blocks of cilia ``jc`` where they are kept (:meth:`InstantBlocks.located`: sources,
+        forces (K, 3) and the blocks' slots); None where they are not kept: :meth:`fill`."""
+        if self.prepared is None:
+            return None
+        return self.prepared.located(self._at, np.asarray(jc, np.int64))
 
     def fill(self, jc: np.ndarray, src: np.ndarray, frc: np.ndarray) -> None:
         """The sources (positions in space) and forces (Simpson weights included) of cilia ``jc``

@@ -225,6 +225,71 @@ def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compile
             out[q, 1] = 0
 
 
+@njit(cache=True)
+def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+           max_rows):  # pragma: no cover - compiled
+    """Every target's ranges in CSR, one call for :func:`_upper`, :func:`_traverse` and
+    :func:`_compact` (the arguments of :attr:`Plan.traverse`): ``(ptr, ranges, rptr, res_j,
+    counts, uptr)``; when the bound uptr[-1] of the rows exceeds ``max_rows`` (and there are
+    several targets) only ``uptr`` is made, the others are empty (the caller splits the targets)."""
+    m = targets.shape[0]
+    uptr = np.zeros(m + 1, np.int64)
+    _upper(targets, cell_ptr, x0, y0, h, nx, ny, reach, always.shape[0], uptr)
+    for i in range(m):
+        uptr[i + 1] += uptr[i]
+    if uptr[m] > max_rows and m > 1:
+        e = np.zeros(0, np.int64)
+        return e, np.zeros((0, 2), np.int64), e, e, np.zeros((0, 3), np.int64), uptr
+    rows = uptr[m]
+    ranges_u = np.empty((rows, 2), np.int64)
+    res_j_u = np.empty(rows, np.int64)
+    res_r_u = np.empty(rows, np.int64)
+    nr = np.empty(m, np.int64)
+    nres = np.empty(m, np.int64)
+    counts = np.empty((m, 3), np.int64)
+    _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+              uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
+    ptr = np.zeros(m + 1, np.int64)
+    rptr = np.zeros(m + 1, np.int64)
+    for i in range(m):
+        ptr[i + 1] = ptr[i] + nr[i]
+        rptr[i + 1] = rptr[i] + nres[i]
+    ranges = np.empty((ptr[m], 2), np.int64)
+    res_j = np.empty(rptr[m], np.int64)
+    res_r = np.empty(rptr[m], np.int64)
+    _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
+    return ptr, ranges, rptr, res_j, counts, uptr
+
+
+@njit(cache=True)
+def _used(res_j, n):  # pragma: no cover - compiled
+    """The cilia of ``res_j`` once each, ascending (n cilia in all)."""
+    seen = np.zeros(n, np.bool_)
+    k = 0
+    for q in range(res_j.shape[0]):
+        if not seen[res_j[q]]:
+            seen[res_j[q]] = True
+            k += 1
+    out = np.empty(k, np.int64)
+    k = 0
+    for j in range(n):
+        if seen[j]:
+            out[k] = j
+            k += 1
+    return out
+
+
+@njit(cache=True)
+def _kept_ranges(res_j, slot, blk):  # pragma: no cover - compiled
+    """The source range of each resolved pair q in blocks kept at rows slot[j] blk ... of cilium
+    j = res_j[q] (:class:`~.cycles.InstantBlocks`)."""
+    out = np.empty((res_j.shape[0], 2), np.int64)
+    for q in range(res_j.shape[0]):
+        out[q, 0] = slot[res_j[q]] * blk
+        out[q, 1] = out[q, 0] + blk
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Plan:
     """What an evaluation at one tolerance reuses (module docstring): ``thresholds`` (R1, R2, R3)
@@ -371,24 +436,12 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     blk = sources.block
     # the ranges of every point, written into rows bounded by _upper, then packed (the
     # resolved blocks' ranges left empty: summed apart); targets in parts when the bound is very large
-    uptr = np.zeros(m + 1, np.int64)
-    _upper(targets, *plan.grid, plan.always.size, uptr)
-    np.cumsum(uptr, out=uptr)
+    ptr, ranges, rptr, res_j, counts, uptr = _lists(targets, *plan.traverse, _MAX_ROWS)
     if uptr[-1] > _MAX_ROWS and m > 1:
         cut = np.searchsorted(uptr, np.arange(1, -(-int(uptr[-1]) // _MAX_ROWS)) * _MAX_ROWS)
         cut = np.unique(np.clip(cut, 1, m - 1))
         return Summed.joined([flow_sum(t, plan, forces, sources, n, kernel, evaluator, mu)
                               for t in np.split(targets, cut)])
-    ranges_u, res_j_u, res_r_u = np.empty((int(uptr[-1]), 2), np.int64), np.empty(int(uptr[-1]), np.int64), \
-        np.empty(int(uptr[-1]), np.int64)
-    nr, nres, counts = np.empty(m, np.int64), np.empty(m, np.int64), np.empty((m, 3), np.int64)
-    _traverse(targets, *plan.traverse, uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
-    ptr, rptr = np.zeros(m + 1, np.int64), np.zeros(m + 1, np.int64)
-    np.cumsum(nr, out=ptr[1:])
-    np.cumsum(nres, out=rptr[1:])
-    ranges = np.empty((int(ptr[-1]), 2), np.int64)
-    res_j, res_r = np.empty(int(rptr[-1]), np.int64), np.empty(int(rptr[-1]), np.int64)
-    _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
     # The carriers: one ranged sum over the plan's carriers as they are (coordinate rows, no
     # copy; the resolved cilia's ranges left empty), their forces made where the sum reads
     # quadrupoles not made yet (InstantForces).
@@ -401,20 +454,23 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     # The resolved blocks are made and summed in chunks of cilia of at most _CHUNK_SOURCES
     # sources (the resolved mean flow has 4160 per cilium: a whole carpet's would take hundreds
     # of MB, and fresh memory costs more than the sum); an instantaneous flow's (65 sources per
-    # cilium) are one chunk.
-    used = np.zeros(n, bool)
-    used[res_j] = True
-    used = np.flatnonzero(used)
-    per = max(1, _CHUNK_SOURCES // blk)
-    local = np.zeros(n, np.int64)
-    local[used] = np.arange(used.size)
-    for k in range(-(-used.size // per)):
-        jc = used[k * per:(k + 1) * per]
-        src, frc = np.empty((3, jc.size * blk)), np.empty((3, jc.size * blk))
-        rng = np.empty((res_j.size, 2), np.int64)
-        _block_ranges(res_j, local, per, k, blk, rng)
-        sources.fill(jc, src.T, frc.T)
-        u += evaluator.ranged(kernel, targets, src.T, frc.T, rptr, rng, mu)
+    # cilium) are one chunk; those of an instant said ahead are where they are kept (no copy).
+    used = _used(res_j, n)
+    kept = sources.located(used) if used.size else None
+    if kept is not None:
+        src, frc, slot = kept
+        u += evaluator.ranged(kernel, targets, src, frc, rptr, _kept_ranges(res_j, slot, blk), mu)
+    elif used.size:
+        per = max(1, _CHUNK_SOURCES // blk)
+        local = np.zeros(n, np.int64)
+        local[used] = np.arange(used.size)
+        for k in range(-(-used.size // per)):
+            jc = used[k * per:(k + 1) * per]
+            src, frc = np.empty((3, jc.size * blk)), np.empty((3, jc.size * blk))
+            rng = np.empty((res_j.size, 2), np.int64)
+            _block_ranges(res_j, local, per, k, blk, rng)
+            sources.fill(jc, src.T, frc.T)
+            u += evaluator.ranged(kernel, targets, src.T, frc.T, rptr, rng, mu)
     cnt = counts.sum(axis=0)
     return Summed(velocity=u, orders=cnt, resolved=int(res_j.size), ranges=int(ptr[-1]),
                   sources=int(cnt[0] + 3 * cnt[1] + 6 * cnt[2] + res_j.size * blk))

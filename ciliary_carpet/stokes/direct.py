@@ -211,11 +211,15 @@ class Direct(Backend):
         if targets.shape[0] == 0 or sources.shape[0] == 0 or ranges.shape[0] == 0:
             return out
         z = kernel.z_origin
+        args = (kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), ptr, ranges, kernel.eps ** 2,
+                INV_8PI / mu, out)
+        if targets.shape[0] < 2 or numba.get_num_threads() < 2:
+            _ranged(*args)
+            return out
         old = numba.get_parallel_chunksize()
         numba.set_parallel_chunksize(16)  # the work per target is uneven (near-field lists)
         try:
-            _ranged(kernel.code, _soa(targets, z), _soa(sources, z), _soa(forces), ptr, ranges,
-                    kernel.eps ** 2, INV_8PI / mu, out)
+            _ranged(*args)
         finally:
             numba.set_parallel_chunksize(old)
         return out
