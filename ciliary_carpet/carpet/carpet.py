@@ -650,7 +650,7 @@ class Carpet:
         kept = [f.group.out for q, f in self._forces.items() if len(q) == 3 and q[:2] == key]
         self._drop_instants(0)
         todo = ts[:_INSTANTS]
-        ph = np.stack([self.cycles.phase_at(t) for t in todo])
+        ph = self.cycles.phase_at(todo)
         group = self._instants(ph, key, plan, spare=kept[0] if kept else None)
         for i, t in enumerate(todo):
             self._forces[key + (float(t),)] = group.at(i)

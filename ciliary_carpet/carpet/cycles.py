@@ -538,11 +538,15 @@ class CycleData:
             self._centre3 = np.ascontiguousarray(self.embedding.points(self.centre))
         return self._centre3
 
-    def phase_at(self, t: float, js=None) -> np.ndarray:
-        """(N,) phase of every cilium (or of cilia ``js``) at time t, in [0, 1)."""
-        if js is None:
-            return np.mod(self.phases + float(t) * self.rate, 1.0)
-        return np.mod(self.phases[js] + float(t) * self.rate[js], 1.0)
+    def phase_at(self, t, js=None) -> np.ndarray:
+        """(N,) phase of every cilium (or of cilia ``js``) at time t, in [0, 1); (T, N) at T times
+        ``t`` (T,). ``x - floor(x)`` is ``np.mod(x, 1)`` to the bit (both exact up to one rounding of
+        the same number), ten times faster."""
+        t = np.asarray(t, dtype=float)
+        p, r = (self.phases, self.rate) if js is None else (self.phases[js], self.rate[js])
+        x = p + t[..., None] * r if t.ndim else p + float(t) * r
+        x -= np.floor(x)
+        return x
 
     def moments_at(self, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """F (N, 2), D (N, 2, 2), T (N, 2, 2, 2) of every cilium at its phase ``phases`` (N,),
@@ -748,7 +752,7 @@ class InstantBlocks:
             self.slot[miss] = slots
             self.count = need
             bs = np.empty((miss.size * P, 1, c.coef.shape[1]))
-            _basis(np.stack([c.phase_at(t, miss) for t in self.times], axis=1).ravel(), c.harmonics, bs)
+            _basis(c.phase_at(self.times, miss).T.ravel(), c.harmonics, bs)
             e = c.embedding
             _instant_blocks(c.coef, bs.reshape(miss.size, P, -1), c.weights, c.bases, e.origin, e.axes, miss, slots,
                             self.src, self.frc)
