@@ -70,7 +70,7 @@ from ciliary_carpet.carpet.cycles import CycleData
 from ciliary_carpet.stokes import QUADRUPOLE, QUADRUPOLE_INV, Kernel
 
 __all__ = ["Bounds", "CarrierForces", "Carriers", "DIPOLE", "DESIGN_DIPOLE", "HARMONIC_TAIL", "InstantCarriers",
-           "InstantForces", "LOD_SLACK", "LOD_SLACK_STANDING", "PHASE_MARGIN",
+           "InstantForces", "LOD_SLACK", "LOD_SLACK_STANDING", "MomentRows", "PHASE_MARGIN",
            "dipole_forces", "triangle"]
 
 PHASE_MARGIN = 1.25
@@ -260,8 +260,9 @@ def _stacked_at(coef_t, ph, delta, inv3, inv6, axes, js, sel, kc, what, out):  #
     the order of :meth:`Carriers.positions` of ``js``, as coordinate rows (out (T, 3, 10 n), n = len(js);
     only the rows of ``sel``'s cilia and of ``what`` are written: :data:`MONO_DIPOLE`,
     :data:`QUADRUPOLES` or :data:`ALL_ORDERS`): per cilium (in parallel) and time its moments F,
-    D (and T) from the first ``kc`` harmonics of their trigonometric interpolant (coef_t (N, 14,
-    2K-1), as :func:`~ciliary_carpet.carpet.cycles._moments_at`; :data:`_ROWS`), the dipole
+    D (and T) from the first ``kc`` harmonics of their trigonometric interpolant (coef_t (n, 14,
+    2K-1) in the order of ``js``, as :func:`~ciliary_carpet.carpet.cycles._moments_at`, and so
+    ``delta`` (n,) and ``axes`` (n, 3, 2): :class:`MomentRows`; :data:`_ROWS`), the dipole
     carriers' forces f3 = inv3 (F, D_0 / delta, D_1 / delta) (:func:`dipole_forces`), the
     quadrupole carriers' f6 = inv6 (F, D / delta, T / delta^2) (:func:`_carrier_sets`), each
     mapped into space by the cilium's axes (N, 3, 2) (:func:`_stack`). One pass for what
@@ -283,9 +284,10 @@ def _stacked_at(coef_t, ph, delta, inv3, inv6, axes, js, sel, kc, what, out):  #
         r = np.empty((6, 2))
         for w in range(blk * _STACK_BLOCK, min(ns, (blk + 1) * _STACK_BLOCK)):
             q = sel[w]
-            j = js[q]
+            pj = js[q]  # the cilium, for its phase; its coefficients, scale and axes are row q
+            j = q
             for tt in range(nt):
-                th = 2.0 * np.pi * ph[tt, j]
+                th = 2.0 * np.pi * ph[tt, pj]
                 cc = np.cos(th)
                 ss = np.sin(th)
                 b[tt, 0] = 1.0
@@ -483,6 +485,22 @@ wall's faster decay leave its bounds 16-50 times looser than a planar carpet's, 
 still what ``error_bound`` reports."""
 
 
+@dataclass(frozen=True, eq=False)
+class MomentRows:
+    """What :func:`_stacked_at` reads of cilia ``js``, in that order (the order a sum reads their
+    carriers): ``coef`` (n, 14, 2 kc - 1) the moments' interpolant cut to its first ``kc``
+    harmonics (cosines 0 ... kc - 1, then sines 1 ... kc - 1), ``delta`` (n,) the carriers' scales,
+    ``axes`` (n, 3, 2) the frames' axes in space. Every instant reads all of them: contiguous per
+    cilium in the order of the sum, 10^4 cilia take 1.5 times less than read from the full arrays
+    (:meth:`Carriers.rows`)."""
+
+    js: np.ndarray
+    kc: int
+    coef: np.ndarray
+    delta: np.ndarray
+    axes: np.ndarray
+
+
 class Carriers:
     """The level-of-detail carriers of a carpet's cilia and their rigorous bounds (module
     docstring), for the cycle data ``cycles`` and the Green's function ``kernel`` (its Taylor
@@ -499,6 +517,34 @@ class Carriers:
         """(c1, c2, c3): the kernel's Taylor constants for the directions the cilia's frames take
         (in the plane of a wall, or any: :meth:`Kernel.taylor_constants
         <ciliary_carpet.stokes.kernel.Kernel.taylor_constants>`)."""
+
+    _ROWS_KEPT = 4
+    """Plans whose :class:`MomentRows` a carpet keeps (:meth:`rows`)."""
+
+    def rows(self, js: np.ndarray, kc: int) -> MomentRows:
+        """The :class:`MomentRows` of cilia ``js`` (a plan's order) with ``kc`` harmonics, made once
+        per array ``js`` (kept for the last few; not pickled)."""
+        cache = self.__dict__.setdefault("_rows", {})
+        hit = cache.get((id(js), kc))
+        if hit is not None and hit.js is js:
+            return hit
+        c = self.cycles
+        K = (c.moment_coef.shape[2] + 1) // 2
+        kc = int(min(max(kc, 1), K))
+        idx = np.asarray(js, dtype=np.int64)
+        cols = np.r_[np.arange(kc), K + np.arange(kc - 1)]
+        rows = MomentRows(js=js, kc=kc, coef=np.ascontiguousarray(c.moment_coef[idx][:, :, cols]),
+                          delta=np.ascontiguousarray(self.delta[idx]),
+                          axes=np.ascontiguousarray(c.embedding.axes[idx]))
+        if len(cache) >= self._ROWS_KEPT:
+            cache.clear()
+        cache[(id(js), kc)] = rows
+        return rows
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.pop("_rows", None)
+        return state
 
     def forces(self, F: np.ndarray, D: np.ndarray, T: np.ndarray, delta: np.ndarray | None = None) -> CarrierForces:
         """The carriers for moments F (K, 2), D (K, 2, 2), T (K, 2, 2, 2) of cilia of carrier scale
@@ -638,6 +684,7 @@ class InstantCarriers:
         self.carriers = carriers
         K = (carriers.cycles.moment_coef.shape[2] + 1) // 2
         self.kc = K if kc is None else int(min(max(kc, 1), K))
+        self.rows = carriers.rows(js, self.kc)
         n = self.js.size
         shape = (self.ph.shape[0], 3, 10 * n)
         self.out = out if out is not None and out.shape == shape else np.empty(shape)  # a spare: no fresh pages
@@ -645,9 +692,9 @@ class InstantCarriers:
         self._make(np.arange(n, dtype=np.int64), ALL_ORDERS if eager else MONO_DIPOLE)
 
     def _make(self, sel: np.ndarray, what: int) -> None:
-        c = self.carriers
-        _stacked_at(c.cycles.moment_coef, self.ph, c.delta, DIPOLE_INV, QUADRUPOLE_INV, c.cycles.embedding.axes,
-                    self.js, sel, self.kc, what, self.out)
+        r = self.rows
+        _stacked_at(r.coef, self.ph, r.delta, DIPOLE_INV, QUADRUPOLE_INV, r.axes, self.js, sel, self.kc, what,
+                    self.out)
 
     @property
     def forces(self) -> np.ndarray:
