@@ -546,6 +546,16 @@ class ThrustTable:
     def _angle(self, chi_N):
         return self._splines["thrust_angle"](chi_N)
 
+    def _angle_samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """The thrust angle at 2001 chi_N over the branch (:meth:`_angle_branch`), made once: where
+        :meth:`chi_N_for_angle` looks for its bracket (a design asks it for every cilium)."""
+        got = self.__dict__.get("_angle_curve")
+        if got is None:
+            b0, b1 = self._angle_branch()
+            xs = np.linspace(b0, b1, 2001)
+            got = self.__dict__["_angle_curve"] = (xs, self._angle(xs))
+        return got
+
     def thrust_angle_range(self, chi_E: float | None = None, *, U_par: float | None = None,
                            U_perp: float | None = None) -> tuple[float, float]:
         """The thrust angles the computed flutter rows reach (chi_N >= 0) under the field ``chi_E``
@@ -556,8 +566,7 @@ class ThrustTable:
             return float(vals.min()), float(vals.max())
         if t is not self:
             return t.thrust_angle_range()
-        a, b = self._angle_branch()
-        vals = self._angle(np.linspace(a, b, 2001))
+        vals = self._angle_samples()[1]
         return float(vals.min()), float(vals.max())
 
     def chi_N_for_angle(self, angle: float, chi_E: float | None = None, *, U_par: float | None = None,
@@ -580,9 +589,7 @@ class ThrustTable:
             def f(x):
                 return float(self._flow.scalar("thrust_angle", x, 0, up, uq))
         else:
-            b0, b1 = self._angle_branch()
-            xs = np.linspace(b0, b1, 2001)
-            vals = self._angle(xs)
+            xs, vals = self._angle_samples()
             f = self._angle
         lo, hi = float(vals.min()), float(vals.max())
         a = abs(angle)
