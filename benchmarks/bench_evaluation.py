@@ -18,8 +18,10 @@ tolerance), one numba thread, three ways in the same run:
 rtol and atol: ``PATHLINE_TOL``, ``PATHLINE_RTOL``, ``PATHLINE_ATOL`` x spacing) over the
 fraction F of its duration, one thread, with where its time goes: the flow's ``prepare`` (the
 carriers of a step's instants) and its evaluations by the number of tracers they carry (the
-common steps carry them all, the substeps of tracers near a filament one to a few). Run it on
-two checkouts (``PYTHONPATH``) to compare code.
+common steps carry them all, the substeps of tracers near a filament one to a few); then the
+same for the error estimate's reference run (8 of the tracers, every tolerance tighter: what runs
+beside the path lines on the second core). Run it on two checkouts (``PYTHONPATH``) to compare
+code.
 
 Times are per evaluation (median of repeats), with the largest difference of the velocities
 from the moments' path relative to the largest speed (the fused and prepared ones equal each
@@ -111,9 +113,17 @@ def measure(n: int, points: list[int], repeats: int) -> list[str]:
 
 def pathline_split(n: int, fraction: float) -> list[str]:
     """The render's path-line call on the N x N carpet over ``fraction`` of its duration, one
-    thread: its seconds and evaluations, and their split (module docstring)."""
+    thread: its seconds and evaluations, and their split (module docstring); then the same for its
+    error estimate's reference run (:func:`~ciliary_carpet.output.outputs.error_reference`: 8 of the
+    tracers, flow tol, rtol and atol tighter by :data:`~ciliary_carpet.output.outputs.REFERENCE_TIGHTER`)."""
     import bench_large
-    from ciliary_carpet.output.outputs import PATHLINE_ATOL, PATHLINE_RTOL, PATHLINE_TOL
+    from ciliary_carpet.output.outputs import (
+        PATHLINE_ATOL,
+        PATHLINE_RTOL,
+        PATHLINE_TOL,
+        REFERENCE_TIGHTER,
+        error_tracers,
+    )
     from ciliary_carpet.transport.flow import ResolvedFlow
     from ciliary_carpet.transport.pathlines import pathlines
 
@@ -137,21 +147,27 @@ def pathline_split(n: int, fraction: float) -> list[str]:
             self.log["evals"].append((x.shape[0], time.perf_counter() - t0))
             return u
 
-    kw = dict(rtol=PATHLINE_RTOL, atol=PATHLINE_ATOL * spacing, samples_per_period=16)
-    pathlines(ResolvedFlow(c, PATHLINE_TOL), plan.seeds, (0.0, 0.01), **kw)  # compiled, plans made
-    flow = Timed(c, PATHLINE_TOL)
-    t = time.perf_counter()
-    pl = pathlines(flow, plan.seeds, (0.0, plan.duration * fraction), **kw)
-    wall = time.perf_counter() - t
-    ev = np.array(flow.log["evals"])
-    few = ev[:, 0] < 20
-    prep_s, prep_n = flow.log["prepare"]
-    row = (f"| {n} x {n} | {fraction:g} | {wall:.2f} | {ev.shape[0]} | {prep_s:.2f} ({prep_n}) | "
-           f"{ev[~few, 1].sum():.2f} ({int((~few).sum())}) | {ev[few, 1].sum():.2f} ({int(few.sum())}) | "
-           f"{wall - prep_s - ev[:, 1].sum():.2f} | {pl.stats['steps']} / {pl.stats['substeps']} / "
-           f"{pl.stats['rejected']} | {_load()} |")
-    print(row, flush=True)
-    return [row]
+    ft, ti = REFERENCE_TIGHTER
+    rows = []
+    for what, seeds, tol, rtol, atol, spp in (
+            ("render", plan.seeds, PATHLINE_TOL, PATHLINE_RTOL, PATHLINE_ATOL * spacing, 16),
+            ("reference", plan.seeds[error_tracers(len(plan.seeds))], PATHLINE_TOL / ft, PATHLINE_RTOL / ti,
+             PATHLINE_ATOL * spacing / ti, 1)):
+        kw = dict(rtol=rtol, atol=atol, samples_per_period=spp)
+        pathlines(ResolvedFlow(c, tol), seeds, (0.0, 0.01), **kw)  # compiled, plans made
+        flow = Timed(c, tol)
+        t = time.perf_counter()
+        pl = pathlines(flow, seeds, (0.0, plan.duration * fraction), **kw)
+        wall = time.perf_counter() - t
+        ev = np.array(flow.log["evals"])
+        few = ev[:, 0] < 20
+        prep_s, prep_n = flow.log["prepare"]
+        rows.append(f"| {n} x {n}, {what} ({len(seeds)} tracers) | {fraction:g} | {wall:.2f} | {ev.shape[0]} | "
+                    f"{prep_s:.2f} ({prep_n}) | {ev[~few, 1].sum():.2f} ({int((~few).sum())}) | "
+                    f"{ev[few, 1].sum():.2f} ({int(few.sum())}) | {wall - prep_s - ev[:, 1].sum():.2f} | "
+                    f"{pl.stats['steps']} / {pl.stats['substeps']} / {pl.stats['rejected']} | {_load()} |")
+        print(rows[-1], flush=True)
+    return rows
 
 
 def main(argv=None) -> str:
@@ -177,9 +193,10 @@ def main(argv=None) -> str:
     for n in a.sizes:
         rows += measure(n, a.points, a.repeats)
     if a.pathlines is not None:
-        rows += ["", f"The render's path lines over a fraction of their duration (`--pathlines {a.pathlines:g}`), one "
-                 "thread: seconds in all, in the flow's prepare (calls), in evaluations of 20 tracers or more "
-                 "(the common steps) and of fewer (the substeps), and the rest (the integrator).", "",
+        rows += ["", f"The render's path lines and its error estimate's reference run over a fraction of their "
+                 f"duration (`--pathlines {a.pathlines:g}`), one thread: seconds in all, in the flow's prepare "
+                 "(calls), in evaluations of 20 tracers or more (the common steps) and of fewer (the substeps), "
+                 "and the rest (the integrator).", "",
                  "| carpet | fraction | seconds | evaluations | prepare | evaluations >= 20 tracers | "
                  "evaluations < 20 tracers | rest | steps / substeps / rejected | load |",
                  "|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
