@@ -638,8 +638,12 @@ class Carpet:
         (:meth:`velocity`): their carriers' forces are made together, in one read of the moments'
         coefficients instead of one per instant (an integrator's stages; the five of a step cost
         2.6 times one on 30 x 30 cilia, 3.5 times on 100 x 100, where the quadrupoles are made
-        later, at tol 1e-4). The instants kept before are dropped and their buffers reused.
-        Optional: an evaluation at an instant not prepared makes its own."""
+        later, at tol 1e-4); the resolved sources of a cilium near the points are made the first
+        time an evaluation at one of these instants needs them, for all of them at once, and kept
+        (:class:`~ciliary_carpet.carpet.cycles.InstantBlocks`: reading a cilium's coefficients is
+        most of what making its sources costs). The instants kept before are dropped and their
+        buffers reused. Optional: an evaluation at an instant not prepared makes its own; the
+        velocities are the same to the bit either way."""
         tol = self._tol(tol)
         if tol == 0:
             return
