@@ -74,6 +74,46 @@ def test_an_unregistered_file_is_not_placed(tmp_path, monkeypatch):
     assert not (tmp_path / "out").exists()
 
 
+def test_frames_written_by_the_render_threads(tmp_path, monkeypatch):
+    """The cilia frames are written by as many threads as the render's numba threads, each file
+    complete and listed in order in cilia.pvd; a write that fails in a thread fails the render
+    with its error (the file named), and nothing is placed."""
+    import threading
+    import xml.etree.ElementTree as ET
+
+    import ciliary_carpet.output.outputs as outputs
+    from ciliary_carpet.output.vtkfiles import OutputError
+
+    p = tmp_path / "s.toml"
+    p.write_text('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 2\nperiods = 1.0\nfield_shape = [6, 6]\n'
+                 'snapshots = 0\nframes = 6\npreview = false\nftle = false\npathlines = false\n')
+    real, seen = outputs.write_cilia, set()
+
+    def spy(path, *a, **k):
+        seen.add(threading.get_ident())
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(outputs, "write_cilia", spy)
+    monkeypatch.setattr(outputs, "threads_in_use", lambda: {"numba": 2, "blas": 1, "workers": 1})
+    res = render(load_scene(p), tmp_path / "out")
+    pvd = ET.parse(tmp_path / "out" / "cilia.pvd").getroot()
+    files = [d.get("file") for d in pvd.iter("DataSet")]
+    assert files[:6] == [f"cilia_{k:03d}.vtp" for k in range(6)]
+    assert all((tmp_path / "out" / f).stat().st_size > 0 for f in set(files))
+    assert threading.get_ident() not in seen and len(seen) <= 2  # the writers, not the render's thread
+    assert res.summary["seconds"]["frames"] > 0
+
+    def broken(path, *a, **k):
+        if path.name == "cilia_003.vtp":
+            raise OutputError(path, "no space left on device")
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(outputs, "write_cilia", broken)
+    with pytest.raises(OutputError, match="cilia_003.vtp.*no space left"):
+        render(load_scene(p), tmp_path / "out2")
+    assert not (tmp_path / "out2").exists()
+
+
 def test_carpet_layer_imports_no_private_module_of_single_cilium():
     root = Path(ciliary_carpet.__file__).parent
     bad = []
