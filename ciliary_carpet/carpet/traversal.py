@@ -93,17 +93,92 @@ def _window(x, y, x0, y0, h, nx, ny, reach):  # pragma: no cover - compiled
     return gx0, gx1, gy0, gy1
 
 
-@njit(cache=True, parallel=True)
-def _upper(targets, cell_ptr, x0, y0, h, nx, ny, reach, n_always, uptr):  # pragma: no cover - compiled
-    """uptr[i + 1] = an upper bound of target i's ranges (and resolved cilia) in
+@njit(cache=True, inline="always")
+def _upper_at(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always):  # pragma: no cover - compiled
+    """An upper bound of the ranges (and resolved cilia) of a target at (x, y) in
     :func:`_traverse`: the cilia of its cells, one run of far cilia before each column of cells
     and after the last, and the cilia always resolved."""
+    gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
+    k = gx1 - gx0 + 2 + n_always
+    for gx in range(gx0, gx1 + 1):
+        k += cell_ptr[gx * ny + gy1 + 1] - cell_ptr[gx * ny + gy0]
+    return k
+
+
+@njit(cache=True, parallel=True)
+def _upper(targets, cell_ptr, x0, y0, h, nx, ny, reach, n_always, uptr):  # pragma: no cover - compiled
+    """uptr[i + 1] = :func:`_upper_at` of target i."""
     for i in prange(targets.shape[0]):
-        gx0, gx1, gy0, gy1 = _window(targets[i, 0], targets[i, 1], x0, y0, h, nx, ny, reach)
-        k = gx1 - gx0 + 2 + n_always
-        for gx in range(gx0, gx1 + 1):
-            k += cell_ptr[gx * ny + gy1 + 1] - cell_ptr[gx * ny + gy0]
-        uptr[i + 1] = k
+        uptr[i + 1] = _upper_at(targets[i, 0], targets[i, 1], cell_ptr, x0, y0, h, nx, ny, reach, n_always)
+
+
+@njit(cache=True, inline="always")
+def _traverse_at(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+                 uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover - compiled
+    """Target i's ranges and resolved cilia (:func:`_traverse`)."""
+    n_p = scx.shape[0]
+    x = targets[i, 0]
+    y = targets[i, 1]
+    z = targets[i, 2]
+    gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
+    r = uptr[i]
+    k = uptr[i]
+    seg = -1
+    lo = 0
+    hi = 0
+    count = counts[i]
+    count[:] = 0
+    pos = 0
+    for gx in range(gx0, gx1 + 2):
+        if gx <= gx1:
+            a = cell_ptr[gx * ny + gy0]
+            b = cell_ptr[gx * ny + gy1 + 1]
+        else:  # past the last column: the rest is far
+            a = n_p
+            b = n_p
+        if a > pos:  # a run of far cilia
+            if seg == far and hi == pos:
+                hi = a
+            else:
+                r = _close(seg, lo, hi, r, ranges, n_p, count)
+                seg = far
+                lo = pos
+                hi = a
+        for q in range(a, b):
+            dx = x - scx[q]
+            dy = y - scy[q]
+            dz = z - scz[q]
+            R2 = dx * dx + dy * dy + dz * dz  # squared distance against squared thresholds
+            if R2 >= sR1[q]:
+                t = 0
+            elif R2 >= sR2[q]:
+                t = 1
+            elif R2 >= sR3[q]:
+                t = 2
+            else:
+                t = 3
+            if t == seg and hi == q:
+                hi = q + 1
+                continue
+            r = _close(seg, lo, hi, r, ranges, n_p, count)
+            if t == 3:
+                seg = -1
+                _resolve(sj[q], r, k, ranges, res_j, res_r)
+                r += 1
+                k += 1
+            else:
+                seg = t
+                lo = q
+                hi = q + 1
+        if b > pos:
+            pos = b
+    r = _close(seg, lo, hi, r, ranges, n_p, count)
+    for q in range(always.shape[0]):
+        _resolve(always[q], r, k, ranges, res_j, res_r)
+        r += 1
+        k += 1
+    nr[i] = r - uptr[i]
+    nres[i] = k - uptr[i]
 
 
 @njit(cache=True, parallel=True)
@@ -128,70 +203,23 @@ def _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx
     Target i writes its ranges and resolved cilia from row uptr[i] on (:func:`_upper` bounds
     their number), and its counts: nr[i] ranges, nres[i] resolved cilia, counts[i] its pairs at
     the three cheap orders (:func:`_compact` then packs the rows)."""
-    n_p = scx.shape[0]
     for i in prange(targets.shape[0]):
-        x = targets[i, 0]
-        y = targets[i, 1]
-        z = targets[i, 2]
-        gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
-        r = uptr[i]
-        k = uptr[i]
-        seg = -1
-        lo = 0
-        hi = 0
-        count = counts[i]
-        count[:] = 0
-        pos = 0
-        for gx in range(gx0, gx1 + 2):
-            if gx <= gx1:
-                a = cell_ptr[gx * ny + gy0]
-                b = cell_ptr[gx * ny + gy1 + 1]
-            else:  # past the last column: the rest is far
-                a = n_p
-                b = n_p
-            if a > pos:  # a run of far cilia
-                if seg == far and hi == pos:
-                    hi = a
-                else:
-                    r = _close(seg, lo, hi, r, ranges, n_p, count)
-                    seg = far
-                    lo = pos
-                    hi = a
-            for q in range(a, b):
-                dx = x - scx[q]
-                dy = y - scy[q]
-                dz = z - scz[q]
-                R2 = dx * dx + dy * dy + dz * dz  # squared distance against squared thresholds
-                if R2 >= sR1[q]:
-                    t = 0
-                elif R2 >= sR2[q]:
-                    t = 1
-                elif R2 >= sR3[q]:
-                    t = 2
-                else:
-                    t = 3
-                if t == seg and hi == q:
-                    hi = q + 1
-                    continue
-                r = _close(seg, lo, hi, r, ranges, n_p, count)
-                if t == 3:
-                    seg = -1
-                    _resolve(sj[q], r, k, ranges, res_j, res_r)
-                    r += 1
-                    k += 1
-                else:
-                    seg = t
-                    lo = q
-                    hi = q + 1
-            if b > pos:
-                pos = b
-        r = _close(seg, lo, hi, r, ranges, n_p, count)
-        for q in range(always.shape[0]):
-            _resolve(always[q], r, k, ranges, res_j, res_r)
-            r += 1
-            k += 1
-        nr[i] = r - uptr[i]
-        nres[i] = k - uptr[i]
+        _traverse_at(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+                     uptr, nr, nres, counts, ranges, res_j, res_r)
+
+
+@njit(cache=True, inline="always")
+def _compact_at(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r):  # pragma: no cover
+    """Target i's rows of :func:`_compact`."""
+    u = uptr[i]
+    p = ptr[i]
+    for q in range(nr[i]):
+        ranges[p + q, 0] = ranges_u[u + q, 0]
+        ranges[p + q, 1] = ranges_u[u + q, 1]
+    rp = rptr[i]
+    for q in range(nres[i]):
+        res_j[rp + q] = res_j_u[u + q]
+        res_r[rp + q] = res_r_u[u + q] - u + p
 
 
 @njit(cache=True, parallel=True)
@@ -199,15 +227,7 @@ def _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_
     """Pack target i's rows of :func:`_traverse` (from uptr[i]) into CSR rows ptr[i] ... (ranges)
     and rptr[i] ... (resolved cilia, their range indices shifted along)."""
     for i in prange(nr.shape[0]):
-        u = uptr[i]
-        p = ptr[i]
-        for q in range(nr[i]):
-            ranges[p + q, 0] = ranges_u[u + q, 0]
-            ranges[p + q, 1] = ranges_u[u + q, 1]
-        rp = rptr[i]
-        for q in range(nres[i]):
-            res_j[rp + q] = res_j_u[u + q]
-            res_r[rp + q] = res_r_u[u + q] - u + p
+        _compact_at(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
 
 
 @njit(cache=True, parallel=True)
@@ -228,13 +248,19 @@ def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compile
 @njit(cache=True)
 def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
            max_rows):  # pragma: no cover - compiled
-    """Every target's ranges in CSR, one call for :func:`_upper`, :func:`_traverse` and
-    :func:`_compact` (the arguments of :attr:`Plan.traverse`): ``(ptr, ranges, rptr, res_j,
+    """Every target's ranges in CSR, what :func:`_upper`, :func:`_traverse` and :func:`_compact`
+    make, in one call (the arguments of :attr:`Plan.traverse`): ``(ptr, ranges, rptr, res_j,
     counts, uptr)``; when the bound uptr[-1] of the rows exceeds ``max_rows`` (and there are
-    several targets) only ``uptr`` is made, the others are empty (the caller splits the targets)."""
+    several targets) only ``uptr`` is made, the others are empty (the caller splits the targets).
+    Serial, the kernels' per-target steps inlined: a parallel region costs more than the lists of
+    a few targets (35 us for a whole evaluation at one point on 30 x 30), and a compiled function
+    that starts the parallel kernels returns with Python's error set when a signal (Ctrl-C) arrives
+    meanwhile (a SystemError instead of the KeyboardInterrupt)."""
     m = targets.shape[0]
     uptr = np.zeros(m + 1, np.int64)
-    _upper(targets, cell_ptr, x0, y0, h, nx, ny, reach, always.shape[0], uptr)
+    n_always = always.shape[0]
+    for i in range(m):
+        uptr[i + 1] = _upper_at(targets[i, 0], targets[i, 1], cell_ptr, x0, y0, h, nx, ny, reach, n_always)
     for i in range(m):
         uptr[i + 1] += uptr[i]
     if uptr[m] > max_rows and m > 1:
@@ -247,8 +273,9 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     nr = np.empty(m, np.int64)
     nres = np.empty(m, np.int64)
     counts = np.empty((m, 3), np.int64)
-    _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-              uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
+    for i in range(m):
+        _traverse_at(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+                     uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
     ptr = np.zeros(m + 1, np.int64)
     rptr = np.zeros(m + 1, np.int64)
     for i in range(m):
@@ -257,7 +284,8 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     ranges = np.empty((ptr[m], 2), np.int64)
     res_j = np.empty(rptr[m], np.int64)
     res_r = np.empty(rptr[m], np.int64)
-    _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
+    for i in range(m):
+        _compact_at(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
     return ptr, ranges, rptr, res_j, counts, uptr
 
 
