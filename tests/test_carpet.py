@@ -328,7 +328,7 @@ def test_level_of_detail_calibration_margin(table, wall):
 
 def _orders_of(carpet, plan, s_ranges, ptr, res_j, rptr, m):
     """(M, N) the order each target's ranges give each cilium (0 monopole, 1 dipole, 2
-    quadrupole, 3 resolved; -1 none), decoded from the carrier segments of :func:`_traverse`."""
+    quadrupole, 3 resolved; -1 none), decoded from the carrier segments of :func:`_lists`."""
     sj = plan.order
     n_p = sj.size
     out = np.full((m, carpet.n), -1)
@@ -364,16 +364,9 @@ def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
     for tol in (1e-2, 1e-3):
         plan = cm.make_plan(carpet.carriers.over_cycle.thresholds(tol), carpet.carriers)
         fars.add(plan.far)
-        uptr = np.zeros(m + 1, np.int64)
-        cm._upper(x, *plan.grid, plan.always.size, uptr)
-        np.cumsum(uptr, out=uptr)
-        ru, ju, rr = np.empty((uptr[-1], 2), np.int64), np.empty(uptr[-1], np.int64), np.empty(uptr[-1], np.int64)
-        nr, nres, counts = np.empty(m, np.int64), np.empty(m, np.int64), np.empty((m, 3), np.int64)
-        cm._traverse(x, *plan.traverse, uptr, nr, nres, counts, ru, ju, rr)
+        ptr, ranges, rptr, res_j, res_r, counts, uptr = cm._lists(x, *plan.traverse, cm._MAX_ROWS)
+        nr, nres = np.diff(ptr), np.diff(rptr)
         assert np.all(nr <= np.diff(uptr)) and np.all(nres <= nr)
-        ptr, rptr = np.r_[0, np.cumsum(nr)], np.r_[0, np.cumsum(nres)]
-        ranges, res_j, res_r = np.empty((ptr[-1], 2), np.int64), np.empty(rptr[-1], np.int64), np.empty(rptr[-1], np.int64)
-        cm._compact(uptr, nr, nres, ptr, rptr, ru, ju, rr, ranges, res_j, res_r)
         got = _orders_of(carpet, plan, ranges, ptr, res_j, rptr, m)
         R = np.linalg.norm(x[:, None, :] - np.c_[carpet.centres, np.zeros(carpet.n)][None], axis=-1)
         R1, R2, R3 = plan.thresholds

@@ -47,7 +47,7 @@ _CLASSIFY = 5.0
 the far cilia (:func:`_far_order`)."""
 _MAX_ROWS = 1 << 23
 """An evaluation's targets are taken in parts when their source ranges could take more rows than
-this (128 MB: :func:`_upper`)."""
+this (128 MB: :func:`_upper`, :func:`_lists`)."""
 _CHUNK_SOURCES = 1 << 19
 """The resolved near-field sources of a flow evaluation are made and summed in chunks of cilia
 of at most this many sources (3 MB per coordinate array): :func:`flow_sum`."""
@@ -94,7 +94,7 @@ def _window(x, y, x0, y0, h, nx, ny, reach):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always")
-def _upper_at(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always):  # pragma: no cover - compiled
+def _upper(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always):  # pragma: no cover - compiled
     """An upper bound of the ranges (and resolved cilia) of a target at (x, y) in
     :func:`_traverse`: the cilia of its cells, one run of far cilia before each column of cells
     and after the last, and the cilia always resolved."""
@@ -105,17 +105,28 @@ def _upper_at(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always):  # pragma: no
     return k
 
 
-@njit(cache=True, parallel=True)
-def _upper(targets, cell_ptr, x0, y0, h, nx, ny, reach, n_always, uptr):  # pragma: no cover - compiled
-    """uptr[i + 1] = :func:`_upper_at` of target i."""
-    for i in prange(targets.shape[0]):
-        uptr[i + 1] = _upper_at(targets[i, 0], targets[i, 1], cell_ptr, x0, y0, h, nx, ny, reach, n_always)
-
-
 @njit(cache=True, inline="always")
-def _traverse_at(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-                 uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover - compiled
-    """Target i's ranges and resolved cilia (:func:`_traverse`)."""
+def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+              uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover - compiled
+    """For target i of ``targets`` (M, 3) the list of source ranges of one ranged sum: each
+    present cilium q (sorted by grid cell: centres scx, scy, scz, the squares of the thresholds
+    sR1, sR2, sR3, cilium index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
+    the target: its monopole carrier (row q) when R >= R1, else its three dipole carriers (rows
+    n_p + 3q ...) when R >= R2, else its six quadrupole carriers (rows 4 n_p + 6q ...) when R >= R3,
+    else its resolved block (an empty range, summed apart by the caller; the cilium and the range
+    go to res_j, res_r). Consecutive cilia at the same order make one range.
+
+    Only the cilia of the (2 reach + 1)^2 cells around the target's (origin x0, y0, nx x ny
+    cells of side h; cell c holds the sorted cilia cell_ptr[c] ... cell_ptr[c + 1]) are looked
+    at (the grid is over x, y: a distance in space is at least the one in the plane): every
+    other cilium is further than reach h and is summed at the order ``far`` (0, 1 or 2),
+    taken as the runs between those cells; the caller makes reach h at least the threshold of
+    that order (max R1 for monopoles, max R2 for dipoles, with R1 = inf). The cilia ``always``
+    (no finite threshold) are resolved for every target.
+
+    Target i writes its ranges and resolved cilia from row uptr[i] on (:func:`_upper` bounds
+    their number), and its counts: nr[i] ranges, nres[i] resolved cilia, counts[i] its pairs at
+    the three cheap orders (:func:`_compact` then packs the rows)."""
     n_p = scx.shape[0]
     x = targets[i, 0]
     y = targets[i, 1]
@@ -181,36 +192,10 @@ def _traverse_at(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0,
     nres[i] = k - uptr[i]
 
 
-@njit(cache=True, parallel=True)
-def _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-              uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover - compiled
-    """Per target i (M, 3) the list of source ranges of one ranged sum: each present cilium q
-    (sorted by grid cell: centres scx, scy, scz, the squares of the thresholds sR1, sR2, sR3,
-    cilium index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
-    the target: its monopole carrier (row q) when R >= R1, else its three dipole carriers (rows
-    n_p + 3q ...) when R >= R2, else its six quadrupole carriers (rows 4 n_p + 6q ...) when R >= R3,
-    else its resolved block (an empty range, summed apart by the caller; the cilium and the range
-    go to res_j, res_r). Consecutive cilia at the same order make one range.
-
-    Only the cilia of the (2 reach + 1)^2 cells around the target's (origin x0, y0, nx x ny
-    cells of side h; cell c holds the sorted cilia cell_ptr[c] ... cell_ptr[c + 1]) are looked
-    at (the grid is over x, y: a distance in space is at least the one in the plane): every
-    other cilium is further than reach h and is summed at the order ``far`` (0, 1 or 2),
-    taken as the runs between those cells; the caller makes reach h at least the threshold of
-    that order (max R1 for monopoles, max R2 for dipoles, with R1 = inf). The cilia ``always``
-    (no finite threshold) are resolved for every target.
-
-    Target i writes its ranges and resolved cilia from row uptr[i] on (:func:`_upper` bounds
-    their number), and its counts: nr[i] ranges, nres[i] resolved cilia, counts[i] its pairs at
-    the three cheap orders (:func:`_compact` then packs the rows)."""
-    for i in prange(targets.shape[0]):
-        _traverse_at(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-                     uptr, nr, nres, counts, ranges, res_j, res_r)
-
-
 @njit(cache=True, inline="always")
-def _compact_at(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r):  # pragma: no cover
-    """Target i's rows of :func:`_compact`."""
+def _compact(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r):  # pragma: no cover
+    """Pack target i's rows of :func:`_traverse` (from uptr[i]) into CSR rows ptr[i] ... (ranges)
+    and rptr[i] ... (resolved cilia, their range indices shifted along)."""
     u = uptr[i]
     p = ptr[i]
     for q in range(nr[i]):
@@ -220,14 +205,6 @@ def _compact_at(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges
     for q in range(nres[i]):
         res_j[rp + q] = res_j_u[u + q]
         res_r[rp + q] = res_r_u[u + q] - u + p
-
-
-@njit(cache=True, parallel=True)
-def _compact(uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r):  # pragma: no cover
-    """Pack target i's rows of :func:`_traverse` (from uptr[i]) into CSR rows ptr[i] ... (ranges)
-    and rptr[i] ... (resolved cilia, their range indices shifted along)."""
-    for i in prange(nr.shape[0]):
-        _compact_at(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
 
 
 @njit(cache=True, parallel=True)
@@ -248,24 +225,25 @@ def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compile
 @njit(cache=True)
 def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
            max_rows):  # pragma: no cover - compiled
-    """Every target's ranges in CSR, what :func:`_upper`, :func:`_traverse` and :func:`_compact`
-    make, in one call (the arguments of :attr:`Plan.traverse`): ``(ptr, ranges, rptr, res_j,
-    counts, uptr)``; when the bound uptr[-1] of the rows exceeds ``max_rows`` (and there are
-    several targets) only ``uptr`` is made, the others are empty (the caller splits the targets).
-    Serial, the kernels' per-target steps inlined: a parallel region costs more than the lists of
-    a few targets (35 us for a whole evaluation at one point on 30 x 30), and a compiled function
-    that starts the parallel kernels returns with Python's error set when a signal (Ctrl-C) arrives
-    meanwhile (a SystemError instead of the KeyboardInterrupt)."""
+    """Every target's ranges in CSR (the arguments of :attr:`Plan.traverse` after the targets):
+    row bounds by :func:`_upper`, each target's rows by :func:`_traverse`, packed by
+    :func:`_compact`: ``(ptr, ranges, rptr, res_j, res_r, counts, uptr)``; when the bound
+    uptr[-1] of the rows exceeds ``max_rows`` (and there are several targets) only ``uptr`` is
+    made, the others are empty (the caller splits the targets). Serial: a parallel region costs
+    more than the lists of a few targets (35 us for a whole evaluation at one point on 30 x 30),
+    and a compiled function that starts parallel regions of other compiled functions returns with
+    Python's error set when a signal (Ctrl-C) arrives meanwhile (a SystemError, not the
+    KeyboardInterrupt: tests/test_faults.py)."""
     m = targets.shape[0]
     uptr = np.zeros(m + 1, np.int64)
     n_always = always.shape[0]
     for i in range(m):
-        uptr[i + 1] = _upper_at(targets[i, 0], targets[i, 1], cell_ptr, x0, y0, h, nx, ny, reach, n_always)
+        uptr[i + 1] = _upper(targets[i, 0], targets[i, 1], cell_ptr, x0, y0, h, nx, ny, reach, n_always)
     for i in range(m):
         uptr[i + 1] += uptr[i]
     if uptr[m] > max_rows and m > 1:
         e = np.zeros(0, np.int64)
-        return e, np.zeros((0, 2), np.int64), e, e, np.zeros((0, 3), np.int64), uptr
+        return e, np.zeros((0, 2), np.int64), e, e, e, np.zeros((0, 3), np.int64), uptr
     rows = uptr[m]
     ranges_u = np.empty((rows, 2), np.int64)
     res_j_u = np.empty(rows, np.int64)
@@ -274,8 +252,8 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     nres = np.empty(m, np.int64)
     counts = np.empty((m, 3), np.int64)
     for i in range(m):
-        _traverse_at(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-                     uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
+        _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+                  uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
     ptr = np.zeros(m + 1, np.int64)
     rptr = np.zeros(m + 1, np.int64)
     for i in range(m):
@@ -285,8 +263,8 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     res_j = np.empty(rptr[m], np.int64)
     res_r = np.empty(rptr[m], np.int64)
     for i in range(m):
-        _compact_at(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
-    return ptr, ranges, rptr, res_j, counts, uptr
+        _compact(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, res_j, res_r)
+    return ptr, ranges, rptr, res_j, res_r, counts, uptr
 
 
 @njit(cache=True)
@@ -464,7 +442,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     blk = sources.block
     # the ranges of every point, written into rows bounded by _upper, then packed (the
     # resolved blocks' ranges left empty: summed apart); targets in parts when the bound is very large
-    ptr, ranges, rptr, res_j, counts, uptr = _lists(targets, *plan.traverse, _MAX_ROWS)
+    ptr, ranges, rptr, res_j, _, counts, uptr = _lists(targets, *plan.traverse, _MAX_ROWS)
     if uptr[-1] > _MAX_ROWS and m > 1:
         cut = np.searchsorted(uptr, np.arange(1, -(-int(uptr[-1]) // _MAX_ROWS)) * _MAX_ROWS)
         cut = np.unique(np.clip(cut, 1, m - 1))
