@@ -138,6 +138,34 @@ def test_a_dead_worker_is_named_and_nothing_hangs():
     assert time.monotonic() - t < 20
 
 
+def test_this_process_takes_the_biggest_task_before_any_worker(monkeypatch):
+    """With parent_works, this process takes the biggest task before the dispatcher can hand it to
+    a worker, however late its thread runs (start_after 0: the dispatcher starts at once; here
+    this process's thread waits, once the dispatcher runs, until it has handed a task out). The
+    biggest task cannot be pickled, so a worker given it would fail the run."""
+    import threading
+
+    from ciliary_carpet.transport import parallel
+
+    real = parallel._PoolRun.take
+    main = threading.main_thread()
+
+    def late(self):  # this process's thread takes its first task only once a running dispatcher took one
+        if threading.current_thread() is main and not getattr(self, "_late", False):
+            self._late = True
+            end = time.monotonic() + 20
+            while (any(t.name == "pool-dispatcher" for t in threading.enumerate()) and len(self.queue) == 2
+                   and time.monotonic() < end):
+                time.sleep(0.01)
+        return real(self)
+
+    monkeypatch.setattr(parallel._PoolRun, "take", late)
+    local = lambda: "here"  # noqa: E731 - not picklable
+    res = ProcessPool(1, parent_works=True, start_after=0.0).run(
+        [Task("biggest", local, cost=2.0), Task("small", _sleep, (0.01,), cost=1.0)])
+    assert res[0].value == "here" and res[0].where == "parent"
+
+
 def test_interrupt_stops_the_workers():
     """Ctrl-C in this process (here: raised by its own task once the worker runs a long task)
     stops the worker: no orphan, and quickly."""

@@ -515,12 +515,20 @@ class _PoolRun:
 
     def go(self) -> list[TaskResult]:
         budget = self.pool.budget
+        # this process takes the biggest task before the dispatcher can hand it to a worker (with
+        # start_after 0 the dispatcher's thread could take it first)
+        first = self.take() if self.pool.parent_works else None
+        if first is not None:
+            self.set_busy(0, True)
+            if not self.queue:
+                self.idle.set()
         dispatcher = threading.Thread(target=self.dispatch, args=(budget,), name="pool-dispatcher", daemon=True)
         dispatcher.start()
         try:
             if self.pool.parent_works:
                 with budget.applied(), _placed(self.allow, 0):
-                    while (i := self.take()) is not None:
+                    while (i := first if first is not None else self.take()) is not None:
+                        first = None
                         self.set_busy(0, True)
                         if not self.queue:
                             self.idle.set()
