@@ -563,7 +563,7 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     table, target, bases, frame = built.table, built.target, built.bases, built.frame
     if target.kind == "none":
         return None, built.carpet()
-    if built.carpet().geometry == "standing":
+    if scene.carpet.geometry == "standing":  # (the scene's key: a carpet of 10^4 cilia takes seconds to build)
         return _design_standing(scene, built)
     strict = target.strict
     kw = dict(tol=scene.tolerance, speed_floor=target.speed_floor, smoothness=target.smoothness,
