@@ -568,19 +568,19 @@ class Carpet:
         js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).ravel()
         cen = np.concatenate([self.cycles.centre[js], np.zeros((js.size, 1))], axis=1)
         u = self.velocity(cen, CycleMean(), tol)
-        w = self.cycles.weights
+        # each centre minus its own cilium's resolved mean line: the blocks the resolved mean
+        # flow sums (ResolvedSources, made in one compiled pass or copied where kept)
+        own = ResolvedSources(self.cycles, None, self._mean_blocks)
+        blk = own.block
         for lo in range(0, js.size, _OWN_CHUNK):
-            sl = slice(lo, lo + _OWN_CHUNK)
-            xs, fs = self.cycle_samples(js[sl])  # (m, n_phase, n_s, 2)
-            m, n_p, n_s = xs.shape[:3]
-            src = np.concatenate([xs.reshape(-1, 2), np.zeros((m * n_p * n_s, 1))], axis=1)
-            frc = np.concatenate([(fs * (w / n_p)[None, None, :, None]).reshape(-1, 2), np.zeros((m * n_p * n_s, 1))],
-                                 axis=1)
-            i = np.arange(m, dtype=np.int64)
-            ranges = np.stack([i * n_p * n_s, (i + 1) * n_p * n_s], axis=1)
-            ptr = np.arange(m + 1, dtype=np.int64)
-            u[sl] -= stokeslet_velocity_ranges(cen[sl], src, frc, ptr, ranges, self.mu, kernel=self.kernel,
-                                               backend=self.backend)
+            jc = js[lo:lo + _OWN_CHUNK]
+            src, frc = np.empty((jc.size * blk, 3)), np.empty((jc.size * blk, 3))
+            own.fill(jc, src, frc)
+            i = np.arange(jc.size, dtype=np.int64)
+            u[lo:lo + jc.size] -= stokeslet_velocity_ranges(cen[lo:lo + jc.size], src, frc,
+                                                            np.arange(jc.size + 1, dtype=np.int64),
+                                                            np.stack([i * blk, (i + 1) * blk], axis=1), self.mu,
+                                                            kernel=self.kernel, backend=self.backend)
         return u
 
     def _sum(self, x: np.ndarray, when: When, tol: float, bound: bool = False
