@@ -146,6 +146,7 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
 
     fig = plt.figure(figsize=(9.6, 6.5))
     ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
@@ -155,8 +156,10 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
     _pathlines_from_above(ax, pl, bars, "path lines: time [tau]")
     pos, _, _ = carpet.state(0.0)
     lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
-    for j in range(carpet.n):
-        ax.plot(pos[j, :, 0], pos[j, :, 1], color=plt.cm.coolwarm(0.5 + 0.5 * carpet.chi_N[j] / lim), lw=1.2)
+    # the cilia as one collection, drawn as lines are (zorder 2, projecting caps, round joins): one
+    # artist per cilium took seconds at 10^4 cilia
+    ax.add_collection(LineCollection(pos[:, :, :2], colors=plt.cm.coolwarm(0.5 + 0.5 * carpet.chi_N / lim), lw=1.2,
+                                     capstyle="projecting", joinstyle="round", zorder=2))
     sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim,
                     s=12, zorder=3)
     bars.insert(0, (sc, "cilia: chi_N"))
@@ -190,6 +193,7 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
 
     fig = plt.figure(figsize=(9.6, 6.5))
     ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
@@ -201,17 +205,17 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
     _pathlines_from_above(ax, pl, bars, "path lines (seen from above): time [tau]")
     lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
     cmap = plt.cm.coolwarm
+    ends = np.empty((carpet.n, 2, 2))
     for lo in range(0, carpet.n, 256):  # the footprints: the swept samples of each cilium, seen from above
         js = np.arange(lo, min(lo + 256, carpet.n))
         xs, _ = carpet.cycle_samples(js)  # (m, n_phase, n_s, 2) in each beat plane
         xyz = carpet.embedding.points(xs.reshape(js.size, -1, 2), js)  # (m, n_phase n_s, 3)
-        for k, j in enumerate(js):
-            q = xyz[k, :, :2]
-            along = (q - carpet.bases[j]) @ np.array([np.cos(carpet.azimuth[j]), np.sin(carpet.azimuth[j])])
-            ends = carpet.bases[j] + np.outer([along.min(), along.max()],
-                                             [np.cos(carpet.azimuth[j]), np.sin(carpet.azimuth[j])])
-            ax.plot(ends[:, 0], ends[:, 1], color=cmap(0.5 + 0.5 * carpet.chi_N[j] / lim), lw=2.4,
-                    solid_capstyle="round", alpha=0.9, zorder=2)
+        e = np.stack([np.cos(carpet.azimuth[js]), np.sin(carpet.azimuth[js])], axis=1)  # (m, 2) along each plane
+        along = np.einsum("kpa,ka->kp", xyz[:, :, :2] - carpet.bases[js][:, None], e)
+        ends[js] = carpet.bases[js][:, None] + np.stack([along.min(axis=1), along.max(axis=1)], axis=1)[:, :, None] \
+            * e[:, None]
+    ax.add_collection(LineCollection(ends, colors=cmap(0.5 + 0.5 * carpet.chi_N / lim), lw=2.4, capstyle="round",
+                                     alpha=0.9, zorder=2))
     sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim,
                     s=10, zorder=3, edgecolors="k", linewidths=0.3)
     bars.insert(0, (sc, "cilia footprints: chi_N"))
