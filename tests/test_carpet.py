@@ -510,6 +510,45 @@ def test_fused_carriers_are_the_stacked_moments(table):
             np.testing.assert_array_equal(many[i], one)
 
 
+def test_carriers_pass_runs_over_lanes(table):
+    """The carriers' pass (_stacked_at) takes cilia LANES at a time: its sine and cosine of 2 pi x
+    are numpy's within 1e-15 (quarter phases exact), a subset of cilia is written alone (the other
+    cilia of its blocks untouched), and any count of cilia (none a multiple of LANES) gives the
+    stacked moments."""
+    from numba import njit
+
+    from ciliary_carpet.carpet import carriers
+
+    @njit
+    def both(x):
+        c, s = np.empty_like(x), np.empty_like(x)
+        carriers._sincos_2pi(x, c, s)
+        return c, s
+
+    x = np.concatenate([np.random.default_rng(2).random(100000), np.arange(8) / 8, [np.nextafter(1.0, 0.0)]])
+    c, s = both(x)
+    assert np.abs(c - np.cos(2 * np.pi * x)).max() < 1e-15 and np.abs(s - np.sin(2 * np.pi * x)).max() < 1e-15
+    np.testing.assert_array_equal(both(np.arange(4) / 4.0)[0], [1.0, 0.0, -1.0, 0.0])
+    np.testing.assert_array_equal(both(np.arange(4) / 4.0)[1], [0.0, 1.0, 0.0, -1.0])
+    rng = np.random.default_rng(8)
+    c = Carpet(layout.square(5, 3, 2.0), rng.uniform(-100, 100, 15), table, layout.random_phases(15, 8))
+    js = np.arange(15)[::-1].copy()
+    ph = np.stack([c.cycles.phase_at(t) for t in (0.2, 0.9)])
+    full = carriers.InstantCarriers(c.carriers, ph, js, eager=True).out
+    part = carriers.InstantCarriers(c.carriers, ph, js)  # monopoles and dipoles of all, no quadrupole
+    part.out[:, :, 4 * 15:] = np.nan
+    part._make(np.array([3, 9]), carriers.QUADRUPOLES)  # blocks 0 and 1: two cilia written
+    q = part.out[:, :, 4 * 15:].reshape(2, 3, 15, 6)
+    assert np.isnan(q[:, :, [0, 1, 2, 4, 5, 6, 7, 8, 10, 11, 12, 13, 14]]).all()
+    np.testing.assert_array_equal(q[:, :, [3, 9]], full[:, :, 4 * 15:].reshape(2, 3, 15, 6)[:, :, [3, 9]])
+    for n in (1, 7, 9, 15):
+        sub = js[:n]
+        got = c.carriers.stacked_at(ph[1], sub)
+        F, D, T = c.cycles.moments_at(ph[1])
+        want = c.carriers.stacked(F, c.carriers.forces(F, D, T), sub)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.abs(want).max())
+
+
 def test_velocity_is_evaluate_without_its_bound(carpet, monkeypatch):
     """Carpet.velocity (the fused carriers from the harmonics kept at tol, kept per instant, made
     together by prepare) gives the velocity of Carpet.evaluate (the moments' carriers with the

@@ -231,8 +231,13 @@ def _stack(F, f3, f6, js, axes, out):  # pragma: no cover - compiled
                 out[4 * n + 6 * q + m, k] = a0 * f6[j, m, 0] + a1 * f6[j, m, 1]
 
 
-_STACK_BLOCK = 32
-"""Cilia per parallel task of :func:`_stacked_at`."""
+LANES = 8
+"""Cilia side by side in :func:`_stacked_at` (a block, one parallel task): every loop over them is
+a vector loop (:class:`MomentRows` holds their coefficients lane by lane)."""
+_TWO_PI = 2.0 * math.pi
+_SIN = (-1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880, -1.0 / 39916800, 1.0 / 6227020800, -1.0 / 1307674368000)
+_COS = (-0.5, 1.0 / 24, -1.0 / 720, 1.0 / 40320, -1.0 / 3628800, 1.0 / 479001600, -1.0 / 87178291200,
+        1.0 / 20922789888000)
 DIPOLE_INV = np.linalg.inv(np.stack([np.ones(3), DIPOLE[:, 0], DIPOLE[:, 1]]))
 """The inverse of the moment matrix (rows 1, x, y) of the carpet's dipole carriers :data:`DIPOLE`."""
 
@@ -254,96 +259,139 @@ fraction of tol of that sum on a random 10 x 10 carpet (tests/test_carpet.py), 0
 on the designed uniform_deflection carpet at 30 x 30 and 100 x 100 (60 points each)."""
 
 
+@njit(cache=True, fastmath={"reassoc", "contract", "nsz", "arcp"}, inline="always")
+def _sincos_2pi(x, c, s):  # pragma: no cover - compiled
+    """c[l] = cos(2 pi x[l]), s[l] = sin(2 pi x[l]) (x a phase in [0, 1)), as one vector loop: x less
+    its nearest quarter q / 4 (exact) times 2 pi, |r| <= pi / 4, Taylor polynomials to r^15 and
+    r^16 (truncation below 1e-16), the quadrant by exchanging and negating. Within 1e-15 of
+    ``np.cos``, ``np.sin`` (tests/test_carpet.py); a call of the library's sincos per cilium
+    and instant cost as much as the whole sum of its moments."""
+    for ll in range(x.shape[0]):
+        q = math.floor(4.0 * x[ll] + 0.5)
+        r = _TWO_PI * (x[ll] - 0.25 * q)
+        r2 = r * r
+        sp = r * (1.0 + r2 * (_SIN[0] + r2 * (_SIN[1] + r2 * (_SIN[2] + r2 * (_SIN[3] + r2 * (
+            _SIN[4] + r2 * (_SIN[5] + r2 * _SIN[6])))))))
+        cp = 1.0 + r2 * (_COS[0] + r2 * (_COS[1] + r2 * (_COS[2] + r2 * (_COS[3] + r2 * (
+            _COS[4] + r2 * (_COS[5] + r2 * (_COS[6] + r2 * _COS[7])))))))
+        k = int(q) & 3
+        a = sp if k & 1 else cp
+        b = cp if k & 1 else sp
+        c[ll] = -a if (k == 1 or k == 2) else a
+        s[ll] = -b if k >= 2 else b
+
+
 @njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
-def _stacked_at(coef_t, ph, delta, inv3, inv6, axes, js, sel, kc, what, out):  # pragma: no cover - compiled
-    """The carriers' forces in space of the cilia js[sel] at each of T sets of phases ``ph`` (T, N), in
-    the order of :meth:`Carriers.positions` of ``js``, as coordinate rows (out (T, 3, 10 n), n = len(js);
-    only the rows of ``sel``'s cilia and of ``what`` are written: :data:`MONO_DIPOLE`,
-    :data:`QUADRUPOLES` or :data:`ALL_ORDERS`): per cilium (in parallel) and time its moments F,
-    D (and T) from the first ``kc`` harmonics of their trigonometric interpolant (coef_t (n, 14,
-    2K-1) in the order of ``js``, as :func:`~ciliary_carpet.carpet.cycles._moments_at`, and so
-    ``delta`` (n,) and ``axes`` (n, 3, 2): :class:`MomentRows`; :data:`_ROWS`), the dipole
-    carriers' forces f3 = inv3 (F, D_0 / delta, D_1 / delta) (:func:`dipole_forces`), the
-    quadrupole carriers' f6 = inv6 (F, D / delta, T / delta^2) (:func:`_carrier_sets`), each
-    mapped into space by the cilium's axes (N, 3, 2) (:func:`_stack`). One pass for what
+def _stacked_at(coef, ph, delta, inv3, inv6, axes, js, blocks, want, kc, what, out):  # pragma: no cover - compiled
+    """The carriers' forces in space of cilia js (n,) at each of T sets of phases ``ph`` (T, N), in
+    the order of :meth:`Carriers.positions` of ``js``, as coordinate rows (out (T, 3, 10 n); only
+    the rows of the cilia ``want`` (n,) bool and of ``what`` are written: :data:`MONO_DIPOLE`,
+    :data:`QUADRUPOLES` or :data:`ALL_ORDERS`): per block of :data:`LANES` cilia (``blocks``, in
+    parallel; cilium js[b LANES + l] in lane l of block b) and time their moments F, D (and T)
+    from the first ``kc`` harmonics of their trigonometric interpolant (coef (nb, 14, 2 kc - 1,
+    LANES), ``delta`` (nb, LANES), ``axes`` (nb, 3, 2, LANES): :class:`MomentRows`; :data:`_ROWS`),
+    the dipole carriers' forces f3 = inv3 (F, D_0 / delta, D_1 / delta) (:func:`dipole_forces`),
+    the quadrupole carriers' f6 = inv6 (F, D / delta, T / delta^2) (:func:`_carrier_sets`), each
+    mapped into space by the cilium's axes (:func:`_stack`). One pass for what
     :meth:`Carriers.forces` and :meth:`Carriers.stacked` do in four, without the bound terms
-    (which only a reported bound needs). Its cost is reading the coefficients (every cilium's,
-    for every evaluation of a carpet's flow), so the T times share one read; the monopoles and
-    dipoles read 6 of the 12 rows."""
-    nk = coef_t.shape[2]
-    K = (nk + 1) // 2
-    kc = min(max(kc, 1), K)
+    (which only a reported bound needs): the T times share one read of the coefficients, the
+    monopoles and dipoles read 6 of the 12 rows, and the basis (:func:`_sincos_2pi`, then the
+    angle-addition recurrence) and the sums run over the lanes as vectors. Each cilium's and
+    time's numbers are those of any other block, time or order asked with it, to the bit."""
+    nk = coef.shape[2]
     n = js.shape[0]
     nt = ph.shape[0]
-    ns = sel.shape[0]
-    nrow = 6 if what == 0 else 12
-    nb = (ns + _STACK_BLOCK - 1) // _STACK_BLOCK
-    for blk in prange(nb):  # scratch once per block: allocation per cilium cost as much as the sums
-        b = np.empty((nt, nk))
-        m = np.empty((nt, 14))
+    nrow = 6 if what == 0 else 14
+    for i in prange(blocks.shape[0]):  # scratch once per block
+        blk = blocks[i]
+        base = blk * LANES
+        b = np.empty((nt, nk, LANES))  # b[t, k]: 1, cos k, then sin k of each lane's phase
+        m = np.empty((nt, 14, LANES))
+        x = np.empty(LANES)
         r = np.empty((6, 2))
-        for w in range(blk * _STACK_BLOCK, min(ns, (blk + 1) * _STACK_BLOCK)):
-            q = sel[w]
-            pj = js[q]  # the cilium, for its phase; its coefficients, scale and axes are row q
-            j = q
+        for tt in range(nt):
+            bt = b[tt]
+            for ll in range(LANES):
+                x[ll] = ph[tt, js[min(base + ll, n - 1)]]  # lanes past the last cilium: any phase
+            b0 = bt[0]
+            for ll in range(LANES):
+                b0[ll] = 1.0
+            if kc > 1:
+                c1 = bt[1]
+                s1 = bt[kc]
+                _sincos_2pi(x, c1, s1)
+                for k in range(2, kc):
+                    cp = bt[k - 1]
+                    sp = bt[kc + k - 2]
+                    cn = bt[k]
+                    sn = bt[kc + k - 1]
+                    for ll in range(LANES):
+                        cn[ll] = cp[ll] * c1[ll] - sp[ll] * s1[ll]
+                        sn[ll] = sp[ll] * c1[ll] + cp[ll] * s1[ll]
+        cb = coef[blk]
+        for p in range(nrow):  # the rows of _ROWS
+            if p == 10 or p == 11:
+                continue
+            cr = cb[p]
             for tt in range(nt):
-                th = 2.0 * np.pi * ph[tt, pj]
-                cc = np.cos(th)
-                ss = np.sin(th)
-                b[tt, 0] = 1.0
-                cpp = 1.0
-                spp = 0.0
+                bt = b[tt]
+                acc = m[tt, p]
+                c0 = cr[0]
+                b0 = bt[0]
+                for ll in range(LANES):
+                    acc[ll] = c0[ll] * b0[ll]
                 for k in range(1, kc):
-                    cn = cpp * cc - spp * ss
-                    sn = spp * cc + cpp * ss
-                    cpp = cn
-                    spp = sn
-                    b[tt, k] = cn
-                    b[tt, K - 1 + k] = sn
-            for p in range(14 if nrow == 12 else 6):  # the rows of _ROWS (sliced loops below vectorise)
-                if p == 10 or p == 11:
-                    continue
-                for tt in range(nt):  # the coefficients' row stays in cache across the times
-                    acc = 0.0
-                    cr = coef_t[j, p]
-                    br = b[tt]
-                    for k in range(kc):
-                        acc += cr[k] * br[k]
-                    cs_ = cr[K:K + kc - 1]
-                    bs_ = br[K:K + kc - 1]
-                    for k in range(kc - 1):
-                        acc += cs_[k] * bs_[k]
-                    m[tt, p] = acc
-            d = delta[j]
+                    ck = cr[k]
+                    bk = bt[k]
+                    cs = cr[kc - 1 + k]
+                    bs = bt[kc - 1 + k]
+                    for ll in range(LANES):
+                        acc[ll] += ck[ll] * bk[ll] + cs[ll] * bs[ll]
+        for ll in range(LANES):
+            q = base + ll
+            if q >= n:
+                break
+            if not want[q]:
+                continue
+            d = delta[blk, ll]
             d2 = d * d
+            a00 = axes[blk, 0, 0, ll]
+            a01 = axes[blk, 0, 1, ll]
+            a10 = axes[blk, 1, 0, ll]
+            a11 = axes[blk, 1, 1, ll]
+            a20 = axes[blk, 2, 0, ll]
+            a21 = axes[blk, 2, 1, ll]
             for tt in range(nt):
                 # rhs rows: F, D[0] / d, D[1] / d, T[0, 0] / d^2, T[0, 1] / d^2, T[1, 1] / d^2 (x and y each)
                 for k in range(2):
-                    r[0, k] = m[tt, k]
-                    r[1, k] = m[tt, 2 + k] / d
-                    r[2, k] = m[tt, 4 + k] / d
+                    r[0, k] = m[tt, k, ll]
+                    r[1, k] = m[tt, 2 + k, ll] / d
+                    r[2, k] = m[tt, 4 + k, ll] / d
                 if what != 1:
-                    for c in range(3):
-                        out[tt, c, q] = axes[j, c, 0] * r[0, 0] + axes[j, c, 1] * r[0, 1]
+                    out[tt, 0, q] = a00 * r[0, 0] + a01 * r[0, 1]
+                    out[tt, 1, q] = a10 * r[0, 0] + a11 * r[0, 1]
+                    out[tt, 2, q] = a20 * r[0, 0] + a21 * r[0, 1]
                     for mm in range(3):
                         gx = inv3[mm, 0] * r[0, 0] + inv3[mm, 1] * r[1, 0] + inv3[mm, 2] * r[2, 0]
                         gy = inv3[mm, 0] * r[0, 1] + inv3[mm, 1] * r[1, 1] + inv3[mm, 2] * r[2, 1]
-                        for c in range(3):
-                            out[tt, c, n + 3 * q + mm] = axes[j, c, 0] * gx + axes[j, c, 1] * gy
+                        out[tt, 0, n + 3 * q + mm] = a00 * gx + a01 * gy
+                        out[tt, 1, n + 3 * q + mm] = a10 * gx + a11 * gy
+                        out[tt, 2, n + 3 * q + mm] = a20 * gx + a21 * gy
                 if what == 0:
                     continue
                 for k in range(2):
-                    r[3, k] = m[tt, 6 + k] / d2
-                    r[4, k] = m[tt, 8 + k] / d2
-                    r[5, k] = m[tt, 12 + k] / d2
+                    r[3, k] = m[tt, 6 + k, ll] / d2
+                    r[4, k] = m[tt, 8 + k, ll] / d2
+                    r[5, k] = m[tt, 12 + k, ll] / d2
                 for mm in range(6):
                     gx = 0.0
                     gy = 0.0
                     for w6 in range(6):
                         gx += inv6[mm, w6] * r[w6, 0]
                         gy += inv6[mm, w6] * r[w6, 1]
-                    for c in range(3):
-                        out[tt, c, 4 * n + 6 * q + mm] = axes[j, c, 0] * gx + axes[j, c, 1] * gy
+                    out[tt, 0, 4 * n + 6 * q + mm] = a00 * gx + a01 * gy
+                    out[tt, 1, 4 * n + 6 * q + mm] = a10 * gx + a11 * gy
+                    out[tt, 2, 4 * n + 6 * q + mm] = a20 * gx + a21 * gy
 
 
 @njit(cache=True)
@@ -488,11 +536,13 @@ still what ``error_bound`` reports."""
 @dataclass(frozen=True, eq=False)
 class MomentRows:
     """What :func:`_stacked_at` reads of cilia ``js``, in that order (the order a sum reads their
-    carriers): ``coef`` (n, 14, 2 kc - 1) the moments' interpolant cut to its first ``kc``
-    harmonics (cosines 0 ... kc - 1, then sines 1 ... kc - 1), ``delta`` (n,) the carriers' scales,
-    ``axes`` (n, 3, 2) the frames' axes in space. Every instant reads all of them: contiguous per
-    cilium in the order of the sum, 10^4 cilia take 1.5 times less than read from the full arrays
-    (:meth:`Carriers.rows`)."""
+    carriers), in blocks of :data:`LANES` (cilium js[b LANES + l] in lane l of block b, the lanes
+    past the last cilium zero): ``coef`` (nb, 14, 2 kc - 1, LANES) the moments' interpolant cut to
+    its first ``kc`` harmonics (cosines 0 ... kc - 1, then sines 1 ... kc - 1), ``delta`` (nb,
+    LANES) the carriers' scales (1 past the last cilium), ``axes`` (nb, 3, 2, LANES) the frames'
+    axes in space. Every instant reads all of them: contiguous in the order of the sum, 10^4
+    cilia take 1.5 times less than read from the full arrays (:meth:`Carriers.rows`), and lane by
+    lane every loop of the pass runs over vectors."""
 
     js: np.ndarray
     kc: int
@@ -533,9 +583,17 @@ class Carriers:
         kc = int(min(max(kc, 1), K))
         idx = np.asarray(js, dtype=np.int64)
         cols = np.r_[np.arange(kc), K + np.arange(kc - 1)]
-        rows = MomentRows(js=js, kc=kc, coef=np.ascontiguousarray(c.moment_coef[idx][:, :, cols]),
-                          delta=np.ascontiguousarray(self.delta[idx]),
-                          axes=np.ascontiguousarray(c.embedding.axes[idx]))
+        nb = -(-idx.size // LANES)
+        coef = np.zeros((nb * LANES, 14, cols.size))
+        coef[:idx.size] = c.moment_coef[idx][:, :, cols]
+        delta = np.ones(nb * LANES)
+        delta[:idx.size] = self.delta[idx]
+        axes = np.zeros((nb * LANES, 3, 2))
+        axes[:idx.size] = c.embedding.axes[idx]
+        rows = MomentRows(js=js, kc=kc,
+                          coef=np.ascontiguousarray(coef.reshape(nb, LANES, 14, cols.size).transpose(0, 2, 3, 1)),
+                          delta=np.ascontiguousarray(delta.reshape(nb, LANES)),
+                          axes=np.ascontiguousarray(axes.reshape(nb, LANES, 3, 2).transpose(0, 2, 3, 1)))
         if len(cache) >= self._ROWS_KEPT:
             cache.clear()
         cache[(id(js), kc)] = rows
@@ -692,9 +750,17 @@ class InstantCarriers:
         self._make(np.arange(n, dtype=np.int64), ALL_ORDERS if eager else MONO_DIPOLE)
 
     def _make(self, sel: np.ndarray, what: int) -> None:
+        """Make the carriers ``what`` of the cilia ``sel`` (positions in :attr:`js`) at every instant."""
         r = self.rows
-        _stacked_at(r.coef, self.ph, r.delta, DIPOLE_INV, QUADRUPOLE_INV, r.axes, self.js, sel, self.kc, what,
-                    self.out)
+        n = self.js.size
+        if sel.size == n:
+            blocks, want = np.arange(-(-n // LANES), dtype=np.int64), np.ones(n, np.bool_)
+        else:
+            blocks = np.unique(sel // LANES)
+            want = np.zeros(n, np.bool_)
+            want[sel] = True
+        _stacked_at(r.coef, self.ph, r.delta, DIPOLE_INV, QUADRUPOLE_INV, r.axes, self.js, blocks, want, self.kc,
+                    what, self.out)
 
     @property
     def forces(self) -> np.ndarray:
