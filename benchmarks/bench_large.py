@@ -65,7 +65,7 @@ DECOMPOSE = ((1e-3, 1e-6, 1e-4, 1), (1e-3, 1e-9, 1e-7, 1), (3e-4, 1e-9, 1e-7, 1)
 tighter integration, tighter flow, the render's now (1e-4, 1e-9, 1e-7), the estimate's reference."""
 FMM_MEAN = ("not run: its 3.7 million sources (64 phase samples) took more than 20 GB in fmm3dpy for 10^4 "
             "targets on this machine (killed); a snapshot's 58 500 took 2.4 GB and 13 s")
-STAGES = ("design", "mean_field", "snapshots", "frames", "pathlines", "pathline_error", "ftle", "preview",
+STAGES = ("design", "coupling", "mean_field", "snapshots", "frames", "pathlines", "pathline_error", "ftle", "preview",
           "omissions", "total")
 
 
