@@ -364,7 +364,8 @@ def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
     for tol in (1e-2, 1e-3):
         plan = cm.make_plan(carpet.carriers.over_cycle.thresholds(tol), carpet.carriers)
         fars.add(plan.far)
-        ptr, ranges, rptr, res_j, res_r, counts, uptr = cm._lists(x, *plan.traverse, cm._MAX_ROWS)
+        ptr, ranges, rptr, res_j, res_r, counts, uptr = cm._lists(x, *plan.traverse, *plan.groups_args(False),
+                                                                  cm._MAX_ROWS)
         nr, nres = np.diff(ptr), np.diff(rptr)
         assert np.all(nr <= np.diff(uptr)) and np.all(nres <= nr)
         got = _orders_of(carpet, plan, ranges, ptr, res_j, rptr, m)
@@ -372,12 +373,64 @@ def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
         R1, R2, R3 = plan.thresholds
         want = np.where(R >= R1, 0, np.where(R >= R2, 1, np.where(R >= R3, 2, 3)))
         assert np.array_equal(got, want)
-        assert np.array_equal(counts.sum(axis=0), [(want == k).sum() for k in range(3)])
+        assert np.array_equal(counts.sum(axis=0), [(want == k).sum() for k in range(3)] + [0])
         assert np.all(ranges[res_r] == 0)  # the resolved blocks' placeholders
         assert (want == 3).sum() > 20 and len(np.unique(want)) >= 2  # the case is not trivial
     # free classification: monopoles far; the default price: dipoles at 1e-2, quadrupoles at
     # 1e-3 (on this 18 x 18 L carpet); a prohibitive one: the smallest cells, quadrupoles
     assert fars == {0.0: {0}, 5.0: {1, 2}, 1e6: {2}}[classify]
+
+
+def test_far_groups_meet_the_bound(table):
+    """On a carpet large enough, the far cilia of an instant's flow go by groups of about four
+    (their own six quadrupole carriers, where a target is past the group's distance): the groups'
+    carriers reproduce F, D and T of their cilia's dipole carriers about the group's centre, the
+    velocity stays within the levels of detail's guarantee slack tol sum_j S_j / (8 pi mu R_j) of
+    the resolved sum (measured: far within it), what it sums falls, and a reported bound
+    (``evaluate``), the mean flow and a standing carpet use no groups."""
+    from ciliary_carpet.carpet import carriers as cr
+    from ciliary_carpet.stokes import QUADRUPOLE
+
+    rng = np.random.default_rng(12)
+    n = 22 * 22
+    c = Carpet(layout.square(22, 22, 2.0), rng.uniform(40, 100, n), table, layout.random_phases(n, 12))
+    tol = 1e-3
+    key, plan = c._plan(Instant(0.0), tol)
+    g = plan.groups
+    assert plan.far == 1 and g is not None and np.isfinite(g.R2).sum() > 50
+    assert np.diff(g.start)[np.isfinite(g.R2)].min() >= 3  # (GROUP_MIN: fewer would not pay)
+    # the groups' carriers at an instant: the moments of their cilia's dipole carriers
+    t = 0.61
+    inst = c._instants(c.cycles.phase_at(np.array([t])), key, plan)
+    out, n_p = inst.out[0], plan.order.size
+    pos = plan.carriers_soa
+    for k in np.flatnonzero(np.isfinite(g.R2))[:20]:
+        rows = np.arange(n_p + 3 * g.start[k], n_p + 3 * g.start[k + 1])
+        h, f = (pos[:2, rows] - g.centre[k, :2, None]).T, out[:2, rows].T
+        gr = 10 * n_p + 6 * k + np.arange(6)
+        hg, fg = g.delta[k] * QUADRUPOLE, out[:2, gr].T
+        for mono in (lambda q: np.ones(len(q)), lambda q: q[:, 0], lambda q: q[:, 1], lambda q: q[:, 0] ** 2,
+                     lambda q: q[:, 0] * q[:, 1], lambda q: q[:, 1] ** 2):
+            np.testing.assert_allclose(mono(hg) @ fg, mono(h) @ f, rtol=1e-11, atol=1e-11 * np.abs(f).sum())
+        assert np.all(out[2, gr] == 0.0)
+    # the velocity against the resolved sum, corners and edges of the carpet and beyond
+    pts = np.column_stack([rng.uniform(-6, 48, 60), rng.uniform(-6, 48, 60), rng.uniform(-1, 1, 60)])
+    pts[:10, :2] = rng.uniform(-6, 2, (10, 2))
+    s, _, _ = c._sum(c._targets(pts), Instant(t), tol)
+    full = c.evaluate(pts, Instant(t), tol)
+    res = c.velocity(pts, Instant(t), 0.0)
+    R = np.linalg.norm(pts[:, None, :] - c.cycles.centre3[None], axis=2)
+    far_sum = (c.carriers.over_cycle.S[None] / (8 * math.pi * c.mu * R)).sum(axis=1)
+    off = np.linalg.norm(s.velocity - res, axis=1)
+    assert s.grouped > 0 and s.sources < full.work["sources"]
+    assert np.all(off <= c.carriers.slack * tol * far_sum)
+    assert off.max() <= 0.2 * tol * far_sum.max()  # the calibration the levels of detail keep
+    np.testing.assert_array_equal(c.velocity(pts, Instant(t), tol), s.velocity)
+    # no groups where there is a reported bound, in the mean flow, or on a standing carpet
+    assert c._plan(CycleMean(), tol)[1].groups is None
+    standing = Carpet(layout.square(22, 22, 2.0), rng.uniform(40, 100, n), table, layout.random_phases(n, 13),
+                      wall=0.0, geometry="standing", azimuth=rng.uniform(0, 2 * math.pi, n))
+    assert standing._plan(Instant(0.0), tol)[1].groups is None
 
 
 def test_chunked_sums_match_one_sum(carpet, monkeypatch):

@@ -604,7 +604,8 @@ class Carpet:
         else:
             forces = self._carrier_forces(when, key, plan)
         evaluator = self.backend if self.backend is not None else _AUTO
-        s = flow_sum(x, plan, forces, sources, self.n, self.kernel, evaluator, self.mu)
+        s = flow_sum(x, plan, forces, sources, self.n, self.kernel, evaluator, self.mu,
+                     grouped=not bound and isinstance(when, Instant))  # (the instants' carriers hold the groups')
         return s, plan, car
 
     def _carrier_forces(self, when: When, key: tuple, plan: Plan):
@@ -631,7 +632,7 @@ class Carpet:
         """The carriers of ``plan``'s cilia at the phases ``ph`` ((N,) or (T, N)) of instants (into
         ``spare``, a buffer of instants dropped, when it fits)."""
         return InstantCarriers(self.carriers, ph, plan.order, self.carriers.harmonics(key[1]), eager=plan.far == 2,
-                               out=spare)
+                               out=spare, groups=None if plan.groups is None else (plan.groups, plan.carriers_soa))
 
     def prepare(self, times, tol: float = 1e-3) -> None:
         """Say that the flow will be evaluated at the instants ``times`` (a few) with ``tol``
@@ -667,7 +668,8 @@ class Carpet:
             if len(self._plans) > _PLANS:
                 self._plans.clear()
                 self._forces.clear()
-            self._plans[key] = make_plan(when.bounds(self.carriers).thresholds(tol), self.carriers, when.far)
+            self._plans[key] = make_plan(when.bounds(self.carriers).thresholds(tol), self.carriers, when.far,
+                                         tol=tol if isinstance(when, Instant) else None)
         return key, self._plans[key]
 
     def _drop_instants(self, keep: int) -> None:

@@ -394,6 +394,52 @@ def _stacked_at(coef, ph, delta, inv3, inv6, axes, js, blocks, want, kc, what, o
                     out[tt, 2, 4 * n + 6 * q + mm] = a20 * gx + a21 * gy
 
 
+@njit(cache=True, parallel=True)
+def _group_forces(out, n, pos, start, centre, delta, inv6):  # pragma: no cover - compiled
+    """Rows 10 n + 6 g + m of out (T, 3, 10 n + 6 G): the six quadrupole carriers of group g of
+    far cilia (:class:`~.traversal.FarGroups`: the sorted cilia start[g] ... start[g + 1], its
+    centre (G, 3) and scale ``delta`` (G,)) at each instant, in the plane, reproducing F, D and T
+    about the centre of its cilia's dipole carriers (rows n + 3 q + m, at ``pos`` (3, 10 n)):
+    the forces f = inv6 (F, D_x / delta, D_y / delta, T_xx / delta^2, T_xy / delta^2,
+    T_yy / delta^2) of :func:`_carrier_sets`."""
+    nt = out.shape[0]
+    for g in prange(centre.shape[0]):
+        d = delta[g]
+        cx = centre[g, 0]
+        cy = centre[g, 1]
+        b = np.empty((6, 2))
+        for tt in range(nt):
+            for k in range(6):
+                b[k, 0] = 0.0
+                b[k, 1] = 0.0
+            for r in range(n + 3 * start[g], n + 3 * start[g + 1]):
+                hx = (pos[0, r] - cx) / d
+                hy = (pos[1, r] - cy) / d
+                fx = out[tt, 0, r]
+                fy = out[tt, 1, r]
+                b[0, 0] += fx
+                b[0, 1] += fy
+                b[1, 0] += hx * fx
+                b[1, 1] += hx * fy
+                b[2, 0] += hy * fx
+                b[2, 1] += hy * fy
+                b[3, 0] += hx * hx * fx
+                b[3, 1] += hx * hx * fy
+                b[4, 0] += hx * hy * fx
+                b[4, 1] += hx * hy * fy
+                b[5, 0] += hy * hy * fx
+                b[5, 1] += hy * hy * fy
+            for mm in range(6):
+                gx = 0.0
+                gy = 0.0
+                for k in range(6):
+                    gx += inv6[mm, k] * b[k, 0]
+                    gy += inv6[mm, k] * b[k, 1]
+                out[tt, 0, 10 * n + 6 * g + mm] = gx
+                out[tt, 1, 10 * n + 6 * g + mm] = gy
+                out[tt, 2, 10 * n + 6 * g + mm] = 0.0
+
+
 @njit(cache=True)
 def _missing_quadrupoles(ranges, n, done):  # pragma: no cover - compiled
     """The cilia (positions in a plan's order, ascending) whose quadrupole carriers the source
@@ -402,7 +448,7 @@ def _missing_quadrupoles(ranges, n, done):  # pragma: no cover - compiled
     cnt = 0
     for r in range(ranges.shape[0]):
         lo = ranges[r, 0]
-        if lo < 4 * n or ranges[r, 1] <= lo:
+        if lo < 4 * n or lo >= 10 * n or ranges[r, 1] <= lo:  # (rows from 10 n on: groups' carriers)
             continue
         for q in range((lo - 4 * n) // 6, (ranges[r, 1] - 4 * n) // 6):
             if not done[q] and not need[q]:
@@ -633,6 +679,16 @@ class Carriers:
         return self._bounds(S, nu1, nu2, q3, q6, Q2, Q3, PHASE_MARGIN)
 
     @cached_property
+    def dipole_force_max(self) -> np.ndarray:
+        """(N, 3) the largest force of each dipole carrier over the cycle's phase samples, times
+        :data:`PHASE_MARGIN` (the phases between them): what bounds a group of far cilia
+        (:class:`~.traversal.FarGroups`)."""
+        c = self.cycles
+        n, n_p = c.n, c.n_phase
+        f3 = dipole_forces(c.F.reshape(-1, 2), c.D.reshape(-1, 2, 2), np.repeat(self.delta, n_p))
+        return PHASE_MARGIN * np.sqrt((f3 ** 2).sum(-1)).reshape(n, n_p, 3).max(axis=1)
+
+    @cached_property
     def of_mean(self) -> Bounds:
         """The bounds of the cycle-mean flow: those of the cycle means, S = |Fbar|."""
         c = self.cycles
@@ -731,10 +787,12 @@ class InstantCarriers:
     the quadrupoles too when ``eager``, else on demand (:meth:`complete`: the cilia whose
     quadrupoles an evaluation reads, made for the T instants together). A carpet whose far cilia
     are dipoles (100 x 100: 10^4 cilia, about a quarter of them near a tracer) reads 6 of the 12
-    rows for most of them."""
+    rows for most of them. ``groups`` (a plan's :class:`~.traversal.FarGroups` and its carriers'
+    positions (3, 10 n)): the groups' six carriers each, after the cilia's (rows 10 n + 6 g ...),
+    made with the monopoles and dipoles (:func:`_group_forces`)."""
 
     def __init__(self, carriers: Carriers, ph: np.ndarray, js: np.ndarray, kc: int | None = None,
-                 eager: bool = False, out: np.ndarray | None = None):
+                 eager: bool = False, out: np.ndarray | None = None, groups=None):
         ph = np.asarray(ph, dtype=float)
         self.many = ph.ndim == 2
         self.ph = np.ascontiguousarray(ph if self.many else ph[None])
@@ -744,10 +802,14 @@ class InstantCarriers:
         self.kc = K if kc is None else int(min(max(kc, 1), K))
         self.rows = carriers.rows(js, self.kc)
         n = self.js.size
-        shape = (self.ph.shape[0], 3, 10 * n)
+        G = 0 if groups is None else groups[0].n
+        shape = (self.ph.shape[0], 3, 10 * n + 6 * G)
         self.out = out if out is not None and out.shape == shape else np.empty(shape)  # a spare: no fresh pages
         self.done = np.full(n, bool(eager))
         self._make(np.arange(n, dtype=np.int64), ALL_ORDERS if eager else MONO_DIPOLE)
+        if G:  # the groups' carriers, from their cilia's dipole carriers
+            g, pos = groups
+            _group_forces(self.out, n, pos, g.start, g.centre, g.delta, QUADRUPOLE_INV)
 
     def _make(self, sel: np.ndarray, what: int) -> None:
         """Make the carriers ``what`` of the cilia ``sel`` (positions in :attr:`js`) at every instant."""

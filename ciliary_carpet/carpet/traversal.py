@@ -39,7 +39,7 @@ from ciliary_carpet.carpet.cycles import ResolvedSources
 from ciliary_carpet.stokes import Kernel
 from ciliary_carpet.stokes import stokeslet_velocity
 
-__all__ = ["Plan", "Summed", "make_plan", "flow_sum", "dense_sum"]
+__all__ = ["FarGroups", "Plan", "Summed", "make_plan", "flow_sum", "dense_sum"]
 
 _CLASSIFY = 5.0
 """Cost of classifying one cilium for one target (:func:`_traverse`) in kernel evaluations
@@ -55,12 +55,12 @@ of at most this many sources (3 MB per coordinate array): :func:`flow_sum`."""
 
 @njit(cache=True, inline="always")
 def _close(seg, lo, hi, r, ranges, n_p, count):  # pragma: no cover - compiled
-    """Write the open run [lo, hi) of order ``seg`` (0 monopole, 1 dipole, 2 quadrupole; -1 none)
-    as source range r of the carrier segments (:func:`_traverse`) and count its pairs in
-    count[seg]; returns the next range."""
+    """Write the open run [lo, hi) of order ``seg`` (0 monopole, 1 dipole, 2 quadrupole, 3 groups
+    of far cilia; -1 none) as source range r of the carrier segments (:func:`_traverse`) and
+    count its pairs in count[seg]; returns the next range."""
     if seg < 0:
         return r
-    base = 0 if seg == 0 else (n_p if seg == 1 else 4 * n_p)
+    base = 0 if seg == 0 else (n_p if seg == 1 else (4 * n_p if seg == 2 else 10 * n_p))
     mult = 1 if seg == 0 else (3 if seg == 1 else 6)
     ranges[r, 0] = base + mult * lo
     ranges[r, 1] = base + mult * hi
@@ -94,20 +94,21 @@ def _window(x, y, x0, y0, h, nx, ny, reach):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always")
-def _upper(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always):  # pragma: no cover - compiled
+def _upper(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always, n_groups):  # pragma: no cover - compiled
     """An upper bound of the ranges (and resolved cilia) of a target at (x, y) in
     :func:`_traverse`: the cilia of its cells, one run of far cilia before each column of cells
-    and after the last, and the cilia always resolved."""
+    and after the last (or one range per group of far cilia, ``n_groups`` of them), and the
+    cilia always resolved."""
     gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
-    k = gx1 - gx0 + 2 + n_always
+    k = gx1 - gx0 + 2 + n_always + n_groups
     for gx in range(gx0, gx1 + 1):
         k += cell_ptr[gx * ny + gy1 + 1] - cell_ptr[gx * ny + gy0]
     return k
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-              uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover - compiled
+              gstart, gof, gcx, gcy, gcz, gR2, uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover
     """For target i of ``targets`` (M, 3) the list of source ranges of one ranged sum: each
     present cilium q (sorted by grid cell: centres scx, scy, scz, the squares of the thresholds
     sR1, sR2, sR3, cilium index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
@@ -123,6 +124,13 @@ def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h,
     taken as the runs between those cells; the caller makes reach h at least the threshold of
     that order (max R1 for monopoles, max R2 for dipoles, with R1 = inf). The cilia ``always``
     (no finite threshold) are resolved for every target.
+
+    Groups of far cilia (``gstart`` (G + 1,): group g holds the sorted cilia gstart[g] ...
+    gstart[g + 1], groups tiling the cells in order; ``gof`` (n_p,) the group of each sorted
+    cilium; centres ``gcx``, ``gcy``, ``gcz``; ``gR2`` the squares of their distances of
+    acceptance, :func:`make_plan`): where given (G >= 1), the far cilia are taken group by
+    group, a group at its six carriers (rows 10 n_p + 6 g ...) when the target is at least its
+    distance away, else its cilia at the order ``far``.
 
     Target i writes its ranges and resolved cilia from row uptr[i] on (:func:`_upper` bounds
     their number), and its counts: nr[i] ranges, nres[i] resolved cilia, counts[i] its pairs at
@@ -147,7 +155,26 @@ def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h,
         else:  # past the last column: the rest is far
             a = n_p
             b = n_p
-        if a > pos:  # a run of far cilia
+        if a > pos and gstart.shape[0] > 1:  # far cilia by their groups: a group's carriers where
+            g = gof[pos]                       # its bound allows, else its cilia at the far order
+            while g < gstart.shape[0] - 1 and gstart[g] < a:
+                dx = x - gcx[g]
+                dy = y - gcy[g]
+                dz = z - gcz[g]
+                if dx * dx + dy * dy + dz * dz >= gR2[g]:
+                    if not (seg == 3 and hi == g):
+                        r = _close(seg, lo, hi, r, ranges, n_p, count)
+                        seg = 3
+                        lo = g
+                    hi = g + 1
+                else:
+                    if not (seg == far and hi == gstart[g]):
+                        r = _close(seg, lo, hi, r, ranges, n_p, count)
+                        seg = far
+                        lo = gstart[g]
+                    hi = gstart[g + 1]
+                g += 1
+        elif a > pos:  # a run of far cilia
             if seg == far and hi == pos:
                 hi = a
             else:
@@ -167,12 +194,12 @@ def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h,
             elif R2 >= sR3[q]:
                 t = 2
             else:
-                t = 3
+                t = 4
             if t == seg and hi == q:
                 hi = q + 1
                 continue
             r = _close(seg, lo, hi, r, ranges, n_p, count)
-            if t == 3:
+            if t == 4:
                 seg = -1
                 _resolve(sj[q], r, k, ranges, res_j, res_r)
                 r += 1
@@ -224,8 +251,9 @@ def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compile
 
 @njit(cache=True)
 def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-           max_rows):  # pragma: no cover - compiled
-    """Every target's ranges in CSR (the arguments of :attr:`Plan.traverse` after the targets):
+           gstart, gof, gcx, gcy, gcz, gR2, max_rows):  # pragma: no cover - compiled
+    """Every target's ranges in CSR (the arguments of :attr:`Plan.traverse` after the targets, then
+    the groups of far cilia, :meth:`Plan.groups_args`):
     row bounds by :func:`_upper`, each target's rows by :func:`_traverse`, packed by
     :func:`_compact`: ``(ptr, ranges, rptr, res_j, res_r, counts, uptr)``; when the bound
     uptr[-1] of the rows exceeds ``max_rows`` (and there are several targets) only ``uptr`` is
@@ -237,23 +265,24 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     m = targets.shape[0]
     uptr = np.zeros(m + 1, np.int64)
     n_always = always.shape[0]
+    n_groups = gstart.shape[0] - 1 if gstart.shape[0] > 1 else 0
     for i in range(m):
-        uptr[i + 1] = _upper(targets[i, 0], targets[i, 1], cell_ptr, x0, y0, h, nx, ny, reach, n_always)
+        uptr[i + 1] = _upper(targets[i, 0], targets[i, 1], cell_ptr, x0, y0, h, nx, ny, reach, n_always, n_groups)
     for i in range(m):
         uptr[i + 1] += uptr[i]
     if uptr[m] > max_rows and m > 1:
         e = np.zeros(0, np.int64)
-        return e, np.zeros((0, 2), np.int64), e, e, e, np.zeros((0, 3), np.int64), uptr
+        return e, np.zeros((0, 2), np.int64), e, e, e, np.zeros((0, 4), np.int64), uptr
     rows = uptr[m]
     ranges_u = np.empty((rows, 2), np.int64)
     res_j_u = np.empty(rows, np.int64)
     res_r_u = np.empty(rows, np.int64)
     nr = np.empty(m, np.int64)
     nres = np.empty(m, np.int64)
-    counts = np.empty((m, 3), np.int64)
+    counts = np.empty((m, 4), np.int64)
     for i in range(m):
         _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-                  uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
+                  gstart, gof, gcx, gcy, gcz, gR2, uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
     ptr = np.zeros(m + 1, np.int64)
     rptr = np.zeros(m + 1, np.int64)
     for i in range(m):
@@ -313,16 +342,144 @@ class Plan:
     carriers: np.ndarray
     far: int
     traverse: tuple
+    groups: "FarGroups | None" = None
 
     @cached_property
     def carriers_soa(self) -> np.ndarray:
         """(3, 10 n_p) :attr:`carriers` as coordinate rows (the layout the sums read)."""
         return np.ascontiguousarray(self.carriers.T)
 
+    @cached_property
+    def grouped_soa(self) -> np.ndarray:
+        """(3, 10 n_p + 6 G) :attr:`carriers_soa` and the carriers of the :attr:`groups` after them."""
+        g = self.groups
+        return np.ascontiguousarray(np.concatenate([self.carriers, g.carriers]).T)
+
+    def groups_args(self, grouped: bool) -> tuple:
+        """The arguments of :func:`_lists` that describe the groups of far cilia (none unless
+        ``grouped`` and the plan has them)."""
+        g = self.groups
+        if not grouped or g is None:
+            return _NO_GROUPS
+        return g.start, g.of, g.centre[:, 0].copy(), g.centre[:, 1].copy(), g.centre[:, 2].copy(), g.R2
+
     @property
     def grid(self) -> tuple:
         """The arguments of :func:`_upper` that describe the grid (cell_ptr, x0, y0, h, nx, ny, reach)."""
         return self.traverse[7:14]
+
+
+_NO_GROUPS = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+GROUP_MIN = 3
+"""Cilia a group of far cilia needs to be summed as one (:class:`FarGroups`): its six carriers
+replace three dipole carriers per cilium."""
+GROUP_DELTA = 0.125
+"""A group's carriers lie this fraction of its radius from its centre (:class:`FarGroups`). Their
+own third moment, which the group's bound adds, shrinks with it (delta^3 sum |f_m| ~ delta T):
+on the 100 x 100 carpet at tol 1e-4 a group of four cilia is summed as one from 45 L on, from
+59 L at a half (the cilia's own carriers' fraction); its forces grow as 1 / delta^2, which costs
+nothing measurable in rounding at these distances (R >> a)."""
+
+
+@dataclass(frozen=True, eq=False)
+class FarGroups:
+    """Groups of a planar carpet's far cilia, each summed at six quadrupole carriers of its own
+    where a target is far enough (module docstring of :mod:`~.carriers`, "groups").
+
+    The cilia of a plan whose far cilia are dipoles are sorted by sub-cell (``sub`` x ``sub`` per
+    grid cell): group g holds the sorted cilia start[g] ... start[g + 1] (``start`` (G + 1,);
+    ``of`` (n_p,) the group of each); ``centre`` (G, 3) the centroid of its force centres (in the
+    carpet's plane), ``delta`` (G,) its carriers' scale (half its radius ``a``: every carrier of
+    its cilia lies within ``a`` of the centre), ``carriers`` (6 G, 3) their positions (the
+    pentagon and centre of :data:`~ciliary_carpet.stokes.QUADRUPOLE`), and ``R2`` (G,) the square
+    of the distance beyond which a target sums it as one (inf for groups of fewer than
+    :data:`GROUP_MIN` cilia): the smallest R at which the group's Taylor remainder about its
+    centre (its cilia's dipole carriers against its own six: C3 (Q3 + Q3_rep) / (6 (R - a)^4),
+    both third moments bounded over the whole cycle) plus its cilia's own dipole bounds at
+    R - d_j stays within the sum of their budgets, slack tol S_j / (R + d_j)."""
+
+    start: np.ndarray
+    of: np.ndarray
+    centre: np.ndarray
+    delta: np.ndarray
+    radius: np.ndarray
+    carriers: np.ndarray
+    R2: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.centre.shape[0]
+
+
+def _far_groups(carriers: Carriers, sj: np.ndarray, key: np.ndarray, tol: float) -> FarGroups | None:
+    """The :class:`FarGroups` of the sorted cilia ``sj`` (plan order), group g the run of equal
+    ``key`` (sorted), for a plan at ``tol`` whose far cilia are dipoles (:class:`FarGroups` for
+    the bound). None when no group could ever be summed as one."""
+    from ciliary_carpet.stokes import QUADRUPOLE, QUADRUPOLE_INV
+
+    n_p = sj.size
+    cut = np.flatnonzero(np.diff(key)) + 1
+    start = np.concatenate([[0], cut, [n_p]]).astype(np.int64)
+    G = start.size - 1
+    size = np.diff(start)
+    if not np.any(size >= GROUP_MIN):
+        return None
+    of = np.repeat(np.arange(G, dtype=np.int64), size)
+    cyc = carriers.cycles
+    cen3 = cyc.centre3[sj]
+    cen = np.zeros((G, 3))
+    for k in range(3):
+        cen[:, k] = np.bincount(of, weights=cen3[:, k], minlength=G) / size
+    # the dipole carriers of every cilium (positions in space; largest force over the cycle)
+    pos = carriers.positions(sj)[n_p:4 * n_p].reshape(n_p, 3, 3)
+    fmax = carriers.dipole_force_max[sj]  # (n_p, 3)
+    h = pos[:, :, :2] - cen[of][:, None, :2]  # (n_p, 3, 2) in the plane
+    hn = np.sqrt((h ** 2).sum(-1))
+    a = np.maximum(np.maximum.reduceat(hn.max(axis=1), start[:-1]), 1e-12)
+    delta = GROUP_DELTA * a
+    Q3 = np.bincount(of, weights=(fmax * hn ** 3).sum(axis=1), minlength=G)
+    # the group's own carriers: |g_m| <= sqrt(2) sum_k |INV6[m, k]| B_k, B_k the moments' bounds
+    dl = delta[of][:, None]
+    mono = np.stack([np.ones_like(hn), np.abs(h[..., 0]) / dl, np.abs(h[..., 1]) / dl, h[..., 0] ** 2 / dl ** 2,
+                     np.abs(h[..., 0] * h[..., 1]) / dl ** 2, h[..., 1] ** 2 / dl ** 2], axis=-1)  # (n_p, 3, 6)
+    B = np.stack([np.bincount(of, weights=(mono[..., k] * fmax).sum(axis=1), minlength=G) for k in range(6)], axis=1)
+    Qrep = delta ** 3 * math.sqrt(2.0) * (B @ np.abs(QUADRUPOLE_INV).T).sum(axis=1)
+    # the smallest R where the group's remainder and its cilia's dipole bounds fit their budgets
+    b = carriers.over_cycle
+    k3 = carriers.constants[2] / 6.0
+    js = sj
+    d = np.sqrt(((cen3[:, :2] - cen[of][:, :2]) ** 2).sum(-1))
+    S, a2, b2, aj = b.S[js], b.a2[js], b.b2[js], b.radius[js]
+    target = b.slack * tol
+
+    def excess(R):
+        Rj = R[of]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            own = np.where(Rj - d - aj > 0, a2 / (Rj - d) ** 3 + b2 / (Rj - d - aj) ** 4, np.inf)
+            lhs = k3 * (Q3 + Qrep) / (R - a) ** 4 + np.bincount(of, weights=own, minlength=G)
+        budget = target * np.bincount(of, weights=S / (Rj + d), minlength=G)
+        return np.where(R > a, lhs - budget, np.inf)
+
+    lo = a + np.maximum.reduceat(d + aj, start[:-1])
+    hi = 2.0 * lo + 1.0
+    for _ in range(200):
+        grow = (excess(hi) > 0) & (hi < 1e12)
+        if not np.any(grow):
+            break
+        hi = np.where(grow, 2.0 * hi, hi)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        pos_ = excess(mid) > 0
+        lo = np.where(pos_, mid, lo)
+        hi = np.where(pos_, hi, mid)
+    R = hi * (1 + 1e-12) + 1e-12
+    ok = (size >= GROUP_MIN) & (hi < 1e12) & (b.S[js].sum() > 0)
+    R2 = np.where(ok, R ** 2, np.inf)
+    if not np.any(np.isfinite(R2)):
+        return None
+    car = cen[:, None, :] + np.concatenate([delta[:, None, None] * QUADRUPOLE[None], np.zeros((G, 6, 1))], axis=2)
+    return FarGroups(start=start, of=of, centre=cen, delta=delta, radius=a, carriers=car.reshape(-1, 3),
+                     R2=np.ascontiguousarray(R2))
 
 
 def _far_order(cen: np.ndarray, R: tuple) -> int:
@@ -352,11 +509,14 @@ def _far_order(cen: np.ndarray, R: tuple) -> int:
     return int(np.argmin(cost))
 
 
-def make_plan(thresholds: tuple, carriers: Carriers, far: int | None = None) -> Plan:
+def make_plan(thresholds: tuple, carriers: Carriers, far: int | None = None, tol: float | None = None) -> Plan:
     """The :class:`Plan` of the ``thresholds`` (R1, R2, R3) (N,) of the cilia of ``carriers``: the
     far order ``far`` (or the cheapest, :func:`_far_order`), a grid of the centres of the cilia
     chosen per target with cells of side max R_far / 2 (at most 4096 a side), the cheaper orders'
-    thresholds made infinite for them, and their carriers' positions in grid order."""
+    thresholds made infinite for them, and their carriers' positions in grid order. Given the
+    ``tol`` of the thresholds (those of the flow at an instant, :attr:`Carriers.over_cycle
+    <.carriers.Carriers.over_cycle>`), a planar carpet whose far cilia are dipoles also gets
+    :class:`FarGroups`: sub-cells of about two spacings a side, the cilia sorted by them."""
     R1, R2, R3 = thresholds
     centre3 = carriers.cycles.centre3
     centre = centre3[:, :2]
@@ -376,39 +536,56 @@ def make_plan(thresholds: tuple, carriers: Carriers, far: int | None = None) -> 
         span = cen.max(axis=0) + h - lo
         nx, ny = (int(min(max(1, math.ceil(v / h)), 4096)) for v in span)
         h = float(max(span[0] / nx, span[1] / ny, h))  # at most 4096 cells a side
-        g = np.minimum(np.floor((cen - lo) / h).astype(np.int64), [nx - 1, ny - 1])
-        cell = g[:, 0] * ny + g[:, 1]
-        order = np.argsort(cell, kind="stable")
+        ext = np.ptp(cen, axis=0) + 2.0
+        spacing = math.sqrt(float(ext[0] * ext[1]) / js.size)
+        sub = max(1, int(round(h / (2.0 * spacing))))  # sub-cells of about two spacings (a cell when smaller)
+        grouped = (tol is not None and f == 1 and h >= 1.5 * spacing and carriers.cycles.embedding.in_plane
+                   and np.ptp(centre3[js, 2]) == 0.0)
+        if grouped:
+            sc = np.minimum(np.floor((cen - lo) / (h / sub)).astype(np.int64), [nx * sub - 1, ny * sub - 1])
+            g = sc // sub
+            cell = g[:, 0] * ny + g[:, 1]
+            key = (cell * sub + sc[:, 0] % sub) * sub + sc[:, 1] % sub
+        else:
+            g = np.minimum(np.floor((cen - lo) / h).astype(np.int64), [nx - 1, ny - 1])
+            cell = g[:, 0] * ny + g[:, 1]
+            key = cell
+        order = np.argsort(key, kind="stable")
         cell_ptr = np.searchsorted(cell[order], np.arange(nx * ny + 1)).astype(np.int64)
         x0, y0 = float(lo[0]), float(lo[1])
     else:
         order, cell_ptr, x0, y0, h, nx, ny = np.zeros(0, np.int64), np.zeros(2, np.int64), 0.0, 0.0, 1.0, 1, 1
+        grouped, key = False, None
     sj = js[order].astype(np.int64)
     cen = centre3[sj]
+    groups = _far_groups(carriers, sj, key[order], tol) if grouped else None
     return Plan(thresholds=(R1, R2, R3), order=sj, always=always, carriers=carriers.positions(sj), far=f,
                 traverse=(np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1]),
                           np.ascontiguousarray(cen[:, 2]), R1[sj] ** 2, R2[sj] ** 2, R3[sj] ** 2, sj, cell_ptr, x0, y0,
-                          h, nx, ny, reach, f, always))
+                          h, nx, ny, reach, f, always), groups=groups)
 
 
 @dataclass(frozen=True, eq=False)
 class Summed:
     """A sum's velocity (M, 3) and its work: ``orders`` (3,) the cheap pairs per order
     (monopole, dipole, quadrupole), ``resolved`` the resolved pairs, ``ranges`` the source
-    ranges read, ``sources`` the (target, source) interactions summed."""
+    ranges read, ``sources`` the (target, source) interactions summed, ``grouped`` the pairs of
+    a target and a group of far cilia (:class:`FarGroups`)."""
 
     velocity: np.ndarray
     orders: np.ndarray
     resolved: int
     ranges: int
     sources: int
+    grouped: int = 0
 
     @staticmethod
     def joined(parts: list) -> "Summed":
         """The parts' sums over consecutive targets as one."""
         return Summed(velocity=np.concatenate([q.velocity for q in parts]),
                       orders=sum(q.orders for q in parts), resolved=sum(q.resolved for q in parts),
-                      ranges=sum(q.ranges for q in parts), sources=sum(q.sources for q in parts))
+                      ranges=sum(q.ranges for q in parts), sources=sum(q.sources for q in parts),
+                      grouped=sum(q.grouped for q in parts))
 
 
 def dense_sum(targets: np.ndarray, js: np.ndarray, sources: ResolvedSources, kernel: Kernel, backend,
@@ -429,24 +606,28 @@ def dense_sum(targets: np.ndarray, js: np.ndarray, sources: ResolvedSources, ker
 
 
 def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, n: int,
-             kernel: Kernel, evaluator, mu: float) -> Summed:
+             kernel: Kernel, evaluator, mu: float, grouped: bool = False) -> Summed:
     """Per target (M, 3) the ranged sums (module docstring): every cilium of the ``n`` at the
     order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 3) (in the
     order of ``plan.carriers``; or an :class:`~.carriers.InstantForces`, whose quadrupoles the
-    ranges read are made first), or its resolved ``sources``; ``evaluator`` runs the sums. The
-    sources are laid out as coordinate rows (3, K) and handed over as their (K, 3) transposes:
-    the direct sums read that layout without a copy."""
+    ranges read are made first), or its resolved ``sources``; ``evaluator`` runs the sums. With
+    ``grouped`` (and a plan with :class:`FarGroups`) the far cilia go by groups, the forces then
+    holding the groups' carriers after the cilia's (10 n_p + 6 G rows). The sources are laid
+    out as coordinate rows (3, K) and handed over as their (K, 3) transposes: the direct sums
+    read that layout without a copy."""
     m = targets.shape[0]
     sj = plan.order
     n_car = 10 * sj.size
     blk = sources.block
     # the ranges of every point, written into rows bounded by _upper, then packed (the
     # resolved blocks' ranges left empty: summed apart); targets in parts when the bound is very large
-    ptr, ranges, rptr, res_j, _, counts, uptr = _lists(targets, *plan.traverse, _MAX_ROWS)
+    grouped = grouped and plan.groups is not None
+    ptr, ranges, rptr, res_j, _, counts, uptr = _lists(targets, *plan.traverse, *plan.groups_args(grouped),
+                                                       _MAX_ROWS)
     if uptr[-1] > _MAX_ROWS and m > 1:
         cut = np.searchsorted(uptr, np.arange(1, -(-int(uptr[-1]) // _MAX_ROWS)) * _MAX_ROWS)
         cut = np.unique(np.clip(cut, 1, m - 1))
-        return Summed.joined([flow_sum(t, plan, forces, sources, n, kernel, evaluator, mu)
+        return Summed.joined([flow_sum(t, plan, forces, sources, n, kernel, evaluator, mu, grouped)
                               for t in np.split(targets, cut)])
     # The carriers: one ranged sum over the plan's carriers as they are (coordinate rows, no
     # copy; the resolved cilia's ranges left empty), their forces made where the sum reads
@@ -456,7 +637,8 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     u = np.zeros((m, 3))
     if n_car and ptr[-1]:
         # the evaluator directly: every array here is made and checked by this function
-        u += evaluator.ranged(kernel, targets, plan.carriers_soa.T, forces, ptr, ranges, mu)
+        pos = plan.grouped_soa if grouped else plan.carriers_soa
+        u += evaluator.ranged(kernel, targets, pos.T, forces, ptr, ranges, mu)
     # The resolved blocks are made and summed in chunks of cilia of at most _CHUNK_SOURCES
     # sources (the resolved mean flow has 4160 per cilium: a whole carpet's would take hundreds
     # of MB, and fresh memory costs more than the sum); an instantaneous flow's (65 sources per
@@ -478,5 +660,5 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
             sources.fill(jc, src.T, frc.T)
             u += evaluator.ranged(kernel, targets, src.T, frc.T, rptr, rng, mu)
     cnt = counts.sum(axis=0)
-    return Summed(velocity=u, orders=cnt, resolved=int(res_j.size), ranges=int(ptr[-1]),
-                  sources=int(cnt[0] + 3 * cnt[1] + 6 * cnt[2] + res_j.size * blk))
+    return Summed(velocity=u, orders=cnt[:3], resolved=int(res_j.size), ranges=int(ptr[-1]),
+                  sources=int(cnt[0] + 3 * cnt[1] + 6 * cnt[2] + 6 * cnt[3] + res_j.size * blk), grouped=int(cnt[3]))
