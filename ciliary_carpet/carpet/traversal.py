@@ -21,6 +21,12 @@ quadrupoles: its resolved blocks dominate its cost, and bounds that each sit nea
 would loosen its error bars, the design's residuals', for a saving of about 2 %). Measured on
 10 x 10 and 30 x 30 carpets: see tests/test_carpet.py and benchmarks/bench_flow.py.
 
+On a planar carpet whose far cilia are dipoles, the plan also has :class:`FarGroups`: the cilia
+of each cell sorted by sub-cells of about two spacings, and the far cilia of an instant's flow
+taken group by group, a group at its own six quadrupole carriers where the target is past its
+distance of acceptance (the bound: :mod:`~.carriers`, "groups of far cilia"), else its cilia at
+the far order. On 100 x 100 cilia at tol 1e-4 the sums then read 60 % of the sources.
+
 :func:`flow_sum` makes and runs the sum (targets in parts when their ranges would take more than
 :data:`_MAX_ROWS` rows; the resolved blocks in chunks of at most :data:`_CHUNK_SOURCES` sources),
 :func:`dense_sum` the resolved sum of every source (tol = 0). Both return a :class:`Summed`.
