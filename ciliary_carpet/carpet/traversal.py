@@ -114,7 +114,8 @@ def _upper(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always, n_groups):  # pra
 
 @njit(cache=True)
 def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-              gstart, gof, gcx, gcy, gcz, gR2, uptr, nr, nres, counts, ranges, res_j, res_r):  # pragma: no cover
+              gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, uptr, nr, nres, counts, ranges, res_j,
+              res_r):  # pragma: no cover - compiled
     """For target i of ``targets`` (M, 3) the list of source ranges of one ranged sum: each
     present cilium q (sorted by grid cell: centres scx, scy, scz, the squares of the thresholds
     sR1, sR2, sR3, cilium index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
@@ -136,7 +137,10 @@ def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h,
     cilium; centres ``gcx``, ``gcy``, ``gcz``; ``gR2`` the squares of their distances of
     acceptance, :func:`make_plan`): where given (G >= 1), the far cilia are taken group by
     group, a group at its six carriers (rows 10 n_p + 6 g ...) when the target is at least its
-    distance away, else its cilia at the order ``far``.
+    distance away, else its cilia at the order ``far``; cell by cell first (``gcell`` (G,) the
+    cell of each group, ``gcell_ptr`` the groups of each cell, ``call2`` and ``cnone2`` the
+    squared distances from a cell's centre beyond which all its groups are taken as groups and
+    below which none is: a group's distance plus, or minus, its centre's distance from the cell's).
 
     Target i writes its ranges and resolved cilia from row uptr[i] on (:func:`_upper` bounds
     their number), and its counts: nr[i] ranges, nres[i] resolved cilia, counts[i] its pairs at
@@ -161,25 +165,49 @@ def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h,
         else:  # past the last column: the rest is far
             a = n_p
             b = n_p
-        if a > pos and gstart.shape[0] > 1:  # far cilia by their groups: a group's carriers where
-            g = gof[pos]                       # its bound allows, else its cilia at the far order
-            while g < gstart.shape[0] - 1 and gstart[g] < a:
-                dx = x - gcx[g]
-                dy = y - gcy[g]
-                dz = z - gcz[g]
-                if dx * dx + dy * dy + dz * dz >= gR2[g]:
-                    if not (seg == 3 and hi == g):
-                        r = _close(seg, lo, hi, r, ranges, n_p, count)
-                        seg = 3
-                        lo = g
-                    hi = g + 1
-                else:
-                    if not (seg == far and hi == gstart[g]):
-                        r = _close(seg, lo, hi, r, ranges, n_p, count)
-                        seg = far
-                        lo = gstart[g]
-                    hi = gstart[g + 1]
-                g += 1
+        if a > pos and gstart.shape[0] > 1:  # far cilia by their groups, cell by cell: a cell whose
+            c = gcell[gof[pos]]                 # groups are all past (or all short of) their distances
+            while c < cell_ptr.shape[0] - 1 and cell_ptr[c] < a:  # at once, else group by group
+                c0 = cell_ptr[c]
+                c1 = cell_ptr[c + 1]
+                if c1 > c0:
+                    g0 = gcell_ptr[c]
+                    g1 = gcell_ptr[c + 1]
+                    cgx = c // ny
+                    dx = x - (x0 + (cgx + 0.5) * h)
+                    dy = y - (y0 + (c - cgx * ny + 0.5) * h)
+                    dz = z - gcz[g0]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 >= call2[c]:
+                        if not (seg == 3 and hi == g0):
+                            r = _close(seg, lo, hi, r, ranges, n_p, count)
+                            seg = 3
+                            lo = g0
+                        hi = g1
+                    elif d2 < cnone2[c]:
+                        if not (seg == far and hi == c0):
+                            r = _close(seg, lo, hi, r, ranges, n_p, count)
+                            seg = far
+                            lo = c0
+                        hi = c1
+                    else:
+                        for g in range(g0, g1):
+                            dx = x - gcx[g]
+                            dy = y - gcy[g]
+                            dz = z - gcz[g]
+                            if dx * dx + dy * dy + dz * dz >= gR2[g]:
+                                if not (seg == 3 and hi == g):
+                                    r = _close(seg, lo, hi, r, ranges, n_p, count)
+                                    seg = 3
+                                    lo = g
+                                hi = g + 1
+                            else:
+                                if not (seg == far and hi == gstart[g]):
+                                    r = _close(seg, lo, hi, r, ranges, n_p, count)
+                                    seg = far
+                                    lo = gstart[g]
+                                hi = gstart[g + 1]
+                c += 1
         elif a > pos:  # a run of far cilia
             if seg == far and hi == pos:
                 hi = a
@@ -257,7 +285,7 @@ def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compile
 
 @njit(cache=True)
 def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-           gstart, gof, gcx, gcy, gcz, gR2, max_rows):  # pragma: no cover - compiled
+           gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, max_rows):  # pragma: no cover
     """Every target's ranges in CSR (the arguments of :attr:`Plan.traverse` after the targets, then
     the groups of far cilia, :meth:`Plan.groups_args`):
     row bounds by :func:`_upper`, each target's rows by :func:`_traverse`, packed by
@@ -288,7 +316,8 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     counts = np.empty((m, 4), np.int64)
     for i in range(m):
         _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-                  gstart, gof, gcx, gcy, gcz, gR2, uptr, nr, nres, counts, ranges_u, res_j_u, res_r_u)
+                  gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, uptr, nr, nres, counts, ranges_u,
+                  res_j_u, res_r_u)
     ptr = np.zeros(m + 1, np.int64)
     rptr = np.zeros(m + 1, np.int64)
     for i in range(m):
@@ -367,7 +396,8 @@ class Plan:
         g = self.groups
         if not grouped or g is None:
             return _NO_GROUPS
-        return g.start, g.of, g.centre[:, 0].copy(), g.centre[:, 1].copy(), g.centre[:, 2].copy(), g.R2
+        return (g.start, g.of, g.centre[:, 0].copy(), g.centre[:, 1].copy(), g.centre[:, 2].copy(), g.R2, g.cell,
+                g.cell_ptr, g.all2, g.none2)
 
     @property
     def grid(self) -> tuple:
@@ -375,7 +405,8 @@ class Plan:
         return self.traverse[7:14]
 
 
-_NO_GROUPS = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+_NO_GROUPS = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0),
+              np.zeros(0, np.int64), np.zeros(1, np.int64), np.zeros(0), np.zeros(0))
 GROUP_MIN = 3
 """Cilia a group of far cilia needs to be summed as one (:class:`FarGroups`): its six carriers
 replace three dipole carriers per cilium."""
@@ -402,7 +433,10 @@ class FarGroups:
     :data:`GROUP_MIN` cilia): the smallest R at which the group's Taylor remainder about its
     centre (its cilia's dipole carriers against its own six: C3 (Q3 + Q3_rep) / (6 (R - a)^4),
     both third moments bounded over the whole cycle) plus its cilia's own dipole bounds at
-    R - d_j stays within the sum of their budgets, slack tol S_j / (R + d_j)."""
+    R - d_j stays within the sum of their budgets, slack tol S_j / (R + d_j). Per grid cell of the
+    plan (``cell`` (G,) each group's, ``cell_ptr`` the groups of each cell): ``all2`` the square of
+    the distance from the cell's centre beyond which every group of the cell is past its
+    distance (inf where one never is), ``none2`` that below which none is."""
 
     start: np.ndarray
     of: np.ndarray
@@ -411,16 +445,22 @@ class FarGroups:
     radius: np.ndarray
     carriers: np.ndarray
     R2: np.ndarray
+    cell: np.ndarray
+    cell_ptr: np.ndarray
+    all2: np.ndarray
+    none2: np.ndarray
 
     @property
     def n(self) -> int:
         return self.centre.shape[0]
 
 
-def _far_groups(carriers: Carriers, sj: np.ndarray, key: np.ndarray, tol: float) -> FarGroups | None:
+def _far_groups(carriers: Carriers, sj: np.ndarray, key: np.ndarray, tol: float, cell: np.ndarray, grid: tuple
+                ) -> FarGroups | None:
     """The :class:`FarGroups` of the sorted cilia ``sj`` (plan order), group g the run of equal
     ``key`` (sorted), for a plan at ``tol`` whose far cilia are dipoles (:class:`FarGroups` for
-    the bound). None when no group could ever be summed as one."""
+    the bound), ``cell`` (n_p,) the grid cell of each sorted cilium, ``grid`` (x0, y0, h, nx, ny)
+    the plan's grid. None when no group could ever be summed as one."""
     from ciliary_carpet.stokes import QUADRUPOLE, QUADRUPOLE_INV
 
     n_p = sj.size
@@ -484,8 +524,21 @@ def _far_groups(carriers: Carriers, sj: np.ndarray, key: np.ndarray, tol: float)
     if not np.any(np.isfinite(R2)):
         return None
     car = cen[:, None, :] + np.concatenate([delta[:, None, None] * QUADRUPOLE[None], np.zeros((G, 6, 1))], axis=2)
+    # per cell: the distances from its centre beyond which all its groups, below which none, are taken
+    x0, y0, h, nx, ny = grid
+    gc = cell[start[:-1]].astype(np.int64)
+    cell_ptr = np.searchsorted(gc, np.arange(nx * ny + 1)).astype(np.int64)
+    cc = np.column_stack([x0 + (gc // ny + 0.5) * h, y0 + (gc % ny + 0.5) * h])
+    off = np.sqrt(((cen[:, :2] - cc) ** 2).sum(-1)) * (1 + 1e-12) + 1e-12
+    Rg = np.sqrt(R2)
+    occupied = np.flatnonzero(np.diff(cell_ptr))
+    all2 = np.full(nx * ny, np.inf)
+    none2 = np.zeros(nx * ny)
+    if occupied.size:
+        all2[occupied] = np.maximum.reduceat(Rg + off, cell_ptr[occupied]) ** 2
+        none2[occupied] = np.maximum(np.minimum.reduceat(Rg - off, cell_ptr[occupied]), 0.0) ** 2
     return FarGroups(start=start, of=of, centre=cen, delta=delta, radius=a, carriers=car.reshape(-1, 3),
-                     R2=np.ascontiguousarray(R2))
+                     R2=np.ascontiguousarray(R2), cell=gc, cell_ptr=cell_ptr, all2=all2, none2=none2)
 
 
 def _far_order(cen: np.ndarray, R: tuple) -> int:
@@ -564,7 +617,7 @@ def make_plan(thresholds: tuple, carriers: Carriers, far: int | None = None, tol
         grouped, key = False, None
     sj = js[order].astype(np.int64)
     cen = centre3[sj]
-    groups = _far_groups(carriers, sj, key[order], tol) if grouped else None
+    groups = _far_groups(carriers, sj, key[order], tol, cell[order], (x0, y0, h, nx, ny)) if grouped else None
     return Plan(thresholds=(R1, R2, R3), order=sj, always=always, carriers=carriers.positions(sj), far=f,
                 traverse=(np.ascontiguousarray(cen[:, 0]), np.ascontiguousarray(cen[:, 1]),
                           np.ascontiguousarray(cen[:, 2]), R1[sj] ** 2, R2[sj] ** 2, R3[sj] ** 2, sj, cell_ptr, x0, y0,
