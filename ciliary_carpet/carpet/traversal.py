@@ -113,10 +113,12 @@ def _upper(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always, n_groups):  # pra
 
 
 @njit(cache=True)
-def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+def _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
               gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, uptr, nr, nres, counts, ranges, res_j,
               res_r):  # pragma: no cover - compiled
-    """For target i of ``targets`` (M, 3) the list of source ranges of one ranged sum: each
+    """For each target i of ``targets`` (M, 3) the list of source ranges of one ranged sum (one
+    call for all the targets: a call per target passed its two dozen arrays each time, which
+    took as long as the traversal on 100 cilia): each
     present cilium q (sorted by grid cell: centres scx, scy, scz, the squares of the thresholds
     sR1, sR2, sR3, cilium index sj[q]) at the cheapest order whose bound meets the tolerance at its distance R from
     the target: its monopole carrier (row q) when R >= R1, else its three dipole carriers (rows
@@ -144,113 +146,114 @@ def _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h,
 
     Target i writes its ranges and resolved cilia from row uptr[i] on (:func:`_upper` bounds
     their number), and its counts: nr[i] ranges, nres[i] resolved cilia, counts[i] its pairs at
-    the three cheap orders (:func:`_compact` then packs the rows)."""
+    the three cheap orders and the groups (:func:`_compact` then packs the rows)."""
     n_p = scx.shape[0]
-    x = targets[i, 0]
-    y = targets[i, 1]
-    z = targets[i, 2]
-    gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
-    r = uptr[i]
-    k = uptr[i]
-    seg = -1
-    lo = 0
-    hi = 0
-    count = counts[i]
-    count[:] = 0
-    pos = 0
-    for gx in range(gx0, gx1 + 2):
-        if gx <= gx1:
-            a = cell_ptr[gx * ny + gy0]
-            b = cell_ptr[gx * ny + gy1 + 1]
-        else:  # past the last column: the rest is far
-            a = n_p
-            b = n_p
-        if a > pos and gstart.shape[0] > 1:  # far cilia by their groups, cell by cell: a cell whose
-            c = gcell[gof[pos]]                 # groups are all past (or all short of) their distances
-            while c < cell_ptr.shape[0] - 1 and cell_ptr[c] < a:  # at once, else group by group
-                c0 = cell_ptr[c]
-                c1 = cell_ptr[c + 1]
-                if c1 > c0:
-                    g0 = gcell_ptr[c]
-                    g1 = gcell_ptr[c + 1]
-                    cgx = c // ny
-                    dx = x - (x0 + (cgx + 0.5) * h)
-                    dy = y - (y0 + (c - cgx * ny + 0.5) * h)
-                    dz = z - gcz[g0]
-                    d2 = dx * dx + dy * dy + dz * dz
-                    if d2 >= call2[c]:
-                        if not (seg == 3 and hi == g0):
-                            r = _close(seg, lo, hi, r, ranges, n_p, count)
-                            seg = 3
-                            lo = g0
-                        hi = g1
-                    elif d2 < cnone2[c]:
-                        if not (seg == far and hi == c0):
-                            r = _close(seg, lo, hi, r, ranges, n_p, count)
-                            seg = far
-                            lo = c0
-                        hi = c1
-                    else:
-                        for g in range(g0, g1):
-                            dx = x - gcx[g]
-                            dy = y - gcy[g]
-                            dz = z - gcz[g]
-                            if dx * dx + dy * dy + dz * dz >= gR2[g]:
-                                if not (seg == 3 and hi == g):
-                                    r = _close(seg, lo, hi, r, ranges, n_p, count)
-                                    seg = 3
-                                    lo = g
-                                hi = g + 1
-                            else:
-                                if not (seg == far and hi == gstart[g]):
-                                    r = _close(seg, lo, hi, r, ranges, n_p, count)
-                                    seg = far
-                                    lo = gstart[g]
-                                hi = gstart[g + 1]
-                c += 1
-        elif a > pos:  # a run of far cilia
-            if seg == far and hi == pos:
-                hi = a
-            else:
+    for i in range(targets.shape[0]):
+        x = targets[i, 0]
+        y = targets[i, 1]
+        z = targets[i, 2]
+        gx0, gx1, gy0, gy1 = _window(x, y, x0, y0, h, nx, ny, reach)
+        r = uptr[i]
+        k = uptr[i]
+        seg = -1
+        lo = 0
+        hi = 0
+        count = counts[i]
+        count[:] = 0
+        pos = 0
+        for gx in range(gx0, gx1 + 2):
+            if gx <= gx1:
+                a = cell_ptr[gx * ny + gy0]
+                b = cell_ptr[gx * ny + gy1 + 1]
+            else:  # past the last column: the rest is far
+                a = n_p
+                b = n_p
+            if a > pos and gstart.shape[0] > 1:  # far cilia by their groups, cell by cell: a cell whose
+                c = gcell[gof[pos]]                 # groups are all past (or all short of) their distances
+                while c < cell_ptr.shape[0] - 1 and cell_ptr[c] < a:  # at once, else group by group
+                    c0 = cell_ptr[c]
+                    c1 = cell_ptr[c + 1]
+                    if c1 > c0:
+                        g0 = gcell_ptr[c]
+                        g1 = gcell_ptr[c + 1]
+                        cgx = c // ny
+                        dx = x - (x0 + (cgx + 0.5) * h)
+                        dy = y - (y0 + (c - cgx * ny + 0.5) * h)
+                        dz = z - gcz[g0]
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 >= call2[c]:
+                            if not (seg == 3 and hi == g0):
+                                r = _close(seg, lo, hi, r, ranges, n_p, count)
+                                seg = 3
+                                lo = g0
+                            hi = g1
+                        elif d2 < cnone2[c]:
+                            if not (seg == far and hi == c0):
+                                r = _close(seg, lo, hi, r, ranges, n_p, count)
+                                seg = far
+                                lo = c0
+                            hi = c1
+                        else:
+                            for g in range(g0, g1):
+                                dx = x - gcx[g]
+                                dy = y - gcy[g]
+                                dz = z - gcz[g]
+                                if dx * dx + dy * dy + dz * dz >= gR2[g]:
+                                    if not (seg == 3 and hi == g):
+                                        r = _close(seg, lo, hi, r, ranges, n_p, count)
+                                        seg = 3
+                                        lo = g
+                                    hi = g + 1
+                                else:
+                                    if not (seg == far and hi == gstart[g]):
+                                        r = _close(seg, lo, hi, r, ranges, n_p, count)
+                                        seg = far
+                                        lo = gstart[g]
+                                    hi = gstart[g + 1]
+                    c += 1
+            elif a > pos:  # a run of far cilia
+                if seg == far and hi == pos:
+                    hi = a
+                else:
+                    r = _close(seg, lo, hi, r, ranges, n_p, count)
+                    seg = far
+                    lo = pos
+                    hi = a
+            for q in range(a, b):
+                dx = x - scx[q]
+                dy = y - scy[q]
+                dz = z - scz[q]
+                R2 = dx * dx + dy * dy + dz * dz  # squared distance against squared thresholds
+                if R2 >= sR1[q]:
+                    t = 0
+                elif R2 >= sR2[q]:
+                    t = 1
+                elif R2 >= sR3[q]:
+                    t = 2
+                else:
+                    t = 4
+                if t == seg and hi == q:
+                    hi = q + 1
+                    continue
                 r = _close(seg, lo, hi, r, ranges, n_p, count)
-                seg = far
-                lo = pos
-                hi = a
-        for q in range(a, b):
-            dx = x - scx[q]
-            dy = y - scy[q]
-            dz = z - scz[q]
-            R2 = dx * dx + dy * dy + dz * dz  # squared distance against squared thresholds
-            if R2 >= sR1[q]:
-                t = 0
-            elif R2 >= sR2[q]:
-                t = 1
-            elif R2 >= sR3[q]:
-                t = 2
-            else:
-                t = 4
-            if t == seg and hi == q:
-                hi = q + 1
-                continue
-            r = _close(seg, lo, hi, r, ranges, n_p, count)
-            if t == 4:
-                seg = -1
-                _resolve(sj[q], r, k, ranges, res_j, res_r)
-                r += 1
-                k += 1
-            else:
-                seg = t
-                lo = q
-                hi = q + 1
-        if b > pos:
-            pos = b
-    r = _close(seg, lo, hi, r, ranges, n_p, count)
-    for q in range(always.shape[0]):
-        _resolve(always[q], r, k, ranges, res_j, res_r)
-        r += 1
-        k += 1
-    nr[i] = r - uptr[i]
-    nres[i] = k - uptr[i]
+                if t == 4:
+                    seg = -1
+                    _resolve(sj[q], r, k, ranges, res_j, res_r)
+                    r += 1
+                    k += 1
+                else:
+                    seg = t
+                    lo = q
+                    hi = q + 1
+            if b > pos:
+                pos = b
+        r = _close(seg, lo, hi, r, ranges, n_p, count)
+        for q in range(always.shape[0]):
+            _resolve(always[q], r, k, ranges, res_j, res_r)
+            r += 1
+            k += 1
+        nr[i] = r - uptr[i]
+        nres[i] = k - uptr[i]
 
 
 @njit(cache=True, inline="always")
@@ -314,10 +317,9 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     nr = np.empty(m, np.int64)
     nres = np.empty(m, np.int64)
     counts = np.empty((m, 4), np.int64)
-    for i in range(m):
-        _traverse(i, targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
-                  gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, uptr, nr, nres, counts, ranges_u,
-                  res_j_u, res_r_u)
+    _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
+              gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, uptr, nr, nres, counts, ranges_u, res_j_u,
+              res_r_u)
     ptr = np.zeros(m + 1, np.int64)
     rptr = np.zeros(m + 1, np.int64)
     for i in range(m):
