@@ -93,7 +93,7 @@ from ciliary_carpet.stokes import QUADRUPOLE, QUADRUPOLE_INV, Kernel
 
 __all__ = ["Bounds", "CarrierForces", "Carriers", "DIPOLE", "DESIGN_DIPOLE", "HARMONIC_TAIL", "InstantCarriers",
            "InstantForces", "LOD_SLACK", "LOD_SLACK_STANDING", "MomentRows", "PHASE_MARGIN",
-           "dipole_forces", "triangle"]
+           "dipole_forces", "smallest_root", "triangle"]
 
 PHASE_MARGIN = 1.25
 """The exact terms of the cheap orders' bounds (nu(D), nu(T - T_rep)) are maximised over the
@@ -434,6 +434,7 @@ def _group_forces(out, n, pos, start, centre, delta, inv6):  # pragma: no cover 
         cx = centre[g, 0]
         cy = centre[g, 1]
         b = np.empty((6, 2))
+        fk = np.empty((6, 2))
         for tt in range(nt):
             for k in range(6):
                 b[k, 0] = 0.0
@@ -455,14 +456,10 @@ def _group_forces(out, n, pos, start, centre, delta, inv6):  # pragma: no cover 
                 b[4, 1] += hx * hy * fy
                 b[5, 0] += hy * hy * fx
                 b[5, 1] += hy * hy * fy
+            _solve_carriers(inv6, b, fk)
             for mm in range(6):
-                gx = 0.0
-                gy = 0.0
-                for k in range(6):
-                    gx += inv6[mm, k] * b[k, 0]
-                    gy += inv6[mm, k] * b[k, 1]
-                out[tt, 0, 10 * n + 6 * g + mm] = gx
-                out[tt, 1, 10 * n + 6 * g + mm] = gy
+                out[tt, 0, 10 * n + 6 * g + mm] = fk[mm, 0]
+                out[tt, 1, 10 * n + 6 * g + mm] = fk[mm, 1]
                 out[tt, 2, 10 * n + 6 * g + mm] = 0.0
 
 
@@ -526,6 +523,25 @@ def _tier_bound(targets, centre, radius, R1, R2, R3, a1, b1, a2, b2, b3, out):  
 
 
 
+def smallest_root(f, lo: np.ndarray, hi: np.ndarray, live) -> np.ndarray:
+    """Per element the end of a bracket [lo, hi] of the crossing of ``f`` (positive below it, at most
+    zero beyond; decreasing in the sense that matters): ``hi`` doubled while f(hi) > 0 where
+    ``live(hi)`` (at most 200 times), then 60 bisections keeping f(hi) <= 0. The distances of the
+    levels of detail (:meth:`Bounds.thresholds`) and of the groups of far cilia
+    (:func:`~.traversal._far_groups`)."""
+    for _ in range(200):
+        grow = (f(hi) > 0) & live(hi)
+        if not np.any(grow):
+            break
+        hi = np.where(grow, 2 * hi, hi)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        pos = f(mid) > 0
+        lo = np.where(pos, mid, lo)
+        hi = np.where(pos, hi, mid)
+    return hi
+
+
 @dataclass(frozen=True, eq=False)
 class CarrierForces:
     """The cheap orders' carriers of K cilia for given moments: the dipole and quadrupole forces
@@ -574,18 +590,7 @@ class Bounds:
         for A, p, B in ((self.a1, 2, self.b1), (self.a2, 3, self.b2), (np.zeros_like(a), 3, self.b3)):
             with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 g = lambda R: R * (A / R ** p + B / (R - a) ** (p + 1)) - target  # noqa: E731,B023
-                lo = a.copy()
-                hi = a + 1.0
-                for _ in range(200):
-                    grow = (g(hi) > 0) & (S > 0)
-                    if not np.any(grow):
-                        break
-                    hi = np.where(grow, 2 * hi, hi)
-                for _ in range(60):
-                    mid = 0.5 * (lo + hi)
-                    pos = g(mid) > 0
-                    lo = np.where(pos, mid, lo)
-                    hi = np.where(pos, hi, mid)
+                hi = smallest_root(g, a.copy(), a + 1.0, lambda h: S > 0)
             R = hi * (1 + 1e-12) + 1e-12
             out.append(np.where(S > 0, np.minimum(R, 1e300), np.where(makes_flow, np.inf, -1.0)))
         return tuple(out)

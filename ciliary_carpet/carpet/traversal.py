@@ -40,7 +40,7 @@ from functools import cached_property
 import numpy as np
 from numba import njit, prange
 
-from ciliary_carpet.carpet.carriers import Carriers
+from ciliary_carpet.carpet.carriers import Carriers, smallest_root
 from ciliary_carpet.carpet.cycles import ResolvedSources
 from ciliary_carpet.stokes import Kernel
 from ciliary_carpet.stokes import stokeslet_velocity
@@ -509,17 +509,7 @@ def _far_groups(carriers: Carriers, sj: np.ndarray, key: np.ndarray, tol: float,
         return np.where(R > a, lhs - budget, np.inf)
 
     lo = a + np.maximum.reduceat(d + aj, start[:-1])
-    hi = 2.0 * lo + 1.0
-    for _ in range(200):
-        grow = (excess(hi) > 0) & (hi < 1e12)
-        if not np.any(grow):
-            break
-        hi = np.where(grow, 2.0 * hi, hi)
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        pos_ = excess(mid) > 0
-        lo = np.where(pos_, mid, lo)
-        hi = np.where(pos_, hi, mid)
+    hi = smallest_root(excess, lo, 2.0 * lo + 1.0, lambda h: h < 1e12)
     R = hi * (1 + 1e-12) + 1e-12
     ok = (size >= GROUP_MIN) & (hi < 1e12) & (b.S[js].sum() > 0)
     R2 = np.where(ok, R ** 2, np.inf)
