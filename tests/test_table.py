@@ -70,6 +70,13 @@ def test_angle_inversion(small):
     assert t.chi_N_for_angle(-target) == pytest.approx(-c)
     with pytest.raises(TableError, match=r"not achievable.*must lie in \["):
         t.chi_N_for_angle(hi + 0.1)
+    # an array of angles (a design's, one per cilium): each distinct one solved once, the same numbers
+    many = np.array([[target, -target, lo], [target, 0.5 * (lo + target), target]])
+    got = t.chi_N_for_angle(many)
+    assert got.shape == many.shape
+    assert np.array_equal(got, [[t.chi_N_for_angle(float(a)) for a in row] for row in many])
+    with pytest.raises(TableError, match="not achievable"):
+        t.chi_N_for_angle(np.array([target, hi + 0.1]))
 
 
 def test_bad_files(tmp_path, small):

@@ -302,7 +302,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
             np.broadcast_to(np.asarray(cilium_angles, dtype=float), (N,)).copy()
         want, bad = reachable_check(want, (lo_a, hi_a), clip, what="cilium", points=carpet.bases)
         clipped = np.nonzero(bad)[0].tolist()
-        chi0 = np.array([t.chi_N_for_angle(a) for a in want])
+        chi0 = np.asarray(t.chi_N_for_angle(want), dtype=float)
     else:
         U = np.asarray(velocities, dtype=float)
         if U.shape != X.shape:
@@ -578,7 +578,7 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
         centres0 = bases + mom(np.zeros(1))["offset"] @ rot.T
         want, bad = reachable_check(target.deflection(centres0, frame), table.thrust_angle_range(), not strict,
                                     what="cilium", points=bases)
-        chi0 = np.array([table.chi_N_for_angle(x) for x in want])
+        chi0 = np.asarray(table.chi_N_for_angle(want), dtype=float)
         carpet = built.carpet(chi0)
         X = control_points(bases, frame, target.control)
         reach = reachability(carpet, X, frame, target=target)  # up front: what this carpet can make

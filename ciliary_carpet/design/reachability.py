@@ -265,7 +265,7 @@ class _Strip:
         a_max = self.table.thrust_angle_range()[1] * (1.0 - 1e-9)
         want = np.clip(target.deflection(self.centres, self.frame), -a_max, a_max)
         cut = self.mom.cutoff
-        z0 = np.array([self.table.chi_N_for_angle(float(a)) for a in want]) / cut
+        z0 = np.asarray(self.table.chi_N_for_angle(np.asarray(want, dtype=float)), dtype=float) / cut
 
         def flow(z):
             return (self.M @ carrier_forces(self.mom, self.rot, self.delta, z * cut).ravel()).reshape(-1, 2)
