@@ -17,6 +17,7 @@ from ciliary_carpet.transport.pathlines import (
     UNDERFLOW,
     PathLineError,
     SeedError,
+    _next_step,
     pathlines,
 )
 from single_cilium.table import ThrustTable
@@ -165,6 +166,39 @@ def test_a_flow_model_is_one_class(one):
     assert ResolvedFlow(one).step_cap == pytest.approx(float(one.periods[0]) / 16)
     assert MeanFlow.from_carpet(one, (-2.0, 2.0, -1.0, 3.0), spacing=1.0).domain.tolist() == \
         [-2.0, 2.0, -1.0, 3.0, -np.inf, np.inf]
+
+
+class FastOnTheRight(Flow):
+    """u = (cos(w t), 0, 0) where x > 0, zero elsewhere: x(t) = x0 + sin(w t) / w on the right."""
+
+    name = "fast_on_the_right"
+
+    def __init__(self, carpet, w):
+        self.carpet, self.w = carpet, w
+
+    def velocity(self, x, t):
+        u = np.zeros_like(x)
+        u[:, 0] = np.where(x[:, 0] > 0, math.cos(self.w * t), 0.0)
+        return u
+
+
+def test_smaller_steps_split_what_is_left_equally(one):
+    """The tracers that fail a step take smaller steps of equal length, none a short remainder
+    (each such step costs a whole instant of a carpet's state), and stay accurate."""
+    assert _next_step(1.0, 0.45, equal=True) == pytest.approx(1 / 3)  # not 0.45, 0.45, 0.1
+    assert _next_step(1.0, 0.45, equal=False) == 0.45  # the common steps keep the error test's
+    assert _next_step(1.0, 0.5, equal=True) == 0.5
+    assert _next_step(1.0, 0.6, equal=True) == 0.5
+    assert _next_step(1.0, 1.0 - 1e-12, equal=True) == 1.0 and _next_step(1.0, 3.0, equal=False) == 1.0
+    # one tracer in a fast flow, one at rest: the common steps (the cap H) suit the second, the
+    # first re-integrates each of them in smaller steps
+    H, w = 0.05, 60.0
+    flow = FastOnTheRight(one, w)
+    seeds = np.array([[5.0, 3.0], [-5.0, 3.0]])
+    pl = pathlines(flow, seeds, (0.0, 1.0), rtol=1e-10, atol=1e-10, max_step=H, domain=(-9, 9, -9, 9))
+    assert pl.stats["substeps"] > 100 and np.all(pl.reason == END)
+    assert abs(pl.end_points[0, 0] - (5.0 + math.sin(w) / w)) < 1e-8
+    assert np.array_equal(pl.end_points[1], [-5.0, 3.0, 0.0])
 
 
 def test_tracers_pass_a_single_filament(one):
