@@ -94,6 +94,16 @@ def test_treecode_bad_input():
             Treecode(x, y, k, 1.0, theta=theta)
     with pytest.raises(ValueError, match="leaf"):
         Treecode(x, y, k, 1.0, leaf=0)
+    # the forces and weights of each sum (the points were checked once, at construction)
+    tc = Treecode(x, y, k, 1.0, Direct())
+    with pytest.raises(ValueError, match=r"forces must have shape \(90, 3\)"):
+        tc.apply(f[:, :2])
+    with pytest.raises(ValueError, match="forces contains NaN"):
+        tc.apply(np.where(np.arange(len(f))[:, None] == 3, np.nan, f))
+    with pytest.raises(ValueError, match=r"weights must have shape \(30, 3\)"):
+        tc.adjoint(w[:5])
+    with pytest.raises(ValueError, match="contains NaN or inf"):
+        Treecode(np.where(np.arange(len(x))[:, None] == 1, np.inf, x), y, k, 1.0)
 
     class Lopsided(RegularisedBlake):
         symmetric = False
