@@ -385,11 +385,11 @@ def _next_step(left: float, h: float, equal: bool) -> float:
     into the fewest equal parts no longer than ``h`` (at least h / 2: no short remainder).
 
     Measured on the render's 100 tracers over the designed uniform_deflection carpet (flow tol
-    1e-4, rtol 1e-9, atol 2e-7 L, one thread; benchmarks/results/bench_evaluation.md): 30 x 30
-    over a quarter of the duration took 1490 tries of a step instead of 1765 (45 rejected
-    instead of 196; 5.65 s instead of 6.15 s), 100 x 100 over 5 % 436 instead of 498 (6.7-6.9 s
-    instead of 7.0-7.1 s), and the end points moved closer to a run at rtol 1e-11 (4.9e-5
-    instead of 9.2e-5 L at most on 30 x 30)."""
+    1e-4, rtol 1e-9, atol 2e-7 L, one thread; ``benchmarks/bench_evaluation.py --pathlines 0.1``,
+    benchmarks/results/bench_evaluation.md): over a tenth of the duration, 100 x 100 took 1063
+    tries of a step instead of 1231 (84 rejected instead of 240), 11.6 s instead of 12.5 s; 30 x 30
+    496 instead of 563, 1.78 s instead of 1.84 s. The 30 x 30 end points moved closer to a run at rtol
+    1e-11 (over a quarter of the duration: at most 4.9e-5 L from it instead of 9.2e-5 L)."""
     if left - h < 1e-9 * h:
         return left
     if equal:
