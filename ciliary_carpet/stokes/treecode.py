@@ -24,12 +24,13 @@ of 1,000 and 10,000 cilia).
 
 The interaction lists are built once per geometry (vectorised level by level); both sums are
 then one ranged sum of the evaluator each (any evaluator, as
-:func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity_ranges` runs it), their fixed points and
-lists checked once, at construction, and kept in the evaluator's layout (coordinate rows): each
-sum then checks and converts only its forces (checked and copied every time, the points took a
-quarter of a design's ranged sums at 10^4 cilia). The adjoint uses the same lists transposed: each leaf and each far cell gathers the
-control points that see it into a contiguous block, so that A^T is the exact transpose of the
-approximate A (what L-BFGS-B needs: its gradient is that of the objective it minimises).
+:func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity_ranges` runs it), their fixed points
+and lists checked once, at construction, and kept in the evaluator's layout (coordinate rows):
+each sum then checks and converts only its forces (checked and copied every time, the points
+took a quarter of a design's ranged sums at 10^4 cilia). The adjoint uses the same lists
+transposed: each leaf and each far cell gathers the control points that see it into a
+contiguous block, so that A^T is the exact transpose of the approximate A (what L-BFGS-B needs:
+its gradient is that of the objective it minimises).
 """
 from __future__ import annotations
 

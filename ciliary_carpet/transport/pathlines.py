@@ -15,9 +15,9 @@ down all others. Those smaller steps split what is left of the interval into equ
 longer than the step the error test asks for (:func:`_next_step`), never a short remainder: each
 step of a few tracers costs a whole instant of the carpet's state (:meth:`Flow.prepare
 <ciliary_carpet.transport.flow.Flow.prepare>`), so a remainder cost as much as a full step, and
-the equal parts, each within the error test's step, fail less often. The step is also capped by the flow (``flow.step_cap``; for the time-resolved
-flow a sixteenth of the beat period, see :mod:`~ciliary_carpet.transport.flow` for what that
-buys) or by ``max_step``. Every stage evaluates the flow
+the equal parts, each within the error test's step, fail less often. The step is also capped by
+the flow (``flow.step_cap``; for the time-resolved flow a sixteenth of the beat period, see
+:mod:`~ciliary_carpet.transport.flow` for what that buys) or by ``max_step``. Every stage evaluates the flow
 once for all the tracers it advances (one vectorised sum). A tracer that leaves the domain ends
 on its boundary, at the crossing time found by bisection on the continuous extension. Output is
 dense: positions at the common times ``t0 + k dt`` with at least
@@ -388,8 +388,8 @@ def _next_step(left: float, h: float, equal: bool) -> float:
     1e-4, rtol 1e-9, atol 2e-7 L, one thread; ``benchmarks/bench_evaluation.py --pathlines 0.1``,
     benchmarks/results/bench_evaluation.md): over a tenth of the duration, 100 x 100 took 1063
     tries of a step instead of 1231 (84 rejected instead of 240), 11.6 s instead of 12.5 s; 30 x 30
-    496 instead of 563, 1.78 s instead of 1.84 s. The 30 x 30 end points moved closer to a run at rtol
-    1e-11 (over a quarter of the duration: at most 4.9e-5 L from it instead of 9.2e-5 L)."""
+    496 instead of 563, 1.78 s instead of 1.84 s. The 30 x 30 end points moved closer to a run at
+    rtol 1e-11 (over a quarter of the duration: at most 4.9e-5 L from it instead of 9.2e-5 L)."""
     if left - h < 1e-9 * h:
         return left
     if equal:
