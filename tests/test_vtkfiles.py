@@ -214,6 +214,13 @@ def test_cilia_read_back(tmp_path):
     np.testing.assert_array_equal(arr(pd, "arc_length"), np.tile(s, C))
     np.testing.assert_array_equal(arr(pd, "drag_density"), drag.reshape(-1, 3))
     assert time_steps(reader) == (3.5,)
+    # the data in one raw (not base64) appended block, LZ4-compressed: a quarter smaller and three
+    # times faster to make than base64 (vtkfiles._mesh_bytes)
+    text = out.read_bytes()
+    head = text[:text.index(b"<AppendedData")].decode("ascii")
+    assert 'compressor="vtkLZ4DataCompressor"' in head and 'format="appended"' in head
+    assert 'format="binary"' not in head
+    assert b'<AppendedData encoding="raw">' in text
 
     out = write_cilia(tmp_path / "bare.vtp", shapes, s, ids, chi, phase)
     poly = read(out).GetOutput()
