@@ -18,7 +18,9 @@ tolerance), one numba thread, three ways in the same run:
 rtol and atol: ``PATHLINE_TOL``, ``PATHLINE_RTOL``, ``PATHLINE_ATOL`` x spacing) over the
 fraction F of its duration, one thread, with where its time goes: the flow's ``prepare`` (the
 carriers of a step's instants) and its evaluations by the number of tracers they carry (the
-common steps carry them all, the substeps of tracers near a filament one to a few); then the
+common steps carry them all, the substeps of tracers near a filament one to a few), twice: the
+far cilia's carriers summed in fp64 and in fp32 (``ResolvedFlow(precision=...)``; a render's is
+``PATHLINE_PRECISION``), with the largest distance between their end points; then the
 same for the error estimate's reference run (8 of the tracers, every tolerance tighter: what runs
 beside the path lines on the second core). Run it on two checkouts (``PYTHONPATH``) to compare
 code.
@@ -149,23 +151,33 @@ def pathline_split(n: int, fraction: float) -> list[str]:
 
     ft, ti = REFERENCE_TIGHTER
     rows = []
-    for what, seeds, tol, rtol, atol, spp in (
-            ("render", plan.seeds, PATHLINE_TOL, PATHLINE_RTOL, PATHLINE_ATOL * spacing, 16),
-            ("reference", plan.seeds[error_tracers(len(plan.seeds))], PATHLINE_TOL / ft, PATHLINE_RTOL / ti,
+    idx = error_tracers(len(plan.seeds))
+    ends = {}
+    for what, precision, seeds, tol, rtol, atol, spp in (
+            ("render", "fp64", plan.seeds, PATHLINE_TOL, PATHLINE_RTOL, PATHLINE_ATOL * spacing, 16),
+            ("render", "fp32", plan.seeds, PATHLINE_TOL, PATHLINE_RTOL, PATHLINE_ATOL * spacing, 16),
+            ("reference", "fp64", plan.seeds[idx], PATHLINE_TOL / ft, PATHLINE_RTOL / ti,
              PATHLINE_ATOL * spacing / ti, 1)):
         kw = dict(rtol=rtol, atol=atol, samples_per_period=spp)
-        pathlines(ResolvedFlow(c, tol), seeds, (0.0, 0.01), **kw)  # compiled, plans made
-        flow = Timed(c, tol)
+        pathlines(ResolvedFlow(c, tol, precision=precision), seeds, (0.0, 0.01), **kw)  # compiled, plans made
+        flow = Timed(c, tol, precision=precision)
         t = time.perf_counter()
         pl = pathlines(flow, seeds, (0.0, plan.duration * fraction), **kw)
         wall = time.perf_counter() - t
+        ends[what, precision] = pl.end_points
+        off = ""
+        if what == "reference":  # how far each render's run ends from it (its 8 tracers)
+            off = " / ".join(f"{np.linalg.norm(ends['render', p][idx] - pl.end_points, axis=1).max():.2g}"
+                             for p in ("fp64", "fp32"))
+        elif precision == "fp32":
+            off = f"{np.linalg.norm(pl.end_points - ends['render', 'fp64'], axis=1).max():.2g} from fp64"
         ev = np.array(flow.log["evals"])
         few = ev[:, 0] < 20
         prep_s, prep_n = flow.log["prepare"]
-        rows.append(f"| {n} x {n}, {what} ({len(seeds)} tracers) | {fraction:g} | {wall:.2f} | {ev.shape[0]} | "
-                    f"{prep_s:.2f} ({prep_n}) | {ev[~few, 1].sum():.2f} ({int((~few).sum())}) | "
+        rows.append(f"| {n} x {n}, {what} ({len(seeds)} tracers) | {precision} | {fraction:g} | {wall:.2f} | "
+                    f"{ev.shape[0]} | {prep_s:.2f} ({prep_n}) | {ev[~few, 1].sum():.2f} ({int((~few).sum())}) | "
                     f"{ev[few, 1].sum():.2f} ({int(few.sum())}) | {wall - prep_s - ev[:, 1].sum():.2f} | "
-                    f"{pl.stats['steps']} / {pl.stats['substeps']} / {pl.stats['rejected']} | {_load()} |")
+                    f"{pl.stats['steps']} / {pl.stats['substeps']} / {pl.stats['rejected']} | {off} | {_load()} |")
         print(rows[-1], flush=True)
     return rows
 
@@ -196,10 +208,13 @@ def main(argv=None) -> str:
         rows += ["", f"The render's path lines and its error estimate's reference run over a fraction of their "
                  f"duration (`--pathlines {a.pathlines:g}`), one thread: seconds in all, in the flow's prepare "
                  "(calls), in evaluations of 20 tracers or more (the common steps) and of fewer (the substeps), "
-                 "and the rest (the integrator).", "",
-                 "| carpet | fraction | seconds | evaluations | prepare | evaluations >= 20 tracers | "
-                 "evaluations < 20 tracers | rest | steps / substeps / rejected | load |",
-                 "|---|---:|---:|---:|---:|---:|---:|---:|---|---|"]
+                 "and the rest (the integrator). The render's run twice, its far carriers summed in fp64 and in "
+                 "fp32 (`PATHLINE_PRECISION`, what a render does), then the reference; end points: the fp32 "
+                 "run's largest distance from the fp64 one, and the reference's from each (its 8 tracers, "
+                 "fp64 / fp32) [L].", "",
+                 "| carpet | far sums | fraction | seconds | evaluations | prepare | evaluations >= 20 tracers | "
+                 "evaluations < 20 tracers | rest | steps / substeps / rejected | end points | load |",
+                 "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---|---|"]
         for n in a.sizes:
             rows += pathline_split(n, a.pathlines)
     text = "\n".join(head + rows) + "\n"

@@ -669,3 +669,60 @@ def test_a_greens_function_without_its_pair_or_reference_cannot_be_made():
 
     with pytest.raises(TypeError, match="pair"):
         Half()
+
+
+# --------------------------------------------------------------------------- fp32 on the CPU
+@pytest.mark.parametrize("name", ["stokeslet", "regularised-stokeslet", "blake", "regularised-blake"])
+def test_fp32_sums_within_their_bound(name):
+    """Direct("fp32"), dense and ranged, every Green's function: within the rounding bound of
+    ciliary_carpet.stokes.precision against fp64, with ranges longer than a block (FP32_BLOCK: the
+    block sums added in fp64), and fp32 did run (errors above fp64's). Points 50 L from the origin:
+    the shift to their centre keeps the accuracy."""
+    from ciliary_carpet.stokes.kernel import KERNELS
+    from ciliary_carpet.stokes.precision import FP32_BLOCK, fp32_error_bound
+
+    cls = KERNELS[name]
+    k = cls(wall=Wall(-0.4)) if "blake" in name else cls()
+    T, S, F = random_case(40, 3 * FP32_BLOCK + 17, seed=41, zmin=0.02)
+    T[:, :2] += 50.0
+    S[:, :2] += 50.0
+    n = S.shape[0]
+    ref = Direct().dense(k, T, S, F, 0.9)
+    u = Direct("fp32").dense(k, T, S, F, 0.9)
+    assert u.dtype == np.float64
+    err = np.max(np.abs(u - ref), axis=1)
+    bound = fp32_error_bound(k, T, S, F, 0.9, block=FP32_BLOCK)
+    assert np.all(err <= bound), np.max(err / bound)
+    assert 1e-10 < rel_err(u, ref) < 1e-5
+    # ranged: a long range (three blocks and a part), a short one, an empty one, no range at all
+    ptr = np.concatenate([[0, 0], np.arange(1, 3 * (len(T) - 1) + 1, 3)])
+    ranges = np.tile([[0, n], [5, 30], [7, 7]], (len(T) - 1, 1))
+    ref = stokeslet_velocity_ranges(T, S, F, ptr, ranges, 0.9, kernel=k)
+    u = Direct("fp32").ranged(k, T, S, F, ptr, ranges, 0.9)
+    assert not np.any(u[0])
+    terms = np.diff(ptr) * 0 + n + 25
+    err = np.max(np.abs(u - ref), axis=1)[1:]
+    assert np.all(err <= fp32_error_bound(k, T, S, F, 0.9, terms=terms, block=FP32_BLOCK)[1:])
+    assert 1e-10 < rel_err(u, ref) < 1e-5
+
+
+def test_fp32_precision_is_checked_and_described():
+    with pytest.raises(ValueError, match="precision must be one of"):
+        Direct("fp16")
+    assert "fp32" in Direct("fp32").describe() and "fp32" not in Direct().describe()
+
+
+def test_in_fp32_moves_only_the_cpu_sums():
+    """The path lines' far sums run in fp32 where the ranged sums would run on the CPU in fp64
+    (Auto without a GPU, Direct); any other evaluator is kept (a GPU keeps its own precision)."""
+    from ciliary_carpet.stokes import in_fp32
+
+    assert in_fp32(Auto()) == Direct("fp32") and in_fp32(Direct()) == Direct("fp32")
+    assert in_fp32(FMM()) == Direct("fp32")  # FMM's ranged sums run on Direct
+    assert in_fp32(Direct("fp32")) == Direct("fp32")
+
+    class Unhashable(Direct):  # a user's evaluator: kept as it is, and no TypeError from the cache
+        __hash__ = None
+
+    mine = Unhashable()
+    assert in_fp32(mine) is mine

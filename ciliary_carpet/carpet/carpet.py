@@ -64,7 +64,7 @@ from ciliary_carpet.carpet.cycles import CycleData, InstantBlocks, MeanBlocks, R
 from ciliary_carpet.carpet.geometry import GEOMETRIES, Embedding
 from ciliary_carpet.carpet.geometry import standing as standing_embedding
 from ciliary_carpet.carpet.traversal import Plan, Summed, dense_sum, flow_sum, make_plan
-from ciliary_carpet.stokes import Auto, Backend, Kernel, Wall, make_kernel, stokeslet_velocity_ranges
+from ciliary_carpet.stokes import Auto, Backend, Direct, Kernel, Wall, in_fp32, make_kernel, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
 
@@ -553,10 +553,16 @@ class Carpet:
                           tol=tol, work=dict(sources=int(s.sources), ranges=int(s.ranges),
                                              orders=dict(monopole=int(o[0]), dipole=int(o[1]), quadrupole=int(o[2]))))
 
-    def velocity(self, points, when: When, tol: float = 1e-3) -> np.ndarray:
+    def velocity(self, points, when: When, tol: float = 1e-3, precision: str = "fp64") -> np.ndarray:
         """(M, 3) the velocity of :meth:`evaluate` without its error bound (which costs a pass over
-        every pair of a point and a cilium): for integrators that evaluate the flow many times."""
-        return self._sum(self._targets(points), when, self._tol(tol))[0].velocity
+        every pair of a point and a cilium): for integrators that evaluate the flow many times.
+        ``precision="fp32"`` sums the far cilia's carriers in single precision on the CPU
+        (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`; their rounding error,
+        :func:`~ciliary_carpet.stokes.precision.fp32_error_bound`, is some 1e-7 of the velocity, far
+        inside the levels of detail's ``tol``); the resolved near field stays in fp64."""
+        if precision not in ("fp64", "fp32"):
+            raise ValueError(f"precision must be 'fp64' or 'fp32', got {precision!r}")
+        return self._sum(self._targets(points), when, self._tol(tol), precision=precision)[0].velocity
 
     def others_mean_flow(self, js=None, tol: float = 1e-4) -> np.ndarray:
         """(len(js), 3) the cycle-mean flow that all the *other* cilia make at the force centres
@@ -583,15 +589,18 @@ class Carpet:
                                                             kernel=self.kernel, backend=self.backend)
         return u
 
-    def _sum(self, x: np.ndarray, when: When, tol: float, bound: bool = False
+    def _sum(self, x: np.ndarray, when: When, tol: float, bound: bool = False, precision: str = "fp64"
              ) -> tuple[Summed, Plan | None, CarrierForces | None]:
         """The sum at targets ``x`` (M, 3), its plan and the carriers' forces with the terms of
-        the reported bound (``bound``; None for tol = 0 or without ``bound``)."""
+        the reported bound (``bound``; None for tol = 0 or without ``bound``), the carriers in
+        ``precision`` (:meth:`velocity`)."""
         if tol > 0 and not bound and isinstance(when, Instant):  # the phases of the cilia resolved only
             ph, sources = None, ResolvedSources(self.cycles, None, t=when.t, prepared=self._instant_blocks)
         else:
             ph = when.phases(self.cycles)
             sources = ResolvedSources(self.cycles, ph, self._mean_blocks)
+        evaluator = self.backend if self.backend is not None else _AUTO
+        precision = self._precision(precision, evaluator)
         if tol == 0:  # the resolved sum itself: every source of every cilium that makes a flow
             js = np.nonzero(when.bounds(self.carriers).S > 0)[0]
             return dense_sum(x, js, sources, self.kernel, self.backend, self.mu), None, None
@@ -602,25 +611,32 @@ class Carpet:
             car = self.carriers.forces(F, D, T)
             forces = self.carriers.stacked(F, car, plan.order)
         else:
-            forces = self._carrier_forces(when, key, plan)
-        evaluator = self.backend if self.backend is not None else _AUTO
+            forces = self._carrier_forces(when, key, plan, precision)
         s = flow_sum(x, plan, forces, sources, self.n, self.kernel, evaluator, self.mu,
-                     grouped=not bound and isinstance(when, Instant))  # (the instants' carriers hold the groups')
+                     grouped=not bound and isinstance(when, Instant), precision=precision)  # (the instants' carriers hold the groups')
         return s, plan, car
 
-    def _carrier_forces(self, when: When, key: tuple, plan: Plan):
+    def _precision(self, precision: str, evaluator: Backend) -> str:
+        """The precision the far carriers' sums run in: ``"fp32"`` where it is asked for and the
+        sums run on the CPU (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`), else ``"fp64"``."""
+        if precision == "fp32" and in_fp32(evaluator) == Direct("fp32"):
+            return "fp32"
+        return "fp64"
+
+    def _carrier_forces(self, when: When, key: tuple, plan: Plan, precision: str = "fp64"):
         """The stacked carrier forces of ``plan`` for ``when``, kept: the cycle-mean's (an array)
         for as long as the plan (its moments do not change), an instant's for its time until other
         instants are prepared (:meth:`prepare`; a Runge-Kutta step evaluates the flow twice at its
         end time). At an instant one compiled pass from the first :meth:`Carriers.harmonics
         <ciliary_carpet.carpet.carriers.Carriers.harmonics>` of the moments' interpolant, the
         quadrupoles made when a sum reads them unless the far cilia are quadrupoles
-        (:class:`~ciliary_carpet.carpet.carriers.InstantCarriers`)."""
-        k = key + ((when.t,) if isinstance(when, Instant) else ())
+        (:class:`~ciliary_carpet.carpet.carriers.InstantCarriers`), in ``precision``'s type (fp32
+        for the CPU's fp32 sums: no conversion per sum)."""
+        k = key + ((when.t, precision) if isinstance(when, Instant) else ())
         f = self._forces.get(k)
         if f is None:
             if isinstance(when, Instant):
-                f = self._instants(self.cycles.phase_at(when.t), key, plan).at(0)
+                f = self._instants(self.cycles.phase_at(when.t), key, plan, precision=precision).at(0)
                 self._drop_instants(_INSTANTS - 1)
             else:
                 F, D, T = when.moments(self.cycles, when.phases(self.cycles))
@@ -628,13 +644,15 @@ class Carpet:
             self._forces[k] = f
         return f
 
-    def _instants(self, ph: np.ndarray, key: tuple, plan: Plan, spare: np.ndarray | None = None) -> InstantCarriers:
+    def _instants(self, ph: np.ndarray, key: tuple, plan: Plan, spare: np.ndarray | None = None,
+                  precision: str = "fp64") -> InstantCarriers:
         """The carriers of ``plan``'s cilia at the phases ``ph`` ((N,) or (T, N)) of instants (into
-        ``spare``, a buffer of instants dropped, when it fits)."""
+        ``spare``, a buffer of instants dropped, when it fits), their forces in ``precision``'s type."""
         return InstantCarriers(self.carriers, ph, plan.order, self.carriers.harmonics(key[1]), eager=plan.far == 2,
-                               out=spare, groups=None if plan.groups is None else (plan.groups, plan.carriers_soa))
+                               out=spare, groups=None if plan.groups is None else (plan.groups, plan.carriers_soa),
+                               dtype=np.float32 if precision == "fp32" else np.float64)
 
-    def prepare(self, times, tol: float = 1e-3) -> None:
+    def prepare(self, times, tol: float = 1e-3, precision: str = "fp64") -> None:
         """Say that the flow will be evaluated at the instants ``times`` (a few) with ``tol``
         (:meth:`velocity`): their carriers' forces are made together, in one read of the moments'
         coefficients instead of one per instant (an integrator's stages; the five of a step cost
@@ -644,21 +662,23 @@ class Carpet:
         (:class:`~ciliary_carpet.carpet.cycles.InstantBlocks`: reading a cilium's coefficients is
         most of what making its sources costs). The instants kept before are dropped and their
         buffers reused. Optional: an evaluation at an instant not prepared makes its own; the
-        velocities are the same to the bit either way."""
+        velocities are the same to the bit either way. ``precision``: that of the evaluations
+        (:meth:`velocity`)."""
         tol = self._tol(tol)
+        precision = self._precision(precision, self.backend if self.backend is not None else _AUTO)
         if tol == 0:
             return
         ts = np.unique(np.asarray(times, dtype=float).ravel())
         if not np.all(np.isfinite(ts)):
             raise ValueError("prepare: times must be finite")
         key, plan = self._plan(Instant(0.0), tol)
-        kept = [f.group.out for q, f in self._forces.items() if len(q) == 3 and q[:2] == key]
+        kept = [f.group.out for q, f in self._forces.items() if len(q) == 4 and q[:2] == key and q[3] == precision]
         self._drop_instants(0)
         todo = ts[:_INSTANTS]
         ph = self.cycles.phase_at(todo)
-        group = self._instants(ph, key, plan, spare=kept[0] if kept else None)
+        group = self._instants(ph, key, plan, spare=kept[0] if kept else None, precision=precision)
         for i, t in enumerate(todo):
-            self._forces[key + (float(t),)] = group.at(i)
+            self._forces[key + (float(t), precision)] = group.at(i)
         self._instant_blocks.reset(todo)
 
     def _plan(self, when: When, tol: float) -> tuple[tuple, Plan]:
@@ -674,7 +694,7 @@ class Carpet:
 
     def _drop_instants(self, keep: int) -> None:
         """Forget the instants' carrier forces when more than ``keep`` are kept."""
-        inst = [q for q in self._forces if len(q) == 3]
+        inst = [q for q in self._forces if len(q) == 4]
         if len(inst) > keep:
             for q in inst:
                 del self._forces[q]

@@ -820,10 +820,11 @@ class InstantCarriers:
     are dipoles (100 x 100: 10^4 cilia, about a quarter of them near a tracer) reads 6 of the 12
     rows for most of them. ``groups`` (a plan's :class:`~.traversal.FarGroups` and its carriers'
     positions (3, 10 n)): the groups' six carriers each, after the cilia's (rows 10 n + 6 g ...),
-    made with the monopoles and dipoles (:func:`_group_forces`)."""
+    made with the monopoles and dipoles (:func:`_group_forces`). ``dtype``: the forces' type
+    (float32 for sums in fp32: computed in fp64, rounded as they are stored)."""
 
     def __init__(self, carriers: Carriers, ph: np.ndarray, js: np.ndarray, kc: int | None = None,
-                 eager: bool = False, out: np.ndarray | None = None, groups=None):
+                 eager: bool = False, out: np.ndarray | None = None, groups=None, dtype=np.float64):
         ph = np.asarray(ph, dtype=float)
         self.many = ph.ndim == 2
         self.ph = np.ascontiguousarray(ph if self.many else ph[None])
@@ -835,7 +836,8 @@ class InstantCarriers:
         n = self.js.size
         G = 0 if groups is None else groups[0].n
         shape = (self.ph.shape[0], 3, 10 * n + 6 * G)
-        self.out = out if out is not None and out.shape == shape else np.empty(shape)  # a spare: no fresh pages
+        reuse = out is not None and out.shape == shape and out.dtype == dtype
+        self.out = out if reuse else np.empty(shape, dtype)  # a spare: no fresh pages
         self.done = np.full(n, bool(eager))
         self._make(np.arange(n, dtype=np.int64), ALL_ORDERS if eager else MONO_DIPOLE)
         if G:  # the groups' carriers, from their cilia's dipole carriers

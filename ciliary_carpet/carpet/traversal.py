@@ -42,7 +42,7 @@ from numba import njit, prange
 
 from ciliary_carpet.carpet.carriers import Carriers, smallest_root
 from ciliary_carpet.carpet.cycles import ResolvedSources
-from ciliary_carpet.stokes import Kernel
+from ciliary_carpet.stokes import Direct, Kernel, fp32_sources, in_fp32, ranged_fp32
 from ciliary_carpet.stokes import stokeslet_velocity
 
 __all__ = ["FarGroups", "Plan", "Summed", "make_plan", "flow_sum", "dense_sum"]
@@ -392,6 +392,21 @@ class Plan:
         g = self.groups
         return np.ascontiguousarray(np.concatenate([self.carriers, g.carriers]).T)
 
+    def rounded(self, kernel: Kernel, grouped: bool) -> tuple[np.ndarray, np.ndarray]:
+        """``(shift, positions)``: :attr:`carriers_soa` (or :attr:`grouped_soa`) shifted by
+        ``-shift`` (the centre of their bounding box; heights above ``kernel``'s wall) and rounded
+        to fp32 (3, K), made once per plan for the sums in fp32
+        (:func:`~ciliary_carpet.stokes.direct.ranged_fp32`)."""
+        key = (grouped, kernel.z_origin)
+        got = self._rounded.get(key)
+        if got is None:
+            got = self._rounded[key] = fp32_sources(kernel, (self.grouped_soa if grouped else self.carriers_soa).T)
+        return got
+
+    @cached_property
+    def _rounded(self) -> dict:
+        return {}
+
     def groups_args(self, grouped: bool) -> tuple:
         """The arguments of :func:`_lists` that describe the groups of far cilia (none unless
         ``grouped`` and the plan has them)."""
@@ -657,7 +672,7 @@ def dense_sum(targets: np.ndarray, js: np.ndarray, sources: ResolvedSources, ker
 
 
 def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, n: int,
-             kernel: Kernel, evaluator, mu: float, grouped: bool = False) -> Summed:
+             kernel: Kernel, evaluator, mu: float, grouped: bool = False, precision: str = "fp64") -> Summed:
     """Per target (M, 3) the ranged sums (module docstring): every cilium of the ``n`` at the
     order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 3) (in the
     order of ``plan.carriers``; or an :class:`~.carriers.InstantForces`, whose quadrupoles the
@@ -665,7 +680,10 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     ``grouped`` (and a plan with :class:`FarGroups`) the far cilia go by groups, the forces then
     holding the groups' carriers after the cilia's (10 n_p + 6 G rows). The sources are laid
     out as coordinate rows (3, K) and handed over as their (K, 3) transposes: the direct sums
-    read that layout without a copy."""
+    read that layout without a copy. With ``precision="fp32"`` the carriers' sum runs in fp32 on
+    the CPU where ``evaluator``'s would run on it in fp64
+    (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`), over the plan's carriers rounded once
+    (:meth:`Plan.rounded`)."""
     m = targets.shape[0]
     sj = plan.order
     n_car = 10 * sj.size
@@ -678,7 +696,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     if uptr[-1] > _MAX_ROWS and m > 1:
         cut = np.searchsorted(uptr, np.arange(1, -(-int(uptr[-1]) // _MAX_ROWS)) * _MAX_ROWS)
         cut = np.unique(np.clip(cut, 1, m - 1))
-        return Summed.joined([flow_sum(t, plan, forces, sources, n, kernel, evaluator, mu, grouped)
+        return Summed.joined([flow_sum(t, plan, forces, sources, n, kernel, evaluator, mu, grouped, precision)
                               for t in np.split(targets, cut)])
     # The carriers: one ranged sum over the plan's carriers as they are (coordinate rows, no
     # copy; the resolved cilia's ranges left empty), their forces made where the sum reads
@@ -688,8 +706,12 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     u = np.zeros((m, 3))
     if n_car and ptr[-1]:
         # the evaluator directly: every array here is made and checked by this function
-        pos = plan.grouped_soa if grouped else plan.carriers_soa
-        u += evaluator.ranged(kernel, targets, pos.T, forces, ptr, ranges, mu)
+        if precision == "fp32" and in_fp32(evaluator) == Direct("fp32"):
+            shift, pos32 = plan.rounded(kernel, grouped)
+            u += ranged_fp32(kernel, targets, pos32, shift, forces, ptr, ranges, mu)
+        else:
+            pos = plan.grouped_soa if grouped else plan.carriers_soa
+            u += evaluator.ranged(kernel, targets, pos.T, forces, ptr, ranges, mu)
     # The resolved blocks are made and summed in chunks of cilia of at most _CHUNK_SOURCES
     # sources (the resolved mean flow has 4160 per cilium: a whole carpet's would take hundreds
     # of MB, and fresh memory costs more than the sum); an instantaneous flow's (65 sources per

@@ -482,6 +482,13 @@ times the carpet's spacing [L]. The test is per step, the end-point error accumu
 thousands of steps of a render (about 16 per beat): measured as above at flow tol 1e-4, atol
 2e-4 L (the settings before, rtol 1e-6) ends up to 4e-3 L off, 2e-6 L 1.1e-3 L, 2e-7 L 5e-5 L,
 for 22 % more steps than the first."""
+PATHLINE_PRECISION = "fp32"
+"""The precision of the far cilia's carriers in a render's time-resolved path lines
+(:class:`~ciliary_carpet.transport.flow.ResolvedFlow`; the near field and everything else in fp64).
+Their rounding (:func:`~ciliary_carpet.stokes.precision.fp32_error_bound`) is some 1e-7 of the
+velocity, far inside the levels of detail's tolerance; the end-point error estimate's reference
+run (:func:`pathline_error`) sums in fp64, so the estimate covers it. Measured with
+``benchmarks/bench_evaluation.py --pathlines`` (one thread): FILLED IN BELOW."""
 REFERENCE_TIGHTER = (3.0, 10.0)
 """The reference of a render's end-point error estimate (:func:`pathline_error`): the flow
 tolerance divided by the first, rtol and atol by the second (the step cap unchanged: at these
@@ -575,7 +582,8 @@ class PathLinesOutput(Output):
                 flow = ctx.standing_mean_flow() if c.geometry == "standing" else ctx.mean_flow()
                 rtol, atol = 1e-6, 1e-4 * spacing
             else:
-                flow, rtol, atol = ResolvedFlow(c, min(tol, PATHLINE_TOL)), PATHLINE_RTOL, PATHLINE_ATOL * spacing
+                flow = ResolvedFlow(c, min(tol, PATHLINE_TOL), precision=PATHLINE_PRECISION)
+                rtol, atol = PATHLINE_RTOL, PATHLINE_ATOL * spacing
             # the path lines' chunks and the error estimate's reference run, together, biggest first
             tasks = pathline_tasks(flow, seeds, (0.0, duration), chunk_size=CHUNK_SIZE, rtol=rtol, atol=atol,
                                    samples_per_period=o.samples_per_period, domain=plan.domain)

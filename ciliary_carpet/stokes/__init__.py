@@ -11,6 +11,9 @@ Its modules, each one noun, from the bottom up:
     :class:`Backend`, the contract of an evaluator, and the inputs it may assume.
 :mod:`~ciliary_carpet.stokes.direct`, :mod:`~ciliary_carpet.stokes.fmm`, :mod:`~ciliary_carpet.stokes.cuda`
     The evaluators: :class:`Direct` (numba, CPU), :class:`FMM` (fmm3dpy), :class:`Cuda` (NVIDIA GPU).
+:mod:`~ciliary_carpet.stokes.precision`
+    Single precision: the shift and rounding of the inputs and the error bound that the fp32
+    sums of :class:`Direct` and :class:`Cuda` share.
 :mod:`~ciliary_carpet.stokes.evaluator`
     The front doors :func:`stokeslet_velocity` and :func:`stokeslet_velocity_ranges`, the choice
     :class:`Auto`, and the evaluators by name (:data:`BACKENDS`, :func:`backend_named`).
@@ -21,11 +24,12 @@ Its modules, each one noun, from the bottom up:
 """
 from ciliary_carpet.stokes.backend import Backend
 from ciliary_carpet.stokes.cuda import Cuda, CudaUnavailableError, cuda_available
-from ciliary_carpet.stokes.direct import Direct
+from ciliary_carpet.stokes.direct import Direct, ranged_fp32
 from ciliary_carpet.stokes.evaluator import (
     BACKENDS,
     Auto,
     backend_named,
+    in_fp32,
     ranged_evaluator,
     stokeslet_velocity,
     stokeslet_velocity_ranges,
@@ -47,6 +51,7 @@ from ciliary_carpet.stokes.kernel import (
     Wall,
     make_kernel,
 )
+from ciliary_carpet.stokes.precision import fp32_error_bound, fp32_sources
 from ciliary_carpet.stokes.reference import stokeslet_velocity_numpy
 from ciliary_carpet.stokes.treecode import QUADRUPOLE, QUADRUPOLE_INV, Treecode
 
@@ -54,6 +59,7 @@ __all__ = [
     "Wall", "Kernel", "Stokeslet", "Blake", "RegularisedStokeslet", "RegularisedBlake", "KERNELS", "make_kernel",
     "C1_FREE", "C1_WALL", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL",
     "Backend", "Direct", "FMM", "Cuda", "CudaUnavailableError", "cuda_available", "Auto", "BACKENDS",
-    "backend_named", "ranged_evaluator", "FMM_CROSSOVER_PAIRS",
+    "backend_named", "ranged_evaluator", "in_fp32", "ranged_fp32", "fp32_sources", "fp32_error_bound",
+    "FMM_CROSSOVER_PAIRS",
     "stokeslet_velocity", "stokeslet_velocity_ranges", "stokeslet_velocity_numpy", "Treecode", "QUADRUPOLE", "QUADRUPOLE_INV",
 ]

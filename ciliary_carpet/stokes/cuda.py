@@ -33,23 +33,10 @@ Precision (:data:`PRECISIONS`)
 ``"fp64"`` (default) evaluates and sums in fp64: the same result as
 :class:`~ciliary_carpet.stokes.direct.Direct` up to the order of the sums (tested to 1e-12 relative
 to ``max |u|``). ``"fp32"`` evaluates and sums in fp32; ``"fp32-acc64"`` evaluates each pair in
-fp32 and sums in fp64. Coordinates are shifted first (x, y and, in free space, z) to the centre
-of the bounding box of targets and sources, then rounded to fp32. With ``u = 2^-24``,
-``rho_ij = sqrt(|x_i - xi_j|^2 + eps^2)`` (coincident singular pairs left out), ``L`` the largest
-shifted coordinate and ``n_i`` the number of terms summed for target ``i``, the error of each
-velocity component is bounded by
-
-.. math::
-
-    |u_i^{32} - u_i| \\le (C + a\\, n_i)\\, u\\, B_i, \\qquad
-    B_i = \\frac{1}{8 \\pi \\mu} \\sum_j \\frac{|f_j|}{\\rho_{ij}}
-          \\left(1 + \\frac{L}{\\rho_{ij}}\\right),
-
-with ``C`` = :data:`FP32_PAIR_CONSTANT` (rounding of the inputs, whose relative perturbation of
-``x - xi`` is ``u L / rho``, and of the pair's arithmetic) and ``a = 2`` for ``"fp32"`` (the
-recursive-summation bound ``n u sum_j |t_j|``, with ``|t_j| = |G f_j| <= 2 |f_j| / rho_ij`` for
-all four kernels: exact for the free ones, sampled maximum 1.99998 over heights and directions for
-the wall ones), ``a = 2^-28`` for ``"fp32-acc64"`` (fp64 sums). :func:`fp32_error_bound` evaluates it;
+fp32 and sums in fp64. The inputs are shifted and rounded, and the error bounded, as the CPU's fp32
+sums are (:mod:`~ciliary_carpet.stokes.precision`: ``(C + a n_i) u B_i`` with ``a = 2`` for
+``"fp32"``, ``n_i`` the terms summed for target ``i``, and ``a = 2^-28`` for ``"fp32-acc64"``);
+:func:`~ciliary_carpet.stokes.precision.fp32_error_bound` evaluates it (also importable from here).
 tests/test_cuda.py checks it on every kernel. In practice the error is far below the bound (the
 summation term is a worst case): under the simulator, 70 targets and 75 sources in a
 2 x 2 x 1.7 box give ``max |error| / max |u|`` of 1e-7 to 8e-7 and ``|error| / (u B_i)`` below
@@ -73,13 +60,16 @@ from __future__ import annotations
 
 import functools
 import logging
-import types
 from dataclasses import dataclass
 
 import numpy as np
 
 from ciliary_carpet.stokes.backend import Backend
-from ciliary_carpet.stokes.kernel import INV_8PI, PAIR_CONSTANTS, PAIRS, Kernel, rsqrt
+from ciliary_carpet.stokes.kernel import INV_8PI, PAIRS, Kernel, rsqrt
+from ciliary_carpet.stokes.precision import FP32_PAIR_CONSTANT, fp32_error_bound
+from ciliary_carpet.stokes.precision import origin as _origin
+from ciliary_carpet.stokes.precision import retyped as _retyped
+from ciliary_carpet.stokes.precision import soa as _soa
 
 __all__ = ["Cuda", "CudaUnavailableError", "PRECISIONS", "FP32_PAIR_CONSTANT", "cuda_available",
            "cuda_status", "fp32_error_bound"]
@@ -89,13 +79,6 @@ logger = logging.getLogger(__name__)
 PRECISIONS = ("fp64", "fp32", "fp32-acc64")
 """Arithmetic of :class:`Cuda`: fp64; fp32; fp32 pairs summed in fp64 (module docstring)."""
 
-FP32_PAIR_CONSTANT = 32.0
-"""``C`` of the fp32 error bound (module docstring): the rounding of the shifted inputs and of the
-pair's arithmetic, in units of ``u B_i``. The pair formulas have at most ~20 roundings and the
-Blake image terms at most ~10 times the free-space magnitude ``|f| / rho``; measured maxima of
-``|error| / (u B_i)`` on the tests' random cases: below 1 for every kernel (tests/test_cuda.py)."""
-
-_U32 = 2.0 ** -24
 _WARP = 32
 
 cuda = None
@@ -168,17 +151,6 @@ def _require():
 
 
 # ------------------------------------------------------------------------------- kernels
-def _retyped(fn, fp32: bool, **extra):
-    """A copy of the Python function ``fn`` whose pair constants are float32 (for ``fp32``) and
-    whose globals ``extra`` are replaced."""
-    g = dict(fn.__globals__)
-    if fp32:
-        g.update({k: np.float32(g[k]) for k in PAIR_CONSTANTS})
-    g.update(extra)
-    return types.FunctionType(fn.__code__, g, fn.__name__ + ("_fp32" if fp32 else "_fp64"), fn.__defaults__,
-                              fn.__closure__)
-
-
 def _device_pair(code: int, precision: str):
     """The pair formula ``code`` (:data:`~ciliary_carpet.stokes.kernel.PAIRS`, its Python source)
     as a CUDA device function: constants in the precision's type, and ``rsqrt`` the GPU's reciprocal
@@ -327,26 +299,6 @@ def _ranged_kernel(code: int, precision: str, threads: int):
 
 
 # ------------------------------------------------------------------------------- the evaluator
-def _origin(kernel: Kernel, targets: np.ndarray, sources: np.ndarray) -> np.ndarray:
-    """The shift applied before rounding: the centre of the bounding box (x, y; z too where the
-    kernel allows any origin), else its :attr:`~ciliary_carpet.stokes.kernel.Kernel.z_origin`
-    (the wall height: the kernels take heights above the wall)."""
-    lo = np.minimum(targets.min(axis=0), sources.min(axis=0))
-    hi = np.maximum(targets.max(axis=0), sources.max(axis=0))
-    o = 0.5 * (lo + hi)
-    if kernel.z_origin is not None:
-        o[2] = kernel.z_origin
-    return o
-
-
-def _soa(a: np.ndarray, dtype, origin=None) -> np.ndarray:
-    """(K, 3) -> C-contiguous (3, K) of ``dtype``, shifted by ``-origin`` in fp64 first."""
-    out = np.array(a.T, dtype=np.float64, order="C", copy=True)
-    if origin is not None:
-        out -= origin[:, None]
-    return np.ascontiguousarray(out, dtype=dtype)
-
-
 @dataclass(frozen=True)
 class Cuda(Backend):
     """Dense and ranged velocity sums on an NVIDIA GPU (numba-cuda kernels), every kernel.
@@ -437,35 +389,3 @@ class Cuda(Backend):
                                 cuda.to_device(np.ascontiguousarray(ranges)), dt(kernel.eps ** 2), INV_8PI / mu,
                                 out)
         return np.ascontiguousarray(out.copy_to_host().T)
-
-
-def fp32_error_bound(kernel: Kernel, targets, sources, forces, mu: float = 1.0, *, precision: str = "fp32",
-                     terms=None) -> np.ndarray:
-    """The bound (M,) of the error of each velocity component of :class:`Cuda` in fp32
-    (module docstring): ``(C + a n_i) u B_i``, ``a = 2`` (fp32) or ``2^-28`` (fp32-acc64).
-
-    Parameters
-    ----------
-    kernel : Kernel
-    targets, sources, forces : (M, 3), (N, 3), (N, 3) float arrays
-    mu : float
-    precision : "fp32" or "fp32-acc64"
-    terms : (M,) int array, optional
-        ``n_i``, the number of sources summed for each target (default N, the dense sum); ``B_i``
-        is then an upper bound too (it sums over all N sources).
-    """
-    if precision not in ("fp32", "fp32-acc64"):
-        raise ValueError(f"precision must be 'fp32' or 'fp32-acc64', got {precision!r}")
-    t = np.asarray(targets, float)
-    s = np.asarray(sources, float)
-    f = np.asarray(forces, float)
-    o = _origin(kernel, t, s)
-    L = float(max(np.abs(t - o).max(), np.abs(s - o).max()))
-    rho = np.sqrt(np.sum((t[:, None, :] - s[None, :, :]) ** 2, axis=-1) + kernel.eps ** 2)
-    fn = np.linalg.norm(f, axis=1)[None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        b = np.where(rho > 0, fn / rho * (1.0 + L / rho), 0.0)
-    B = b.sum(axis=1) * INV_8PI / mu
-    n = np.full(t.shape[0], s.shape[0]) if terms is None else np.asarray(terms)
-    a = 2.0 if precision == "fp32" else 2.0 ** -28
-    return (FP32_PAIR_CONSTANT + a * n) * _U32 * B

@@ -53,7 +53,7 @@ from ciliary_carpet.stokes.direct import Direct
 from ciliary_carpet.stokes.fmm import FMM, FMM_CROSSOVER_PAIRS, fmm_available
 from ciliary_carpet.stokes.kernel import Kernel, Wall, make_kernel
 
-__all__ = ["Auto", "BACKENDS", "backend_named", "ranged_evaluator", "stokeslet_velocity",
+__all__ = ["Auto", "BACKENDS", "backend_named", "in_fp32", "ranged_evaluator", "stokeslet_velocity",
            "stokeslet_velocity_ranges"]
 
 logger = logging.getLogger(__name__)
@@ -176,6 +176,27 @@ def ranged_evaluator(backend: Backend) -> Backend:
     ran = Direct()
     _told(backend.describe(), ran.describe())
     return ran
+
+
+def in_fp32(backend: Backend) -> Backend:
+    """The evaluator of ``backend``'s ranged sums where they may run in fp32 (the far cilia's
+    carriers of path lines, whose error budget is far above fp32's: ``ResolvedFlow(precision=
+    "fp32")``, :mod:`ciliary_carpet.transport.flow`): :class:`~ciliary_carpet.stokes.direct.Direct`
+    ``("fp32")`` where they would run on the CPU's ``Direct()`` (:class:`Auto` without a GPU, or
+    ``Direct()`` itself), else ``backend`` unchanged (a GPU keeps its own precision). Asked at
+    every evaluation of a path line's flow: kept per (hashable) backend."""
+    try:
+        return _in_fp32(backend)
+    except TypeError:  # an unhashable backend of a user's
+        return _in_fp32.__wrapped__(backend)
+
+
+@functools.lru_cache(maxsize=16)
+def _in_fp32(backend: Backend) -> Backend:
+    run = ranged_evaluator(backend)
+    if isinstance(run, Auto):
+        run = _gpu() or Direct()
+    return Direct("fp32") if run == Direct() else backend
 
 
 def _backend(backend: Backend | None) -> Backend:

@@ -134,26 +134,32 @@ class Flow(ABC):
 
 @dataclass(frozen=True, eq=False)
 class ResolvedFlow(Flow):
-    """The time-resolved flow of ``carpet`` at the levels-of-detail tolerance ``tol``."""
+    """The time-resolved flow of ``carpet`` at the levels-of-detail tolerance ``tol``, the far
+    cilia's carriers summed in ``precision`` (``"fp64"``, or ``"fp32"``: single precision on the
+    CPU, 2-3 times the pairs per second; :meth:`Carpet.velocity
+    <ciliary_carpet.carpet.carpet.Carpet.velocity>`)."""
 
     name: ClassVar[str] = "resolved"
     carpet: "Carpet"
     tol: float = 1e-4
+    precision: str = "fp64"
 
     def __post_init__(self) -> None:
         t = float(self.tol)
         if not 0 <= t < 1:
             raise ValueError(f"ResolvedFlow: tol must be in [0, 1), got {self.tol!r}")
+        if self.precision not in ("fp64", "fp32"):
+            raise ValueError(f"ResolvedFlow: precision must be 'fp64' or 'fp32', got {self.precision!r}")
         object.__setattr__(self, "tol", t)
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
-        return self.carpet.velocity(above_wall(self.carpet, x), Instant(t), self.tol)
+        return self.carpet.velocity(above_wall(self.carpet, x), Instant(t), self.tol, self.precision)
 
     def prepare(self, times: np.ndarray) -> None:
         """The carpet's carriers at ``times`` made together (:meth:`Carpet.prepare
         <ciliary_carpet.carpet.carpet.Carpet.prepare>`; the same numbers, one read of the moments)."""
         if self.tol > 0:
-            self.carpet.prepare(times, self.tol)
+            self.carpet.prepare(times, self.tol, self.precision)
 
     @property
     def step_cap(self) -> float:
