@@ -265,3 +265,26 @@ def test_render_is_the_same_on_a_pool(tmp_path):
     assert (e1["max"], e1["median"]) == (e2["max"], e2["median"])
     assert e1["work"]["where"] == "parent" and e2["work"]["where"] == "worker 1"
     assert s2["work"]["chunks_by_place"] == {"worker 1": 1} and s2["parallel"]["places"] == 1
+
+
+def test_summary_computations_run_beside_the_path_lines(tmp_path):
+    """On a pool of two places the summary's own computations (what the model leaves out, the size
+    of the coupling) run as tasks of the path lines' pool, after the reference run, and give the
+    numbers they give in this process; the summary's seconds say where they ran."""
+    import json
+
+    from ciliary_carpet.render import render
+    from ciliary_carpet.scenes.scene import load_scene
+
+    scene_file = tmp_path / "tiny.toml"
+    scene_file.write_text('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\n'
+                          'snapshots = 0\nframes = 1\npreview = false\nftle = false\n')
+    scene = load_scene(scene_file)
+    render(scene, tmp_path / "one", pool=pool_for_threads(1))
+    render(scene, tmp_path / "two", pool=pool_for_threads(2))
+    s1, s2 = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("one", "two"))
+    assert s1["omissions"] == s2["omissions"] and s1["coupling"] == s2["coupling"]
+    assert s2["coupling"]["status"] == "not solved"
+    assert "omissions_beside_pathlines" not in s1["seconds"] and s1["seconds"]["omissions"] > 0
+    assert s2["seconds"]["omissions"] == 0 and s2["seconds"]["omissions_beside_pathlines"] > 0
+    assert s2["seconds"]["coupling_beside_pathlines"] > 0
