@@ -211,12 +211,19 @@ def renders(sizes, threads: int, reference: bool, cache: Path | None) -> str:
             if reference:
                 mx, md, rs = reference_error(scene, out, cache, n)
                 ref = f"{mx:.2e} / {md:.2e} ({f'{rs:.0f} s' if rs else 'cached'})"
-            rows.append(f"| {n} x {n} | " + " | ".join(f"{sec.get(k, float('nan')):.1f}" for k in STAGES)
+            rows.append(f"| {n} x {n} | " + " | ".join(_stage(sec, k) for k in STAGES)
                         + f" | {wall:.1f} | {gb:.2f} GB | {e['max']:.2e} / {e['median']:.2e} | {ref} | "
                         f"{before} / {after} |")
             print(rows[-1], flush=True)
     return ("## Renders: uniform_deflection scaled (seconds by stage, `--threads "
-            f"{threads}`)\n\n" + "\n".join(rows) + "\n")
+            f"{threads}`; `(b)`: ran beside the path lines, in a worker of their pool)\n\n" + "\n".join(rows) + "\n")
+
+
+def _stage(sec: dict, k: str) -> str:
+    """A stage's seconds, or those it took beside the path lines (``(b)``: the summary's
+    computations that ran in the path lines' pool, ``outputs.summary_tasks``)."""
+    b = sec.get(f"{k}_beside_pathlines")
+    return f"{b:.1f} (b)" if b is not None else f"{sec.get(k, float('nan')):.1f}"
 
 
 def fields(stride: int) -> str:
