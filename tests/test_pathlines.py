@@ -423,6 +423,15 @@ def test_far_carriers_in_fp32(table):
         assert np.array_equal(ResolvedFlow(c32, 1e-4).velocity(x, t), u64)  # same carpet, fp64 again
     with pytest.raises(ValueError, match="precision"):
         ResolvedFlow(c32, 1e-4, precision="half")
+    with pytest.raises(ValueError, match="precision"):
+        c32.velocity(x, Instant(0.0), 1e-4, precision="fp16")
+    # with a wall (heights above it: the shift keeps z, Plan.rounded) the same holds
+    w32 = Carpet(bases, c32.chi_N, table, phases=c32.phases, wall=0.5)
+    w64 = Carpet(bases, c32.chi_N, table, phases=c32.phases, wall=0.5)
+    u32 = ResolvedFlow(w32, 1e-4, precision="fp32").velocity(x, 0.2)
+    u64 = ResolvedFlow(w64, 1e-4).velocity(x, 0.2)
+    d = np.max(np.abs(u32 - u64)) / np.max(np.abs(u64))
+    assert 1e-12 < d < 1e-5, d
     seeds = np.column_stack([np.linspace(1.0, 9.0, 5), np.full(5, 12.5)])
     span = (0.0, 3 * float(c32.periods.min()))
     a = pathlines(f32, seeds, span, rtol=1e-9, atol=1e-8)
