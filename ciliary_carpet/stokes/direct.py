@@ -57,7 +57,6 @@ from pathlib import Path
 
 import numba
 import numpy as np
-from llvmlite import ir as llvm_ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
 
@@ -71,14 +70,15 @@ logger = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- the loops
-def _source_sum(pair):
-    """The sum of ``pair`` over the sources ``[lo, hi)`` of one target (inlined)."""
+def _source_sum(pair, zero=0.0):
+    """The sum of ``pair`` over the sources ``[lo, hi)`` of one target (inlined), accumulated in
+    the type of ``zero`` (fp64; ``np.float32(0)`` for the fp32 pairs, :func:`_source_sum32`)."""
 
     @njit(fastmath=FASTMATH, inline="always")
     def source_sum(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
-        ux = 0.0
-        uy = 0.0
-        uz = 0.0
+        ux = zero
+        uy = zero
+        uz = zero
         # sliced views: the loop then runs from 0 with known bounds and vectorises (indexing
         # with range(lo, hi) keeps numba's negative-index wraparound and is 3-4x slower)
         sx = sx[lo:hi]
@@ -131,7 +131,8 @@ def _sqrt32(typingctx, x):  # pragma: no cover - compiled
         return None
 
     def codegen(context, builder, signature, args):
-        return builder.call(builder.module.declare_intrinsic("llvm.sqrt", [llvm_ir.FloatType()]), args)
+        return builder.call(builder.module.declare_intrinsic("llvm.sqrt", [context.get_value_type(types.float32)]),
+                            args)
 
     return types.float32(types.float32), codegen
 
@@ -147,29 +148,9 @@ def _rsqrt32(x):  # pragma: no cover - compiled
 
 
 def _source_sum32(pair):
-    """The sum in fp32 of the fp32 ``pair`` over the sources ``[lo, hi)`` of one target
-    (inlined; the callers add it in fp64 over blocks of at most
-    :data:`~ciliary_carpet.stokes.precision.FP32_BLOCK` sources)."""
-
-    @njit(fastmath=FASTMATH, inline="always")
-    def source_sum(xi, yi, zi, sx, sy, sz, fx, fy, fz, e2, lo, hi):  # pragma: no cover - compiled
-        ux = _ZERO32
-        uy = _ZERO32
-        uz = _ZERO32
-        sx = sx[lo:hi]
-        sy = sy[lo:hi]
-        sz = sz[lo:hi]
-        fx = fx[lo:hi]
-        fy = fy[lo:hi]
-        fz = fz[lo:hi]
-        for j in range(hi - lo):
-            a, b, c = pair(xi, yi, zi, sx[j], sy[j], sz[j], fx[j], fy[j], fz[j], e2)
-            ux += a
-            uy += b
-            uz += c
-        return ux, uy, uz
-
-    return source_sum
+    """:func:`_source_sum` of an fp32 ``pair`` summed in fp32 (the callers add it in fp64 over
+    blocks of at most :data:`~ciliary_carpet.stokes.precision.FP32_BLOCK` sources)."""
+    return _source_sum(pair, _ZERO32)
 
 
 _source_sum32_of = _chain([_source_sum32(njit(fastmath=FASTMATH, inline="always")(retyped(p.py_func, True,
