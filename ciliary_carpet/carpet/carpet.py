@@ -71,6 +71,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["Carpet", "Scales", "FlowSample", "Instant", "CycleMean", "When", "BLOB", "sbt_viscosity"]
 
 _AUTO = Auto()
+_FP32 = Direct("fp32")  # what in_fp32 gives where the sums may run in fp32
 """The evaluator of a carpet made without ``backend``."""
 _PLANS = 32
 """Plans (one per kind of flow and tolerance) a carpet keeps before it forgets them all."""
@@ -619,7 +620,7 @@ class Carpet:
     def _precision(self, precision: str, evaluator: Backend) -> str:
         """The precision the far carriers' sums run in: ``"fp32"`` where it is asked for and the
         sums run on the CPU (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`), else ``"fp64"``."""
-        if precision == "fp32" and in_fp32(evaluator) == Direct("fp32"):
+        if precision == "fp32" and in_fp32(evaluator) == _FP32:
             return "fp32"
         return "fp64"
 

@@ -47,6 +47,8 @@ from ciliary_carpet.stokes import stokeslet_velocity
 
 __all__ = ["FarGroups", "Plan", "Summed", "make_plan", "flow_sum", "dense_sum"]
 
+_FP32 = Direct("fp32")  # what in_fp32 gives where the far sums may run in fp32
+
 _CLASSIFY = 5.0
 """Cost of classifying one cilium for one target (:func:`_traverse`) in kernel evaluations
 (measured: about 3 ns against 0.55 ns per evaluation on 2 cores); used to choose the order of
@@ -706,7 +708,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     u = np.zeros((m, 3))
     if n_car and ptr[-1]:
         # the evaluator directly: every array here is made and checked by this function
-        if precision == "fp32" and in_fp32(evaluator) == Direct("fp32"):
+        if precision == "fp32" and in_fp32(evaluator) == _FP32:
             shift, pos32 = plan.rounded(kernel, grouped)
             u += ranged_fp32(kernel, targets, pos32, shift, forces, ptr, ranges, mu)
         else:
