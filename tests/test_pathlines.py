@@ -432,6 +432,16 @@ def test_far_carriers_in_fp32(table):
     u64 = ResolvedFlow(w64, 1e-4).velocity(x, 0.2)
     d = np.max(np.abs(u32 - u64)) / np.max(np.abs(u64))
     assert 1e-12 < d < 1e-5, d
+    # a standing carpet (frames out of the plane; heights above its substrate)
+    from ciliary_carpet.carpet import layout
+
+    s32 = Carpet(layout.square(5, 5, 2.0), np.full(25, 30.0), table, geometry="standing")
+    s64 = Carpet(layout.square(5, 5, 2.0), np.full(25, 30.0), table, geometry="standing")
+    xs = np.column_stack([x[:, :2], x[:, 2] + 1.0])
+    u32 = ResolvedFlow(s32, 1e-4, precision="fp32").velocity(xs, 0.3)
+    u64 = ResolvedFlow(s64, 1e-4).velocity(xs, 0.3)
+    d = np.max(np.abs(u32 - u64)) / np.max(np.abs(u64))
+    assert 1e-12 < d < 1e-5, d
     seeds = np.column_stack([np.linspace(1.0, 9.0, 5), np.full(5, 12.5)])
     span = (0.0, 3 * float(c32.periods.min()))
     a = pathlines(f32, seeds, span, rtol=1e-9, atol=1e-8)
