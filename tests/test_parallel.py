@@ -111,6 +111,29 @@ def test_workers_take_the_thread_budget():
         assert r.value == 2
 
 
+def test_compiled_functions_let_go_of_the_interpreter():
+    """Every compiled function of the package that Python calls releases the GIL (``nogil``):
+    the pool's dispatcher thread starts and feeds the workers while this process's path lines
+    compute (beside a 30 x 30 main run a worker took 1.35-1.44 s to its first task without it,
+    0.64-0.75 s with it, 0.5 s of which the pool's ``start_after``)."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    import ciliary_carpet
+
+    entry = {}
+    for m in pkgutil.walk_packages(ciliary_carpet.__path__, "ciliary_carpet."):
+        mod = importlib.import_module(m.name)
+        for name, f in vars(mod).items():
+            if (isinstance(f, CPUDispatcher) and f.py_func.__module__ == mod.__name__
+                    and f.targetoptions.get("inline") != "always"):
+                entry[f"{mod.__name__}.{name}"] = bool(f.targetoptions.get("nogil"))
+    assert len(entry) >= 20, sorted(entry)  # the walk found the kernels
+    assert [k for k, v in entry.items() if not v] == []
+
+
 def test_warm_starts_the_fork_server_ahead():
     """ProcessPool.warm starts the fork server the workers come from (a render calls it before its
     design); a run after it uses that server; InProcess has nothing to start."""

@@ -158,7 +158,7 @@ def dipole_forces(F: np.ndarray, D: np.ndarray, delta: np.ndarray, unit: np.ndar
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _dipole_forces(F, D, delta, inv, out):  # pragma: no cover - compiled
     """out[j, m] = inv[m, 0] F[j] + inv[m, 1] D[j, 0] / delta[j] + inv[m, 2] D[j, 1] / delta[j]
     (:func:`dipole_forces`, in the order numpy's broadcast took)."""
@@ -186,7 +186,7 @@ def _solve_carriers(inv, b, fk):  # pragma: no cover - compiled
     return acc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _carrier_sets(F, D, T, delta, u3, f3, inv6, f6, nu1, nu2, q3, q6):  # pragma: no cover - compiled
     """Per cilium j the bound terms of the cheap orders about c_j (module docstring), for its
     moments F (N, 2), D (N, 2, 2), T (N, 2, 2, 2) and its dipole carriers' forces f3 (N, 3, 2) at
@@ -237,7 +237,7 @@ def _carrier_sets(F, D, T, delta, u3, f3, inv6, f6, nu1, nu2, q3, q6):  # pragma
         nu1[j] = math.sqrt(fro + 2.0 * abs(det))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _stack(F, f3, f6, js, axes, out):  # pragma: no cover - compiled
     """out (10 n, 3) = F[js], then f3[js] (3 per cilium), then f6[js] (6 per cilium), n = len(js),
     each mapped into space by its cilium's axes (N, 3, 2) (:meth:`Carriers.stacked`)."""
@@ -307,7 +307,7 @@ def _sincos_2pi(x, c, s):  # pragma: no cover - compiled
         s[ll] = -b if k >= 2 else b
 
 
-@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+@njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _stacked_at(coef, ph, delta, inv3, inv6, axes, js, blocks, want, kc, what, out):  # pragma: no cover - compiled
     """The carriers' forces in space of cilia js (n,) at each of T sets of phases ``ph`` (T, N), in
     the order of :meth:`Carriers.positions` of ``js``, as coordinate rows (out (T, 3, 10 n); only
@@ -420,7 +420,7 @@ def _stacked_at(coef, ph, delta, inv3, inv6, axes, js, blocks, want, kc, what, o
                     out[tt, 2, 4 * n + 6 * q + mm] = a20 * gx + a21 * gy
 
 
-@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+@njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _group_forces(out, n, pos, start, centre, delta, inv6):  # pragma: no cover - compiled
     """Rows 10 n + 6 g + m of out (T, 3, 10 n + 6 G): the six quadrupole carriers of group g of
     far cilia (:class:`~.traversal.FarGroups`: the sorted cilia start[g] ... start[g + 1], its
@@ -482,7 +482,7 @@ def _group_forces(out, n, pos, start, centre, delta, inv6):  # pragma: no cover 
                 out[tt, 2, 10 * n + 6 * g + mm] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _missing_quadrupoles(ranges, n, done):  # pragma: no cover - compiled
     """The cilia (positions in a plan's order, ascending) whose quadrupole carriers the source
     ``ranges`` (R, 2) read (rows 4 n + 6 q ...) and that are not ``done`` yet; marks them done."""
@@ -506,7 +506,7 @@ def _missing_quadrupoles(ranges, n, done):  # pragma: no cover - compiled
     return out
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _tier_bound(targets, centre, radius, R1, R2, R3, a1, b1, a2, b2, b3, out):  # pragma: no cover - compiled
     """out[i] = sum over the cilia j summed cheaply for targets[i] (M, 3) of the Taylor bound of
     their order (times 8 pi mu; module docstring), R the distance from the force centre c_j

@@ -117,7 +117,7 @@ def _basis_row(ph, cs, sn):  # pragma: no cover - compiled
         sn[k] = sn[k - 1] * c1 + cs[k - 1] * s1
 
 
-@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+@njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _moments_at(coef_t, ph, out):  # pragma: no cover - compiled
     """out[j, p] = a_0 + sum_{k=1}^{K-1} a_k cos(2 pi k ph_j) + b_k sin(2 pi k ph_j), the
     trigonometric interpolant of every cilium j (in parallel) at its phase ph[j], with
@@ -143,7 +143,7 @@ def _moments_at(coef_t, ph, out):  # pragma: no cover - compiled
             out[j, p] = acc
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _basis(ph, K, out):  # pragma: no cover - compiled
     """out[i, 0] (len(ph), 1, 2K-1): the trigonometric basis 1, cos(2 pi k ph_i), sin(2 pi k ph_i)
     (k = 1..K-1) of :func:`_moments_at` at phase ph[i]."""
@@ -175,7 +175,7 @@ def _rotated(x, y, fx, fy, rot, j, v):  # pragma: no cover - compiled
             v[p, 4 * s + 3] = rot[1, 0] * a + rot[1, 1] * b
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _sample_moments(x, y, fx, fy, rot, bases, w, centre, radius, F, D, T, Q, Q2):  # pragma: no cover - compiled
     """Per cilium j (parallel over j) the moments of its cycle samples x, y, fx, fy (n, n_p, n_s),
     rotated by ``rot`` into the lab frame: centre[j] (2,) the centroid of the swept samples plus
@@ -234,7 +234,7 @@ def _sample_moments(x, y, fx, fy, rot, bases, w, centre, radius, F, D, T, Q, Q2)
         radius[j] = rmax
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _interpolant(x, y, fx, fy, rot, w, cos_p, sin_p, mk, cos_m, sin_m, coef, mom_coef):  # pragma: no cover - compiled
     """Per cilium j (parallel over j) the trigonometric interpolant in phase of its cycle samples
     x, y, fx, fy (n, n_p, n_s), rotated by ``rot`` into the lab frame:
@@ -367,7 +367,7 @@ def _harmonic_sum(cj, b, v):  # pragma: no cover - compiled
         k += 2
 
 
-@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+@njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _blocks(coef, basis, wgt, bases, origin, axes, jc, src, frc):  # pragma: no cover - compiled
     """Source blocks of cilia ``jc``: block i (rows i * blk ... (i + 1) * blk of ``src`` and
     ``frc``, (len(jc) * blk, 3), blk = P n_s) holds the resolved sources of cilium
@@ -397,7 +397,7 @@ def _blocks(coef, basis, wgt, bases, origin, axes, jc, src, frc):  # pragma: no 
                     frc[r, q] = axes[j, q, 0] * fx + axes[j, q, 1] * fy
 
 
-@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+@njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _instant_blocks(coef, basis, wgt, bases, origin, axes, jc, slots, src, frc):  # pragma: no cover - compiled
     """The resolved sources of cilia ``jc`` at P instants at once: cilium j = jc[i] at instant p
     (its basis row ``basis[i, p]``, (len(jc), P, 2K-1)) into columns slots[i] n_s ... of
@@ -423,7 +423,7 @@ def _instant_blocks(coef, basis, wgt, bases, origin, axes, jc, slots, src, frc):
                     frc[p, q, o + s] = axes[j, q, 0] * fx + axes[j, q, 1] * fy
 
 
-@njit(cache=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
+@njit(cache=True, nogil=True, parallel=True, fastmath={"reassoc", "contract", "nsz", "arcp"})
 def _state(coef, basis, js, out):  # pragma: no cover - compiled
     """out[i] (n_s, 4) = sum_k basis[i, k] coef[js[i], k] (float32 coefficients read as they are,
     summed in float64; numpy's matmul would first copy every cilium's coefficients to float64)."""
@@ -603,7 +603,7 @@ class CycleData:
         return np.all(p @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _copy_blocks(loc, src_c, frc_c, src, frc):  # pragma: no cover - compiled
     """Block i (rows i blk ...) of ``src``, ``frc`` (K, 3) from block loc[i] of the kept blocks
     src_c, frc_c (capacity, blk, 3), where loc[i] >= 0."""
@@ -618,7 +618,7 @@ def _copy_blocks(loc, src_c, frc_c, src, frc):  # pragma: no cover - compiled
                 frc[i * blk + s, q] = frc_c[b, s, q]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _keep_blocks(rows, slots, src, frc, src_c, frc_c):  # pragma: no cover - compiled
     """Block rows[m] of ``src``, ``frc`` (K, 3) into slot slots[m] of the kept blocks (capacity, blk, 3)."""
     blk = src_c.shape[1]
@@ -631,7 +631,7 @@ def _keep_blocks(rows, slots, src, frc, src_c, frc_c):  # pragma: no cover - com
                 frc_c[b, s, q] = frc[i * blk + s, q]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _scatter_blocks(rows, src_m, frc_m, src, frc):  # pragma: no cover - compiled
     """Block m of src_m, frc_m (len(rows) blk, 3) into block rows[m] of ``src``, ``frc`` (K, 3)."""
     blk = src_m.shape[0] // max(rows.shape[0], 1)

@@ -114,7 +114,7 @@ def _upper(x, y, cell_ptr, x0, y0, h, nx, ny, reach, n_always, n_groups):  # pra
     return k
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _traverse(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
               gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, uptr, nr, nres, counts, ranges, res_j,
               res_r):  # pragma: no cover - compiled
@@ -273,7 +273,7 @@ def _compact(i, uptr, nr, nres, ptr, rptr, ranges_u, res_j_u, res_r_u, ranges, r
         res_r[rp + q] = res_r_u[u + q] - u + p
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compiled
     """out[q] = the source range of resolved pair q (cilium res_j[q]) in the sum of chunk k of the
     resolved blocks (cilia of local index l in chunk l // per, rows (l % per) blk ...), empty
@@ -288,7 +288,7 @@ def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compile
             out[q, 1] = 0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
            gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, max_rows):  # pragma: no cover
     """Every target's ranges in CSR (the arguments of :attr:`Plan.traverse` after the targets, then
@@ -335,7 +335,7 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     return ptr, ranges, rptr, res_j, res_r, counts, uptr
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _used(res_j, n):  # pragma: no cover - compiled
     """The cilia of ``res_j`` once each, ascending (n cilia in all)."""
     seen = np.zeros(n, np.bool_)
@@ -353,7 +353,7 @@ def _used(res_j, n):  # pragma: no cover - compiled
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _kept_ranges(res_j, slot, blk):  # pragma: no cover - compiled
     """The source range of each resolved pair q in blocks kept at rows slot[j] blk ... of cilium
     j = res_j[q] (:class:`~.cycles.InstantBlocks`)."""

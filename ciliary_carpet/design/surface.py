@@ -182,7 +182,7 @@ def surface_response(carpet: Carpet, height: float) -> SurfaceResponse:
     return hit[1]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def _near(X, bases, pk, pj, chi, cp, sp, V, dV, x0, h, c0, hc, u, du_chi, du_psi):  # pragma: no cover - compiled
     """Per pair q (control point pk[q], cilium pj[q]) the interpolated response u[q] (3,) of the
     cilium at curvature chi[q], azimuth (cp[q], sp[q]) = (cos, sin) psi, and its derivatives in chi

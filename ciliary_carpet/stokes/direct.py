@@ -160,7 +160,7 @@ _source_sum32_of = _chain([_source_sum32(njit(fastmath=FASTMATH, inline="always"
 :func:`~ciliary_carpet.stokes.precision.retyped`)."""
 
 
-@njit(cache=True, fastmath=FASTMATH, parallel=True)
+@njit(cache=True, nogil=True, fastmath=FASTMATH, parallel=True)
 def _dense(code, T, S, F, e2, scale, out):  # pragma: no cover - compiled
     """out[i] = scale * sum_j G(T[:, i], S[:, j]) F[:, j] for the pair formula ``code``; T (3, M),
     S, F (3, N) C-order, heights from the kernel's z_origin."""
@@ -178,7 +178,7 @@ def _dense(code, T, S, F, e2, scale, out):  # pragma: no cover - compiled
         out[i, 2] = scale * uz
 
 
-@njit(cache=True, fastmath=FASTMATH, parallel=True)
+@njit(cache=True, nogil=True, fastmath=FASTMATH, parallel=True)
 def _ranged(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no cover - compiled
     """out[i] = scale * sum over k in ptr[i]:ptr[i+1], j in ranges[k, 0]:ranges[k, 1] of
     G(T[:, i], S[:, j]) F[:, j] for the pair formula ``code`` (as :func:`_dense`)."""
@@ -205,7 +205,7 @@ def _ranged(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no cover - c
         out[i, 2] = scale * uz
 
 
-@njit(cache=True, fastmath=FASTMATH, parallel=True)
+@njit(cache=True, nogil=True, fastmath=FASTMATH, parallel=True)
 def _dense32(code, T, S, F, e2, blk, scale, out):  # pragma: no cover - compiled
     """:func:`_dense` in fp32 (T, S, F, e2 float32; out float64): :func:`_source_sum32` over
     blocks of ``blk`` sources, added in fp64 (``blk`` an argument, not a constant: with a
@@ -234,7 +234,7 @@ def _dense32(code, T, S, F, e2, blk, scale, out):  # pragma: no cover - compiled
         out[i, 2] = scale * uz
 
 
-@njit(cache=True, fastmath=FASTMATH, parallel=True)
+@njit(cache=True, nogil=True, fastmath=FASTMATH, parallel=True)
 def _ranged32(code, T, S, F, ptr, ranges, e2, blk, scale, out):  # pragma: no cover - compiled
     """:func:`_ranged` in fp32 (T, S, F, e2 float32; out float64) as :func:`_dense32`."""
     sx = S[0]
@@ -270,7 +270,7 @@ _FINGERPRINT = int.from_bytes(hashlib.sha256(b"".join(
 :mod:`~ciliary_carpet.stokes.precision`) and of their order in the registry."""
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _compiled_for():  # pragma: no cover - compiled
     """The :data:`_FINGERPRINT` this module's cached loops were compiled with (module docstring)."""
     return _FINGERPRINT
