@@ -17,6 +17,13 @@ alternating, ``--repeat`` times each way:
 * ``2 cores, pool, no cores lent``: the same with ``lend_idle=False`` (one numba thread in each
   process throughout).
 
+Same work: on a pool of two places the stage also runs the summary's own computations (what the
+model leaves out, the coupling's size: :func:`~ciliary_carpet.output.outputs.summary_tasks`)
+beside the path lines, where one place makes them with its summary, after the stage. Each table
+also gives the stage plus those computations where they ran after it (timed here after the stage;
+from summary.json ``omissions`` + ``coupling`` for renders), so that both sides of that ratio do
+the same work.
+
 Renders (``--renders``): ``ciliary-carpet render SCENE -o DIR --threads T --overwrite`` in a fresh
 process, T = 1, 2, 1, 2, ...; the stage's seconds from summary.json.
 
@@ -90,9 +97,13 @@ def _prepared(scene_path: Path):
     return scene, plan, carpet, d
 
 
-def _stage(plan, carpet, d, how: str) -> tuple[float, dict]:
-    """One run of the render's path-line stage ``how`` ("1", "2-threads", "2-pool"): seconds, summary."""
-    from ciliary_carpet.output.outputs import PathLinesOutput, RenderContext
+def _stage(plan, carpet, d, how: str) -> tuple[float, dict, float]:
+    """One run of the render's path-line stage ``how`` ("1", "2-threads", "2-pool"): seconds, summary,
+    and the seconds of the same work as a render's: the stage and the summary's own computations
+    (:func:`~ciliary_carpet.output.outputs.summary_tasks`: what the model leaves out, the coupling's
+    size). A pool of two places runs them beside the path lines, inside the stage; in one place a
+    render makes them with its summary, after the stage: here they are run and timed after it."""
+    from ciliary_carpet.output.outputs import PathLinesOutput, RenderContext, summary_tasks
     from ciliary_carpet.transport.parallel import InProcess, pool_for_threads
     from single_cilium.threads import ThreadBudget
 
@@ -108,7 +119,12 @@ def _stage(plan, carpet, d, how: str) -> tuple[float, dict]:
         t = time.perf_counter()
         PathLinesOutput().write(ctx)
         wall = time.perf_counter() - t
-    return wall, ctx.summary["pathlines"]
+        after = [task for name, task in summary_tasks(ctx, pool_only=False) if name not in ctx.beside]
+        t = time.perf_counter()
+        for task in after:
+            task.func(*task.args, **task.kwargs)
+        same = wall + time.perf_counter() - t
+    return wall, ctx.summary["pathlines"], same
 
 
 MODES = ("1", "2-pool", "2-threads", "2-pool-nolend")
@@ -120,31 +136,39 @@ def stage_table(keys, repeat: int, folder: Path, modes=MODES) -> list[str]:
              "each scene designed once; the ways alternate, minimum of the repeats; with each run the load "
              "average (1, 5, 15 min) before it and the cores the whole machine kept busy during it (this "
              "benchmark's own: 1 for a 1-core run, up to 2 for a pool; more means other jobs ran beside it).", "",
+             "On a pool of two places the stage also runs the summary's own computations (what the model "
+             "leaves out, the coupling's size: `outputs.summary_tasks`) beside the path lines; in one place a "
+             "render makes them with its summary. *Same work*: the stage plus those computations where they "
+             "ran after it (timed here after the stage), so that both sides of a ratio do the same work.", "",
              "| scene | tracers | 1 core | 2 threads, in process (before) | 2 cores, pool (now) | "
-             "2 cores, pool, no cores lent | ratio before | ratio now | ratio no lending | runs (load) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "2 cores, pool, no cores lent | ratio before | ratio now | ratio no lending | "
+             "same work: 1 core | same work: 2 cores, pool | same work: ratio | runs (load) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for key in keys:
         scene, plan, carpet, d = _prepared(_scene_path(key, folder))
         best: dict = {}
+        same: dict = {}
         runs = []
         for r in range(repeat):
             for how in modes:
                 load, b0 = _load(), _busy()
-                sec, summ = _stage(plan, carpet, d, how)
+                sec, summ, work = _stage(plan, carpet, d, how)
                 busy = _cores_busy(b0, sec)
                 best[how] = min(best.get(how, float("inf")), sec)
-                runs.append(f"{how} {sec:.1f} s ({load}; {busy:.1f} cores busy)")
-                print(f"{key} {how}: {sec:.1f} s  load {load}  machine busy {busy:.2f} cores  work {summ['work']}  "
-                      f"ref {summ['end_point_error'].get('work')}  parallel {summ['parallel']}", flush=True)
-        def f(how, ratio=False):
-            if how not in best or (ratio and "1" not in best):
+                same[how] = min(same.get(how, float("inf")), work)
+                runs.append(f"{how} {sec:.1f} s, same work {work:.1f} s ({load}; {busy:.1f} cores busy)")
+                print(f"{key} {how}: {sec:.1f} s (same work {work:.1f} s)  load {load}  machine busy {busy:.2f} "
+                      f"cores  work {summ['work']}  ref {summ['end_point_error'].get('work')}  "
+                      f"parallel {summ['parallel']}", flush=True)
+        def f(how, ratio=False, d=best):
+            if how not in d or (ratio and "1" not in d):
                 return "-"
-            return f"{best['1'] / best[how]:.2f}" if ratio else f"{best[how]:.1f}"
+            return f"{d['1'] / d[how]:.2f}" if ratio else f"{d[how]:.1f}"
 
         lines.append(f"| {key} ({scene.carpet.shape[0]} x {scene.carpet.shape[1]}) | {plan.seeds.shape[0]} | "
                      f"{f('1')} | {f('2-threads')} | {f('2-pool')} | {f('2-pool-nolend')} | {f('2-threads', True)} | "
-                     f"{f('2-pool', True)} | {f('2-pool-nolend', True)} | "
-                     f"{'; '.join(runs)} |")
+                     f"{f('2-pool', True)} | {f('2-pool-nolend', True)} | {f('1', d=same)} | {f('2-pool', d=same)} | "
+                     f"{f('2-pool', True, d=same)} | {'; '.join(runs)} |")
     return lines
 
 
@@ -154,11 +178,15 @@ def render_table(keys, repeat: int, folder: Path) -> list[str]:
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     lines = ["## Whole renders (`ciliary-carpet render SCENE --threads T`)", "",
              "The path-line stage's seconds (summary.json `pathlines` + `pathline_error`) of fresh renders, "
-             "T = 1 and 2 alternating, minimum of the repeats; the render's total in brackets.", "",
-             "| scene | 1 core | 2 cores | ratio | runs (load) |", "|---|---|---|---|---|"]
+             "T = 1 and 2 alternating, minimum of the repeats; the render's total in brackets. *Same work*: "
+             "also `omissions` + `coupling` (with T = 2 they run beside the path lines, inside `pathlines`, "
+             "and are 0; with T = 1 after them).", "",
+             "| scene | 1 core | 2 cores | ratio | same work: 1 core | same work: 2 cores | same work: ratio | "
+             "runs (load) |", "|---|---|---|---|---|---|---|---|"]
     for key in keys:
         scene = _scene_path(key, folder)
         best: dict = {}
+        same: dict = {}
         runs = []
         for r in range(repeat):
             for t in (1, 2):
@@ -170,11 +198,14 @@ def render_table(keys, repeat: int, folder: Path) -> list[str]:
                     raise SystemExit(p.stderr)
                 s = json.loads((out / "summary.json").read_text())["seconds"]
                 sec = s["pathlines"] + s["pathline_error"]
+                work = sec + s.get("omissions", 0.0) + s.get("coupling", 0.0)
                 best[t] = min(best.get(t, float("inf")), sec)
-                runs.append(f"T={t} {sec:.1f} s [{s['total']:.0f} s] ({load})")
+                same[t] = min(same.get(t, float("inf")), work)
+                runs.append(f"T={t} {sec:.1f} s, same work {work:.1f} s [{s['total']:.0f} s] ({load})")
                 print(f"render {key} --threads {t}: stage {sec:.1f} s, total {s['total']:.1f} s, load {load}",
                       flush=True)
-        lines.append(f"| {key} | {best[1]:.1f} | {best[2]:.1f} | {best[1] / best[2]:.2f} | {'; '.join(runs)} |")
+        lines.append(f"| {key} | {best[1]:.1f} | {best[2]:.1f} | {best[1] / best[2]:.2f} | {same[1]:.1f} | "
+                     f"{same[2]:.1f} | {same[1] / same[2]:.2f} | {'; '.join(runs)} |")
     return lines
 
 
