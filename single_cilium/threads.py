@@ -9,6 +9,13 @@ threads each may use, with ``workers x numba x blas <= cores``; :meth:`ThreadBud
 it in the worker (``numba.set_num_threads``, which is per thread, and threadpoolctl's BLAS limit)
 before the work starts, and :func:`threads_in_use` reports it (the render's ``summary.json``
 ``"threads"``).
+
+Tasks in threads of one process (a Dask worker with several threads) run their compiled kernels
+side by side: the kernels let go of the interpreter (numba's ``nogil``). numba's ``workqueue``
+threading layer, which it takes where neither TBB nor OpenMP is installed, aborts the process
+when two threads start parallel regions at once; under it a budget applied in a thread holds a
+lock of the process, so that such tasks run one after another (as they did while the kernels held
+the interpreter; :func:`threadsafe_layer`).
 """
 from __future__ import annotations
 
@@ -17,20 +24,41 @@ import math
 import os
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, dataclass
 
-__all__ = ["ThreadBudget", "cores", "threads_in_use"]
+__all__ = ["ThreadBudget", "cores", "threads_in_use", "threadsafe_layer"]
 
 logger = logging.getLogger(__name__)
 
 _LOCAL = threading.local()  # .budgets: the budgets applied in this thread, innermost last
+_SERIAL = threading.RLock()  # held by applied budgets under a threading layer that is not thread-safe
 
 
 def _active() -> list:
     if not hasattr(_LOCAL, "budgets"):
         _LOCAL.budgets = []
     return _LOCAL.budgets
+
+
+def threadsafe_layer() -> bool:
+    """Whether parallel kernels may start from several threads of this process at once: numba's
+    threading layer (chosen at the first parallel region, made here if none ran yet) is TBB or
+    OpenMP, not ``workqueue`` (which aborts the process: "Concurrent access has been detected")."""
+    import numba
+
+    try:
+        layer = numba.threading_layer()
+    except ValueError:  # no parallel region has run in this process yet: one, one thread at a time
+        from single_cilium._kernels import first_parallel_region
+
+        with _SERIAL:
+            try:
+                layer = numba.threading_layer()
+            except ValueError:
+                first_parallel_region()
+                layer = numba.threading_layer()
+    return layer != "workqueue"
 
 
 def cores() -> int:
@@ -124,16 +152,19 @@ class ThreadBudget:
         from threadpoolctl import threadpool_limits
 
         n = min(self.numba, int(numba.config.NUMBA_NUM_THREADS))
-        before = numba.get_num_threads()
-        numba.set_num_threads(n)
-        active = _active()
-        active.append(ThreadBudget(self.workers, n, self.blas))
-        try:
-            with threadpool_limits(limits=self.blas, user_api="blas"):
-                yield active[-1]
-        finally:
-            active.pop()
-            numba.set_num_threads(before)
+        guard = nullcontext() if threadsafe_layer() else _SERIAL  # (module docstring)
+        with guard:
+            before = numba.get_num_threads()
+            numba.set_num_threads(n)
+            active = _active()
+            active.append(ThreadBudget(self.workers, n, self.blas))
+            try:
+                with threadpool_limits(limits=self.blas, user_api="blas"):
+                    yield active[-1]
+            finally:
+                active.pop()
+                numba.set_num_threads(before)
+
 
 
 def threads_in_use() -> dict:

@@ -72,6 +72,57 @@ def test_dask_task_takes_its_workers_share(tmp_path, monkeypatch):
     assert _threads(tmp_path / "out" / "a") == {"numba": 1, "blas": 1, "workers": 2}
 
 
+def test_two_scenes_side_by_side_on_one_threaded_dask_worker(tmp_path, monkeypatch):
+    """Two tasks of a Dask worker with two threads run in one process at once, and the compiled
+    functions let go of the interpreter (nogil), so their kernels really run side by side: both
+    renders finish, each with its share of numba threads (one), and two copies of one scene give
+    the same numbers as each other."""
+    distributed = pytest.importorskip("distributed")
+    monkeypatch.setattr(threads_mod, "cores", lambda: 2)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cl, \
+            distributed.Client(cl) as client:
+        recs = batch(_scenes(tmp_path, "ab"), tmp_path / "out", executor=client.get_executor(), progress=False)
+    assert [r["status"] for r in recs] == ["done", "done"], recs
+    got = [json.loads((tmp_path / "out" / n / "summary.json").read_text()) for n in "ab"]
+    for s in got:  # (the BLAS's count is the process's: a task ending gives it back under the other)
+        assert s["threads"]["numba"] == 1 and s["threads"]["workers"] == 2
+    a, b = ({"field": s["mean_field"], "steps": s["pathlines"]["work"]["steps"],
+             "end": {k: s["pathlines"]["end_point_error"][k] for k in ("max", "median")}} for s in got)
+    assert a == b and a["field"]["max_speed"] > 0
+
+
+_WORKQUEUE = """
+import threading, numpy as np
+from single_cilium.threads import ThreadBudget, threadsafe_layer
+from ciliary_carpet.stokes import stokeslet_velocity
+rng = np.random.default_rng(1)
+x, y, f = rng.random((300, 3)), rng.random((2000, 3)) + 2, rng.random((2000, 3))
+out = {}
+def task(k):
+    with ThreadBudget(2, 1, 1).applied():
+        for _ in range(100):
+            out[k] = stokeslet_velocity(x, y, f)
+ts = [threading.Thread(target=task, args=(k,)) for k in range(2)]
+[t.start() for t in ts]
+[t.join() for t in ts]
+print(threadsafe_layer(), np.array_equal(out[0], out[1]))
+"""
+
+
+def test_tasks_in_threads_take_turns_under_the_workqueue_layer():
+    """numba's workqueue layer aborts the process when two threads start parallel regions at
+    once (the kernels let go of the interpreter, so they can): two tasks in threads, each under
+    its budget, then run one after the other instead, and finish."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_THREADING_LAYER="workqueue")
+    p = subprocess.run([sys.executable, "-c", _WORKQUEUE], capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.split() == ["False", "True"]  # the workqueue layer ran, both tasks got the same numbers
+
+
 def test_render_takes_threads_from_the_command_line(tmp_path, capsys):
     """`ciliary-carpet render --threads 1` renders on one numba thread (summary.json says so) and
     gives the threads back afterwards; --threads 0 is bad input (exit 2)."""

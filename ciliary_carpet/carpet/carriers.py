@@ -482,7 +482,7 @@ def _group_forces(out, n, pos, start, centre, delta, inv6):  # pragma: no cover 
                 out[tt, 2, 10 * n + 6 * g + mm] = 0.0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _missing_quadrupoles(ranges, n, done):  # pragma: no cover - compiled
     """The cilia (positions in a plan's order, ascending) whose quadrupole carriers the source
     ``ranges`` (R, 2) read (rows 4 n + 6 q ...) and that are not ``done`` yet; marks them done."""

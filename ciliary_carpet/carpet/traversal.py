@@ -288,7 +288,7 @@ def _block_ranges(res_j, local, per, k, blk, out):  # pragma: no cover - compile
             out[q, 1] = 0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, ny, reach, far, always,
            gstart, gof, gcx, gcy, gcz, gR2, gcell, gcell_ptr, call2, cnone2, max_rows):  # pragma: no cover
     """Every target's ranges in CSR (the arguments of :attr:`Plan.traverse` after the targets, then
@@ -335,7 +335,7 @@ def _lists(targets, scx, scy, scz, sR1, sR2, sR3, sj, cell_ptr, x0, y0, h, nx, n
     return ptr, ranges, rptr, res_j, res_r, counts, uptr
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _used(res_j, n):  # pragma: no cover - compiled
     """The cilia of ``res_j`` once each, ascending (n cilia in all)."""
     seen = np.zeros(n, np.bool_)
@@ -353,7 +353,7 @@ def _used(res_j, n):  # pragma: no cover - compiled
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _kept_ranges(res_j, slot, blk):  # pragma: no cover - compiled
     """The source range of each resolved pair q in blocks kept at rows slot[j] blk ... of cilium
     j = res_j[q] (:class:`~.cycles.InstantBlocks`)."""

@@ -270,7 +270,7 @@ _FINGERPRINT = int.from_bytes(hashlib.sha256(b"".join(
 :mod:`~ciliary_carpet.stokes.precision`) and of their order in the registry."""
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _compiled_for():  # pragma: no cover - compiled
     """The :data:`_FINGERPRINT` this module's cached loops were compiled with (module docstring)."""
     return _FINGERPRINT

@@ -19,9 +19,11 @@ that says where they run:
   once to each worker, however many tasks use them. Workers write no files. ``warm()`` starts
   the fork server ahead, while the caller has other work (a render, while it designs). A
   dispatcher thread starts and feeds the workers while this process works on its own task: the
-  package's compiled functions let go of the interpreter (numba's ``nogil``), so that thread is
-  not kept waiting for it (beside a 30 x 30 render's path lines a worker reached its first task
-  0.64-0.75 s after the run's start, 0.5 s of it ``start_after``, against 1.35-1.44 s before).
+  package's compiled functions that write into arrays they are given let go of the interpreter
+  (numba's ``nogil``; those that return arrays, short ones, keep it: tests/test_parallel.py), so
+  that thread is not kept waiting for it (beside a 30 x 30 render's path lines a worker reached
+  its first task 0.64-0.75 s after the run's start, 0.5 s of it ``start_after``, against
+  1.35-1.44 s before).
 
 With ``lend_idle`` (the default), the cores of places left without a task go to the places still
 running one, as numba threads, while they pay (:class:`_Share`): on two cores a render's path lines
