@@ -99,11 +99,21 @@ def write_netcdf(ds: xr.Dataset, path) -> Path:
     """Write ``ds`` as NetCDF4/HDF5 (engine h5netcdf) to ``path`` atomically: readers never see
     a half-written file, and an existing file is replaced only once the new one is complete.
     The file is made in memory and written by :func:`write_bytes`: a full disk is an
-    :class:`OutputFileError` naming ``path`` ("no space left on device"), never a crash."""
+    :class:`OutputFileError` naming ``path`` ("no space left on device"), never a crash.
+
+    On a Dask worker xarray guards a file it writes with a lock of the cluster named by the file,
+    here the in-memory buffer, which the scheduler does not know: every render of a batch on a
+    cluster of worker processes failed ("RuntimeError: Semaphore or Lock `<_io.BytesIO ...>` not
+    known"). Nothing else writes that buffer, so the write takes a lock of this process (dask's
+    synchronous scheduler while it runs)."""
+    import dask
+
     path = Path(path)
     if path.is_dir():
         raise OutputFileError(path, "it is a folder")
-    return write_bytes(path, ds.to_netcdf(engine="h5netcdf"))
+    with dask.config.set(scheduler="synchronous"):
+        data = ds.to_netcdf(engine="h5netcdf")
+    return write_bytes(path, data)
 
 
 def _plain(v, path: str, bad: dict):

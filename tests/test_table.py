@@ -124,8 +124,10 @@ def test_interrupted_build_resumes(tmp_path):
 
 
 def test_dask_local_cluster(tmp_path):
+    """A table built on a cluster of worker processes (as `dask worker` runs them) gives the
+    numbers of a local build."""
     import dask.distributed as distributed
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp",
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp",
                                   host="127.0.0.1", dashboard_address=None) as cluster:
         t = build_table(200, 1, [150.0], scheduler=cluster.scheduler_address, **FAST)
     local = build_table(200, 1, [150.0], executor=ThreadPoolExecutor(1), **FAST)
