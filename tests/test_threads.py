@@ -72,6 +72,22 @@ def test_dask_task_takes_its_workers_share(tmp_path, monkeypatch):
     assert _threads(tmp_path / "out" / "a") == {"numba": 1, "blas": 1, "workers": 2}
 
 
+def test_a_threaded_dask_worker_is_warned_about_once(monkeypatch, caplog):
+    """A Dask worker with several threads: its tasks share the cores and one interpreter; the
+    budget says so once per process (workers of one thread each render about twice as fast)."""
+    import types
+
+    distributed = pytest.importorskip("distributed")
+    worker = types.SimpleNamespace(state=types.SimpleNamespace(nthreads=2))
+    monkeypatch.setattr(distributed, "get_worker", lambda: worker)
+    monkeypatch.setattr(threads_mod, "_WARNED", [])
+    with caplog.at_level("WARNING", logger="single_cilium.threads"):
+        assert ThreadBudget.for_task(n_cores=4) == ThreadBudget(workers=2, numba=2, blas=1)
+        ThreadBudget.for_task(n_cores=4)
+    said = [r.getMessage() for r in caplog.records if "--nthreads 1" in r.getMessage()]
+    assert len(said) == 1 and "2 tasks at once" in said[0]
+
+
 def test_two_scenes_side_by_side_on_one_threaded_dask_worker(tmp_path, monkeypatch):
     """Two tasks of a Dask worker with two threads run in one process at once, and the compiled
     functions let go of the interpreter (nogil), so their kernels really run side by side: both
