@@ -18,6 +18,15 @@ summary reports, the machine's load average before and after (issue 23).
     python benchmarks/bench_batch.py --bundled [designs/focusing.toml designs/shear_layer.toml] [--no-serial] [--limit S]
 
 Writes ``benchmarks/results/bench_batch_bundled.md``.
+
+``--dask``: the same scenes as a batch on a local Dask cluster (``--scheduler``), its workers
+as ``dask worker`` runs them (processes): one worker of as many threads as cores against as many
+workers of one thread each, and threads of the scheduler's own process (what tests use); each
+run's wall time, the renders' totals and the threads their summaries report.
+
+    python benchmarks/bench_batch.py --dask [designs/focusing.toml designs/shear_layer.toml] [--repeat 1]
+
+Writes ``benchmarks/results/bench_batch_dask.md``.
 """
 from __future__ import annotations
 
@@ -133,11 +142,51 @@ def bundled(scenes: list[str], serial: bool, out: str | None, limit: float | Non
         shutil.rmtree(root, ignore_errors=True)
 
 
+def dask_runs(scenes: list[str], repeat: int, out: str | None) -> None:
+    """The scenes as a batch on local Dask clusters of several shapes, alternating (``--dask``)."""
+    import distributed
+
+    from ciliary_carpet.cli import batch
+    from single_cilium.threads import cores
+
+    c = cores()
+    shapes = [(f"1 worker process x {c} threads", dict(n_workers=1, threads_per_worker=c, processes=True)),
+              (f"{c} worker processes x 1 thread", dict(n_workers=c, threads_per_worker=1, processes=True)),
+              (f"{c} threads of the scheduler's process", dict(n_workers=1, threads_per_worker=c, processes=False))]
+    out = out or str(Path(__file__).parent / "results" / "bench_batch_dask.md")
+    lines = [f"# bench_batch --dask: {', '.join(scenes)}", "",
+             f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {c} cores; load average {_load()} at the start.",
+             "", "| cluster | wall s | renders' totals s | threads (numba, BLAS, workers) | load before |",
+             "|---|---|---|---|---|"]
+    for r in range(repeat):
+        for label, kw in shapes:
+            load = _load()
+            with tempfile.TemporaryDirectory() as tmp, distributed.LocalCluster(dashboard_address=None, **kw) as cl:
+                t = time.perf_counter()
+                recs = batch([ROOT / s for s in scenes], Path(tmp) / "out", scheduler=cl.scheduler_address,
+                             progress=False)
+                wall = time.perf_counter() - t
+                bad = [x for x in recs if x["status"] != "done"]
+                if bad:
+                    raise SystemExit(f"{label}: {bad}")
+                sm = [_summary(Path(x["out_dir"])) for x in recs]
+            tot = ", ".join(f"{m['seconds']['total']:.1f}" for m in sm)
+            th = "; ".join(f"{m['threads']['numba']}, {m['threads']['blas']}, {m['threads']['workers']}" for m in sm)
+            lines.append(f"| {label} | {wall:.1f} | {tot} | {th} | {load} |")
+            print(lines[-1], flush=True)
+    text = "\n".join(lines) + "\n"
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(text)
+    print(text)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--bundled", nargs="*", default=None, metavar="SCENE",
                     help=f"the bundled scenes (default {' '.join(BUNDLED)}) as a default batch against their solo "
                          f"renders")
+    ap.add_argument("--dask", nargs="*", default=None, metavar="SCENE",
+                    help="the scenes (default: focusing, shear_layer) as a batch on local Dask clusters")
     ap.add_argument("--no-serial", dest="serial", action="store_false", help="with --bundled: skip the --jobs 1 batch")
     ap.add_argument("--limit", type=float, default=None, help="with --bundled: stop a run after this many seconds")
     ap.add_argument("--scenes", type=int, default=6)
@@ -147,6 +196,9 @@ def main() -> None:
     ap.add_argument("--field", type=int, default=12, help="mean and snapshot fields of FIELD x FIELD points")
     ap.add_argument("--out", default=None, help="default results/bench_batch[_SHAPE_FIELD].md")
     a = ap.parse_args()
+    if a.dask is not None:
+        dask_runs(a.dask or list(BUNDLED), a.repeat, a.out)
+        return
     if a.bundled is not None:
         bundled(a.bundled or list(BUNDLED), a.serial, a.out, a.limit)
         return

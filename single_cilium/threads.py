@@ -62,6 +62,19 @@ def threadsafe_layer() -> bool:
     return layer != "workqueue"
 
 
+def _host_threads(worker) -> int:
+    """The threads of all the Dask workers on ``worker``'s host, by the scheduler's list (the
+    workers of `dask worker --nworkers N` share the machine's cores); 0 where it cannot tell."""
+    try:
+        from distributed import get_client
+
+        ws = get_client().scheduler_info(n_workers=-1)["workers"]
+        host = ws[worker.address]["host"]
+        return sum(int(v.get("nthreads", 1)) for v in ws.values() if v.get("host") == host)
+    except Exception:  # noqa: BLE001 -- an older or unreachable scheduler: this worker's own threads
+        return 0
+
+
 def cores() -> int:
     """The cores this process may run on (its CPU affinity where the system tells, else the count)."""
     try:
@@ -133,8 +146,10 @@ class ThreadBudget:
 
     @classmethod
     def for_task(cls, n_cores: int | None = None) -> "ThreadBudget":
-        """The budget of one task in the process running it: on a Dask worker with several
-        threads each task gets ``cores / threads`` numba threads; elsewhere the cores.
+        """The budget of one task in the process running it: on a Dask worker, the cores divided
+        among the threads of all the workers on its host (the scheduler's list: `dask worker
+        --nworkers N` starts N processes that share the machine, each of which took every core
+        for its numba threads before); elsewhere the cores.
 
         Tasks in threads of one worker share its interpreter, and a render's path lines spend a
         good part of their time in it: on 2 cores the bundled focusing and shear_layer scenes
@@ -142,11 +157,13 @@ class ThreadBudget:
         one thread each (45.3 s on two threads of the scheduler's own process, 57.4 s there
         before the kernels let go of the interpreter). Such a worker is warned about, once."""
         c = int(n_cores) if n_cores is not None else cores()
-        k = 1
+        k = here = 1
         try:
             from distributed import get_worker
 
-            k = max(1, int(get_worker().state.nthreads))
+            w = get_worker()
+            k = max(1, int(w.state.nthreads))
+            here = max(k, _host_threads(w))
         except (ImportError, ValueError, AttributeError):  # not on a Dask worker
             pass
         if k > 1 and not _WARNED:
@@ -154,7 +171,7 @@ class ThreadBudget:
             logger.warning("this Dask worker runs %d tasks at once in threads of one process, which share its "
                            "interpreter: two renders took about twice as long as on two workers of one thread "
                            "each; start workers with one thread each (dask worker --nthreads 1 --nworkers N)", k)
-        return cls(workers=k, numba=max(1, c // k), blas=1)
+        return cls(workers=here, numba=max(1, c // here), blas=1)
 
     @contextmanager
     def applied(self) -> Iterator["ThreadBudget"]:

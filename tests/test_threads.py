@@ -88,6 +88,35 @@ def test_a_threaded_dask_worker_is_warned_about_once(monkeypatch, caplog):
     assert len(said) == 1 and "2 tasks at once" in said[0]
 
 
+def test_dask_workers_on_one_host_share_its_cores(monkeypatch):
+    """`dask worker --nworkers 2 --nthreads 1`: two processes on one host; each task takes half
+    the cores, not all of them (the workers elsewhere do not count)."""
+    import types
+
+    distributed = pytest.importorskip("distributed")
+    me = types.SimpleNamespace(address="tcp://a:1", state=types.SimpleNamespace(nthreads=1))
+    ws = {"tcp://a:1": {"host": "a", "nthreads": 1}, "tcp://a:2": {"host": "a", "nthreads": 1},
+          "tcp://b:1": {"host": "b", "nthreads": 4}}
+    client = types.SimpleNamespace(scheduler_info=lambda n_workers=5: {"workers": ws if n_workers == -1 else {}})
+    monkeypatch.setattr(distributed, "get_worker", lambda: me)
+    monkeypatch.setattr(distributed, "get_client", lambda: client)
+    assert ThreadBudget.for_task(n_cores=4) == ThreadBudget(workers=2, numba=2, blas=1)
+    monkeypatch.setattr(distributed, "get_client", lambda: (_ for _ in ()).throw(ValueError("no scheduler")))
+    assert ThreadBudget.for_task(n_cores=4) == ThreadBudget(workers=1, numba=4, blas=1)  # it cannot tell
+
+
+def test_a_batch_on_two_dask_worker_processes_shares_the_cores(tmp_path):
+    """Two worker processes of one thread on this host (as `dask worker --nworkers 2 --nthreads 1`
+    starts them): each render reports half the cores as its numba threads and 2 workers."""
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cl:
+        recs = batch(_scenes(tmp_path, "ab"), tmp_path / "out", scheduler=cl.scheduler_address, progress=False)
+    assert [r["status"] for r in recs] == ["done", "done"], recs
+    want = min(max(1, threads_mod.cores() // 2), numba.config.NUMBA_NUM_THREADS)
+    for n in "ab":
+        assert _threads(tmp_path / "out" / n) == {"numba": want, "blas": 1, "workers": 2}
+
+
 def test_two_scenes_side_by_side_on_one_threaded_dask_worker(tmp_path, monkeypatch):
     """Two tasks of a Dask worker with two threads run in one process at once, and the compiled
     functions let go of the interpreter (nogil), so their kernels really run side by side: both
