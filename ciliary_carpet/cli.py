@@ -270,7 +270,10 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     (default: the cores divided among the workers) times one BLAS thread; on Dask each task
     gets the cores of its worker divided among the worker's threads. Each render's summary
     names the threads it used (``"threads"``). With ``scheduler``: a Dask
-    distributed cluster, through ``Client(scheduler).get_executor()``; or any ``executor``.
+    distributed cluster, through ``Client(scheduler).get_executor()``; or any ``executor``. The
+    workers get the scenes and ``out_root`` as absolute paths (a relative one is this process's:
+    a Dask worker runs in its own folder, and on other machines the paths must be on a shared
+    filesystem); the records name the scenes as given.
     Two scenes with the same name (output folder) are a SceneError before anything runs.
     Resumable: a scene whose folder holds a complete render newer than the scene and its table
     is skipped; one interrupted while replacing an older render is rendered again; one with
@@ -290,7 +293,11 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     _check_names(scenes)
     if backend is not None:
         backend_named(backend)  # backend "cuda" without a GPU: CudaUnavailableError before any work
-    tasks = [(s, str(out_root), overwrite, reduced, max_seconds, backend) for s in scenes]
+    # the workers get absolute paths: a Dask worker runs in its own folder, where a relative scene
+    # is not found and a relative output root is another folder than the one named here
+    where = {os.path.abspath(s): s for s in scenes}
+    tasks = [(os.path.abspath(s), os.path.abspath(str(out_root)), overwrite, reduced, max_seconds, backend)
+             for s in scenes]
     budget = None
     if executor is None and scheduler is None:
         budget = ThreadBudget.for_batch(len(tasks), jobs=jobs, threads=threads,
@@ -305,6 +312,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     bar = tqdm(total=len(tasks), desc="scenes", disable=not progress)
 
     def on_done(rec):
+        rec["scene"] = where.get(rec["scene"], rec["scene"])  # as the caller named it
         recs.append(rec)
         bar.update(1)
 

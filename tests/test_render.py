@@ -158,20 +158,24 @@ def test_cli_design_and_batch_resume(tmp_path):
     assert main(["batch", str(a), str(bad), "-o", str(out), "-j", "1"]) == 1
 
 
-def test_batch_on_a_dask_cluster(tmp_path):
+def test_batch_on_a_dask_cluster(tmp_path, monkeypatch):
     """A batch on a cluster of worker processes (as `dask worker` runs them), a scene with a
-    target: its layout.nc is written on the worker. (Writing a NetCDF file there took a lock of
-    the cluster that its scheduler did not know: every scene with a target failed, "Semaphore or
-    Lock ... not known"; a worker in the scheduler's own process did not show it.)"""
+    target, named by paths relative to this process's folder, which is not the workers': its
+    files land in the output folder named here, its layout.nc written on the worker. (Relative
+    paths were the workers' own: "cannot read the scene file", and an output root relative to
+    their folder; writing a NetCDF file there took a lock of the cluster that its scheduler did
+    not know: every scene with a target failed, "Semaphore or Lock ... not known"; a worker in
+    the scheduler's own process showed neither.)"""
     from distributed import LocalCluster
 
     body = '[carpet]\nshape = [2, 2]\n[target]\nkind = "uniform"\nangle = 20.0\nresidual = 0.5\n' \
            '[output]\nn_seeds = 3\nperiods = 1.0\nfield_shape = [8, 8]\nsnapshots = 0\nframes = 1\npreview = false\n'
-    a = _scene_file(tmp_path, body, "a.toml")
+    _scene_file(tmp_path, body, "a.toml")
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp",
                       dashboard_address=None) as cl:
-        recs = batch([a], tmp_path / "out", scheduler=cl.scheduler_address, progress=False)
-    assert recs[0]["status"] == "done", recs
+        monkeypatch.chdir(tmp_path)  # the workers started in another folder
+        recs = batch(["a.toml"], "out", scheduler=cl.scheduler_address, progress=False)
+    assert recs[0]["status"] == "done" and recs[0]["scene"] == "a.toml", recs
     summ = json.loads((tmp_path / "out" / "a" / "summary.json").read_text())
     assert summ["n_cilia"] == 4 and summ["design"] is not None
     assert (tmp_path / "out" / "a" / "layout.nc").stat().st_size > 0
