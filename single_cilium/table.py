@@ -307,8 +307,8 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     own = {(col[0], col[1], col[2], c) for col in columns for c in grid_list if c not in skip[col] or skip[col][c]}
     parts = None
     rows: dict[tuple, xr.Dataset] = {}
-    if path is not None:
-        parts = Path(str(path) + ".parts")
+    if path is not None:  # absolute: a Dask worker writes the rows from its own folder
+        parts = Path(os.path.abspath(str(path) + ".parts"))
         parts.mkdir(parents=True, exist_ok=True)
         rows = resume(parts, grid_spec, own, grid_spec.fingerprint(eta, settings), fields[0])
         if rows:

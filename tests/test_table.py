@@ -1,5 +1,7 @@
 import math
+import os
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -123,13 +125,18 @@ def test_interrupted_build_resumes(tmp_path):
     assert not parts.exists()
 
 
-def test_dask_local_cluster(tmp_path):
+def test_dask_local_cluster(tmp_path, monkeypatch):
     """A table built on a cluster of worker processes (as `dask worker` runs them) gives the
-    numbers of a local build."""
+    numbers of a local build; its file named relative to this process's folder, which is not
+    the workers': their finished rows go beside it, not into their own folder."""
     import dask.distributed as distributed
+    theirs = Path.cwd()
+    name = f"t{os.getpid()}.nc"
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tcp",
                                   host="127.0.0.1", dashboard_address=None) as cluster:
-        t = build_table(200, 1, [150.0], scheduler=cluster.scheduler_address, **FAST)
+        monkeypatch.chdir(tmp_path)
+        t = build_table(200, 1, [150.0], scheduler=cluster.scheduler_address, path=name, **FAST)
+    assert (tmp_path / name).is_file() and not (theirs / (name + ".parts")).exists()
     local = build_table(200, 1, [150.0], executor=ThreadPoolExecutor(1), **FAST)
     assert float(t.ds.thrust_norm[0]) == float(local.ds.thrust_norm[0])
 
