@@ -76,11 +76,20 @@ def _host_threads(worker) -> int:
 
 
 def cores() -> int:
-    """The cores this process may run on (its CPU affinity where the system tells, else the count)."""
+    """The cores this process may run on: its CPU affinity where the system tells (else the
+    machine's count), at most the whole CPUs of its control group's quota (a container's
+    ``--cpus``, rounded down, at least one: a thread more than the quota pays for waits at every
+    barrier; :func:`single_cilium.cgroup.cpu_quota`)."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        n = max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
+        n = max(1, os.cpu_count() or 1)
+    from .cgroup import cpu_quota
+
+    q = cpu_quota()
+    if q is not None:
+        n = min(n, max(1, math.floor(q + 1e-9)))
+    return n
 
 
 @dataclass(frozen=True)
