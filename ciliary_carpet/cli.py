@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import os
 import signal
 import sys
@@ -37,7 +36,7 @@ from single_cilium.threads import ThreadBudget, threads_in_use
 
 from ciliary_carpet.design import DesignError, design
 from ciliary_carpet.design.target import TargetError, UnreachableTargetError
-from ciliary_carpet.output.resources import available_memory
+from ciliary_carpet.output.resources import available_memory, expected_memory, places_that_fit
 from ciliary_carpet.output.vtkfiles import OutputError
 from ciliary_carpet.render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
 from ciliary_carpet.scenes.paths import ALLOW_ENV
@@ -81,9 +80,11 @@ def _cmd_render(a) -> int:
     budget = ThreadBudget.for_task()  # every core, or this Dask worker's share
     if a.threads is not None:
         budget = replace(budget, numba=a.threads)
-    with budget.applied():  # the path lines on as many processes as numba threads (one: in this process)
+    # the path lines on as many processes as numba threads (one: in this process), as memory allows
+    pool = pool_for_threads(places_that_fit(scene, budget.numba))
+    with budget.applied():
         res = render(scene, a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5),
-                     max_seconds=a.max_hours * 3600, pool=pool_for_threads(budget.numba))
+                     max_seconds=a.max_hours * 3600, pool=pool)
     s = res.summary
     if a.json:
         print(strict_json({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
@@ -141,7 +142,7 @@ def _render_task(scene_path: str, out_root: str, overwrite: bool, reduced: bool,
             # finish it (only the files it wrote are replaced)
             resume = out.is_dir() and owned_files(out) is not None and not (out / SUMMARY).is_file()
             render(scene, out, overwrite=overwrite or resume, max_seconds=max_seconds, within=out_root,
-                   pool=pool_for_threads(threads_in_use()["numba"]))
+                   pool=pool_for_threads(places_that_fit(scene, threads_in_use()["numba"])))
             rec.update(status="done", message="rendered")
     except Exception as exc:  # noqa: BLE001 -- one failing scene must not stop the others
         rec.update(status="failed", message=_one_line(exc, scene_path))
@@ -245,15 +246,19 @@ def _stop(procs, grace: float) -> None:
             p.join(max(0.0, end - _time.monotonic()) if wait_s is not None else None)
 
 
-def _memory_per_task(scenes, reduced: bool, backend: str | None) -> float | None:
-    """The largest lower bound of the memory a scene of the batch needs (None if none is known)."""
-    need = []
+def _memory_per_task(scenes, reduced: bool, backend: str | None):
+    """The memory a batch worker is expected to take, as a function of its render's places: the
+    largest :func:`~ciliary_carpet.output.resources.expected_memory` of the batch's scenes (None
+    if no scene can be read: each fails in its own task)."""
+    loaded = []
     for p in scenes:
         try:
-            need.append(check_resources(_scene(p, reduced, backend), max_seconds=math.inf).memory_bytes)
-        except Exception:  # noqa: BLE001 -- a scene that cannot be estimated fails in its own task
+            loaded.append(_scene(p, reduced, backend))
+        except Exception:  # noqa: BLE001 -- a scene that cannot be read fails in its own task
             continue
-    return max(need, default=None)
+    if not loaded:
+        return None
+    return lambda places: max(expected_memory(s, places) for s in loaded)
 
 
 def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None,

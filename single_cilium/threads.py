@@ -128,24 +128,34 @@ class ThreadBudget:
 
     @classmethod
     def for_batch(cls, n_tasks: int, *, jobs: int | None = None, threads: int | None = None,
-                  n_cores: int | None = None, memory_per_task: float | None = None,
+                  n_cores: int | None = None, memory_per_task=None,
                   memory_available: float | None = None) -> "ThreadBudget":
         """The budget of a batch of ``n_tasks`` on ``n_cores`` (default: :func:`cores`).
 
-        Workers: ``jobs`` if given, else as many as there are tasks, cores, and copies of the
-        largest task that fit the available memory (``memory_per_task`` of ``memory_available``
-        bytes, when both are known). numba threads per worker: ``threads`` if given, else the
-        cores divided among the workers. BLAS: one thread (the matrices of a render are small;
-        processes pay better than threads, measured in benchmarks/bench_batch.py). Given
-        ``jobs`` and ``threads`` are taken as they are, even beyond the cores (with a warning).
+        Workers: ``jobs`` if given, else as many as there are tasks and cores, and as fit the
+        available memory: ``k`` workers whose task takes ``memory_per_task`` bytes (a number, or
+        a function of the task's numba threads, e.g. a render's places) within
+        ``memory_available``, when both are known. numba threads per worker: ``threads`` if
+        given, else the cores divided among the workers. BLAS: one thread (the matrices of a
+        render are small; processes pay better than threads, measured in
+        benchmarks/bench_batch.py). Given ``jobs`` and ``threads`` are taken as they are, even
+        beyond the cores (with a warning).
         """
         c = int(n_cores) if n_cores is not None else cores()
+
+        def per_task(k: int) -> float:
+            if memory_per_task is None:
+                return 0.0
+            n_k = max(1, int(threads)) if threads is not None else max(1, c // k)
+            return float(memory_per_task(n_k) if callable(memory_per_task) else memory_per_task)
+
         if jobs is not None:
             k = max(1, int(jobs))
         else:
             k = max(1, min(int(n_tasks), c))
-            if memory_per_task and memory_available and memory_per_task > 0 and math.isfinite(memory_available):
-                k = max(1, min(k, int(memory_available // memory_per_task)))
+            if memory_available and math.isfinite(memory_available):
+                while k > 1 and k * per_task(k) > memory_available:
+                    k -= 1
         n = max(1, int(threads)) if threads is not None else max(1, c // k)
         budget = cls(workers=k, numba=n, blas=1)
         if budget.threads > c:

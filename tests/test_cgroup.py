@@ -3,6 +3,7 @@ both interface versions, and, where this machine lets a test make groups (root, 
 and cpu controllers), from real ones in a subprocess."""
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -162,3 +163,94 @@ def test_real_groups_limit_cores_and_memory():
         for d in (cpu, mem):
             if d.exists():
                 d.rmdir()  # empty again: the subprocess has ended
+
+
+def _scene(tmp_path, text: str):
+    from ciliary_carpet.scenes.scene import load_scene
+
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    return load_scene(p)
+
+
+def test_expected_memory_follows_the_measured_peaks(tmp_path):
+    """At the measured sizes the estimate is the largest measured peak times the margin; it grows
+    with the cilia and the places; a standing carpet takes more."""
+    from ciliary_carpet.output import resources as r
+
+    mib = 2.0 ** 20
+    for n, one, two in r._PEAK_MIB:
+        side = int(round(n ** 0.5))
+        s = _scene(tmp_path, f"[carpet]\nshape = [{side}, {side}]\n")
+        assert r.expected_memory(s, 1) == pytest.approx(one * r._PEAK_MARGIN * mib)
+        assert r.expected_memory(s, 2) == pytest.approx(two * r._PEAK_MARGIN * mib)
+        assert r.expected_memory(s, 3) == pytest.approx((2 * two - one) * r._PEAK_MARGIN * mib)
+    sizes = [4, 30, 60, 100, 150]
+    one = [r.expected_memory(_scene(tmp_path, f"[carpet]\nshape = [{k}, {k}]\n"), 1) for k in sizes]
+    assert all(a <= b for a, b in zip(one, one[1:]))
+    # beyond 10^4 cilia: the last slope, at least linear
+    (n1, a1, _), (n2, a2, _) = r._PEAK_MIB[-2:]
+    assert one[-1] == pytest.approx((a2 + (22500 - n2) * (a2 - a1) / (n2 - n1)) * r._PEAK_MARGIN * mib)
+    planar = _scene(tmp_path, "[carpet]\nshape = [12, 12]\n")
+    standing = _scene(tmp_path, '[carpet]\ngeometry = "standing"\nshape = [12, 12]\n')
+    assert r.expected_memory(standing, 2) == pytest.approx(r._STANDING * r.expected_memory(planar, 2))
+
+
+def test_places_follow_the_memory_available(tmp_path, monkeypatch, caplog):
+    from ciliary_carpet.output import resources as r
+
+    s = _scene(tmp_path, "[carpet]\nshape = [10, 10]\n")
+    one, two = r.expected_memory(s, 1), r.expected_memory(s, 2)
+    monkeypatch.setattr(r, "_resident", lambda: 0.0)
+    for avail, want in ((math.inf, 4), (two * 1.01, 2), (two * 0.99, 1), (one * 1.01, 1)):
+        monkeypatch.setattr(r, "available_memory", lambda a=avail: a)
+        caplog.clear()
+        assert r.places_that_fit(s, 4 if math.isinf(avail) else 2) == want
+        assert ("instead of 2 places" in caplog.text) == (want == 1)
+    monkeypatch.setattr(r, "available_memory", lambda: one * 0.5)
+    caplog.clear()
+    assert r.places_that_fit(s, 2) == 1
+    assert "may be killed for want of memory" in caplog.text
+    # what this process holds already counts as available: the estimate includes it
+    monkeypatch.setattr(r, "available_memory", lambda: two * 0.6)
+    monkeypatch.setattr(r, "_resident", lambda: two * 0.5)
+    assert r.places_that_fit(s, 2) == 2
+
+
+def test_a_render_in_a_real_memory_limit_takes_one_place(tmp_path):
+    """A render asked for 2 cores in a control group whose limit holds one place of the estimate but
+    not two: it runs its path lines in its own process, says so, and finishes (before, it started a
+    worker: the bundled focusing scene in a 560 MB group was killed at 17 s)."""
+    base = _v1_root()
+    if base is None:
+        pytest.skip("needs root and cgroup v1 memory controller to make groups")
+    from ciliary_carpet.output import resources as r
+
+    name = f"cilia-test-{uuid.uuid4().hex[:8]}"
+    mem = base / "memory" / name
+    scene = tmp_path / "s.toml"
+    scene.write_text("[carpet]\nshape = [3, 3]\n[output]\nn_seeds = 4\nperiods = 1\nfield_shape = [8, 8]\n"
+                     "snapshots = 0\nframes = 2\npreview = false\n")
+    s = r.expected_memory(_scene(tmp_path, "[carpet]\nshape = [3, 3]\n"), 1)
+    limit = int(s + 60 * 2 ** 20)  # one place and a little: two do not fit (two - one is about 240 MB)
+    try:
+        try:
+            mem.mkdir()
+            (mem / "memory.limit_in_bytes").write_text(str(limit))
+        except OSError as exc:
+            pytest.skip(f"cannot make cgroups here: {exc}")
+        code = ("import os, sys; open(sys.argv[1], 'w').write(str(os.getpid()));"
+                "from ciliary_carpet.cli import main; sys.exit(main(sys.argv[2:]))")
+        out = subprocess.run([sys.executable, "-c", code, str(mem / "cgroup.procs"), "render", str(scene), "-o",
+                              str(tmp_path / "out"), "--threads", "2", "--json"],
+                             capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert "path lines on this process alone instead of 2 places" in out.stderr
+        import json
+
+        summ = json.loads((tmp_path / "out" / "summary.json").read_text())
+        assert summ["pathlines"]["parallel"]["places"] == 1
+        assert summ["threads"]["numba"] == 2  # the other stages keep their threads
+    finally:
+        if mem.exists():
+            mem.rmdir()

@@ -20,6 +20,11 @@ def test_default_budget_fits_the_cores():
     # memory: two copies of the largest scene fit
     assert ThreadBudget.for_batch(4, n_cores=8, memory_per_task=3e9, memory_available=7e9).workers == 2
     assert ThreadBudget.for_batch(4, n_cores=8, memory_per_task=3e9, memory_available=1e9).workers == 1
+    # a task's memory as a function of its threads (a render's places): fewer workers take more each
+    per = {1: 3e9, 2: 4.5e9}.__getitem__
+    assert ThreadBudget.for_batch(2, n_cores=2, memory_per_task=per, memory_available=7e9) == ThreadBudget(2, 1, 1)
+    assert ThreadBudget.for_batch(2, n_cores=2, memory_per_task=per, memory_available=5e9) == ThreadBudget(1, 2, 1)
+    assert ThreadBudget.for_batch(2, n_cores=2, memory_per_task=per, memory_available=1e9) == ThreadBudget(1, 2, 1)
     for c in range(1, 17):
         for n in range(1, 20):
             b = ThreadBudget.for_batch(n, n_cores=c)

@@ -16,8 +16,8 @@ from ciliary_carpet.transport.pathlines import pathlines
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ResourceError", "Estimate", "check_resources", "available_memory", "MAX_PATHLINE_STEPS",
-           "MAX_COORDINATE", "SCALE_RANGE"]
+__all__ = ["ResourceError", "Estimate", "check_resources", "available_memory", "expected_memory", "places_that_fit",
+           "MAX_PATHLINE_STEPS", "MAX_COORDINATE", "SCALE_RANGE"]
 
 
 class ResourceError(RenderError):
@@ -85,6 +85,88 @@ def available_memory() -> float:
     if room is not None:
         avail = min(avail, room)
     return avail
+
+
+# Working-set peaks of whole renders (every process of the render together: the main process, and
+# with two places the fork server and its worker; a control group's usage less its inactive file
+# pages, polled every 0.1 s; `ciliary-carpet render`, default outputs, 2 cores), MiB, the largest
+# of the scenes measured at each size: at 100 cilia the bundled planar scenes (uniform_deflection
+# 317 / 566, focusing 390 / 589, shear_layer 402 / 580, vortex_turn 353 / 608), at 900 and 10^4 the
+# uniform_deflection scene scaled up (758 / 1149, 1702 / 2691). A standing carpet of 160 cilia
+# (standing_mixer) took 631 / 862, 1.46 / 1.33 times a planar one of its size.
+_PEAK_MIB = ((100, 402.0, 608.0), (900, 758.0, 1149.0), (10_000, 1702.0, 2691.0))  # cilia, one place, two
+_STANDING = 1.46
+_PEAK_MARGIN = 1.15
+
+
+def expected_memory(scene: Scene, places: int = 1) -> float:
+    """The memory (bytes) a render of ``scene`` is expected to take at its peak, all its processes
+    together, with its path-line stage on ``places`` places (:func:`~ciliary_carpet.transport.
+    parallel.pool_for_threads`: this process and ``places - 1`` workers with their fork server).
+
+    Not a bound (:func:`check_resources` has the certain lower bounds): working-set peaks measured
+    on renders at 100, 900 and 10^4 cilia (``_PEAK_MIB``, the largest scene of each size),
+    interpolated linearly in the number of cilia and beyond 10^4 by the last slope, times 1.46 for
+    a standing carpet and 1.15 as a margin; each place after the second adds what the second did.
+    It sizes a batch's workers and a render's places to a memory limit
+    (:func:`places_that_fit`)."""
+    import numpy as np
+
+    n = float(scene.carpet.n_cilia)
+    sizes = np.array([a[0] for a in _PEAK_MIB], float)
+    mib = []
+    for col in (1, 2):
+        vals = np.array([a[col] for a in _PEAK_MIB])
+        if n <= sizes[-1]:
+            mib.append(float(np.interp(n, sizes, vals)))  # below 100 cilia: the 100-cilium value
+        else:
+            mib.append(float(vals[-1] + (n - sizes[-1]) * (vals[-1] - vals[-2]) / (sizes[-1] - sizes[-2])))
+    one, two = mib
+    total = one + max(0, int(places) - 1) * (two - one)
+    if scene.carpet.geometry == "standing":
+        total *= _STANDING
+    return total * _PEAK_MARGIN * 2.0 ** 20
+
+
+def places_that_fit(scene: Scene, places: int) -> int:
+    """The most places, at most ``places``, whose :func:`expected_memory` fits what is available now
+    (:func:`available_memory`: MemAvailable, a control group's limit; and what this process holds
+    already, which the estimate counts), at least one. A render
+    that does not fit in one place is warned about (it is still tried: the estimate is not a
+    bound); one that gets fewer places than asked is logged."""
+    places = max(1, int(places))
+    avail = available_memory()
+    if not math.isfinite(avail):
+        return places
+    avail += _resident()  # the estimate counts this process's own memory, which it holds already
+    p = places
+    while p > 1 and expected_memory(scene, p) > avail:
+        p -= 1
+    need = expected_memory(scene, p)
+    if need > avail:
+        logger.warning("%s: a render of %d cilia is expected to take about %s of memory at its peak, more than the "
+                       "%s available (a container's or a batch job's limit, or the machine's): it may be killed "
+                       "for want of memory; give it more, or make the carpet smaller",
+                       scene.source_name, scene.carpet.n_cilia, _gb(need), _gb(avail))
+    elif p < places:
+        logger.warning("%s: path lines on %s instead of %d places: %d would take about %s of memory, more than "
+                       "the %s available", scene.source_name, "this process alone" if p == 1 else f"{p} places",
+                       places, places, _gb(expected_memory(scene, places)), _gb(avail))
+    return p
+
+
+def _resident() -> float:
+    """Bytes of this process's resident anonymous memory (``RssAnon``: what a control group charges
+    it for; shared libraries' pages may be charged to whoever read them first), 0 where the
+    system does not tell."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("RssAnon:"):
+                    return float(line.split()[1]) * 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0.0
 
 
 def _gb(x: float) -> str:
