@@ -558,9 +558,10 @@ def stability_map(chi_N: float, *, chi_E, eta, degree: int = 8, executor: Execut
     own = executor is None
     if own:
         from concurrent.futures import ProcessPoolExecutor
-        import os
 
-        executor = ProcessPoolExecutor(max_workers=os.cpu_count() or 1)
+        from .threads import cores
+
+        executor = ProcessPoolExecutor(max_workers=cores())  # a container's CPU quota, not the host's cores
     progress.start(len(tasks), "stability map")
     try:
         rows = []

@@ -387,7 +387,9 @@ def _run(grid: TableGrid, eta, todo, weight, settings, parts, skip, rows, execut
             own = executor = ProcessPoolExecutor(max_workers=cores())
             budget = ThreadBudget(workers=cores(), numba=1, blas=1)  # a process per core, one thread each
     try:
-        chunks = _balanced_chunks(todo, weight, os.cpu_count() or 1)
+        from .threads import cores
+
+        chunks = _balanced_chunks(todo, weight, cores())
         tasks = [(grid, eta, c, settings, str(parts) if parts else None, skip, budget) for c in chunks]
         try:
             for res in executor.map(_chunk, tasks):
