@@ -132,9 +132,12 @@ def _v1_root() -> Path | None:
     return base
 
 
-def test_real_groups_limit_cores_and_memory():
-    """In real v1 groups (1 CPU, 600 MB): cores() is 1 and available_memory() below 600 MB, in a
-    subprocess moved into them; the groups are removed after."""
+def test_real_groups_limit_cores_and_memory(tmp_path):
+    """In real v1 groups (1 CPU, 600 MB): cores() is 1, available_memory() below 600 MB and a
+    render of 10 x 10 cilia gets one place, in a subprocess moved into them; the groups are
+    removed after."""
+    scene = tmp_path / "s.toml"
+    scene.write_text("[carpet]\nshape = [10, 10]\n")
     base = _v1_root()
     if base is None:
         pytest.skip("needs root and cgroup v1 cpu and memory controllers to make groups")
@@ -152,13 +155,16 @@ def test_real_groups_limit_cores_and_memory():
         code = ("import os, sys; pid = str(os.getpid());"
                 f"open('{cpu}/cgroup.procs', 'w').write(pid); open('{mem}/cgroup.procs', 'w').write(pid);"
                 "from single_cilium.threads import cores;"
-                "from ciliary_carpet.output.resources import available_memory;"
-                "print(cores(), available_memory())")
+                "from ciliary_carpet.output.resources import available_memory, places_that_fit;"
+                "from ciliary_carpet.scenes.scene import load_scene;"
+                f"print(cores(), available_memory(), places_that_fit(load_scene({str(scene)!r}), 2))")
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
         assert out.returncode == 0, out.stderr
-        n, avail = out.stdout.split()
+        n, avail, places = out.stdout.split()
         assert int(n) == 1
         assert 0 < float(avail) < 600 << 20
+        # a 10 x 10 carpet: one place (about 0.46 GB with what the process holds) fits, two (0.70) do not
+        assert int(places) == 1 and "instead of 2 places" in out.stderr
     finally:
         for d in (cpu, mem):
             if d.exists():
@@ -217,6 +223,7 @@ def test_places_follow_the_memory_available(tmp_path, monkeypatch, caplog):
     assert r.places_that_fit(s, 2) == 2
 
 
+@pytest.mark.slow
 def test_a_render_in_a_real_memory_limit_takes_one_place(tmp_path):
     """A render asked for 2 cores in a control group whose limit holds one place of the estimate but
     not two: it runs its path lines in its own process, says so, and finishes (before, it started a

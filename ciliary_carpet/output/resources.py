@@ -101,8 +101,9 @@ _PEAK_MARGIN = 1.15
 
 def expected_memory(scene: Scene, places: int = 1) -> float:
     """The memory (bytes) a render of ``scene`` is expected to take at its peak, all its processes
-    together, with its path-line stage on ``places`` places (:func:`~ciliary_carpet.transport.
-    parallel.pool_for_threads`: this process and ``places - 1`` workers with their fork server).
+    together, with its path-line stage on ``places`` places
+    (:func:`~ciliary_carpet.transport.parallel.pool_for_threads`: this process and ``places - 1``
+    workers with their fork server).
 
     Not a bound (:func:`check_resources` has the certain lower bounds): working-set peaks measured
     on renders at 100, 900 and 10^4 cilia (``_PEAK_MIB``, the largest scene of each size),
