@@ -396,8 +396,10 @@ def main(argv=None) -> int:
     r.add_argument("--reduced", action="store_true", help="a small version of the scene (quick look)")
     r.add_argument("--json", action="store_true", help="print a JSON summary (strict JSON)")
     r.add_argument("--threads", type=_positive_int, default=None,
-                   help="numba threads of the render (default: every core; fewer when other jobs share the "
-                        "machine, where many threads wait for each other); summary.json says what it used")
+                   help="numba threads of the render, and places of its path lines (default: every core it may "
+                        "use -- its CPU affinity, a container's CPU quota -- with path-line places as memory "
+                        "allows; fewer when other jobs share the machine, where many threads wait for each other); "
+                        "summary.json says what it used")
     d = sub.add_parser("design", help="write only the designed layout (NetCDF)")
     d.add_argument("scene")
     d.add_argument("-o", "--output", required=True, help="layout file (.nc)")
@@ -408,7 +410,7 @@ def main(argv=None) -> int:
     b.add_argument("-o", "--output", required=True, help="output root; each scene goes to OUTPUT/NAME")
     b.add_argument("-j", "--jobs", type=int, default=None,
                    help="local worker processes at once (default: as many as scenes and cores allow, and as fit "
-                        "the available memory)")
+                        "the available memory -- a container's or a batch job's limit where it has one)")
     b.add_argument("--threads", type=int, default=None,
                    help="numba threads per worker (default: the cores divided among the workers; one BLAS thread "
                         "each); each render's summary.json says what it used under \"threads\"")
