@@ -55,9 +55,11 @@ class Hierarchy:
 
     def folders(self) -> list[str]:
         """The group's folder and those above it, up to the mount's root (innermost first)."""
-        out = [self.group]
-        d = self.group
-        while os.path.normpath(d) != os.path.normpath(self.mount):
+        mount, d = os.path.normpath(self.mount), os.path.normpath(self.group)
+        if os.path.commonpath([mount, d]) != mount:  # not under the mount: the mount alone
+            return [self.mount]
+        out = [d]
+        while d != mount:
             d = os.path.dirname(d)
             out.append(d)
         return out
@@ -130,7 +132,9 @@ def _inside(point: str, root: str, path: str) -> str:
     rel = path[len(root):] if root != "/" else path
     rel = rel.lstrip("/")
     folder = os.path.normpath(os.path.join(point, rel)) if rel else point
-    return folder if os.path.isdir(folder) else point
+    # a path such as "/../.." (a process moved out of a namespace's root) would climb above it
+    inside = os.path.commonpath([os.path.normpath(point), folder]) == os.path.normpath(point)
+    return folder if inside and os.path.isdir(folder) else point
 
 
 def cpu_quota(proc: str = "/proc/self") -> float | None:

@@ -113,6 +113,20 @@ def test_v2_limits_high_and_max(tmp_path):
     assert cgroup.memory_headroom(str(proc)) == (1 << 30) - (1 << 28) + (1 << 27)
 
 
+def test_a_group_path_above_the_mount_is_the_mount(tmp_path):
+    """``0::/../..`` (a process moved out of its namespace's root) must not climb above the mount,
+    nor loop: the mount's own limits count."""
+    fs, proc = tmp_path / "fs", tmp_path / "proc"
+    _write(proc / "cgroup", "0::/../..\n")
+    _write(proc / "mountinfo", f"40 31 0:38 / {fs} rw - cgroup2 cgroup2 rw\n")
+    fs.mkdir(parents=True, exist_ok=True)
+    _write(fs / "cpu.max", "100000 100000\n")
+    (h,) = cgroup.hierarchies(str(proc))
+    assert h.folders() == [str(fs)]
+    assert cgroup.cpu_quota(str(proc)) == pytest.approx(1.0)
+    assert cgroup.Hierarchy(2, frozenset(), str(fs), "/elsewhere").folders() == [str(fs)]
+
+
 def test_nothing_readable_is_no_limit(tmp_path):
     assert cgroup.hierarchies(str(tmp_path / "nowhere")) == []
     assert cgroup.cpu_quota(str(tmp_path / "nowhere")) is None
