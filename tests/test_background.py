@@ -64,19 +64,28 @@ def test_closed_form_refuses_a_stream():
 
 
 # ------------------------------------------------------------------------------ U = 0
-# today's values (the code before the background flow existed, same machine and settings)
+# The values before the background flow existed (U = 0 must reproduce them). They are anchors from
+# one machine, so the comparison allows what the computation itself does not pin down: simulate's
+# adaptive Radau steps are accepted at rtol = 1e-8, and rounding that differs between machines (BLAS,
+# numpy, numba) can change the accepted step sequence, which moves the forces by up to the global
+# error, a small multiple of rtol of the force scale (4.7e-9 relative seen on a second machine); the
+# cycle is converged to a scaled Newton residual of 1e-10 at a fixed discretisation. A change in the
+# physics of the U = 0 path moves these numbers by far more (1e-4 and up).
 TODAY_F = [[-0.0019118987265741838, -0.0011077948711905447], [-7.076774739095688e-05, -3.930497562564997e-05],
            [0.0008042080744364063, 0.00046890386880788914], [0.0013690178542616301, 0.0007971093929817649]]
 TODAY_CYCLE = (0.2719537860647553, [0.4145826629557567, -0.6486983271769466])
+SIM_RTOL = 1e-8  # simulate's default step tolerance, used below
+NEWTON_TOL = 1e-10  # limit_cycle's default Newton tolerance
 
 
 def test_zero_background_reproduces_todays_values():
     p = CiliumParams(200, 1, 16 * TWO_PI, background=(0.0, 0.0))
-    sim = simulate(p, 0.02, n_out=5, error_estimate=False)
-    np.testing.assert_allclose(sim.force[1:], TODAY_F, rtol=1e-10, atol=1e-16)
-    c = limit_cycle(p, degree=6, n_phase=32, floquet=False, error_estimate=False)
-    assert c.period == pytest.approx(TODAY_CYCLE[0], rel=1e-12)
-    np.testing.assert_allclose(c.thrust, TODAY_CYCLE[1], rtol=1e-11)
+    sim = simulate(p, 0.02, n_out=5, error_estimate=False, rtol=SIM_RTOL)
+    scale = np.max(np.abs(TODAY_F))
+    np.testing.assert_allclose(sim.force[1:], TODAY_F, rtol=100 * SIM_RTOL, atol=100 * SIM_RTOL * scale)
+    c = limit_cycle(p, degree=6, n_phase=32, floquet=False, error_estimate=False, tol=NEWTON_TOL)
+    assert c.period == pytest.approx(TODAY_CYCLE[0], rel=10 * NEWTON_TOL)
+    np.testing.assert_allclose(c.thrust, TODAY_CYCLE[1], rtol=10 * NEWTON_TOL)
 
 
 # ------------------------------------------------------------------------------ closed forms
@@ -264,8 +273,9 @@ def test_continuation_in_the_stream():
 def test_flutter_cutoff_in_a_stream():
     """The cutoff in chi_N in a stream is where the oscillatory mode about the steady state in that
     stream crosses alpha = 0; U = (0, 0) gives today's cutoff."""
-    assert flutter_cutoff(200, 1, degree=8, background=(0.0, 0.0)).chi_N_cutoff == pytest.approx(
-        162.77486240831666, rel=1e-12)
+    xtol = 1e-10  # Brent's bracket, relative: the root is known to this, not to the last bit
+    assert flutter_cutoff(200, 1, degree=8, xtol=xtol, background=(0.0, 0.0)).chi_N_cutoff == pytest.approx(
+        162.77486240831666, rel=2 * xtol)
     U = (0.0, 2.0)
     c = flutter_cutoff(200, 1, degree=8, background=U)
     assert c.background == U and math.isfinite(c.chi_N_cutoff) and c.error < 1e-4
