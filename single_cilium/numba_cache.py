@@ -6,6 +6,11 @@ neither can be written -- a read-only install (a container image, a shared softw
 with an unwritable home: even ``--help`` failed. :func:`ensure_writable_cache` falls back to a
 temporary folder (``NUMBA_CACHE_DIR``) with one warning; the compiled functions are then cached
 for the run only.
+
+A cache file that cannot be read back (an index ``*.nbi`` or a data file ``*.nbc`` cut short by a
+full disk or a killed process, or otherwise damaged) is a cache miss: the function is compiled
+anew and numba's next save replaces the file, with one warning naming it. Without this numba
+raises at the first call of the function (an ``UnpicklingError``), on every run.
 """
 from __future__ import annotations
 
@@ -17,7 +22,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ["ensure_writable_cache", "ENV"]
+__all__ = ["ensure_writable_cache", "tolerate_damaged_cache", "ENV"]
 
 logger = logging.getLogger(__name__)
 
@@ -49,8 +54,16 @@ def ensure_writable_cache(package_dir) -> Path | None:
     Nothing to do when ``NUMBA_CACHE_DIR`` is set, or ``package_dir/__pycache__`` or numba's
     user cache folder is writable. Otherwise ``NUMBA_CACHE_DIR`` is set (for this process, and
     inherited by its workers) to a new temporary folder, removed when this process exits, and
-    one warning is logged. Returns the temporary folder, or None.
+    one warning is logged. In every case a damaged cache file is then a cache miss
+    (:func:`tolerate_damaged_cache`). Returns the temporary folder, or None.
     """
+    try:
+        return _ensure_writable(package_dir)
+    finally:
+        tolerate_damaged_cache()
+
+
+def _ensure_writable(package_dir) -> Path | None:
     if os.environ.get(ENV):
         return None
     if _writable(Path(package_dir) / "__pycache__") or _writable(_user_cache()):
@@ -66,3 +79,61 @@ def ensure_writable_cache(package_dir) -> Path | None:
                    "to a writable folder to keep the cache between runs)", Path(package_dir) / "__pycache__",
                    _user_cache(), tmp, ENV)
     return Path(tmp)
+
+
+_WARNED: set[str] = set()
+
+
+def _discard(what: str, exc: BaseException) -> None:
+    """One warning per damaged cache file (or function, when the file is not known)."""
+    if what not in _WARNED:
+        _WARNED.add(what)
+        logger.warning("numba's cache %s could not be read (%s: %s); it is discarded and the function compiled "
+                       "anew", what, type(exc).__name__, " ".join(str(exc).split())[:200])
+
+
+def tolerate_damaged_cache() -> None:
+    """Make a cache file numba cannot read back a cache miss instead of an error (idempotent).
+
+    numba reads a function's index (``*.nbi``) and then its data file (``*.nbc``) at the first
+    call; an error there (truncated or damaged files: ``UnpicklingError``, ``EOFError``, ...)
+    would propagate to the caller on every run. Here a damaged index reads as empty and a damaged
+    entry as missing: the function is compiled, and numba's save then replaces the damaged files
+    (atomically). One warning per file. Errors of the compiled code itself are not touched.
+    """
+    from numba.core import caching
+
+    index_file = caching.IndexDataCacheFile
+    if getattr(index_file, "_cilia_tolerant", False):
+        return
+    load_index = index_file._load_index
+    load_data = index_file._load_data
+    load_overload = caching.Cache._load_overload
+
+    def _load_index(self):
+        try:
+            return load_index(self)
+        except Exception as exc:  # noqa: BLE001 -- any damage: the cache is only a cache
+            _discard(str(self._index_path), exc)
+            return {}
+
+    def _load_data(self, name):
+        try:
+            return load_data(self, name)
+        except OSError:
+            raise  # a file removed meanwhile: numba's own miss
+        except Exception as exc:  # noqa: BLE001
+            _discard(str(self._data_path(name)), exc)
+            raise OSError(f"damaged cache file {self._data_path(name)}") from None  # numba: a miss
+
+    def _load_overload(self, sig, target_context):
+        try:
+            return load_overload(self, sig, target_context)
+        except Exception as exc:  # noqa: BLE001 -- e.g. code that does not rebuild from its entry
+            _discard(f"entry of {self._name}", exc)
+            return None
+
+    index_file._load_index = _load_index
+    index_file._load_data = _load_data
+    caching.Cache._load_overload = _load_overload
+    index_file._cilia_tolerant = True
