@@ -45,7 +45,7 @@ from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, OutputFolder
 from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY, RenderContext
 from ciliary_carpet.output.plan import RenderPlan
 from ciliary_carpet.output.resources import ResourceError, check_resources
-from ciliary_carpet.scenes.scene import Scene
+from ciliary_carpet.scenes.scene import Scene, as_scene
 from ciliary_carpet.stokes import Auto, backend_named
 from ciliary_carpet.transport.parallel import InProcess
 
@@ -79,7 +79,8 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     <ciliary_carpet.transport.parallel.ProcessPool>`, e.g. ``pool_for_threads(n)`` for ``n`` cores)
     says where the path lines' chunks and their error estimate's reference run; the numbers are
     the same wherever they run (a pool's workers are made ready while the carpet is designed:
-    ``pool.warm()``)."""
+    ``pool.warm()``). ``scene``: a Scene or the path of a scene file (else a TypeError)."""
+    scene = as_scene(scene, "render()")
     with OutputFolder(out_dir, overwrite=overwrite, scene=scene, within=within) as folder:
         estimate = check_resources(scene, max_seconds=max_seconds)
         backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError here, before any work

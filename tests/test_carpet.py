@@ -233,7 +233,7 @@ def test_bad_input(table):
         Carpet(b, [0, 0, 0, 500.0], table)
     with pytest.raises(ValueError, match="wall"):
         Carpet(b, 0.0, table, wall=-1.0)
-    with pytest.warns(UserWarning, match="swept region"):
+    with pytest.raises(ValueError, match="can touch.*smallest spacing allowed is 0.9"):
         Carpet(np.array([[0.0, 0.0], [0.0, 0.3]]), [0.0, 0.0], table)
     c = Carpet(b, 0.0, table)
     with pytest.raises(ValueError, match="points contain NaN"):

@@ -137,8 +137,8 @@ def test_unknown_key_top_level_and_in_section(tmp_path):
 
 
 @pytest.mark.parametrize("text, key", [
-    ('[carpet]\nspacing = "a"\n', "carpet.spacing must be a positive number, got 'a'"),
-    ("[carpet]\nspacing = -1\n", "carpet.spacing must be a positive number"),
+    ('[carpet]\nspacing = "a"\n', "carpet.spacing must be a number in [1, 1e+06] (L; at least the filament length: closer cilia can touch), got 'a'"),
+    ("[carpet]\nspacing = -1\n", "carpet.spacing must be a number in [1, 1e+06]"),
     ("[carpet]\nshape = [10, 2.5]\n", "carpet.shape"),
     ('[carpet]\nlattice = "triangle"\n', "carpet.lattice must be one of"),
     ("[carpet]\nseed = true\n", "carpet.seed must be an integer"),
@@ -148,7 +148,7 @@ def test_unknown_key_top_level_and_in_section(tmp_path):
     ("name = 3\n", "name must be a string"),
     ("[output]\npreview = 1\n", "output.preview must be true or false"),
     ("[output]\nfield_shape = [80]\n", "output.field_shape"),
-    ("[output]\nsnapshots = -1\n", "output.snapshots must be an integer >= 0"),
+    ("[output]\nsnapshots = -1\n", "output.snapshots must be an integer in [0, 1000]"),
     ('[output]\nseeds = "circle"\n', "output.seeds"),
     ('[target]\nkind = "focus"\nwidth = 0\n', "target.width must be a positive number"),
     ('[target]\nkind = "focus"\ncentre = [1, 2]\n', 'target.centre does not apply to kind = "focus"'),
@@ -158,7 +158,7 @@ def test_unknown_key_top_level_and_in_section(tmp_path):
     ('[target]\nkind = "focus"\nspeed_floor = 1.0\n', "target.speed_floor must be a number in [0, 1)"),
     ('[target]\nkind = "focus"\nsmoothness = -1\n', "target.smoothness"),
     ('[target]\nkind = "points"\nfile = "a.csv"\nspeed_floor = 0.2\n', "target.speed_floor does not apply"),
-    ("[carpet]\nwall = 0\n", "carpet.wall must be a positive number"),
+    ("[carpet]\nwall = 0\n", "carpet.wall must be at least a filament diameter, 2 blob = 0.04 L"),
     ('[target]\nkind = "focus"\nsigma = -0.1\n', "target.sigma must be a number >= 0"),
     ('[target]\nkind = "focus"\nsamples = 0\n', "target.samples must be an integer >= 1"),
     ('[target]\nkind = "points"\nfile = "nope.csv"\n', "target.file 'nope.csv' not found"),
@@ -304,7 +304,7 @@ def test_scene_from_dict_without_file():
 def test_sections_made_in_code_are_validated():
     c = CarpetSpec(shape=[3, 4], spacing=3, origin=[1, 1])
     assert c.shape == (3, 4) and c.spacing == 3.0 and isinstance(c.spacing, float) and c.origin == (1.0, 1.0)
-    with pytest.raises(SceneError, match="^<CarpetSpec>: carpet.spacing must be a positive number"):
+    with pytest.raises(SceneError, match=r"^<CarpetSpec>: carpet.spacing must be a number in \[1, "):
         dataclasses.replace(c, spacing=-2.0)
     with pytest.raises(SceneError, match="target.angle"):
         TargetSpec(kind="focus", angle=float("nan"))
@@ -403,7 +403,7 @@ def test_readme_key_reference_is_the_schema():
         end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
         assert "\n".join(lines[start:end]) == table, (
             f"designs/README.md, section {heading}: the table should read\n{table}\n(from scene.reference())")
-    assert "spacing : float > 0, default 2.0" in CarpetSpec.__doc__
+    assert "spacing : float in [1, 1e+06], default 2.0" in CarpetSpec.__doc__
     assert "speed_floor : float in [0, 1), default 0.3 (kind = uniform, focus" in TargetSpec.__doc__
 
 

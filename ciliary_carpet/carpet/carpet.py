@@ -21,7 +21,8 @@ trigonometric interpolant of the table's uniform phase samples (spectral: the cy
 With ``wall=h`` a no-slip plane lies at z = -h (the regularised image system of Ainley et al.
 2008; Blake's for ``blob=None``). The model ignores
 contact and hydrodynamic interaction between filaments (each beats as if alone); a base point
-inside another cilium's swept region is warned about.
+within the reach of another cilium's beat (:attr:`Carpet.reach`: the cilia can touch) is a
+ValueError.
 
 Evaluating the flow
 -------------------
@@ -47,7 +48,6 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import ClassVar, Union
@@ -82,6 +82,13 @@ BLOB = 0.02
 slender filament of aspect ratio L / (2 a) = 25 (scene key ``[carpet] blob``)."""
 _OWN_CHUNK = 512
 """Cilia whose own cycle-averaged lines are summed at once in :meth:`Carpet.others_mean_flow`."""
+
+
+def _frozen(a: np.ndarray | None) -> np.ndarray | None:
+    """``a`` (an array the carpet owns) made read-only: a carpet's arrays are its model."""
+    if a is not None:
+        a.flags.writeable = False
+    return a
 
 
 def sbt_viscosity(eta: float, a: float, length: float = 1.0) -> float:
@@ -247,6 +254,11 @@ class Carpet:
         :attr:`coupled` the solve's :class:`~ciliary_carpet.carpet.coupling.Coupling` (status,
         residual, history).
 
+    The carpet keeps copies of the arrays it is given, read-only (``bases``, ``chi_N``,
+    ``phases``, ``azimuth``, ``background``): changing the caller's arrays afterwards changes
+    nothing here, and a carpet's own arrays cannot be changed in place. Cilia closer than the
+    reach of their beat (:attr:`reach`) are a ValueError.
+
     Built once with it: :attr:`cycles` (:class:`~ciliary_carpet.carpet.cycles.CycleData`, the
     cilia's cycles and moments) and :attr:`carriers` (:class:`~ciliary_carpet.carpet.carriers.Carriers`,
     the levels of detail and their bounds). Cilia whose chi_N does not flutter stand still in
@@ -278,19 +290,19 @@ class Carpet:
     coupled: object = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        b = np.asarray(self.bases, dtype=float)
+        b = np.array(self.bases, dtype=float)  # copies: the caller's arrays stay the caller's
         if b.ndim != 2 or b.shape[1] != 2 or b.shape[0] < 1:
             raise ValueError(f"bases must have shape (N, 2) with N >= 1, got {b.shape}")
         if not np.all(np.isfinite(b)):
             raise ValueError("bases contain NaN or inf")
         n = b.shape[0]
         c = np.broadcast_to(np.asarray(self.chi_N, dtype=float), (n,)).copy() if np.ndim(self.chi_N) == 0 \
-            else np.asarray(self.chi_N, dtype=float)
+            else np.array(self.chi_N, dtype=float)
         if c.shape != (n,):
             raise ValueError(f"chi_N must have shape ({n},) to match bases, got {c.shape}")
         if not np.all(np.isfinite(c)):
             raise ValueError("chi_N contains NaN or inf")
-        p = np.zeros(n) if self.phases is None else np.asarray(self.phases, dtype=float)
+        p = np.zeros(n) if self.phases is None else np.array(self.phases, dtype=float)
         if p.shape != (n,) or not np.all(np.isfinite(p)):
             raise ValueError(f"phases must be {n} finite numbers, got shape {p.shape}")
         if not isinstance(self.table, ThrustTable):
@@ -305,7 +317,7 @@ class Carpet:
         if standing:
             psi = np.zeros(n) if self.azimuth is None else np.broadcast_to(
                 np.asarray(self.azimuth, dtype=float), (n,)).copy() if np.ndim(self.azimuth) == 0 \
-                else np.asarray(self.azimuth, dtype=float)
+                else np.array(self.azimuth, dtype=float)
             if psi.shape != (n,) or not np.all(np.isfinite(psi)):
                 raise ValueError(f"azimuth must be {n} finite angles (radians), got shape {psi.shape}")
             if self.direction != 0.0:
@@ -338,28 +350,25 @@ class Carpet:
             raise ValueError(f"coupling must be one of {', '.join(COUPLINGS)}, got {self.coupling!r}")
         u = None
         if self.coupling == "mean":
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)  # the bases are checked below
-                res = couple(replace(self, coupling="none", background=None))
+            res = couple(replace(self, coupling="none", background=None))  # (its bases checked there)
             for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces",
                       "_mean_blocks", "_instant_blocks", "bases", "chi_N",
                       "phases", "direction"):
                 object.__setattr__(self, k, getattr(res.carpet, k))
             object.__setattr__(self, "coupled", res)
-            self._warn_overlaps()
             return
         if self.background is not None:
-            u = np.asarray(self.background, dtype=float)
+            u = np.array(self.background, dtype=float)
             if u.shape != (n, 2) or not np.all(np.isfinite(u)):
                 raise ValueError(f"background must be {n} finite in-plane flows, shape ({n}, 2), got shape {u.shape}")
-        object.__setattr__(self, "background", u)
-        object.__setattr__(self, "bases", b)
-        object.__setattr__(self, "chi_N", c)
-        object.__setattr__(self, "phases", np.mod(p, 1.0))
+        object.__setattr__(self, "background", _frozen(u))
+        object.__setattr__(self, "bases", _frozen(b))
+        object.__setattr__(self, "chi_N", _frozen(c))
+        object.__setattr__(self, "phases", _frozen(np.mod(p, 1.0)))
         object.__setattr__(self, "mu_source", "filaments" if self.viscosity is None else "given")
         object.__setattr__(self, "mu", sbt_viscosity(self.table.eta, self.filament_radius) if self.viscosity is None
                            else float(self.viscosity))
-        object.__setattr__(self, "azimuth", psi)
+        object.__setattr__(self, "azimuth", _frozen(psi))
         if standing:  # each cilium's 2D frame is its beat plane, clamp at the origin
             cycles = CycleData(self.table, self.chi_N, np.zeros((n, 2)), self.phases, np.eye(2), None,
                                embedding=standing_embedding(b, psi))
@@ -372,7 +381,7 @@ class Carpet:
         object.__setattr__(self, "_forces", {})
         object.__setattr__(self, "_mean_blocks", MeanBlocks(cycles))
         object.__setattr__(self, "_instant_blocks", InstantBlocks(cycles))
-        self._warn_overlaps()
+        self._check_spacing()
 
     def __getstate__(self) -> dict:
         """A pickled carpet (sent to a worker process) leaves its kept plans, carriers and mean
@@ -394,22 +403,35 @@ class Carpet:
                              "substrate during its beat: choose a smaller |chi_N| for it (a planar carpet has no "
                              "substrate)")
 
-    def _warn_overlaps(self) -> None:
+    @property
+    def reach(self) -> np.ndarray:
+        """(N,) how far each cilium's filament reaches from its base over its beat (L; in the plane
+        for a planar carpet, horizontally for a standing one): its swept region's radius plus its
+        centre's distance from the base (horizontal), at most the filament length 1."""
         c = self.cycles
-        if self.geometry == "standing":  # a base within a filament radius of another's swept region
-            base3 = np.concatenate([self.bases, np.zeros((self.n, 1))], axis=1)
-            near = cKDTree(self.bases).query_ball_point(c.centre3[:, :2], c.radius + 2 * self.filament_radius)
-            bad = [(i, j) for j in range(self.n) for i in near[j]
-                   if i != j and self.in_swept_region(base3[i][None], j, 2 * self.filament_radius)[0]]
-        else:
-            near = cKDTree(self.bases).query_ball_point(c.centre, c.radius)
-            bad = [(i, j) for j in range(self.n) for i in near[j]
-                   if i != j and self.in_swept_region(self.bases[i][None], j)[0]]
-        if bad:
-            warnings.warn(f"{len(bad)} cilium base(s) lie inside another cilium's swept region, e.g. base "
-                          f"{bad[0][0]} in cilium {bad[0][1]}'s: the model ignores contact and hydrodynamic "
-                          "interaction between filaments, so such a layout is not physical; space the cilia "
-                          "further apart", UserWarning, stacklevel=3)
+        if self.geometry == "standing":  # the horizontal reach: along the beat plane's e_psi (the frame's x)
+            return np.minimum(np.abs(c.centre[:, 0] - c.bases[:, 0]) + c.radius, 1.0)
+        return np.minimum(np.linalg.norm(c.centre - c.bases, axis=1) + c.radius, 1.0)
+
+    def _check_spacing(self) -> None:
+        """ValueError when a base point lies within the reach of another cilium's beat
+        (:attr:`reach`): those cilia can touch, which the model does not describe."""
+        if self.n < 2:
+            return
+        reach = self.reach
+        pairs = cKDTree(self.bases).query_pairs(float(reach.max()), output_type="ndarray")
+        if pairs.size == 0:
+            return
+        d = np.linalg.norm(self.bases[pairs[:, 0]] - self.bases[pairs[:, 1]], axis=1)
+        r = np.maximum(reach[pairs[:, 0]], reach[pairs[:, 1]])
+        bad = np.nonzero(d < r)[0]
+        if bad.size:
+            k = bad[np.argmin(d[bad] - r[bad])]
+            i, j = (int(x) for x in pairs[k])
+            raise ValueError(f"cilia {i} and {j} stand {d[k]:.3g} L apart, within the {r[k]:.3g} L that their beat "
+                             f"reaches from the base: their filaments can touch, which the model does not describe; "
+                             f"the smallest spacing allowed is {float(reach.max()):.3g} L (the farthest reach of "
+                             f"these cilia; the filament length 1 L is always enough)")
 
     # ------------------------------------------------------------------ geometry and state
     @property

@@ -558,7 +558,11 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     rms residual exceeds ``[target] residual`` returns the closest flow the cilia can make, with
     a warning naming the worst control points; with ``[target] strict = true`` it is a
     DesignError (exit status 3 of the command line) and unreachable angle requests are a
-    TargetError instead of being clipped."""
+    TargetError instead of being clipped. ``scene``: a :class:`~ciliary_carpet.scenes.scene.Scene` or
+    the path of a scene file (else a TypeError)."""
+    from ciliary_carpet.scenes.scene import as_scene  # (the scene module imports the design's targets)
+
+    scene = as_scene(scene, "design()")
     built = assemble(scene, table)
     table, target, bases, frame = built.table, built.target, built.bases, built.frame
     if target.kind == "none":

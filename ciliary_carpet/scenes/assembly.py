@@ -185,6 +185,9 @@ def assemble(scene: "Scene", table: ThrustTable | None = None) -> Assembly:
     Raises SceneError for an unreadable table or one for another field, or ``carpet.chi_N``
     outside the table's range; TargetError for a target that cannot be resolved (an unreadable
     control-point file)."""
+    from ciliary_carpet.scenes.scene import as_scene
+
+    scene = as_scene(scene, "assemble()")
     table = table if table is not None else load_table(scene)
     check_table_range(scene, table)
     (p0, p1), (q0, q1) = table.U_range

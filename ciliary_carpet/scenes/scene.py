@@ -35,6 +35,7 @@ from __future__ import annotations
 import inspect
 import logging
 import math
+import os
 import tomllib
 from dataclasses import dataclass, replace
 from dataclasses import field as _field
@@ -45,7 +46,7 @@ import numpy as np
 import single_cilium.table as _table
 
 from ciliary_carpet.carpet import layout
-from ciliary_carpet.carpet.carpet import BLOB
+from ciliary_carpet.carpet.carpet import BLOB, sbt_viscosity
 from ciliary_carpet.carpet.coupling import COUPLINGS
 from ciliary_carpet.carpet.geometry import GEOMETRIES
 from ciliary_carpet.scenes.paths import check_name, check_scene_paths
@@ -60,10 +61,32 @@ STANDING_TARGETS = SURFACE_KINDS + ("points",)
 logger = logging.getLogger(__name__)
 
 __all__ = ["SceneError", "Scene", "FieldSpec", "TableSpec", "TableBuild", "CarpetSpec", "TargetSpec",
-           "OutputSpec", "Units", "load_scene", "scene_from_dict", "reference", "LATTICES", "PHASES",
+           "OutputSpec", "Units", "load_scene", "scene_from_dict", "as_scene", "reference", "LATTICES", "PHASES",
            "TARGET_KINDS"]
 
 LATTICES = ("row", "square", "hexagonal", "points")
+MIN_SPACING = 1.0
+"""The smallest distance between base points (L): the filament length, the farthest a cilium's
+beat reaches from its base (planar or standing), so cilia at least this far apart cannot touch
+(:meth:`Carpet <ciliary_carpet.carpet.carpet.Carpet>` checks its own layout against the reach
+of its beat)."""
+MAX_LENGTH = 1e6
+"""The largest spacing or wall distance (L) a scene takes: beyond it the flow sums lose their
+digits (a wall that far is free space: leave it out)."""
+MAX_FIELD_POINTS = 10 ** 8
+"""The most points of the field grid (``output.field_shape``)."""
+MAX_CILIA = 10 ** 7
+"""The most cilia of a carpet (``carpet.shape``, ``carpet.points``)."""
+MIN_BLOB = 1e-4
+"""The smallest filament radius (L): slender-body theory at aspect ratio 5000."""
+CHI_E_MAX = 1e4
+"""The largest |chi_E|: the equilibrium's boundary layer 1 / chi_E must be resolvable."""
+ETA_RANGE = (1e-3, 1e3)
+"""The drag-to-bending ratios eta a scene takes."""
+VISCOSITY_FACTOR = 100.0
+"""How far (a factor) ``carpet.viscosity`` may lie from the filaments' own (slender-body theory of
+eta at radius ``blob``): farther, the flow's speed and the filaments' drag disagree by more than
+that factor, and the path lines' cost grows with the speed."""
 PHASES = ("random", "synchronous", "wave")
 TARGET_KINDS = KINDS
 SEEDS = ("line", "grid")
@@ -79,8 +102,9 @@ class FieldSpec(Section):
 
     SECTION = "field"
 
-    chi_E: float = key(200.0, "stimulus L kappa_E")
-    eta: float = key(1.0, "drag-to-bending ratio", lo=0, lo_open=True)
+    chi_E: float = key(200.0, "stimulus L kappa_E (its boundary layer, 1 / chi_E, must be resolvable by a mesh)",
+                       lo=-CHI_E_MAX, hi=CHI_E_MAX)
+    eta: float = key(1.0, "drag-to-bending ratio", lo=ETA_RANGE[0], hi=ETA_RANGE[1])
     direction: float = key(0.0, "field direction, anticlockwise from +y (planar carpets; a standing carpet's field is "
                            "along +z: 0 or absent)", shown="float (degrees)")
 
@@ -110,15 +134,16 @@ class TableBuild(Section):
 
     n: int = key(41, "only when `file` does not exist: compute the table with `build_table` over chi_N in "
                  "[0, cutoff) with `n` points, plus the flutter-cutoff row and one no-flutter row at 1.05 x "
-                 "cutoff, and write it to `file` (minutes; resumable)", "int", lo=3)
+                 "cutoff, and write it to `file` (minutes; resumable)", "int", lo=3, hi=10_000)
     degree: int = key(inspect.signature(_table.build_table).parameters["degree"].default,  # build_table's own default
                       "mesh degree of that computation (`single_cilium.table.build_table`)", "int", lo=2)
     flow: float | None = key(None, "U_max: build the table over a grid of background flows, `U_par` and `U_perp` each "
                              "in [-U_max, U_max] (L/tau) with `flow_points` values (needed by `carpet.coupling = "
                              "\"mean\"`; the chi_N grid then reaches 1.05 x the largest cutoff of the grid's corners; "
-                             "about 5 minutes on 2 cores for U_max = 2)", lo=0, lo_open=True,
+                             "about 5 minutes on 2 cores for U_max = 2)", lo=0, lo_open=True, hi=100,
                              default_shown="- (still fluid)")
-    flow_points: int = key(5, "values per flow component with `flow` (odd: U = 0 is a flow of the grid)", "int", lo=3)
+    flow_points: int = key(5, "values per flow component with `flow` (odd: U = 0 is a flow of the grid)", "int", lo=3,
+                           hi=101)
 
 
 @section
@@ -178,9 +203,12 @@ class CarpetSpec(Section):
     lattice: str = key("square", "row along +x; square; hexagonal (odd rows shifted by half a spacing, rows "
                        "sqrt(3)/2 spacing apart); explicit points", "str", choices=LATTICES)
     shape: tuple = key((10, 10), "number of cilia per direction (not with `\"points\"`; a row without it takes "
-                       "the first number)", "custom", shown="`[nx, ny]` ints (row: `n` or `[n]`)")
-    spacing: float = key(2.0, 'nearest-neighbour distance (L); for `"points"` the typical spacing (control points, '
-                         "pattern widths)", lo=0, lo_open=True)
+                       "the first number)", "custom", shown="`[nx, ny]` ints (row: `n` or `[n]`), at most 1e7 cilia")
+    spacing: float = key(2.0, 'nearest-neighbour distance (L), at least the filament length (closer cilia can touch); '
+                         'for `"points"` the typical spacing (control points, pattern widths; the points themselves '
+                         "must lie at least 1 L apart)", lo=MIN_SPACING, hi=MAX_LENGTH,
+                         what=f"a number in [{MIN_SPACING:g}, {MAX_LENGTH:g}] (L; at least the filament length: "
+                              "closer cilia can touch)")
     origin: tuple[float, float] = key((0.0, 0.0), 'the lattice\'s lower-left base point (not with `"points"`)',
                                       "pair")
     points: tuple | None = key(None, 'base points; required iff `lattice = "points"`', "pairs", default_shown="-")
@@ -198,18 +226,22 @@ class CarpetSpec(Section):
         None, 'standing carpets only: the beat-plane azimuth psi of every cilium (one number) or of each (a list, '
         "one per cilium in base-point order), degrees anticlockwise from +x; a positive chi_N pushes the fluid "
         "along psi", "custom", shown="float or list (degrees)", default_shown="`0.0` (standing)")
-    wall: float | None = key(None, "planar: distance of a no-slip wall below the plane (> 0; absent: free space); "
-                             "standing: distance of the wall below the clamps (absent: 0, the substrate itself)",
-                             lo=0, default_shown="absent (planar), `0.0` (standing)")
-    viscosity: float | None = key(None, "fluid viscosity of the flow (B tau / L^4, the model's unit); absent: the one "
-                                  "the filaments' drag eta implies (slender-body theory at radius `blob`: 0.653 eta "
-                                  "for the default)", lo=0, lo_open=True, default_shown="- (from eta)")
+    wall: float | None = key(None, "planar: distance of a no-slip wall below the plane (at least a filament diameter, "
+                             "2 `blob`; absent: free space); standing: distance of the wall below the clamps "
+                             "(absent: 0, the substrate itself)",
+                             lo=0, hi=MAX_LENGTH, default_shown="absent (planar), `0.0` (standing)")
+    viscosity: float | None = key(None, "fluid viscosity of the flow (B tau / L^4, the model's unit), within a factor "
+                                  f"{VISCOSITY_FACTOR:g} of the one the filaments' drag implies; absent: that one "
+                                  "(slender-body theory at radius `blob`: 0.653 eta for the default)",
+                                  lo=0, lo_open=True, default_shown="- (from eta)",
+                                  shown=f"float, [1/{VISCOSITY_FACTOR:g}, {VISCOSITY_FACTOR:g}] x the filaments'")
     coupling: str = key("none", '`"none"`: each cilium beats as in still fluid; `"mean"`: each beats in the mean flow '
                         "the others make at it, solved self-consistently (needs a table over the background flow: "
                         "`[table.build] flow`)", "str", choices=COUPLINGS)
     blob: float = key(BLOB, "blob size of the regularised Stokeslets in L: the filament radius (the flow stays "
-                      "bounded at the filaments)", lo=0, lo_open=True, what="a positive length in L (the filament "
-                      "radius)", shown="0 < float < spacing / 2")
+                      "bounded at the filaments)", lo=MIN_BLOB, hi=0.5, hi_open=True,
+                      what=f"a length in [{MIN_BLOB:g}, 0.5) L (the filament radius)",
+                      shown=f"{MIN_BLOB:g} <= float < spacing / 2")
 
     @classmethod
     def parse(cls, src: str, data) -> dict:
@@ -255,14 +287,20 @@ class CarpetSpec(Section):
                     or any(isinstance(x, bool) or not isinstance(x, int) or x < 1 for x in v)):
                 raise r.fail("shape", f"two positive integers [nx, ny] for lattice = \"{lattice}\"", v)
             kw["shape"] = (int(v[0]), int(v[1]))
-        n = len(kw["points"]) if lattice == "points" else int(np.prod(kw["shape"]))
+        n = len(kw["points"]) if lattice == "points" else math.prod(kw["shape"])
+        if n > MAX_CILIA:
+            raise r.fail("points" if lattice == "points" else "shape", f"at most {MAX_CILIA:g} cilia in all",
+                         r.data.get("points" if lattice == "points" else "shape"))
         kw["azimuth"] = _azimuth(r, n) if geometry == "standing" else None
         if geometry == "standing":
             if kw["wall"] is None:
                 kw["wall"] = 0.0
-        elif kw["wall"] is not None and kw["wall"] <= 0:
-            raise r.fail("wall", 'a positive number for geometry = "planar" (the wall lies below the plane of the '
-                         "filaments; absent: free space)", r.data["wall"])
+        elif kw["wall"] is not None and kw["wall"] < 2.0 * kw["blob"]:
+            raise r.fail("wall", f'at least a filament diameter, 2 blob = {2.0 * kw["blob"]:g} L, for geometry = '
+                         '"planar" (the wall lies below the plane of the filaments, which must not cut it; absent: '
+                         "free space)", r.data["wall"])
+        if lattice == "points":
+            _check_points_apart(src, kw["points"])
         if kw["blob"] >= 0.5 * kw["spacing"]:
             raise r.fail("blob", f"less than half the spacing ({0.5 * kw['spacing']:g} L): the blobs of neighbouring "
                          "filaments would overlap", kw["blob"])
@@ -338,18 +376,20 @@ class OutputSpec(Section):
         "auto", 'the flow tracers follow: time-resolved beat, or the long-time mean flow ("auto": the mean flow '
         f"when `tolerance` >= its measured error, {MEAN_MODEL_ERROR:g})", "str",
         choices=("auto", *FLOWS))
-    samples_per_period: int = key(16, "path-line points per beat (dense output)", "int", lo=1)
+    samples_per_period: int = key(16, "path-line points per beat (dense output)", "int", lo=1, hi=1000)
     ftle: bool = key(True, "the finite-time Lyapunov exponent field (`ftle.vti`) and the mixing number in the "
                      "summary", "bool")
     field: bool = key(True, "the mean velocity field", "bool")
     field_shape: tuple[int, int] = key((80, 80), "grid of the velocity field", "custom",
-                                       shown="`[nx, ny]` ints >= 2")
-    field_margin: float = key(5.0, "how far the field grid extends beyond the carpet (L)", lo=0)
-    snapshots: int = key(4, "instantaneous velocity-field snapshots", "int", lo=0)
-    frames: int = key(40, "cilia shape frames over one period of the straight filament", "int", lo=0)
+                                       shown="`[nx, ny]` ints >= 2, nx ny <= 1e8")
+    field_margin: float = key(5.0, "how far the field grid extends beyond the carpet (L)", lo=0, hi=MAX_LENGTH)
+    snapshots: int = key(4, "instantaneous velocity-field snapshots (one file each)", "int", lo=0, hi=1000)
+    frames: int = key(40, "cilia shape frames over one period of the straight filament (one file each)", "int", lo=0,
+                      hi=10_000)
     preview: bool = key(True, "a preview image", "bool")
     height: float | None = key(None, "standing carpets only: the height z = h of the target plane above the substrate "
                                "(L): the mean field's horizontal slice, the seeds, the FTLE", lo=0, lo_open=True,
+                               hi=MAX_LENGTH,
                                default_shown="`target.height` with a target, else `1.5` (standing)")
 
     @classmethod
@@ -359,6 +399,8 @@ class OutputSpec(Section):
         if (not isinstance(fs, list) or len(fs) != 2
                 or any(isinstance(x, bool) or not isinstance(x, int) or x < 2 for x in fs)):
             raise r.fail("field_shape", "two integers >= 2 [nx, ny]", fs)
+        if fs[0] * fs[1] > MAX_FIELD_POINTS:
+            raise r.fail("field_shape", f"at most {MAX_FIELD_POINTS:g} points in all [nx, ny]", fs)
         kw["field_shape"] = (int(fs[0]), int(fs[1]))
         return kw
 
@@ -431,6 +473,21 @@ class Scene:
         if self.source is not None:
             object.__setattr__(self, "source", Path(self.source))
         self._geometry_rules()
+        self._viscosity_rule()
+
+    def _viscosity_rule(self) -> None:
+        """``carpet.viscosity`` within :data:`VISCOSITY_FACTOR` of the filaments' own viscosity
+        (:func:`~ciliary_carpet.carpet.carpet.sbt_viscosity` of ``field.eta`` at radius ``carpet.blob``)."""
+        mu = self.carpet.viscosity
+        if mu is None:
+            return
+        own = sbt_viscosity(self.field.eta, self.carpet.blob)
+        lo, hi = own / VISCOSITY_FACTOR, own * VISCOSITY_FACTOR
+        if not lo <= mu <= hi:
+            src = self.source_name if self.source is not None else "<scene>"
+            raise SceneError(f"{src}: carpet.viscosity must be a number in [{lo:.3g}, {hi:.3g}] (within a factor "
+                             f"{VISCOSITY_FACTOR:g} of {own:.3g}, the viscosity the filaments' drag eta = "
+                             f"{self.field.eta:g} implies; leave it out to use that one), got {mu:g}")
 
     def _geometry_rules(self) -> None:
         """The rules between sections that the carpet's geometry sets; resolves the defaults that
@@ -553,8 +610,8 @@ def reference() -> dict[str, str]:
 
 # ------------------------------------------------------------------------------ parsing
 def load_scene(path, *, allow_outside: bool = False) -> Scene:
-    """Read and validate the scene file ``path`` (TOML). Raises :class:`SceneError` naming the
-    file (and the dotted key, or tomllib's line and column). ``table.file`` and ``target.file``
+    """Read and validate the scene file ``path`` (TOML, UTF-8 with or without a byte-order mark).
+    Raises :class:`SceneError` naming the file (and the dotted key, or tomllib's line and column). ``table.file`` and ``target.file``
     must lie below the scene's folder unless ``allow_outside`` (:mod:`ciliary_carpet.scenes.paths`)."""
     path = Path(path)
     try:
@@ -562,12 +619,25 @@ def load_scene(path, *, allow_outside: bool = False) -> Scene:
     except OSError as exc:
         raise SceneError(f"{path}: cannot read the scene file ({exc.strerror or exc})") from None
     try:
-        data = tomllib.loads(text.decode("utf-8"))
+        data = tomllib.loads(text.decode("utf-8-sig"))  # a UTF-8 byte-order mark is not part of the TOML
     except UnicodeDecodeError as exc:
-        raise SceneError(f"{path}: not UTF-8 text ({exc})") from None
+        raise SceneError(f"{path}: not UTF-8 text (byte 0x{text[exc.start]:02x} at offset {exc.start}); a scene "
+                         f"file is TOML, which is UTF-8: save it as UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: malformed TOML: {exc}") from None
     return scene_from_dict(data, source=path, allow_outside=allow_outside)
+
+
+def as_scene(scene, what: str) -> Scene:
+    """``scene`` itself when it is a :class:`Scene`, else the scene file it names (a ``str`` or
+    ``os.PathLike``, read with :func:`load_scene`); a TypeError naming ``what`` (the function
+    called) and what it takes for anything else."""
+    if isinstance(scene, Scene):
+        return scene
+    if isinstance(scene, (str, os.PathLike)):
+        return load_scene(scene)
+    raise TypeError(f"{what} takes a Scene (ciliary_carpet.load_scene(path)) or the path of a scene file, "
+                    f"got {type(scene).__name__}")
 
 
 def scene_from_dict(data: dict, source=None, *, allow_outside: bool = False) -> Scene:
@@ -603,6 +673,22 @@ def _top_kw(src, data, default_name="scene") -> dict:
     check_name(src, "name", name)
     kw["name"] = name
     return kw
+
+
+def _check_points_apart(src: str, points) -> None:
+    """SceneError naming ``carpet.points`` when two of them lie closer than :data:`MIN_SPACING`."""
+    if len(points) < 2:
+        return
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points, dtype=float)
+    d, i = cKDTree(pts).query(pts, k=2)
+    j = int(np.argmin(d[:, 1]))
+    if d[j, 1] < MIN_SPACING:
+        k = int(i[j, 1])
+        a, b = sorted((j, k))
+        raise SceneError(f"{src}: carpet.points[{a}] and carpet.points[{b}] are {d[j, 1]:.3g} L apart; base points "
+                         f"must lie at least {MIN_SPACING:g} L apart (the filament length: closer cilia can touch)")
 
 
 def _azimuth(r, n: int):

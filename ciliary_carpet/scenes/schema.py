@@ -21,10 +21,12 @@ import difflib
 import textwrap
 from dataclasses import MISSING, dataclass, fields
 
+import numpy as np
+
 from single_cilium.checks import finite
 
 __all__ = ["SceneError", "Key", "key", "keys_of", "reader", "values", "read", "validate", "section", "section_dict",
-           "plain", "markdown_table", "Section"]
+           "plain", "python_value", "markdown_table", "Section"]
 
 TYPES = ("float", "int", "bool", "str", "pair", "pairs", "table", "custom")
 
@@ -80,7 +82,7 @@ class Key:
         if self.type == "float":
             return _describe_range(self.lo, self.hi, self.lo_open, self.hi_open)
         if self.type == "int":
-            return "an integer" + (f" >= {self.lo:g}" if self.lo is not None else "")
+            return "an integer" + _int_range(self.lo, self.hi)
         if self.type == "bool":
             return "true or false"
         if self.type == "str":
@@ -100,10 +102,12 @@ class Key:
                 return "float"
             if self.hi is None:
                 return f"float {'>' if self.lo_open else '>='} {self.lo:g}"
+            if self.lo is None:
+                return f"float {'<' if self.hi_open else '<='} {self.hi:g}"
             return (f"float in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}"
                     f"{')' if self.hi_open else ']'}")
         if self.type == "int":
-            return "int" + (f" >= {self.lo:g}" if self.lo is not None else "")
+            return "int" + _int_range(self.lo, self.hi)
         if self.type == "str":
             return ", ".join(f'`"{c}"`' for c in self.choices) if self.choices else "string"
         if self.type == "pair":
@@ -133,7 +137,34 @@ def _describe_range(lo, hi, lo_open, hi_open) -> str:
         return "a number >= 0"
     if lo is not None and hi is not None:
         return f"a number in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f"a number {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f"a number {'<' if hi_open else '<='} {hi:g}"
     return "a number"
+
+
+def _int_range(lo, hi) -> str:
+    if lo is not None and hi is not None:
+        return f" in [{lo:g}, {hi:g}]"
+    if lo is not None:
+        return f" >= {lo:g}"
+    return f" <= {hi:g}" if hi is not None else ""
+
+
+def python_value(v):
+    """``v`` with numpy scalars as the Python numbers (and bools) they hold and numpy arrays as
+    lists, recursively through lists, tuples and dicts: what a scene made in code may hold
+    where a TOML file holds plain values."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return python_value(v.tolist())
+    if isinstance(v, (list, tuple)):
+        return [python_value(x) for x in v]
+    if isinstance(v, dict):
+        return {k: python_value(x) for k, x in v.items()}
+    return v
 
 
 # ------------------------------------------------------------------------------ reading
@@ -152,7 +183,7 @@ class Reader:
             hint = f"; did you mean '{close[0]}'?" if close else ""
             where = f"{self._header()} unknown key" if section else "unknown top-level key"
             raise SceneError(f"{src}: {where} '{k}' (known: {', '.join(known)}){hint}")
-        self.data = dict(data)
+        self.data = {k: python_value(v) for k, v in data.items()}
 
     def _where(self) -> str:
         return self.section or "the scene"
@@ -177,7 +208,8 @@ class Reader:
         if spec.type == "float":
             return self.number(k, v, spec, what)
         if spec.type == "int":
-            if isinstance(v, bool) or not isinstance(v, int) or (spec.lo is not None and v < spec.lo):
+            if (isinstance(v, bool) or not isinstance(v, int) or (spec.lo is not None and v < spec.lo)
+                    or (spec.hi is not None and v > spec.hi)):
                 raise self.fail(k, what, v)
             return int(v)
         if spec.type == "bool":
@@ -284,7 +316,9 @@ def _pairs(src: str, key: str, v, what: str) -> tuple[tuple[float, float], ...]:
 
 # ------------------------------------------------------------------------------ sections
 def plain(v):
-    """Tuples to lists, recursively (TOML/JSON-ready)."""
+    """Tuples to lists and numpy scalars to Python numbers, recursively (TOML/JSON-ready)."""
+    if isinstance(v, np.generic):
+        return v.item()
     if isinstance(v, (tuple, list)):
         return [plain(x) for x in v]
     return v
