@@ -42,17 +42,20 @@ lowest_critical_chi_E_b = {k: float(min(br[:, 1].min() for br in b.branches)) if
 if __name__ == "__main__":
     import matplotlib.pyplot as plt
 
-    from single_cilium.figures import plot_stability_map
+    from single_cilium.figures import frequency_norm, plot_stability_map
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    # one colour bar per figure, so one normalisation for all its panels
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True, layout="constrained")
+    norm = frequency_norm([g for g, _ in study_a.values()])
     for ax, (chi_N, (grid, bnd)) in zip(axes, study_a.items()):
-        m = plot_stability_map(grid, ax, bnd, title=rf"$\chi_N$ = {chi_N / TWO_PI:g} $\cdot 2\pi$")
-    fig.colorbar(m, ax=axes, label=r"flutter frequency $\beta/2\pi$")
-    fig.savefig("stability_maps_a.png", dpi=120)
-    fig, axes = plt.subplots(1, 4, figsize=(16, 4), sharey=True)
+        m = plot_stability_map(grid, ax, bnd, title=rf"$\chi_N$ = {chi_N / TWO_PI:g} $\cdot 2\pi$", norm=norm)
+    fig.colorbar(m, ax=axes, label=r"flutter frequency $\beta/2\pi$  [$1/\tau$]")
+    fig.savefig("stability_maps_a.png", dpi=150)
+    fig, axes = plt.subplots(1, 4, figsize=(16, 4), sharey=True, layout="constrained")
+    norm = frequency_norm([g for g, _ in study_b.values()])
     for ax, (k, (grid, bnd)) in zip(axes, study_b.items()):
-        m = plot_stability_map(grid, ax, bnd, title=rf"$\chi_N$ = {k} $\cdot 2\pi$")
-    fig.colorbar(m, ax=axes, label=r"flutter frequency $\beta/2\pi$")
-    fig.savefig("stability_maps_b.png", dpi=120)
+        m = plot_stability_map(grid, ax, bnd, title=rf"$\chi_N$ = {k} $\cdot 2\pi$", norm=norm)
+    fig.colorbar(m, ax=axes, label=r"flutter frequency $\beta/2\pi$  [$1/\tau$]")
+    fig.savefig("stability_maps_b.png", dpi=150)
     print("flutter fraction (a):", flutter_fraction_a)
     print("lowest critical chi_E (b):", lowest_critical_chi_E_b)

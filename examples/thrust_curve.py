@@ -4,7 +4,8 @@
 The design curve: thrust magnitude and angle against chi_N under one field (chi_E = 200,
 eta = 1), from the shipped lookup table, beside the equilibrium's theta_lim. Curvature tilts the
 thrust: the angle follows theta_lim (a little above it) and the magnitude falls to zero at the
-flutter cutoff. Run as a script it writes thrust_curve.png.
+flutter cutoff. Run as a script it writes thrust_curve.png, each curve with its error estimate
+(``single-cilium thrust-curve --png thrust_curve.png`` draws the same figure).
 """
 import numpy as np
 
@@ -19,15 +20,7 @@ thrust_angle = np.array([float(r.thrust_angle) if c < cutoff else np.nan for r, 
 theta_lim = np.array([float(r.theta_lim) for r in rows])
 
 if __name__ == "__main__":
-    import matplotlib.pyplot as plt
+    from single_cilium.figures import plot_thrust_curve
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(chi_N, thrust_norm, label="|mean thrust|")
-    ax.set(xlabel=r"$\chi_N$", ylabel="|mean thrust| (B/L$^2$)")
-    ax2 = ax.twinx()
-    ax2.plot(chi_N, thrust_angle, "C1", label="thrust angle")
-    ax2.plot(chi_N, theta_lim, "k:", label=r"$\theta_{lim}$")
-    ax2.set(ylabel="angle (rad)")
-    fig.legend(loc="upper center")
-    fig.tight_layout()
-    fig.savefig("thrust_curve.png", dpi=120)
+    fig = plot_thrust_curve(table)  # with the error bands, and the error estimates in a panel below
+    fig.savefig("thrust_curve.png", dpi=150)

@@ -13,7 +13,48 @@ from single_cilium.files import usual_mode
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.scenes.scene import Scene
 
-__all__ = ["design_picture", "preview", "standing_preview"]
+__all__ = ["chi_N_colours", "design_picture", "preview", "standing_preview"]
+
+ARROWS_MAX = 400
+"""Most control points whose arrows ``design.png`` draws (an even subset beyond it): more arrows
+than that overlap into a mass at the figure's size."""
+
+
+def chi_N_colours(chi_N: np.ndarray):
+    """The colour map and normalisation that show a layout's curvatures ``chi_N`` (any shape).
+
+    A layout of one sign (every ``chi_N >= 0``, or every ``chi_N <= 0``) gets a sequential map
+    (viridis, dark at the low end so that no cilium fades into the background) over exactly its range, so that a design of 85..96 shows its variation instead of one shade
+    of a +-cutoff scale; a layout of both signs gets a diverging map symmetric about 0 (blue
+    negative, red positive: the sign is the side a cilium's thrust leans to). A layout of one
+    value gets a range of +-1 about it (or +-1e-9 relative), so the map is never degenerate.
+    Returns ``(cmap, norm)`` for matplotlib.
+    """
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    c = np.asarray(chi_N, dtype=float)
+    c = c[np.isfinite(c)]
+    lo, hi = (float(c.min()), float(c.max())) if c.size else (0.0, 0.0)
+    if lo < 0 < hi:
+        lim = max(-lo, hi)
+        return plt.get_cmap("coolwarm"), matplotlib.colors.Normalize(-lim, lim)
+    if hi - lo <= 1e-9 * max(1.0, abs(hi)):
+        pad = max(1.0, 1e-9 * abs(hi))
+        lo, hi = lo - pad, hi + pad
+    return plt.get_cmap("viridis"), matplotlib.colors.Normalize(lo, hi)
+
+
+def _spacing(points: np.ndarray) -> float:
+    """The median distance from each of ``points`` (n, 2) to its nearest neighbour (1 for one
+    point)."""
+    from scipy.spatial import cKDTree
+
+    if len(points) < 2:
+        return 1.0
+    d, _ = cKDTree(points).query(points, k=2)
+    d = d[:, 1][d[:, 1] > 0]
+    return float(np.median(d)) if d.size else 1.0
 
 
 def _savefig(fig, path: Path) -> None:
@@ -31,9 +72,11 @@ def _savefig(fig, path: Path) -> None:
 
 
 def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
-    """Three panels: target (grey) and achieved (blue) flow directions at the control points over
-    the layout coloured by chi_N; the residual per control point; the layout with the cilia
-    near the flutter cutoff ringed. ``d`` is the :class:`~ciliary_carpet.design.result.Design`."""
+    """Three panels: target (grey) and achieved (blue) flow directions at the control points
+    (at most :data:`ARROWS_MAX` of them, an even subset beyond) over the layout coloured by
+    chi_N; the residual per control point; the layout coloured by chi_N (over its own range,
+    :func:`chi_N_colours`) with the cilia of weak push (``d.near_cutoff``) ringed. ``d`` is the
+    :class:`~ciliary_carpet.design.result.Design`. Every label lies inside the canvas."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -41,23 +84,29 @@ def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
 
     X, b = d.control, carpet.bases
     lim = float(carpet.table.in_still_fluid().flutter_range[1])
-    fig, axs = plt.subplots(1, 3, figsize=(17, 6.2))
-    h = float(np.median(np.linalg.norm(np.diff(X, axis=0), axis=1))) if len(X) > 1 else 1.0
-    scale = 0.8 * max(h, 0.5)
+    cmap, norm = chi_N_colours(carpet.chi_N)
+    fig, axs = plt.subplots(1, 3, figsize=(17, 6.6), layout="constrained")
+    shown = np.arange(len(X))
+    if len(X) > ARROWS_MAX:  # an even subset: every k-th control point
+        shown = shown[:: -(-len(X) // ARROWS_MAX)]
+    scale = 0.8 * _spacing(X[shown])
 
     def arrows(ax, v, **kw):
+        v = v[shown]
         n = np.maximum(np.linalg.norm(v, axis=1), 1e-300)[:, None]
         vv = v / n * scale
-        ax.quiver(X[:, 0] - 0.5 * vv[:, 0], X[:, 1] - 0.5 * vv[:, 1], vv[:, 0], vv[:, 1], angles="xy",
-                  scale_units="xy", scale=1, **kw)
+        xs = X[shown]
+        return ax.quiver(xs[:, 0] - 0.5 * vv[:, 0], xs[:, 1] - 0.5 * vv[:, 1], vv[:, 0], vv[:, 1], angles="xy",
+                         scale_units="xy", scale=1, **kw)
 
     ax = axs[0]
-    ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=14, zorder=1)
+    ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap=cmap, norm=norm, s=14, zorder=1)
     arrows(ax, d.target, color="0.6", width=0.009, zorder=2, label="target")
     arrows(ax, d.achieved, color="tab:blue", width=0.0035, zorder=3, label="achieved")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2, fontsize=8)
-    ax.set_title("mean-flow direction at the control points\ntarget (grey) vs achieved (blue), over chi_N",
-                 fontsize=10)
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.9)
+    sub = "" if len(shown) == len(X) else f" ({len(shown)} of {len(X)} shown)"
+    ax.set_title(f"mean-flow direction at the control points{sub}\ntarget (grey) vs achieved (blue), "
+                 f"over the cilia (chi_N)", fontsize=10)
     ax = axs[1]
     unit = "rad" if d.kind == "angle" else "relative"
     sc = ax.scatter(X[:, 0], X[:, 1], c=d.residual, cmap="magma_r", vmin=0, s=40, marker="s")
@@ -66,28 +115,27 @@ def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
     ax.set_title(f"residual per control point\nrms {d.residual_rms:.3g} {unit} (model error at most "
                  f"{d.residual_error:.1g}), worst {d.residual.max():.3g}", fontsize=10)
     ax = axs[2]
-    sc = ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim, s=40)
+    sc = ax.scatter(b[:, 0], b[:, 1], c=carpet.chi_N, cmap=cmap, norm=norm, s=40)
     nc = list(d.near_cutoff)
     if nc:
         ax.scatter(b[nc, 0], b[nc, 1], facecolors="none", edgecolors="k", s=110, lw=1.2,
-                   label=f"{len(nc)} near the flutter cutoff")
-        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=8)
-    fig.colorbar(sc, ax=ax, label="chi_N", shrink=0.85)
-    ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g})", fontsize=10)
+                   label=f"{len(nc)} with a weak push (the design's near_cutoff)")
+        ax.legend(loc="lower left", fontsize=8, framealpha=0.9)
+    fig.colorbar(sc, ax=ax, label=f"chi_N (flutter for |chi_N| < {lim:.5g})", shrink=0.85)
+    ax.set_title(f"layout: chi_N from {carpet.chi_N.min():.4g} to {carpet.chi_N.max():.4g}", fontsize=10)
     if getattr(d, "azimuth", None) is not None:  # a standing carpet: each cilium's pumping direction
         e = np.column_stack([np.cos(d.azimuth), np.sin(d.azimuth)]) * np.sign(carpet.chi_N)[:, None]
-        sp = float(np.median(np.linalg.norm(np.diff(b, axis=0), axis=1))) if len(b) > 1 else 1.0
+        sp = _spacing(b)
         ax.quiver(b[:, 0], b[:, 1], e[:, 0], e[:, 1], angles="xy", scale_units="xy", scale=1.4 / sp, width=0.004,
                   color="k", zorder=3)
-        ax.set_title(f"layout: chi_N (flutter cutoff +-{lim:.5g}); arrows: the beat planes'\nazimuths "
-                     "psi, where each cilium's thrust leans (standing)", fontsize=10)
+        ax.set_title(f"layout: chi_N from {carpet.chi_N.min():.4g} to {carpet.chi_N.max():.4g}; arrows: the "
+                     "beat planes'\nazimuths psi, where each cilium's thrust leans (standing)", fontsize=10)
     for ax in axs:
         ax.set_aspect("equal")
         ax.set_xlabel("x / L")
         ax.set_ylabel("y / L")
     fig.suptitle(f"{scene.name}: design ({d.kind} target, {len(X)} control points; without the design, each "
                  f"cilium curved for the target on its own: rms {d.local_rms:.3g} {unit})", fontsize=11)
-    fig.tight_layout()
     _savefig(fig, path)
 
 
@@ -155,13 +203,13 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
         _streamlines(ax, mean_field, bars, "streamlines: mean speed [L/tau]", 0.6, 0.7)
     _pathlines_from_above(ax, pl, bars, "path lines: time [tau]")
     pos, _, _ = carpet.state(0.0)
-    lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
+    cmap, norm = chi_N_colours(carpet.chi_N)
     # the cilia as one collection, drawn as lines are (zorder 2, projecting caps, round joins): one
-    # artist per cilium took seconds at 10^4 cilia
-    ax.add_collection(LineCollection(pos[:, :, :2], colors=plt.cm.coolwarm(0.5 + 0.5 * carpet.chi_N / lim), lw=1.2,
+    # artist per cilium takes seconds at 10^4 cilia
+    ax.add_collection(LineCollection(pos[:, :, :2], colors=cmap(norm(carpet.chi_N)), lw=1.2,
                                      capstyle="projecting", joinstyle="round", zorder=2))
-    sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim,
-                    s=12, zorder=3)
+    sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap=cmap, norm=norm,
+                    s=12, zorder=3, edgecolors="k", linewidths=0.3)
     bars.insert(0, (sc, "cilia: chi_N"))
     for k, (m, label) in enumerate(bars):  # a colour bar for each colour, side by side at the right
         cb = fig.colorbar(m, cax=fig.add_axes([0.735 + 0.09 * k, 0.17, 0.016, 0.67]))
@@ -203,8 +251,7 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
         h = float(mean_field.points[0, 2])
         _streamlines(ax, mean_field, bars, f"streamlines: mean speed at z = {h:.3g} L [L/tau]", 0.7, 0.9)
     _pathlines_from_above(ax, pl, bars, "path lines (seen from above): time [tau]")
-    lim = max(float(np.abs(carpet.chi_N).max()), 1e-9)
-    cmap = plt.cm.coolwarm
+    cmap, norm = chi_N_colours(carpet.chi_N)
     ends = np.empty((carpet.n, 2, 2))
     for lo in range(0, carpet.n, 256):  # the footprints: the swept samples of each cilium, seen from above
         js = np.arange(lo, min(lo + 256, carpet.n))
@@ -214,9 +261,9 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
         along = np.einsum("kpa,ka->kp", xyz[:, :, :2] - carpet.bases[js][:, None], e)
         ends[js] = carpet.bases[js][:, None] + np.stack([along.min(axis=1), along.max(axis=1)], axis=1)[:, :, None] \
             * e[:, None]
-    ax.add_collection(LineCollection(ends, colors=cmap(0.5 + 0.5 * carpet.chi_N / lim), lw=2.4, capstyle="round",
+    ax.add_collection(LineCollection(ends, colors=cmap(norm(carpet.chi_N)), lw=2.4, capstyle="round",
                                      alpha=0.9, zorder=2))
-    sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap="coolwarm", vmin=-lim, vmax=lim,
+    sc = ax.scatter(carpet.bases[:, 0], carpet.bases[:, 1], c=carpet.chi_N, cmap=cmap, norm=norm,
                     s=10, zorder=3, edgecolors="k", linewidths=0.3)
     bars.insert(0, (sc, "cilia footprints: chi_N"))
     for k, (m, label) in enumerate(bars):
