@@ -19,16 +19,18 @@ cilia cannot make; 130 interrupted (Ctrl-C); 143 terminated (SIGTERM: kill, Slur
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import signal
+import stat
 import sys
 import time as _time
 from concurrent.futures import Executor
 from dataclasses import replace
 from pathlib import Path
 
-from single_cilium.files import strict_json, write_netcdf
+from single_cilium.files import strict_json, write_bytes, write_netcdf
 from single_cilium.progress import TqdmProgress
 from single_cilium.signals import Terminated, exit_status, terminate_as_interrupt
 from single_cilium.table import TableError
@@ -38,6 +40,7 @@ from ciliary_carpet.design import DesignError, design
 from ciliary_carpet.design.target import TargetError, UnreachableTargetError
 from ciliary_carpet.output.resources import available_memory, expected_memory, places_that_fit
 from ciliary_carpet.output.vtkfiles import OutputError
+from ciliary_carpet.output.folder import check_parents, inputs_differ, only_toolkit_files
 from ciliary_carpet.render import SUMMARY, RenderError, check_resources, is_complete, owned_files, render
 from ciliary_carpet.scenes.paths import ALLOW_ENV
 from ciliary_carpet.scenes.scene import Scene, SceneError, load_scene
@@ -64,6 +67,30 @@ def _scene(path: str, reduced: bool, backend: str | None = None) -> Scene:
     return s.reduced() if reduced else s
 
 
+class OutputPathError(RenderError):
+    """An output path the command refuses before any work (its message names the path, not the scene)."""
+
+
+class StdoutError(OSError):
+    """Standard output cannot be written (a full disk, a closed pipe); the message says so."""
+
+
+def _emit(text: str) -> None:
+    """Write ``text`` to standard output and flush it: :class:`StdoutError` when it cannot be
+    written (later writes, and the interpreter's last flush, then go nowhere)."""
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except OSError as exc:
+        try:  # what is left in the buffer must not fail again at exit
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+        except (OSError, AttributeError, ValueError):
+            pass
+        raise StdoutError(exc.errno, f"cannot write to standard output: {exc.strerror or exc}") from None
+
+
 def _positive_int(text: str) -> int:
     """argparse type: an integer >= 1."""
     try:
@@ -86,21 +113,53 @@ def _cmd_render(a) -> int:
         res = render(scene, a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5),
                      max_seconds=a.max_hours * 3600, pool=pool)
     s = res.summary
-    if a.json:
-        print(strict_json({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
-                           "seconds": s["seconds"]}))
-    else:
-        print((res.out_dir / "summary.md").read_text(), end="")
-        print(f"wrote {len(res.files)} files to {res.out_dir}")
+    try:
+        if a.json:
+            _emit(strict_json({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
+                               "seconds": s["seconds"]}) + "\n")
+        else:
+            _emit((res.out_dir / "summary.md").read_text())
+            _emit(f"wrote {len(res.files)} files to {res.out_dir}\n")
+    except StdoutError as exc:
+        raise StdoutError(exc.errno, f"{exc.strerror}; the render in {res.out_dir} is complete (its summary.md "
+                                     f"says what it holds)") from None
     return 0
 
 
-def _cmd_design(a) -> int:
-    out = Path(a.output)
-    if out.exists() and not a.overwrite:
+def _layout_path(given: str, overwrite: bool) -> Path:
+    """:func:`_layout_file`, its refusals as :class:`OutputPathError` (naming the path, not the scene)."""
+    try:
+        return _layout_file(given, overwrite)
+    except RenderError as exc:
+        raise OutputPathError(str(exc)) from None
+
+
+def _layout_file(given: str, overwrite: bool) -> Path:
+    """The file ``design -o`` writes: ``given``; through it, when it is a symbolic link to a
+    regular file and ``overwrite`` (the link is kept, its file replaced). RenderError, before any
+    work, for an existing path without ``overwrite``, any other symbolic link (a dangling one
+    included: it is the user's, never replaced), a folder, or a ``..`` after a missing folder
+    (:func:`~ciliary_carpet.output.folder.check_parents`)."""
+    out = Path(given)
+    if out.is_symlink():
+        to = os.readlink(out)
+        if not overwrite:
+            raise RenderError(f"{out} is a symbolic link (to {to}); it is kept: pass --overwrite to write the "
+                              f"layout into the file it points to, or name another file with -o")
+        if not out.is_file():
+            raise RenderError(f"{out} is a symbolic link to {to}, which is not an existing file; the link is kept: "
+                              f"name the file itself with -o")
+        return Path(os.path.realpath(out))
+    if os.path.lexists(out) and not overwrite:
         raise RenderError(f"{out} exists; it is kept: pass --overwrite to replace it")
     if out.is_dir():
         raise RenderError(f"{out} is a folder; the layout is a file (.nc)")
+    check_parents(out)
+    return out
+
+
+def _cmd_design(a) -> int:
+    out = _layout_path(a.output, a.overwrite)
     scene = _scene(a.scene, a.reduced, a.backend)
     check_resources(scene, max_seconds=a.max_hours * 3600)
     backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError before any work
@@ -108,8 +167,8 @@ def _cmd_design(a) -> int:
     if d is None:
         raise SceneError(f"{scene.source_name}: the scene has no [target] to design for")
     write_netcdf(d.to_dataset(carpet), out)
-    print(d.message)
-    print(f"wrote {out}")
+    through = f" (the file the symbolic link {a.output} points to)" if str(out) != a.output else ""
+    _emit(f"{d.message}\nwrote {out}{through}\n")
     return 0
 
 
@@ -134,20 +193,57 @@ def _render_task(scene_path: str, out_root: str, overwrite: bool, reduced: bool,
         scene = _scene(scene_path, reduced, backend)
         out = Path(out_root) / scene.name
         rec["out_dir"] = str(out)
-        table = scene.table.path(scene)
-        if is_complete(out, [scene_path, table], scene=scene) and not overwrite:  # and made with these settings
+        complete = not overwrite and is_complete(out)
+        if complete and is_complete(out, scene=scene):  # made with these settings from these inputs
             rec.update(status="skipped", message="complete and up to date")
+            rec.update(_verdict(out))
         else:
             # a render interrupted while replacing a folder leaves its manifest without summary.json:
             # finish it (only the files it wrote are replaced)
             resume = out.is_dir() and owned_files(out) is not None and not (out / SUMMARY).is_file()
-            render(scene, out, overwrite=overwrite or resume, max_seconds=max_seconds, within=out_root,
+            # a complete render of inputs that changed since is rendered again, when every file in
+            # its folder is the toolkit's (unchanged); one of other settings alone asks for overwrite
+            changed = inputs_differ(out, scene) if complete else []
+            again = bool(changed) and only_toolkit_files(out)
+            render(scene, out, overwrite=overwrite or resume or again, max_seconds=max_seconds, within=out_root,
                    pool=pool_for_threads(places_that_fit(scene, threads_in_use()["numba"])))
-            rec.update(status="done", message="rendered")
+            why = f" again: its inputs changed ({', '.join(changed)})" if again else ""
+            rec.update(status="done", message=f"rendered{why}")
+            rec.update(_verdict(out))
     except Exception as exc:  # noqa: BLE001 -- one failing scene must not stop the others
         rec.update(status="failed", message=_one_line(exc, scene_path))
     rec["seconds"] = _time.perf_counter() - clock
     return rec
+
+
+def _verdict(out: Path) -> dict:
+    """The design's verdict of the render in ``out`` (its summary.json), for a batch record:
+    ``verdict`` ("met", "not met", or "no target"), with ``residual`` (rms), ``threshold`` and
+    ``residual_unit`` where the scene has a target; ``{}`` when the summary cannot be read."""
+    try:
+        d = json.loads((out / SUMMARY).read_text()).get("design")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    if not isinstance(d, dict):
+        return {"verdict": "no target"}
+    rec = {"residual": d.get("residual_rms"), "threshold": d.get("residual_threshold"),
+           "residual_unit": d.get("residual_unit")}
+    rec["verdict"] = "met" if d.get("met") is True else "not met" if d.get("met") is False else "designed"
+    return rec
+
+
+def _verdict_text(r: dict) -> str:
+    """A record's verdict in words: "target met: rms residual 0.014 rad <= 0.05"."""
+    v = r.get("verdict")
+    if v is None:
+        return ""
+    if v == "no target":
+        return "no target"
+    unit = f" {r['residual_unit']}" if r.get("residual_unit") else ""
+    res = f"rms residual {r['residual']:.3g}{unit}" if isinstance(r.get("residual"), (int, float)) else ""
+    if v == "designed" or not isinstance(r.get("threshold"), (int, float)):
+        return f"designed: {res}" if res else "designed"
+    return f"target {v}: {res} {'<=' if v == 'met' else '>'} {r['threshold']:g} allowed"
 
 
 def _one_line(exc: BaseException, src: str | None = None) -> str:
@@ -197,11 +293,11 @@ def _worker(func, task, conn) -> None:
         conn.close()
 
 
-def _run_local(tasks, jobs: int, on_done, grace: float = 2.0) -> None:
+def _run_local(tasks, jobs: int, on_done, grace: float = 2.5, on_start=None) -> None:
     """Each task in a fresh worker process, ``jobs`` at a time: a worker that dies (killed, out
-    of memory) fails only its own scene, with its exit signal in the record. On Ctrl-C the
-    running workers are interrupted (SIGINT, so that each removes its staging folder), then
-    killed after a grace period."""
+    of memory) fails only its own scene, with its exit signal in the record. Interrupted, the
+    running workers are stopped within about two ``grace`` periods (:func:`_stop`), each with
+    every process it started. ``on_start(task)`` is called as a task's worker starts."""
     from multiprocessing.connection import wait as wait_any
 
     ctx = worker_context()
@@ -216,6 +312,8 @@ def _run_local(tasks, jobs: int, on_done, grace: float = 2.0) -> None:
                 proc.start()
                 send.close()
                 running[proc] = (t, recv)
+                if on_start is not None:
+                    on_start(t)
             by_sentinel = {p.sentinel: p for p in running}
             for sentinel in wait_any(list(by_sentinel)):
                 proc = by_sentinel[sentinel]
@@ -227,23 +325,85 @@ def _run_local(tasks, jobs: int, on_done, grace: float = 2.0) -> None:
                 proc.join()
                 recv.close()
                 on_done(rec if rec is not None else _died(t[0], exit_reason(proc.exitcode)))
+    except BaseException as exc:
+        # Ctrl-C in a terminal reaches the workers too; SIGTERM or SIGHUP reached this process only
+        _stop(list(running), grace, told=isinstance(exc, KeyboardInterrupt) and not isinstance(exc, Terminated))
+        raise
     finally:
-        _stop(list(running), grace)
+        _stop(list(running), grace, told=False)
 
 
-def _stop(procs, grace: float) -> None:
-    """Let interrupted workers finish (Ctrl-C in a terminal reaches them too), then SIGINT the
-    rest (a render removes its staging folder on KeyboardInterrupt), then SIGKILL."""
-    for sig, wait_s in ((None, grace), (signal.SIGINT, 10 * grace), (signal.SIGKILL, None)):
+def _started(pid: int) -> str | None:
+    """When process ``pid`` started (``/proc/PID/stat``, clock ticks since boot), None if it is gone:
+    with the pid, it names one process (a pid may be reused once its process has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def _descendants(pid: int) -> list[tuple[int, str | None]]:
+    """The processes ``pid`` started, and theirs, recursively (Linux: ``/proc/PID/task/*/children``;
+    elsewhere none), parents before children, as (pid, :func:`_started`)."""
+    found: list[int] = []
+    todo = [pid]
+    while todo:
+        p = todo.pop(0)
+        try:
+            tasks = os.listdir(f"/proc/{p}/task")
+        except OSError:
+            continue
+        for t in tasks:
+            try:
+                with open(f"/proc/{p}/task/{t}/children") as fh:
+                    kids = [int(k) for k in fh.read().split()]
+            except (OSError, ValueError):
+                continue
+            for k in kids:
+                if k not in found:
+                    found.append(k)
+                    todo.append(k)
+    return [(k, _started(k)) for k in found]
+
+
+def _stop(procs, grace: float, told: bool) -> None:
+    """Stop the worker processes ``procs`` and every process each started (its render's path-line
+    workers and fork server): those ``told`` (Ctrl-C reached them too) get ``grace`` seconds to
+    finish their cleanup first; then the ones still alive get SIGTERM (a render removes its
+    staging folder on it) and ``grace`` seconds more; then every process left in their trees is
+    killed (SIGKILL) and the workers reaped. A staging folder a killed render leaves is hidden, and
+    the next render of that folder removes it."""
+    procs = [p for p in procs if p.is_alive()]
+    if not procs:
+        return
+    tree = {p.pid: _descendants(p.pid) for p in procs}  # before a worker ends: its orphans are found no more
+    for sig in ((None, signal.SIGTERM) if told else (signal.SIGTERM,)):
         alive = [p for p in procs if p.is_alive()]
         if not alive:
-            return
-        if sig is not None:
-            for p in alive:
-                os.kill(p.pid, sig)
-        end = _time.monotonic() + (wait_s if wait_s is not None else 1e9)
+            break
         for p in alive:
-            p.join(max(0.0, end - _time.monotonic()) if wait_s is not None else None)
+            tree[p.pid] = list(dict.fromkeys(tree[p.pid] + _descendants(p.pid)))
+            if sig is not None:
+                try:
+                    os.kill(p.pid, sig)
+                except ProcessLookupError:
+                    pass
+        end = _time.monotonic() + grace
+        for p in alive:
+            p.join(max(0.0, end - _time.monotonic()))
+    for p in procs:
+        if p.is_alive():
+            tree[p.pid] = list(dict.fromkeys(tree[p.pid] + _descendants(p.pid)))
+        if p.is_alive():
+            os.kill(p.pid, signal.SIGKILL)
+        for pid, started in tree[p.pid][::-1]:
+            if started is not None and _started(pid) == started:  # the same process, still there
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except (ProcessLookupError, PermissionError):
+                    pass
+        p.join(grace)
 
 
 def _memory_per_task(scenes, reduced: bool, backend: str | None):
@@ -265,7 +425,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
           jobs: int | None = None, threads: int | None = None,
           overwrite: bool = False, reduced: bool = False, progress: bool = True,
           max_seconds: float = 86400.0, backend: str | None = None,
-          scheduler_timeout: float | None = None) -> list[dict]:
+          scheduler_timeout: float | None = None, records: list | None = None) -> list[dict]:
     """Render many scene files into ``out_root/NAME``.
 
     Default: each scene in a fresh worker process, ``jobs`` at a time, so that a worker that
@@ -280,18 +440,31 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     a Dask worker runs in its own folder, and on other machines the paths must be on a shared
     filesystem); the records name the scenes as given.
     Two scenes with the same name (output folder) are a SceneError before anything runs.
-    Resumable: a scene whose folder holds a complete render newer than the scene and its table
-    is skipped; one interrupted while replacing an older render is rendered again; one with
-    older results is kept unless ``overwrite``, and reported as failed; a folder holding files
-    ciliary-carpet did not write is never changed (:func:`~ciliary_carpet.render.render`).
+    Resumable: a scene whose folder holds a complete render up to date for it (the same settings,
+    and every file it read -- the scene, its table, its target file -- with the same contents:
+    :func:`~ciliary_carpet.output.folder.is_complete`) is skipped; one interrupted while replacing an
+    older render is rendered again; a complete render whose inputs changed since is rendered again
+    in its folder when every file there is ciliary-carpet's, unchanged
+    (:func:`~ciliary_carpet.output.folder.only_toolkit_files`); one made from the same inputs with
+    other settings (``reduced``, ``backend``, another package version) is kept unless
+    ``overwrite``, and reported as failed; files ciliary-carpet did not write are never changed
+    (:func:`~ciliary_carpet.render.render`). So a batch without ``overwrite`` after an edit
+    renders exactly the scenes whose inputs changed.
     ``backend`` (a name of :data:`~ciliary_carpet.stokes.evaluator.BACKENDS`) overrides the scenes'.
     ``scheduler_timeout`` bounds the wait for ``scheduler`` to answer as a Dask scheduler (default
     20 s, or ``CILIA_SCHEDULER_TIMEOUT``): an address that does not (e.g. the dashboard's HTTP port)
-    is an OSError after that wait. Interrupted (Ctrl-C, or SIGTERM/SIGHUP under the command line),
-    the local workers are stopped and remove their staging folders; on Dask the scenes not yet
-    started are cancelled (a running render is left to finish or fail whole).
-    Returns one record per scene (status done / skipped / failed, message with the reason,
-    seconds)."""
+    is an OSError after that wait, as is a scheduler that has no worker and gets none within it
+    (a warning says it is waiting). Interrupted (Ctrl-C, or SIGTERM/SIGHUP under the command line),
+    the local workers are stopped, each with every process it started, within a few seconds
+    (they remove their staging folders when they can); on Dask the scenes not yet started are
+    cancelled (a running render is left to finish or fail whole).
+    Returns one record per scene (``status`` done / skipped / failed, ``message`` with the reason,
+    ``seconds``, ``out_dir``; for a render in its folder ``verdict`` -- "met", "not met", "designed"
+    or "no target" -- with ``residual``, ``threshold`` and ``residual_unit`` from its summary.json),
+    in the order of ``scenes``; ``records``, a list given, gets each record as its scene ends
+    (what finished, when interrupted). The batch's index, ``out_root/batch.json`` and
+    ``out_root/batch.md`` (:func:`write_index`), lists them, also when interrupted (the scenes not
+    finished then with status "interrupted" or "not started")."""
     from tqdm.auto import tqdm
 
     scenes = [str(s) for s in scenes]
@@ -313,7 +486,8 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
         tasks = [t + (budget,) for t in tasks]
     else:
         tasks = [t + (None, threads) for t in tasks]
-    recs: list = []
+    recs: list = records if records is not None else []
+    started: set = set()
     bar = tqdm(total=len(tasks), desc="scenes", disable=not progress)
 
     def on_done(rec):
@@ -322,15 +496,17 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
         bar.update(1)
 
     client = None
+    whole = False
     try:
         if executor is None and scheduler is None:
-            _run_local(tasks, budget.workers, on_done)
+            _run_local(tasks, budget.workers, on_done, on_start=lambda t: started.add(where.get(t[0], t[0])))
         else:
             if executor is None:
                 from single_cilium.scheduler import connect
 
-                client = connect(scheduler, scheduler_timeout)
+                client = connect(scheduler, scheduler_timeout, workers=1)
                 executor = client.get_executor()
+            started.update(scenes)  # on Dask: submitted, maybe running
             futs = {executor.submit(_render_one, *t): t for t in tasks}
             try:
                 for f in futs:
@@ -342,25 +518,112 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
                 for f in futs:
                     f.cancel()
                 raise
+        whole = True
     finally:
         bar.close()
         if client is not None:
             client.close()
-    order = {s: k for k, s in enumerate(scenes)}
+        order = {s: k for k, s in enumerate(scenes)}
+        done = {r["scene"] for r in recs}
+        rest = [] if whole else [{"scene": sc, "status": "interrupted" if sc in started else "not started",
+                                  "seconds": None, "message": "interrupted" if sc in started else "not started",
+                                  "out_dir": str(Path(out_root) / _name_of(sc))}
+                                 for sc in scenes if sc not in done]
+        listed = sorted(recs + rest, key=lambda r: order.get(r["scene"], len(order)))
+        if recs or rest:
+            write_index(out_root, listed)
     return sorted(recs, key=lambda r: order[r["scene"]])
 
 
+INDEX = ("batch.json", "batch.md")
+"""The batch index's files in the output root (:func:`write_index`)."""
+_INDEX_MARK = "written by ciliary-carpet batch"
+
+
+def _name_of(scene_path: str) -> str:
+    """The output folder name of a scene (its ``name``; the file's stem if it cannot be read)."""
+    try:
+        return _scene(scene_path, reduced=False).name
+    except Exception:  # noqa: BLE001 -- an unreadable scene: its record says why
+        return Path(scene_path).stem
+
+
+def _ours(path: Path) -> bool:
+    """Whether ``path`` is absent, or a regular file a batch wrote (its mark in the first 200 bytes)."""
+    if not os.path.lexists(path):
+        return True
+    try:
+        if not stat.S_ISREG(os.lstat(path).st_mode):
+            return False
+        with open(path, "rb") as fh:
+            return _INDEX_MARK.encode() in fh.read(200)
+    except OSError:
+        return False
+
+
+def write_index(out_root, recs: list[dict]) -> None:
+    """Write the batch index into ``out_root``: ``batch.json`` (strict JSON: ``written_by``, and
+    ``scenes``: the records -- scene, status, verdict, residual, threshold, seconds, folder,
+    message) and ``batch.md`` (a table of the same), each atomically. A file of those names that a
+    batch did not write (no mark of it, or not a regular file) is kept, and that index file not
+    written (a warning says so); an index that cannot be written is a warning, not a failure of
+    the renders. Nothing is written when ``out_root`` is not a folder (no render made it)."""
+    root = Path(out_root)
+    if not root.is_dir():  # no scene reached its folder: nothing to index, and no folder made for it
+        return
+    rows = [{"scene": r.get("scene"), "status": r.get("status"), "verdict": r.get("verdict"),
+             "residual": r.get("residual"), "threshold": r.get("threshold"), "residual_unit": r.get("residual_unit"),
+             "seconds": r.get("seconds"), "folder": r.get("out_dir"), "message": r.get("message")} for r in recs]
+    lines = [f"<!-- {_INDEX_MARK} -->", "# Batch", "",
+             "| scene | status | verdict | seconds | folder |", "| --- | --- | --- | --- | --- |"]
+    for r, row in zip(recs, rows):
+        sec = f"{row['seconds']:.1f}" if isinstance(row["seconds"], (int, float)) else "-"
+        cells = [row["scene"], row["status"], _verdict_text(r) or (row["message"] if row["status"] == "failed" else "-"),
+                 sec, row["folder"] or "-"]
+        lines.append("| " + " | ".join(str(c).replace("|", "\\|").replace("\n", " ") for c in cells) + " |")
+    texts = {"batch.json": strict_json({"written_by": _INDEX_MARK, "scenes": rows}) + "\n",
+             "batch.md": "\n".join(lines) + "\n"}
+    for name, text in texts.items():
+        path = root / name
+        if not _ours(path):
+            logger.warning("%s was not written by a ciliary-carpet batch; it is kept, and the batch's index is not "
+                           "written there", path)
+            continue
+        try:
+            write_bytes(path, text.encode())
+        except OSError as exc:
+            logger.warning("cannot write the batch index %s: %s", path, exc)
+
+
+def _line(r: dict) -> str:
+    """One scene of a batch in words: status, scene, seconds, what happened and the verdict."""
+    v = _verdict_text(r)
+    sec = f"  ({r['seconds']:.1f} s)" if isinstance(r.get("seconds"), (int, float)) else ""
+    return f"{r['status']:8s} {r['scene']}{sec}  {r['message']}{'; ' + v if v else ''}"
+
+
 def _cmd_batch(a) -> int:
-    recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, threads=a.threads, overwrite=a.overwrite,
-                 reduced=a.reduced,
-                 max_seconds=a.max_hours * 3600, backend=a.backend, scheduler_timeout=a.scheduler_timeout)
+    finished: list = []
+    try:
+        recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, threads=a.threads,
+                     overwrite=a.overwrite, reduced=a.reduced, max_seconds=a.max_hours * 3600, backend=a.backend,
+                     scheduler_timeout=a.scheduler_timeout, records=finished)
+    except KeyboardInterrupt:
+        done = {r["scene"] for r in finished}
+        for r in finished:
+            print(f"ciliary-carpet: finished {_line(r)}", file=sys.stderr)
+        left = [sc for sc in a.scenes if sc not in done]
+        if left:
+            print(f"ciliary-carpet: not finished: {', '.join(left)} (their folders are as they were; run the batch "
+                  f"again to render them)", file=sys.stderr)
+        raise
     n = {k: sum(r["status"] == k for r in recs) for k in ("done", "skipped", "failed")}
     if a.json:
-        print(strict_json({"scenes": recs, "done": n["done"], "skipped": n["skipped"], "failed": n["failed"]}))
+        _emit(strict_json({"scenes": recs, "done": n["done"], "skipped": n["skipped"], "failed": n["failed"]}) + "\n")
     else:
-        for r in recs:
-            print(f"{r['status']:8s} {r['scene']}  ({r['seconds']:.1f} s)  {r['message']}")
-        print(f"{n['done']} rendered, {n['skipped']} up to date, {n['failed']} failed")
+        _emit("".join(_line(r) + "\n" for r in recs)
+              + f"{n['done']} rendered, {n['skipped']} up to date, {n['failed']} failed; index: "
+                f"{Path(a.output) / 'batch.md'}\n")
     return 1 if n["failed"] else 0
 
 
@@ -431,6 +694,9 @@ def main(argv=None) -> int:
     try:
         with terminate_as_interrupt():  # SIGTERM, SIGHUP: the Ctrl-C cleanup, exit 128 + signum
             return {"render": _cmd_render, "design": _cmd_design, "batch": _cmd_batch}[a.cmd](a)
+    except StdoutError as exc:
+        print(f"ciliary-carpet: {exc.strerror}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt as exc:
         how = str(exc) if isinstance(exc, Terminated) else "interrupted"
         print(f"ciliary-carpet: {how}; nothing half-written was left in the output folder", file=sys.stderr)
@@ -443,7 +709,7 @@ def main(argv=None) -> int:
     except BAD_INPUT as exc:
         if a.debug:
             raise
-        print(f"ciliary-carpet: {_one_line(exc, src)}", file=sys.stderr)
+        print(f"ciliary-carpet: {_one_line(exc, None if isinstance(exc, OutputPathError) else src)}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 -- a bug: one line, the traceback with --debug
         if a.debug:

@@ -3,7 +3,9 @@
 ``distributed.Client(address, timeout=...)`` waits for ever when the address answers TCP but is
 not a Dask scheduler (the dashboard's HTTP port is the usual slip): the HTTP server waits for a
 request line that never comes, and the client for a handshake that never comes. :func:`connect`
-first asks the address who it is, under a deadline, and only then creates the client.
+first asks the address who it is, under a deadline, and only then creates the client. A
+scheduler without workers accepts work and holds it for ever: :func:`connect` with ``workers``
+warns and waits for them under the same deadline.
 """
 from __future__ import annotations
 
@@ -85,12 +87,37 @@ def probe(address: str, timeout: float | None = None) -> dict:
     return ident
 
 
-def connect(address: str, timeout: float | None = None):
+def connect(address: str, timeout: float | None = None, *, workers: int = 0):
     """A ``distributed.Client`` for the scheduler at ``address``, after :func:`probe` found one
-    there within ``timeout`` seconds; raises :class:`SchedulerError` otherwise."""
+    there within ``timeout`` seconds; raises :class:`SchedulerError` otherwise.
+
+    With ``workers`` >= 1, the scheduler must also have that many workers, or get them within
+    ``timeout`` seconds: a warning says so when it has fewer (work sent to a scheduler without
+    workers waits for ever), and a :class:`SchedulerError` ends the wait (the client closed)."""
     from distributed import Client
 
     t = timeout_from(timeout)
-    probe(address, t)
+    ident = probe(address, t)
     logger.info("connecting to the Dask scheduler at %s", address)
-    return Client(address, timeout=t)
+    client = Client(address, timeout=t)
+    if workers < 1:
+        return client
+    have = len(ident.get("workers") or {})
+    try:
+        have = len(client.scheduler_info().get("workers") or {})
+    except Exception:  # noqa: BLE001 -- the identity's count then
+        pass
+    if have >= workers:
+        return client
+    logger.warning("the Dask scheduler at %s has %d worker(s); waiting up to %g s for %d (--scheduler-timeout "
+                   "sets the wait)", address, have, t, workers)
+    try:
+        client.wait_for_workers(workers, timeout=t)
+    except (TimeoutError, asyncio.TimeoutError, OSError):
+        client.close()
+        raise SchedulerError(f"the Dask scheduler at {address} has no workers (none joined within {t:g} s): start "
+                             f"some with `dask worker {address}`, or raise --scheduler-timeout") from None
+    except BaseException:
+        client.close()
+        raise
+    return client

@@ -42,7 +42,7 @@ from numba import njit, prange
 
 from ciliary_carpet.carpet.carriers import Carriers, smallest_root
 from ciliary_carpet.carpet.cycles import ResolvedSources
-from ciliary_carpet.stokes import Direct, Kernel, fp32_sources, in_fp32, ranged_fp32
+from ciliary_carpet.stokes import Direct, Kernel, fp32_sources, in_fp32, ranged_evaluator, ranged_fp32
 from ciliary_carpet.stokes import stokeslet_velocity
 
 __all__ = ["FarGroups", "Plan", "Summed", "make_plan", "flow_sum", "dense_sum"]
@@ -686,6 +686,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     the CPU where ``evaluator``'s would run on it in fp64
     (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`), over the plan's carriers rounded once
     (:meth:`Plan.rounded`)."""
+    evaluator = ranged_evaluator(evaluator)  # one without ranged sums (the FMM) has them run on Direct
     m = targets.shape[0]
     sj = plan.order
     n_car = 10 * sj.size

@@ -54,8 +54,16 @@ incomplete; a new folder appears whole in one rename. A failure before the swap 
 files are untouched, and the staging folder is removed.
 
 Up to date (:func:`is_complete` with ``scene``). A complete folder counts as the result of a
-scene only when the settings it was made with match: the resolved scene (``scene_resolved`` in
-``summary.json``: reduced or not, backend, tolerance, every key) and the package version.
+scene only when the settings it was made with match -- the resolved scene (``scene_resolved`` in
+``summary.json``: reduced or not, backend, tolerance, every key) and the package version -- and
+every file the render read has the same contents now: the manifest's ``inputs`` record the size
+and SHA-256 of each (:func:`scene_inputs`: the scene file, the table -- the shipped one for
+``file = "default"`` -- and ``target.file``), hashed when the render starts (a table a
+``[table.build]`` makes, when it is placed); one whose contents changed during the render is
+recorded without a hash, so that the folder is never up to date for it
+(:func:`inputs_differ`). Modification times decide nothing: an edited file with an old time, or
+a file replaced by an older one, is noticed. A folder whose manifest records no inputs is not up
+to date for any scene.
 
 The module is longer than most (about 740 lines) because these guarantees are one mechanism:
 ownership, staging, the lock, the journal and the swap rely on each other and are tested together.
@@ -87,8 +95,9 @@ from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["MANIFEST", "OutputFolder", "FileRecord", "owned_files", "is_complete",
-           "settings_differ", "is_toolkit_name", "PACKAGE_VERSION"]
+__all__ = ["MANIFEST", "OutputFolder", "FileRecord", "owned_files", "is_complete", "only_toolkit_files",
+           "check_parents", "settings_differ", "inputs_differ", "scene_inputs", "input_records", "is_toolkit_name",
+           "PACKAGE_VERSION"]
 
 MANIFEST = "ciliary-carpet.manifest"
 MANIFEST_FORMAT = 2
@@ -241,14 +250,94 @@ def settings_differ(out_dir, scene) -> list[str]:
     return diff
 
 
-def is_complete(out_dir, sources=(), scene=None) -> bool:
-    """Whether ``out_dir`` holds a complete render, newer than every file in ``sources`` and,
-    given ``scene``, made with its settings (:func:`settings_differ`).
+def check_parents(path) -> None:
+    """RenderError when ``path`` has a ``..`` after a folder that does not exist
+    (``dd/sub/../../o`` with no ``dd/sub``): making its parents as ``mkdir -p`` does would create
+    folders the path does not name as its own. Nothing is made or changed."""
+    parts = Path(path).parts
+    for k, part in enumerate(parts):
+        if part == ".." and k > 0 and not os.path.isdir(os.path.join(*parts[:k])):
+            missing = os.path.join(*parts[:k])
+            raise RenderError(f"cannot write '{path}': '..' follows {missing}, which does not exist (making it "
+                              f"would create folders the path only passes through); nothing was written: name the "
+                              f"output without '..', e.g. {os.path.normpath(path)}")
+
+
+def scene_inputs(scene) -> dict[str, Path]:
+    """The files a render of ``scene`` reads, by role: ``"scene"`` (its file; none for a scene
+    made in memory), ``"table.file"`` (the shipped table for ``file = "default"``) and
+    ``"target.file"`` (when the target names one), as absolute paths."""
+    from importlib import resources
+
+    from single_cilium.lookup import DEFAULT_FILE
+
+    found: dict[str, Path] = {}
+    if getattr(scene, "source", None) is not None:
+        found["scene"] = Path(scene.source)
+    table = scene.table.path(scene)
+    found["table.file"] = table if table is not None else Path(str(resources.files("single_cilium") / "data"
+                                                                   / DEFAULT_FILE))
+    target_file = getattr(scene.target, "file", None)
+    if isinstance(target_file, str) and target_file.strip():
+        t = Path(target_file).expanduser()
+        found["target.file"] = t if t.is_absolute() else scene.base_dir / t
+    return {k: Path(os.path.abspath(v)) for k, v in found.items()}
+
+
+def input_records(scene) -> dict[str, dict]:
+    """``{role: {"path", "size", "sha256"}}`` of :func:`scene_inputs` as they are now (``size``
+    and ``sha256`` None for a file that cannot be read, e.g. a table not built yet)."""
+    out: dict[str, dict] = {}
+    for role, path in scene_inputs(scene).items():
+        try:
+            r = FileRecord.of(path)
+            out[role] = {"path": str(path), "size": r.size, "sha256": r.sha256}
+        except OSError:
+            out[role] = {"path": str(path), "size": None, "sha256": None}
+    return out
+
+
+def inputs_differ(out_dir, scene) -> list[str]:
+    """The roles of :func:`scene_inputs` whose contents differ between the render in ``out_dir``
+    (its manifest's ``inputs``) and now, the unreadable ones included; ``["inputs"]`` when the
+    manifest records none. Empty when every file the render read is as it was."""
+    try:
+        recorded = json.loads((Path(out_dir) / MANIFEST).read_text()).get("inputs")
+    except (OSError, ValueError, AttributeError):
+        recorded = None
+    if not isinstance(recorded, dict):
+        return ["inputs"]
+    now = input_records(scene)
+    diff = []
+    for role in sorted(set(recorded) | set(now)):
+        old, new = recorded.get(role), now.get(role)
+        if not (isinstance(old, dict) and new is not None and new["sha256"] is not None
+                and old.get("sha256") == new["sha256"] and old.get("size") == new["size"]):
+            diff.append(role)
+    return diff
+
+
+def only_toolkit_files(out_dir) -> bool:
+    """Whether every visible entry of ``out_dir`` is a file a render wrote, unchanged since
+    (:func:`owned_files`): a folder a new render may replace whole without losing anyone's work."""
+    out_dir = Path(out_dir)
+    try:
+        owned = owned_files(out_dir)
+        names = {e.name for e in out_dir.iterdir() if not is_toolkit_name(e.name)}
+    except (OSError, RenderError):
+        return False
+    return owned is not None and names <= owned
+
+
+def is_complete(out_dir, scene=None) -> bool:
+    """Whether ``out_dir`` holds a complete render and, given ``scene``, is up to date for it:
+    made with its settings (:func:`settings_differ`) from inputs with the same contents as now
+    (:func:`inputs_differ`).
 
     Complete: ``summary.json`` and the manifest are there (or, for a folder from before the
     manifest, ``summary.json`` with the resolved scene), every file the manifest lists is there
-    (with its recorded size), and no replacement is under way (no journal). Cheap: no file is
-    read but the manifest and ``summary.json``."""
+    (with its recorded size), and no replacement is under way (no journal). Without ``scene`` no
+    file is read but the manifest and ``summary.json``; with it, the scene's inputs are hashed."""
     out_dir = Path(out_dir)
     s = out_dir / SUMMARY
     if not _is_regular(s) or os.path.lexists(out_dir / JOURNAL):
@@ -268,15 +357,12 @@ def is_complete(out_dir, sources=(), scene=None) -> bool:
                 return False
         except (OSError, KeyError, TypeError, ValueError):
             return False
-    t = s.stat().st_mtime
-    if not all(Path(p).stat().st_mtime < t for p in sources if p is not None and Path(p).exists()):
-        return False
-    return scene is None or not settings_differ(out_dir, scene)
+    return scene is None or not (settings_differ(out_dir, scene) or inputs_differ(out_dir, scene))
 
 
-def write_manifest(folder: Path) -> None:
+def write_manifest(folder: Path, inputs: dict | None = None) -> None:
     """Write ``folder``'s manifest: a record (size, SHA-256) of every file in it but the
-    toolkit's hidden entries."""
+    toolkit's hidden entries, and ``inputs`` (:func:`input_records`: the files the render read)."""
     files: dict = {MANIFEST: {"self": True}}
     for e in sorted(folder.iterdir()):
         if e.name != MANIFEST and not is_toolkit_name(e.name) and _is_regular(e):
@@ -285,8 +371,11 @@ def write_manifest(folder: Path) -> None:
                                   f"(no output in ciliary_carpet.output.outputs.OUTPUTS names it); nothing was placed")
             r = FileRecord.of(e)
             files[e.name] = {"size": r.size, "sha256": r.sha256}
-    _write_json(folder / MANIFEST, {"written_by": "ciliary-carpet", "format": MANIFEST_FORMAT,
-                                    "package_version": PACKAGE_VERSION, "files": files}, sync=False)
+    body = {"written_by": "ciliary-carpet", "format": MANIFEST_FORMAT, "package_version": PACKAGE_VERSION,
+            "files": files}
+    if inputs is not None:
+        body["inputs"] = inputs
+    _write_json(folder / MANIFEST, body, sync=False)
 
 
 def _write_json(path: Path, obj, *, sync: bool) -> None:
@@ -537,6 +626,7 @@ class OutputFolder:
         self._stage: Path | None = None
         self._aside: Path | None = None
         self._journaled = False  # a swap began: on failure, its folders are kept for the next render
+        self._inputs: dict | None = None  # the files the render reads, hashed when it starts
 
     # -------------------------------------------------------------- enter / exit
     def __enter__(self) -> "OutputFolder":
@@ -580,6 +670,8 @@ class OutputFolder:
             self._recover()
             self._clean_inside()
         self.owned = self._check()
+        if self.scene is not None:
+            self._inputs = input_records(self.scene)  # before the render reads them
 
     def _close(self) -> None:
         for p in (self._stage, self._aside):
@@ -591,7 +683,9 @@ class OutputFolder:
 
     def _make_parents(self) -> None:
         """The folders above a new output folder, made as ``mkdir -p`` does (kept: a batch's
-        other scenes may be writing there)."""
+        other scenes may be writing there); none when the path climbs out of one that does not
+        exist (:func:`check_parents`)."""
+        check_parents(self.path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -696,7 +790,7 @@ class OutputFolder:
         file the swap would replace is no longer the toolkit's."""
         stage = self._stage
         assert stage is not None, "stage() first"
-        write_manifest(stage)
+        write_manifest(stage, self._read_inputs())
         try:
             if self.fresh:
                 os.chmod(stage, usual_mode(executable=True))
@@ -736,6 +830,25 @@ class OutputFolder:
             half = (f"; the replacement stopped half-way and the next render of {self.path} completes it from "
                     f"its journal" if self._journaled and not self.placed else "")
             raise RenderError(f"cannot write '{exc.filename or self.path}': {exc.strerror or exc}{half}") from None
+
+    def _read_inputs(self) -> dict | None:
+        """The inputs to record: as hashed at the start; one missing then (a table the render
+        built) as it is now; one whose contents changed during the render without a hash (the
+        render may have read either version)."""
+        if self._inputs is None:
+            return None
+        now = input_records(self.scene)
+        rec = {}
+        for role, start in self._inputs.items():
+            end = now.get(role, start)
+            if start["sha256"] is None:
+                rec[role] = end
+            elif end["sha256"] != start["sha256"]:
+                logger.warning("%s changed during the render; %s is not up to date for it", start["path"], self.path)
+                rec[role] = {"path": start["path"], "size": None, "sha256": None}
+            else:
+                rec[role] = start
+        return rec
 
     def files(self) -> tuple[str, ...]:
         """The names in the folder, the toolkit's hidden entries left out."""

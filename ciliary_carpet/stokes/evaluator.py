@@ -29,9 +29,10 @@ The evaluators, by the names a scene or the command line gives (:data:`BACKENDS`
 :func:`backend_named`): :class:`Auto` (``"auto"``, the default), which picks the GPU when one is
 usable, else :class:`~ciliary_carpet.stokes.direct.Direct` or
 :class:`~ciliary_carpet.stokes.fmm.FMM`; ``"direct"``, the O(MN) sums compiled with numba;
-``"fmm"``, the fast multipole method of ``fmm3dpy`` (free space only; optional dependency
-``pip install cilia-flow[fmm]``; no ranged sums: :func:`ranged_evaluator` runs them on
-:class:`~ciliary_carpet.stokes.direct.Direct`, and says so in the log); ``"cuda"``,
+``"fmm"``, the fast multipole method of ``fmm3dpy`` (the singular free-space Stokeslet only:
+the dense sums of other kernels run on :class:`~ciliary_carpet.stokes.direct.Direct`; optional
+dependency ``pip install cilia-flow[fmm]``; no ranged sums: :func:`ranged_evaluator` runs them on
+:class:`~ciliary_carpet.stokes.direct.Direct`; both said in the log and in ``describe()``); ``"cuda"``,
 ``"cuda-fp32"``, ``"cuda-fp32-acc64"``, :class:`~ciliary_carpet.stokes.cuda.Cuda`, both sums on
 an NVIDIA GPU (optional dependency ``pip install cilia-flow[gpu]``). A new evaluator is one module
 (a :class:`~ciliary_carpet.stokes.backend.Backend`) plus its entry in ``_NAMED`` here.
@@ -129,7 +130,7 @@ class Auto(Backend):
 _NAMED: dict[str, Callable[[], Backend]] = {
     "auto": Auto,
     "direct": Direct,
-    "fmm": FMM,
+    "fmm": functools.partial(FMM, direct_otherwise=True),
     "cuda": functools.partial(Cuda, "fp64"),
     "cuda-fp32": functools.partial(Cuda, "fp32"),
     "cuda-fp32-acc64": functools.partial(Cuda, "fp32-acc64"),
@@ -142,7 +143,7 @@ BACKENDS: tuple[str, ...] = tuple(_NAMED)
 
 def backend_named(name: str) -> Backend:
     """The evaluator called ``name`` (:data:`BACKENDS`): ``"auto"`` :class:`Auto`, ``"direct"``
-    :class:`~ciliary_carpet.stokes.direct.Direct`, ``"fmm"`` :class:`~ciliary_carpet.stokes.fmm.FMM`,
+    :class:`~ciliary_carpet.stokes.direct.Direct`, ``"fmm"`` :class:`~ciliary_carpet.stokes.fmm.FMM` (``direct_otherwise=True``),
     ``"cuda"`` :class:`~ciliary_carpet.stokes.cuda.Cuda` in fp64, ``"cuda-fp32"`` /
     ``"cuda-fp32-acc64"`` the same in fp32 / fp32 summed in fp64 (error bound:
     :mod:`ciliary_carpet.stokes.cuda`).

@@ -8,6 +8,7 @@ Throughput and the crossover with :class:`~ciliary_carpet.stokes.direct.Direct` 
 from __future__ import annotations
 
 import functools
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +19,8 @@ from ciliary_carpet.stokes.backend import Backend
 from ciliary_carpet.stokes.kernel import Kernel, Stokeslet
 
 __all__ = ["FMM", "FMM_CROSSOVER_PAIRS", "fmm_available"]
+
+logger = logging.getLogger(__name__)
 
 #: Default :class:`~ciliary_carpet.stokes.evaluator.Auto` threshold on ``M * N``: below it the
 #: direct sum is used. The measured crossover (benchmarks/results/bench_kernel.md; 2 cores, AMD
@@ -37,6 +40,12 @@ def _import_fmm3dpy():
     return fmm3dpy
 
 
+@functools.cache
+def _told(kernel: str) -> None:
+    logger.warning("backend fmm: the FMM sums only the singular free-space Stokeslet; the dense sums of %s run on "
+                   "direct (CPU)", kernel)
+
+
 def fmm_available() -> bool:
     """Whether fmm3dpy is installed (asked once per process)."""
     return _import_fmm3dpy() is not None
@@ -50,12 +59,20 @@ class FMM(Backend):
     ``1/(8 pi)``; checked numerically), and omits coincident pairs; the result is divided by
     ``mu``. The pip wheel of fmm3dpy 2.1.0 runs on one thread. No ranged sums
     (``ranged_sums`` False): :func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity_ranges`
+    (and a carpet's sums, through :func:`~ciliary_carpet.stokes.evaluator.ranged_evaluator`)
     runs them on :class:`~ciliary_carpet.stokes.direct.Direct`, as :meth:`describe` says.
 
     Parameters
     ----------
     eps : float, default 1e-12
         Requested relative precision, in (0, 1).
+    direct_otherwise : bool, default False
+        What a dense sum of another kernel (a wall, a blob) does: False, a ValueError; True, it
+        runs on :class:`~ciliary_carpet.stokes.direct.Direct` (logged once per process and
+        kernel type). The evaluator a scene's or the command line's ``backend = "fmm"`` names
+        has it True (a carpet's Green's function is regularised: the FMM then runs none of its
+        sums, and :meth:`describe`, which the render's summary quotes, says which evaluator
+        runs which sums).
 
     Raises
     ------
@@ -67,6 +84,7 @@ class FMM(Backend):
     """
 
     eps: float = 1e-12
+    direct_otherwise: bool = False
 
     def __post_init__(self) -> None:
         eps = positive("eps", self.eps)
@@ -79,6 +97,11 @@ class FMM(Backend):
 
     def dense(self, kernel: Kernel, targets: np.ndarray, sources: np.ndarray, forces: np.ndarray,
               mu: float) -> np.ndarray:
+        if not self.supports(kernel) and self.direct_otherwise:
+            _told(type(kernel).__name__)
+            from ciliary_carpet.stokes.direct import Direct
+
+            return Direct().dense(kernel, targets, sources, forces, mu)
         if not self.supports(kernel):
             raise ValueError(f"the FMM backend supports the singular free-space Stokeslet only, not "
                              f"{type(kernel).__name__}; use backend=Direct() (or Auto())")
@@ -98,4 +121,6 @@ class FMM(Backend):
         return np.ascontiguousarray(u) / mu
 
     def describe(self) -> str:
-        return f"fmm (fmm3dpy, eps {self.eps:g}; ranged sums: direct, CPU)"
+        other = ("; dense sums of kernels other than the singular free-space Stokeslet (a wall, a blob): direct, CPU"
+                 if self.direct_otherwise else "")
+        return f"fmm (fmm3dpy, eps {self.eps:g}{other}; ranged sums: direct, CPU)"
