@@ -25,7 +25,7 @@ from .params import CiliumParams
 from .progress import TqdmProgress
 from .radau import ConvergenceError
 from .stability import flutter_boundary, flutter_cutoff, stability, stability_map
-from .cycle import limit_cycle
+from .cycle import N_PHASE_START, check_cycle_cost, check_degree, check_mesh_size, limit_cycle
 from .orbit import METHODS
 
 logger = logging.getLogger(__name__)
@@ -165,7 +165,7 @@ def cmd_table(args) -> dict:
     t = build_table(chi_E, args.eta, args.chi_N, U_par=args.U_par, U_perp=args.U_perp, degree=args.degree,
                     n_phase=args.n_phase, scheduler=args.scheduler, scheduler_timeout=args.scheduler_timeout,
                     path=args.output, progress=None if args.quiet else TqdmProgress(delay=0.5),
-                    error_estimate=not args.no_error_estimate, tol=args.tol)
+                    error_estimate=not args.no_error_estimate, tol=args.tol, overwrite=args.overwrite)
     ds = t.ds
     regime = ds.regime.values
     computed = regime != REGIMES.index("not_computed")
@@ -254,7 +254,10 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument("--U-perp", dest="U_perp", type=_flow_grid, default=None, metavar="GRID",
                     help="background flow across the field (+e1, units L/tau), as --U-par; give a grid symmetric "
                          "about 0 (negative chi_N are served at -U_perp)")
-    pt.add_argument("-o", "--output", required=True, help="NetCDF file (rows kept in OUTPUT.parts/ until done)")
+    pt.add_argument("-o", "--output", required=True,
+                    help="NetCDF file (rows kept in OUTPUT.parts/ until done; an existing OUTPUT is refused "
+                         "without --overwrite)")
+    pt.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT")
     pt.add_argument("--scheduler", help="Dask distributed scheduler address (default: local process pool)")
     pt.add_argument("--scheduler-timeout", dest="scheduler_timeout", type=float, default=None, metavar="SECONDS",
                     help="how long to wait for the scheduler to answer before giving up (default 20, or "
@@ -313,6 +316,43 @@ def _hint(args) -> str:
     return "; try a higher --degree" if hasattr(args, "degree") else ""
 
 
+def _check_args(args) -> None:
+    """Refuse, before any work, settings out of range or whose cost is beyond reason: a
+    ValueError naming the option, its valid range or the largest sensible value."""
+    cmd = args.command
+    if not hasattr(args, "degree"):
+        return
+    with_estimate = cmd in ("cycle", "table") and not args.no_error_estimate
+    degree = check_degree(args.degree, with_estimate, "--degree")
+    n_phase = getattr(args, "n_phase", None)
+    if n_phase is not None and n_phase < 16:
+        raise ValueError(f"--n-phase must be an integer >= 16, got {n_phase}")
+    if cmd in ("simulate", "stability", "cycle"):
+        check_mesh_size(_params(args), degree, "--chi-N", "--degree")
+    elif cmd == "map":
+        weakest = float(np.min(np.abs(args.chi_E))) if args.chi_E.size else 1.0
+        check_mesh_size(CiliumParams(weakest, 1.0, args.chi_N), degree, "--chi-N", "--degree")
+    if cmd in ("cycle", "table"):
+        chi_E = args.chi_E if cmd == "cycle" else float(np.max(np.abs(args.chi_E))) if args.chi_E.size else 1.0
+        p = CiliumParams(chi_E, 1.0, args.chi_N if cmd == "cycle" else 0.0)
+        check_cycle_cost(Mesh.for_params(p, degree), N_PHASE_START if n_phase is None else n_phase, "--n-phase",
+                         "--degree")
+
+
+def _interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:
+    """The interrupt behind ``exc``: ``exc`` itself, or the KeyboardInterrupt (a signal) that a
+    compiled function returned with set ("SystemError: ... returned a result with an exception
+    set", which carries it as its cause)."""
+    seen = 0
+    while exc is not None and seen < 8:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        if not isinstance(exc, SystemError):
+            return None
+        exc, seen = exc.__cause__ or exc.__context__, seen + 1
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
@@ -321,7 +361,14 @@ def main(argv: list[str] | None = None) -> int:
     name = f"single-cilium {args.command}"
     try:
         with terminate_as_interrupt():  # SIGTERM, SIGHUP: the Ctrl-C cleanup, exit 128 + signum
-            out = args.func(args)
+            _check_args(args)
+            try:
+                out = args.func(args)
+            except SystemError as exc:  # a signal that came back through a compiled function
+                stop = _interrupt_of(exc)
+                if stop is None:
+                    raise
+                raise stop from None
             text = strict_json(out, indent=1) if getattr(args, "json", False) else None
     except KeyboardInterrupt as exc:
         print(f"{name}: {exc if isinstance(exc, Terminated) else 'interrupted'}", file=sys.stderr)

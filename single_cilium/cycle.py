@@ -66,10 +66,25 @@ from .stability import stability
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["limit_cycle", "LimitCycle", "CycleError", "METHODS", "mean_thrust", "MeanThrust"]
+__all__ = ["limit_cycle", "LimitCycle", "CycleError", "METHODS", "mean_thrust", "MeanThrust", "check_degree",
+           "check_mesh_size", "check_cycle_cost", "cycle_seconds", "MAX_DEGREE", "MAX_NODES", "MAX_CYCLE_SECONDS"]
 
 N_PHASE_START = 32
 N_PHASE_MAX = 1024
+#: The highest mesh degree: :meth:`Mesh.for_params <single_cilium.mesh.Mesh.for_params>` resolves
+#: the equilibrium to about ``10^(1 - degree / 2)`` per element, which above 32 asks for more than
+#: double precision: every element is then bisected, to a mesh of 256 elements (10241 nodes at
+#: degree 40, where a cycle would take weeks).
+MAX_DEGREE = 32
+#: The most nodes of a mesh a computation accepts up front (a coiled filament gets an element per
+#: half turn): a limit cycle of 32 steps on 1200 nodes is estimated at about an hour.
+MAX_NODES = 1200
+#: The longest estimated time of one limit cycle (:func:`cycle_seconds`) that is started.
+MAX_CYCLE_SECONDS = 3600.0
+#: Seconds per step of the period and per node^3 of the mesh of one limit cycle by shooting (dense
+#: solves of the stage system and the monodromy update, O(nodes^3) per step; Newton and Floquet
+#: included): measured 5.5e-8 to 6.3e-8 at degrees 16 to 32, 64 steps, on one core.
+_SECONDS_PER_STEP_NODE3 = 6e-8
 #: the change under halving the steps, divided by this, estimates the time error: Radau IIA is of
 #: order 5 at the step ends; 2^4 - 1 assumes order 4 at least (the refinement test checks it)
 _RICHARDSON = 15.0
@@ -77,6 +92,64 @@ _RICHARDSON = 15.0
 
 class CycleError(ConvergenceError):
     """The periodic orbit could not be converged; the message says what to change."""
+
+
+def check_degree(degree, error_estimate: bool = True, name: str = "degree") -> int:
+    """``degree`` as an int, or a ValueError naming ``name`` and the valid range: ``[4, MAX_DEGREE]``
+    with error estimates (they compare with degree - 2), ``[2, MAX_DEGREE]`` without."""
+    lo = 4 if error_estimate else 2
+    try:
+        ok = float(degree).is_integer() and lo <= int(degree) <= MAX_DEGREE
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        why = ""
+        if isinstance(degree, (int, float, np.integer, np.floating)) and math.isfinite(degree):
+            if degree > MAX_DEGREE:
+                why = (f" (above {MAX_DEGREE} the mesh asks for more than double precision and grows to 256 "
+                       "elements)")
+            elif degree < lo and error_estimate:
+                why = " (the error estimate compares with degree - 2, which must be >= 2)"
+        raise ValueError(f"{name} must be an integer in [{lo}, {MAX_DEGREE}]{why}, got {degree!r}")
+    return int(degree)
+
+
+def check_mesh_size(params: CiliumParams, degree: int, chi_N_name: str = "chi_N", degree_name: str = "degree") -> None:
+    """A ValueError, before the mesh is made, when ``Mesh.for_params(params, degree)`` would have
+    more than :data:`MAX_NODES` nodes: a coiled filament (``|chi_N| > |chi_E|``) gets an element
+    per half turn. The message names ``chi_N_name`` and its largest value at this degree."""
+    cE, cN = abs(params.chi_E), abs(params.chi_N)
+    if cE >= cN:
+        return  # a clamp layer and a few elements
+    nodes = math.ceil(cN / math.pi) * degree + 1
+    if nodes > MAX_NODES:
+        top = math.pi * ((MAX_NODES - 1) // degree)
+        raise ValueError(f"{chi_N_name} = {params.chi_N:g} is beyond what can be computed here: with |chi_E| = "
+                         f"{cE:g} the filament is coiled ({cN / (2 * math.pi):.3g} turns), and its mesh (an element "
+                         f"of {degree_name} {degree} per half turn) would have at least {nodes:.3g} nodes; "
+                         f"|{chi_N_name}| must be at most {top:.4g} here (a mesh of at most {MAX_NODES} nodes)")
+
+
+def cycle_seconds(n_nodes: int, n_phase: int) -> float:
+    """Estimated seconds of one limit cycle by shooting on a mesh of ``n_nodes`` nodes with
+    ``n_phase`` steps per period, without error estimates (they add about half again), on one
+    core of a 2020s machine: ``n_phase * n_nodes^3`` times a measured constant."""
+    return _SECONDS_PER_STEP_NODE3 * float(n_phase) * float(n_nodes) ** 3
+
+
+def check_cycle_cost(mesh: Mesh, n_phase: int, name: str = "n_phase", degree_name: str = "degree") -> None:
+    """A ValueError when one limit cycle on ``mesh`` with ``n_phase`` steps is estimated
+    (:func:`cycle_seconds`) to take longer than :data:`MAX_CYCLE_SECONDS`; the message gives the
+    estimate and the largest ``n_phase`` that fits (or says to lower the degree)."""
+    est = cycle_seconds(mesh.n_nodes, n_phase)
+    if est <= MAX_CYCLE_SECONDS:
+        return
+    top = int(MAX_CYCLE_SECONDS / cycle_seconds(mesh.n_nodes, 1))
+    fix = (f"{name} must be at most {top} on this mesh" if top >= 16 else
+           f"lower {degree_name} (now {mesh.degree})")
+    raise ValueError(f"{name} = {n_phase} steps per period on a mesh of {mesh.n_nodes} nodes ({mesh.n_elements} "
+                     f"elements of degree {mesh.degree}): one limit cycle is estimated at {est / 3600:.3g} hours, "
+                     f"beyond the {MAX_CYCLE_SECONDS / 3600:g} hour limit; {fix}")
 
 
 def _wrap(angle: float) -> float:
@@ -384,9 +457,14 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         of the shooting method carries the stream's terms exactly.
     mesh : Mesh, optional
         Default ``Mesh.for_params(params, degree)`` (graded for the still-fluid clamp layer).
+    degree : int
+        Of that mesh: in ``[4, MAX_DEGREE]`` with error estimates (they compare with degree - 2),
+        ``[2, MAX_DEGREE]`` without; a coiled filament's mesh must not exceed :data:`MAX_NODES`.
     n_phase : int, optional
         Constant steps per period = points of the uniform phase grid (>= 16). Default: chosen
-        by the solver (doubling from 32 until the time error estimate is below ``rtol``).
+        by the solver (doubling from 32 until the time error estimate is below ``rtol``). A
+        cycle estimated to take longer than :data:`MAX_CYCLE_SECONDS` (:func:`cycle_seconds`,
+        with 32 steps when chosen by the solver) is refused up front.
     tol : float
         Newton tolerance on the scaled shooting residual.
     rtol : float
@@ -416,6 +494,9 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
 
     Raises
     ------
+    ValueError
+        A setting out of range, or a cycle whose estimated cost is beyond the limits above
+        (the message gives the estimate and the largest sensible value).
     CycleError
         When the orbit does not converge (the message says what to change), or, in a background
         flow, when the filament has no steady state in it to start from.
@@ -430,7 +511,12 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         raise ValueError(f"tol must lie in (0, 1e-3), got {tol}")
     if not (0 < rtol < 1e-1):
         raise ValueError(f"rtol must lie in (0, 0.1), got {rtol}")
-    mesh = mesh if mesh is not None else Mesh.for_params(params, degree)
+    if mesh is None:
+        check_mesh_size(params, check_degree(degree, error_estimate))
+        mesh = Mesh.for_params(params, int(degree))
+    else:
+        check_degree(mesh.degree, error_estimate, "mesh degree")
+    check_cycle_cost(mesh, N_PHASE_START if n_phase is None else int(n_phase))
     try:
         theta_lim = limit_angle(params.with_background((0.0, 0.0)))
     except NoLimitAngleError:

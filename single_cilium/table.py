@@ -37,7 +37,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import shutil
 from concurrent.futures import Executor
 from pathlib import Path
 
@@ -46,8 +45,9 @@ import xarray as xr
 
 from .version import __version__
 from .files import write_netcdf
-from .cycle import CycleError, LimitCycle, limit_cycle
+from .cycle import CycleError, LimitCycle, check_cycle_cost, check_degree, limit_cycle
 from .lookup import DEFAULT_FILE, ThrustTable
+from .mesh import Mesh
 from .params import CiliumParams
 from .progress import Progress
 from .radau import ConvergenceError
@@ -129,8 +129,11 @@ def _chunk_rows(grid: TableGrid, eta: float, chi_Ns, settings: dict, parts, skip
                     except CycleError as exc:
                         where = f"chi_E = {E:g}, eta = {eta:g}" + (f", U_par = {up:g}, U_perp = {uq:g}"
                                                                    if grid.kind == "flow" else "")
+                        why = str(exc).replace("; give a seed from a neighbouring chi_N or raise the degree", "")
                         err = CycleError(f"thrust table ({where}): the cycle at chi_N = {cN:.10g} did not converge "
-                                         f"({exc})", exc.t)
+                                         f"({why}); a finer chi_N grid (each cycle starts from its neighbours')"
+                                         + (", a finer flow grid" if grid.kind == "flow" else "")
+                                         + " or a higher degree may converge", exc.t)
                         err.key = (float(E), float(up), float(uq), float(cN))
                         raise err from None
                     seeds.append(cyc)
@@ -194,7 +197,7 @@ def _snake(U_par: np.ndarray, U_perp: np.ndarray) -> list[tuple[float, float]]:
 def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: int = 8, n_phase: int = 64,
                 n_s: int = 65, executor: Executor | None = None, scheduler: str | None = None,
                 progress: Progress | None = None, path=None, error_estimate: bool = True,
-                tol: float = 1e-8, scheduler_timeout: float | None = None) -> ThrustTable:
+                tol: float = 1e-8, scheduler_timeout: float | None = None, overwrite: bool = False) -> ThrustTable:
     """Compute the thrust table of DESIGN.md over ``chi_N`` (>= 0, strictly increasing), for one
     field (``chi_E`` a number), over a grid of field strengths (``chi_E`` a sequence), or for
     one field over a grid of background flows (``U_par``, ``U_perp``).
@@ -228,9 +231,12 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
         (the flow tips the filament over: NaN); a flow may suppress flutter altogether or keep
         it up to the coiled filament (no cutoff: its rows are fine, but the flows around it are
         not interpolated).
-    degree, n_phase : discretisation of each cycle (see :func:`limit_cycle`).
+    degree, n_phase : discretisation of each cycle (see :func:`limit_cycle`): ``degree`` in
+        ``[4, MAX_DEGREE]`` (``[2, MAX_DEGREE]`` without ``error_estimate``), ``n_phase`` an
+        integer >= 16 whose cycle is estimated within
+        :data:`~single_cilium.cycle.MAX_CYCLE_SECONDS`.
     n_s : int
-        Points of the uniform arc-length grid of the stored shapes and forces.
+        Points (>= 2) of the uniform arc-length grid of the stored shapes and forces.
     executor : concurrent.futures.Executor, optional
         Where chunks run (default: a process pool over the machine's cores).
     scheduler : str, optional
@@ -242,7 +248,13 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     path : path-like, optional
         Where the table is written; finished rows are kept in ``<path>.parts/`` while building,
         so a rerun after an interruption computes only the missing rows (rows of another field,
-        chi_E grid, flow grid or settings are refused).
+        chi_E grid, flow grid or settings are refused, and so is a ``row_*.nc`` there that cannot
+        be read: none is removed). Once the table is written, the build removes the row files
+        of this build and then the folder if it is empty (any other file keeps it). Every
+        argument is checked before anything is created.
+    overwrite : bool
+        Replace an existing file at ``path`` (default: refuse it, before any work; an
+        interrupted build leaves no file at ``path``, only its rows).
     error_estimate : bool
         Refinement error estimates per row (about doubles the cost); NaN without.
     tol : float
@@ -252,12 +264,12 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     Raises
     ------
     ValueError
-        A bad grid or setting (named).
+        A bad grid or setting (named), or an existing ``path`` without ``overwrite``.
     CycleError
         A cycle that did not converge, naming the row and the last good one before it (the
         finished rows are kept with ``path``, and the same request resumes from them).
     TableError
-        Rows in ``<path>.parts/`` of another build.
+        Rows in ``<path>.parts/`` of another build, or a file there that cannot be read.
     """
     grid_E = _validated_chi_E(chi_E)
     flow = U_par is not None or U_perp is not None
@@ -284,6 +296,20 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
         raise ValueError("chi_N grid must be >= 0 (negative chi_N follow by mirror symmetry)")
     if not (0 < tol < 1e-3):
         raise ValueError(f"tol must lie in (0, 1e-3), got {tol}")
+    degree = check_degree(degree, error_estimate)
+    if not (float(n_phase).is_integer() and n_phase >= 16):
+        raise ValueError(f"n_phase must be an integer >= 16, got {n_phase!r}")
+    if not (float(n_s).is_integer() and n_s >= 2):
+        raise ValueError(f"n_s must be an integer >= 2, got {n_s!r}")
+    n_phase, n_s = int(n_phase), int(n_s)
+    check_cycle_cost(Mesh.for_params(CiliumParams(max(fields, key=abs), eta, 0.0), degree), n_phase)
+    if path is not None:
+        target = Path(path)
+        if target.is_dir():
+            raise ValueError(f"{target}: is a folder; the table path must name a file")
+        if target.exists() and not overwrite:
+            raise ValueError(f"{target} exists: a table build replaces a file only when asked to (overwrite=True, "
+                             "--overwrite); choose another path or remove it")
     cuts = {col: flutter_cutoff(col[0], eta, degree=degree, background=(col[2], col[1])) for col in columns}
     cutoff = {col: c.chi_N_cutoff for col, c in cuts.items()}
     lo, hi = cN_grid[0], cN_grid[-1]
@@ -307,10 +333,11 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     own = {(col[0], col[1], col[2], c) for col in columns for c in grid_list if c not in skip[col] or skip[col][c]}
     parts = None
     rows: dict[tuple, xr.Dataset] = {}
+    ours: set[Path] = set()  # the row files of this build in parts
     if path is not None:  # absolute: a Dask worker writes the rows from its own folder
         parts = Path(os.path.abspath(str(path) + ".parts"))
         parts.mkdir(parents=True, exist_ok=True)
-        rows = resume(parts, grid_spec, own, grid_spec.fingerprint(eta, settings), fields[0])
+        rows = resume(parts, grid_spec, own, grid_spec.fingerprint(eta, settings), fields[0], ours)
         if rows:
             logger.info("build_table: resuming %s, %d of %d rows done", parts, len(rows), len(own))
     for col in columns:
@@ -364,8 +391,21 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     table = ThrustTable(with_attrs(ds))
     if path is not None:
         table.save(path)
-        shutil.rmtree(parts, ignore_errors=True)
+        _remove_rows(parts, ours | {grid_spec.file(parts, k) for k in own})
     return table
+
+
+def _remove_rows(parts: Path, files: set) -> None:
+    """Remove this build's row files from ``parts`` (and their temporaries left by a killed
+    writer), then ``parts`` itself if that leaves it empty; any other file stays."""
+    for f in files:
+        f.unlink(missing_ok=True)
+        for tmp in parts.glob(f".{f.name}.*.part"):  # files.write_bytes' temporaries
+            tmp.unlink(missing_ok=True)
+    try:
+        parts.rmdir()
+    except OSError:
+        logger.warning("build_table: kept %s: it holds files this build did not write", parts)
 
 
 def _run(grid: TableGrid, eta, todo, weight, settings, parts, skip, rows, executor, scheduler, scheduler_timeout,
@@ -416,9 +456,17 @@ def _run(grid: TableGrid, eta, todo, weight, settings, parts, skip, rows, execut
         if own is not None and own is executor and hasattr(own, "_processes"):  # our process pool (a Dask
             # client's tasks are released when it closes below; Client.shutdown would stop the cluster)
             procs = list((getattr(own, "_processes", None) or {}).values())  # shutdown() forgets them
+            manager = getattr(own, "_executor_manager_thread", None)
             own.shutdown(wait=False, cancel_futures=True)
             for proc in procs:
                 proc.terminate()
+            # wait (briefly) until the workers are gone and the pool's manager thread has closed its
+            # pipes: left running, it closes them while this process exits, and its queue's feeder
+            # thread then writes to a closed descriptor (OSError: [Errno 9] Bad file descriptor)
+            for proc in procs:
+                proc.join(5.0)
+            if manager is not None:
+                manager.join(5.0)
         raise
     finally:
         progress.close()

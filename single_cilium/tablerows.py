@@ -149,17 +149,26 @@ class TableGrid:
                 "build_schema_version": SCHEMA_VERSION}
 
 
-def resume(parts: Path, grid: TableGrid, wanted: set, want: dict, chi_E: float) -> dict[tuple, xr.Dataset]:
+def resume(parts: Path, grid: TableGrid, wanted: set, want: dict, chi_E: float,
+           ours: set | None = None) -> dict[tuple, xr.Dataset]:
     """Rows of an interrupted build in ``parts`` that match the request (keys in ``wanted``);
-    refuse any other."""
+    refuse any other. ``ours``, if given, gains the path of every row file it returns (the
+    files the build may remove once the table is written).
+
+    Nothing in ``parts`` is removed or changed: a build writes each row file whole (a temporary,
+    renamed), so a ``row_*.nc`` that cannot be read is not one of its rows; it is refused
+    (:class:`TableError` naming it), as is a row of a build with other settings.
+    """
     done: dict[tuple, xr.Dataset] = {}
     for f in sorted(parts.glob("row_*.nc")):
         try:
             with xr.open_dataset(f, engine="h5netcdf") as r:
                 r = r.load()
-        except (OSError, ValueError):
-            f.unlink()  # a row file cut short by the interruption
-            continue
+        except (OSError, ValueError) as exc:
+            why = " ".join(str(exc).split())[:160] or type(exc).__name__
+            raise TableError(f"{f}: not a readable row of a table build ({why}); a build writes its rows whole, "
+                             f"so this file is not one of them and is left as it is: move it out of {parts} (or "
+                             "build into another path), then repeat the request") from None
         got = {k: r.attrs.get(k) for k in want}
         bad = [k for k in want if not _same(got[k], want[k])]
         if bad:
@@ -171,8 +180,10 @@ def resume(parts: Path, grid: TableGrid, wanted: set, want: dict, chi_E: float) 
                              f"merged into this table: remove {parts} (or build into another path) to "
                              "start afresh, or repeat the original request to resume it")
         key = grid.key(r, chi_E)
-        if key in wanted:  # rows outside the requested grid are never merged in
+        if key in wanted:  # rows outside the requested grid are never merged in (nor removed)
             done[key] = r
+            if ours is not None:
+                ours.add(Path(f))
     return done
 
 

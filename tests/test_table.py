@@ -117,7 +117,11 @@ def test_interrupted_build_resumes(tmp_path):
     row = first.ds.isel(chi_N=[0]).drop_vars(["phase", "s"]).copy(deep=True)
     row["tip_area"][:] = 12345.0  # a marker: a recomputed row would not carry it
     row.to_netcdf(parts / "row_150.nc", engine="h5netcdf")
-    (parts / "row_155.nc").write_bytes(b"cut short")  # a row file the interruption left broken
+    (parts / "row_155.nc").write_bytes(b"cut short")  # not a row this build wrote (it writes them whole)
+    with pytest.raises(TableError, match=r"row_155.nc: not a readable row .*left as it is"):
+        build_table(200, 1, [150.0, 155.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert (parts / "row_155.nc").read_bytes() == b"cut short" and not path.exists()
+    (parts / "row_155.nc").unlink()
     with ThreadPoolExecutor(1) as ex:
         t = build_table(200, 1, [150.0, 155.0], executor=ex, path=path, **FAST)
     assert float(t.ds.tip_area.sel(chi_N=150.0)) == 12345.0

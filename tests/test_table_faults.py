@@ -42,3 +42,106 @@ def test_a_damaged_numba_cache_file_is_discarded_and_rebuilt(tmp_path, damage):
     assert len(second.stderr.strip().splitlines()) == 1, second.stderr
     third = _python(_COMPILE, cache)
     assert third.returncode == 0 and third.stderr.strip() == "", third.stderr
+
+
+# ------------------------------------------------------------------ the build's files
+FAST = dict(degree=6, n_phase=32, n_s=17, error_estimate=False)
+
+
+def test_a_build_removes_only_its_own_row_files(tmp_path):
+    """A user's file in an existing ``TABLE.parts/`` survives the build (which removes only the
+    row files it wrote, and keeps the folder that is then not empty)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from single_cilium.table import build_table
+
+    path, parts = tmp_path / "t.nc", tmp_path / "t.nc.parts"
+    parts.mkdir()
+    (parts / "notes.txt").write_text("mine")
+    build_table(200, 1, [150.0], executor=ThreadPoolExecutor(1), path=path, **FAST)
+    assert path.is_file() and (parts / "notes.txt").read_text() == "mine"
+    assert sorted(p.name for p in parts.iterdir()) == ["notes.txt"]
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(degree=2, error_estimate=True), r"degree must be an integer in \[4, 32\].*degree - 2.*got 2"),
+    (dict(degree=40), r"degree must be an integer in \[2, 32\].*double precision.*got 40"),
+    (dict(n_phase=1), r"n_phase must be an integer >= 16, got 1"),
+    (dict(n_phase=10**8), r"n_phase = 100000000 .* hours.*n_phase must be at most \d+"),
+    (dict(n_s=1), r"n_s must be an integer >= 2"),
+])
+def test_bad_settings_are_refused_before_anything_is_created(tmp_path, bad, match):
+    """Bad settings are refused, named, with the valid range, before the row folder is made."""
+    from single_cilium.table import build_table
+
+    with pytest.raises(ValueError, match=match):
+        build_table(200, 1, [150.0], path=tmp_path / "t.nc", **{**FAST, **bad})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_existing_file_is_replaced_only_with_overwrite(tmp_path, capsys):
+    """``single-cilium table -o data.nc`` over an existing file (not a table) refuses it, exit 2,
+    before any work; with ``--overwrite`` it is replaced."""
+    from single_cilium.cli import main
+
+    out = tmp_path / "data.nc"
+    out.write_text("my data")
+    argv = ["table", "--chi-E", "200", "--eta", "1", "--chi-N", "150", "--degree", "6", "--n-phase", "32",
+            "--no-error-estimate", "--quiet", "-o", str(out)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and str(out) in err and "--overwrite" in err, err
+    assert out.read_text() == "my data" and sorted(p.name for p in tmp_path.iterdir()) == ["data.nc"]
+    assert main(argv + ["--overwrite"]) == 0
+    from single_cilium.table import ThrustTable
+
+    assert ThrustTable.load(out).ds.chi_N.values.tolist() == [150.0]
+
+
+# ------------------------------------------------------------------ a scene's [table.build]
+TINY = ('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\nsnapshots = 0\n'
+        'frames = 1\npreview = false\n')
+
+
+def test_a_table_build_that_cannot_converge_exits_3_naming_the_scene_keys(tmp_path, monkeypatch, capsys):
+    """A render whose ``[table.build]`` meets a cycle that does not converge exits 3 with one line
+    naming the row and the ``[table.build]`` keys to change (never exit 1 "internal error"); the
+    rows finished before it are kept for the rerun."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import single_cilium.table as table_mod
+    from ciliary_carpet.cli import main
+    from single_cilium.cycle import CycleError
+
+    real_build, real_cycle = table_mod.build_table, table_mod.limit_cycle
+
+    def failing(p, **kw):
+        if p.chi_N > 0:
+            raise CycleError(f"{p}: shooting did not converge (injected); give a seed from a neighbouring chi_N or "
+                             "raise the degree", 0.0)
+        return real_cycle(p, **kw)
+
+    monkeypatch.setattr(table_mod, "limit_cycle", failing)
+    monkeypatch.setattr(table_mod, "build_table",
+                        lambda *a, **kw: real_build(*a, executor=ThreadPoolExecutor(1), **kw))
+    scene = tmp_path / "s.toml"
+    scene.write_text(TINY + '[table]\nfile = "t.nc"\n[table.build]\nn = 3\ndegree = 4\n')
+    code = main(["render", str(scene), "-o", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 3, err
+    assert len(err.strip().splitlines()) == 1 and "internal error" not in err and "give a seed" not in err, err
+    assert "table.build.n (now 3" in err and "table.build.degree (now 4)" in err and "chi_N = " in err, err
+    assert not (tmp_path / "t.nc").exists() and (tmp_path / "t.nc.parts" / "row_0.nc").is_file()
+
+
+def test_table_build_degree_below_the_error_estimate_is_a_scene_error(tmp_path):
+    """``[table.build] degree = 2`` is refused when the scene is read, naming the key and its range
+    (the build's error estimate compares with degree - 2), before anything is created."""
+    from ciliary_carpet.scenes.scene import SceneError, load_scene
+
+    scene = tmp_path / "s.toml"
+    scene.write_text(TINY + '[table]\nfile = "t.nc"\n[table.build]\nn = 3\ndegree = 2\n')
+    with pytest.raises(SceneError, match=r"degree.*\[4, 32\]|degree.*>= 4") as e:
+        load_scene(scene)
+    assert "got 0" not in str(e.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.toml"]

@@ -22,7 +22,10 @@ import numpy as np
 import single_cilium.table as _table
 from single_cilium.table import TableError, ThrustTable
 
+from single_cilium.radau import ConvergenceError
+
 from ciliary_carpet.carpet.carpet import Carpet
+from ciliary_carpet.design.result import DesignError
 from ciliary_carpet.scenes.paths import check_derived, inside, table_parts
 from ciliary_carpet.scenes.schema import SceneError
 from ciliary_carpet.stokes import backend_named
@@ -33,7 +36,13 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Assembly", "assemble", "check_table_range", "load_table", "frame_of", "target_of"]
+__all__ = ["Assembly", "assemble", "check_table_range", "load_table", "frame_of", "target_of", "TableBuildError"]
+
+
+class TableBuildError(DesignError):
+    """A ``[table.build]`` whose computation cannot converge (a computation that cannot be made:
+    exit 3 on the command line, as ``single-cilium table``); the message names the scene, the
+    failing row and the ``[table.build]`` keys to change."""
 
 _TABLE_CACHE: dict = {}
 
@@ -97,6 +106,21 @@ def _check_build_paths(scene: "Scene", p: Path) -> None:
     check_derived(scene.source_name, "table.file", "the table build's row folder", table_parts(p), scene.base_dir)
 
 def _build(scene: "Scene", p: Path) -> None:
+    """Compute the scene's table into ``p`` (:func:`_build_table`); a computation that does not
+    converge is a :class:`TableBuildError` saying which ``[table.build]`` keys to change."""
+    b = scene.table.build
+    try:
+        _build_table(scene, p)
+    except ConvergenceError as exc:
+        keys = (f"table.build.n (now {b.n}: a finer chi_N grid, each cycle started from its neighbours')"
+                + (f", table.build.flow_points (now {b.flow_points}: a finer flow grid) or a smaller "
+                   f"table.build.flow (now {b.flow:g})" if b.flow is not None else "")
+                + f", or table.build.degree (now {b.degree})")
+        raise TableBuildError(f"{scene.source_name}: [table.build] could not compute the thrust table {p}: "
+                              f"{' '.join(str(exc).split())}; in the scene, raise {keys}") from None
+
+
+def _build_table(scene: "Scene", p: Path) -> None:
     from single_cilium import flutter_cutoff
 
     f, b = scene.field, scene.table.build

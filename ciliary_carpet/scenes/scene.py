@@ -136,7 +136,7 @@ class TableBuild(Section):
                  "[0, cutoff) with `n` points, plus the flutter-cutoff row and one no-flutter row at 1.05 x "
                  "cutoff, and write it to `file` (minutes; resumable)", "int", lo=3, hi=10_000)
     degree: int = key(inspect.signature(_table.build_table).parameters["degree"].default,  # build_table's own default
-                      "mesh degree of that computation (`single_cilium.table.build_table`)", "int", lo=2)
+                      "mesh degree of that computation (`single_cilium.table.build_table`)", "int", lo=4, hi=32)
     flow: float | None = key(None, "U_max: build the table over a grid of background flows, `U_par` and `U_perp` each "
                              "in [-U_max, U_max] (L/tau) with `flow_points` values (needed by `carpet.coupling = "
                              "\"mean\"`; the chi_N grid then reaches 1.05 x the largest cutoff of the grid's corners; "
