@@ -153,8 +153,20 @@ def test_bad_surface_input(table):
         S.design_surface(c, X, directions=np.zeros(4), height=-1.0)
     with pytest.raises(TargetError, match="NaN"):
         S.design_surface(c, X, directions=np.array([0.0, np.nan, 0.0, 0.0]))
-    with pytest.raises(TargetError, match="faster than the cilia can pump"):
+    with pytest.raises(TargetError, match="faster than the cilia can pump.*strict = false"):
         S.design_surface(c, X, velocities=np.full((4, 2), 50.0))
+
+
+def test_too_fast_samples_give_the_closest_flow_when_not_strict(table):
+    """Sampled velocities (e.g. PIV) faster than the cilia can pump: with strict = false a warning
+    names them and the design returns the closest flow, whose residual says how far it is."""
+    c = _carpet(table, 3)
+    X = c.bases[:4] + 0.5
+    U = np.tile([50.0, 0.0], (4, 1))
+    with pytest.warns(UserWarning, match="faster than the cilia can pump.*closest flow"):
+        d = S.design_surface(c, X, velocities=U, strict=False, maxiter=30, outer=1)
+    assert d.kind == "velocity" and np.all(np.isfinite(d.chi_N))
+    assert d.residual_rms > 0.5  # 50 L/tau is far beyond what the cilia make: far from met, and said so
 
 
 def test_fabrication_tolerance_in_both_variables(table):

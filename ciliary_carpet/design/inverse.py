@@ -605,7 +605,8 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     if d.residual_rms > target.residual:
         unit = "rad" if d.kind == "angle" else "relative"
         lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
-        est, hint = [], "Lower the target angle, widen the pattern, or move the control points away from the cilia"
+        est, hint = [], ("Lower the target angle, widen the pattern, or move the control points away from the cilia"
+                         if target.is_angle else _POINTS_HINT)
         r = d.reachability
         if target.pattern.two_sided and r is not None:
             est.append(f"a two-sided pattern holds about {r['pattern_max_deg']:.1f} deg, asked "
@@ -634,6 +635,12 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     return d, d.carpet
 
 
+_POINTS_HINT = ("Lower the target speeds where the residual is largest, check that the samples are in the lab "
+                "frame and in L/tau (a scene's [units] convert them), set [target] residual to the samples' own "
+                "relative noise if that is larger, or use more cilia")
+"""What to change when a "points" target (sampled velocities, e.g. PIV) is not met."""
+
+
 def _replace(d: Design, **kw) -> Design:
     return replace(d, **kw)
 
@@ -650,6 +657,8 @@ def _design_standing(scene, built) -> tuple[Design, Carpet]:
               smoothness=target.smoothness, threshold=float(target.residual),
               robust_sigma=target.sigma if target.robust else 0.0,
               robust_sigma_psi=math.radians(target.sigma_psi) if target.robust else 0.0)
+    hint = ("Move the pattern's centres apart, raise target.height, or use more cilia" if target.is_surface
+            else _POINTS_HINT)
     if target.is_surface:
         X = bases.copy() if target.control == "cilia" else control_points(bases, frame, target.control)
         A, keep = target.surface_directions(X, frame, bases)
@@ -662,13 +671,12 @@ def _design_standing(scene, built) -> tuple[Design, Carpet]:
     else:
         X, U = target.velocities()
         check_control_points(carpet, X, scene.carpet.spacing)
-        d = design_surface(carpet, X, velocities=U, **kw)
+        d = design_surface(carpet, X, velocities=U, strict=target.strict, **kw)
     unit = "rad" if d.kind == "angle" else "relative"
     if d.residual_rms > target.residual:
         lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
         msg = (f"{scene.source_name}: the cilia cannot make this surface flow: rms residual {d.residual_rms:.3g} "
-               f"{unit} exceeds [target] residual = {target.residual:g}; worst control points {lst}. Move the "
-               f"pattern's centres apart, raise target.height, or use more cilia")
+               f"{unit} exceeds [target] residual = {target.residual:g}; worst control points {lst}. {hint}")
         if target.strict:
             raise DesignError(msg)
         warnings.warn(msg + " (strict = false: returning the closest flow the cilia make)", UserWarning, stacklevel=3)

@@ -384,7 +384,7 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
                    floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
                    outer: int = 3, maxiter: int = 400, ftol: float = 1e-5, threshold: float | None = None,
                    robust_sigma: float = 0.0, robust_sigma_psi: float = 0.0, robust_samples: int = 16,
-                   robust_seed: int = 12345) -> Design:
+                   robust_seed: int = 12345, strict: bool = True) -> Design:
     """Choose (chi_N, psi) for the cilia of the standing ``carpet`` (its bases, phases, table,
     wall are kept) so that its mean flow on the plane z = ``height`` at ``control`` (P, 2) runs
     along ``directions`` (P,) [rad, anticlockwise from +x] or equals ``velocities`` (P, 2).
@@ -400,7 +400,10 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
     under fabrication errors chi_j (1 + sigma eps_j), psi_j + sigma_psi eps'_j instead of the nominal
     one: the flow terms averaged over ``robust_samples`` fixed samples (seed ``robust_seed``), each
     the design model plus the pass's defect, the regularisers at the nominal layout; the passes'
-    layouts are then compared by that expected J (the full model's defect at each). Returns a
+    layouts are then compared by that expected J (the full model's defect at each). Target
+    velocities faster than 1.5 times what the cilia around them make pumping along them are a
+    TargetError with ``strict`` (the default); without it a warning lists them and the design
+    returns the closest flow the cilia make (its residual says how far). Returns a
     :class:`~ciliary_carpet.design.result.Design` with ``azimuth`` (N,) and ``height``; its
     ``carpet`` is the designed standing carpet."""
     clock = _time.perf_counter()
@@ -457,7 +460,11 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
         if bad.size:
             lst = "; ".join(f"#{k} at ({X[k, 0]:.3g}, {X[k, 1]:.3g}) asks {np.linalg.norm(U[k]):.3g} L/tau, the cilia "
                             f"around it make at most about {max(top[k], 0):.3g}" for k in bad[:5])
-            raise TargetError(f"{bad.size} target velocities are faster than the cilia can pump there: {lst}")
+            msg = f"{bad.size} target velocities are faster than the cilia can pump there: {lst}"
+            if strict:
+                raise TargetError(msg + " (with [target] strict = false the design returns the closest flow)")
+            warnings.warn(msg + "; designing for the closest flow the cilia make (strict = false)", UserWarning,
+                          stacklevel=2)
         u2 = float(np.sum(U * U))
         psi0 = th[near]
     chi0 = np.full(N, chi_hi)
