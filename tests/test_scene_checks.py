@@ -116,3 +116,68 @@ def test_carpet_refuses_cilia_within_their_reach(table):
     for geometry, wall in (("planar", None), ("standing", 0.0)):
         c = Carpet(layout.square(2, 2, spacing=1.0), 30.0, table, geometry=geometry, wall=wall)
         assert np.all((c.reach > 0.5) & (c.reach <= 1.0))
+
+
+# ------------------------------------------------------------------------------ summary units
+_L, _T = 1e-3, 1e-2  # [units] of the second render: distinct powers of length and time tell apart
+_MACHINE = r"^seconds\.|\.work\.|^threads\.|\.parallel\.|\.wall_s$|_seconds$|\.startup_seconds\."
+"""Measurements of the machine (timings, work counters): not numbers of the flow."""
+_DIMENSIONS = [  # (dotted path pattern, power of length, power of time); the first match counts
+    (r"^(T0|beat\.period(_min|_max)?|beat\.loop_until|pathlines\.duration|mixing\.duration)$", 0, 1),
+    (r"^mixing\.ftle_max$", 0, -1),
+    (r"^(mean_field(\.section)?\.(max_speed|max_error_bound)|coupling\.median_speed_(un)?coupled)$", 1, -1),
+    (r"^(design\.worst\[\]\.[xy]|design\.surface_height|design\.reachability\.(line|width|width_min)"
+     r"|design\.reachability\.width_scan\[\]\[0\]|pathlines\.atol|pathlines\.end_point_error\.(max|median)"
+     r"|standing\.(wall_below_clamps|target_height)|mean_field\.height|mean_field\.section\.(y|top))$", 1, 0),
+    # dimensionless: counts, fractions, angles, relative residuals, curvatures, the scene as written, and
+    # the omissions section (model units by its own "units" key and its key names)
+    (r"^(n_cilia|tolerance|beat\.beating|layout\.|design\.(residual_(rms|max|error|threshold|error_tol)|local_rms|objective"
+     r"|local_objective|control_points|cilia_near_cutoff|worst\[\]\.(index|residual)|speed_ratio_min|clipped"
+     r"|reachability\.(\w+_deg|width_rms|residual_threshold|width_scan\[\]\[1\])|inside_swept\.|tolerance\.)"
+     r"|mean_field\.(points|fidelity\.|section\.points|section\.fidelity\.)|snapshots\.|pathlines\.(tracers|periods"
+     r"|beats|flow_tol|rtol|samples_per_period|outcome\.|stopped_early|end_point_error\.tracers)"
+     r"|mixing\.(mixing_number|grid|defined_fraction|uniform_pump\.)|omissions\.|coupling\.(relative_change_\w+"
+     r"|residual|rtol|iterations|evaluations|history|contraction|normal_flow)|scene_resolved\.|standing\.azimuth_deg\.)",
+     0, 0),
+]
+
+
+def _numbers(x, path=""):
+    """``{dotted path: number}`` of every number in ``x`` (list items as ``[]``, kept in order)."""
+    if isinstance(x, dict):
+        return [kv for k, v in x.items() for kv in _numbers(v, f"{path}.{k}" if path else k)]
+    if isinstance(x, list):
+        return [kv for v in x for kv in _numbers(v, path + "[]")]
+    if isinstance(x, (int, float)) and not isinstance(x, bool):
+        return [(path, x)]
+    return []
+
+
+def test_every_summary_number_is_in_the_units_it_states(tmp_path):
+    """One small designed scene rendered without and with [units]: every number of summary.json
+    scales by its power of L and tau (the list is the summary's own numbers: a number no rule
+    covers fails), the omissions say they are in model units, and summary.md states speeds,
+    lengths and bounds in m and s."""
+    body = ('[carpet]\nshape = [2, 2]\n[target]\nkind = "uniform"\nangle = 20.0\n[output]\nn_seeds = 2\n'
+            'periods = 0.5\nfield_shape = [4, 4]\nsnapshots = 1\nframes = 1\npreview = false\n')
+    (tmp_path / "a.toml").write_text(body)
+    (tmp_path / "b.toml").write_text(f"[units]\nlength_m = {_L}\ntime_s = {_T}\nviscosity_Pa_s = 1e-3\n" + body)
+    a = cc.render(load_scene(tmp_path / "a.toml"), tmp_path / "a").summary
+    cc.render(load_scene(tmp_path / "b.toml"), tmp_path / "b")
+    sb = json.loads((tmp_path / "b" / "summary.json").read_text())
+    sa = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert a["units"] == "L, tau" and sb["units"] == "SI" and sb["omissions"]["units"].startswith("L, tau")
+    na, nb = _numbers(sa), _numbers({k: v for k, v in sb.items() if k != "units"})
+    nb = [(p, v) for p, v in nb if not p.startswith("scene_resolved.units.")]
+    assert [p for p, _ in na] == [p for p, _ in nb]
+    for (path, x), (_, y) in zip(na, nb):
+        if re.search(_MACHINE, path):
+            continue
+        rule = next((r for r in _DIMENSIONS if re.search(r[0], path)), None)
+        assert rule is not None, f"summary.json number {path} has no unit rule here: say how it scales"
+        want = x * _L ** rule[1] * _T ** rule[2]
+        assert y == pytest.approx(want, rel=1e-6, abs=1e-300), (path, x, y, rule[1:])
+    md = (tmp_path / "b" / "summary.md").read_text()
+    bound = sb["mean_field"]["max_error_bound"]
+    assert f"accurate to {bound:.2g} m/s" in md and "L/tau" not in md.split("## What the model leaves out")[0]
+    assert "(x, y in m)" in md and f"{sb['coupling']['median_speed_uncoupled']:.3g} m/s" in md

@@ -356,7 +356,35 @@ class DesignOutput(Output):
                       "achieved": np.concatenate([d.achieved * V, z], axis=1), "residual": d.residual,
                       **({"speed_ratio": d.speed_ratio} if d.speed_ratio is not None else {})})
         design_picture(stage / "design.png", ctx.plan.scene, ctx.carpet, d)
-        ctx.summary["design"] = d.summary()
+        ctx.summary["design"] = design_summary(d, L)
+
+
+def design_summary(d, length: float) -> dict:
+    """The design's summary (:meth:`Design.summary <ciliary_carpet.design.result.Design.summary>`,
+    lengths in L) with its lengths times ``length`` (the summary's unit of length: 1, or
+    ``[units] length_m``): the worst control points' x, y, a standing design's surface height and
+    the reachability's line, widths and width scan. Its residuals are angles or relative."""
+    out = d.summary()
+    out["worst"] = [dict(w, x=w["x"] * length, y=w["y"] * length) for w in out["worst"]]
+    if out.get("surface_height") is not None:
+        out["surface_height"] = out["surface_height"] * length
+    r = out.get("reachability")
+    if r is not None:
+        r = dict(r)
+        for k in ("line", "width", "width_min"):
+            if r.get(k) is not None:
+                r[k] = r[k] * length
+        if "width_scan" in r:
+            r["width_scan"] = [[w * length, res] for w, res in r["width_scan"]]
+        out["reachability"] = r
+    return out
+
+
+_COUPLING_SPEEDS = ("median_speed_coupled", "median_speed_uncoupled")
+"""The speeds (L/tau in the model) of the summary's ``coupling`` section."""
+OMISSIONS_UNITS = "L, tau: model units, as the key names say (viscosities in B tau / L^4)"
+"""The summary's ``omissions`` section is in model units whatever ``[units]`` says (its keys
+name their unit: ``spacing_L``, ``mean_flow_others_median_L_per_tau``); its ``units`` key says so."""
 
 
 class MeanFieldOutput(Output):
@@ -383,7 +411,7 @@ class MeanFieldOutput(Output):
                 ctx.section_field = MeanField(sec, sp, ss.velocity)
                 _write_flow(ctx.stage / "mean_field_section.vti", sec, ss, ctx.plan)
         ctx.summary["mean_field"] = {"points": int(pts.shape[0]), "fidelity": s.fidelity,
-                                     "max_error_bound": float(s.error_bound.max()),
+                                     "max_error_bound": float(s.error_bound.max()) * V,
                                      "max_speed": float(np.nanmax(np.linalg.norm(s.velocity, axis=1))) * V}
         if sec is not None:
             L = ctx.plan.units[0]
@@ -771,6 +799,12 @@ class SummaryOutput(Output):
         c = ctx.carpet
         if c.geometry == "planar" and c.coupled is not None:  # solved: the carpet says how
             summary["coupling"] = c.coupled.summary()
+        if "coupling" in summary:  # its speeds in the summary's units
+            V = ctx.plan.units[2]
+            summary["coupling"] = {k: (v * V if k in _COUPLING_SPEEDS and v is not None else v)
+                                   for k, v in summary["coupling"].items()}
+        if "omissions" in summary:
+            summary["omissions"]["units"] = OMISSIONS_UNITS
         ctx.clock["total"] = _time.perf_counter() - ctx.started
         summary["seconds"] = ctx.clock
         summary["scene_resolved"] = scene.to_dict()

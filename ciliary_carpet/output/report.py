@@ -129,16 +129,16 @@ def markdown(s: dict) -> str:
         lines += ["", "## Cilia that feel the flow", ""]
         if cp["model"] == "mean":
             lines.append(f"- Coupled carpet (`coupling = \"mean\"`): each cilium beats in the mean flow the others "
-                         f"make at it, median {_g(cp['median_speed_coupled'])} L/tau at the cilia; {cp['message']}. "
-                         f"Uncoupled, that flow would be {_g(cp['median_speed_uncoupled'])} L/tau: "
+                         f"make at it, median {_g(cp['median_speed_coupled'])} {Vu} at the cilia; {cp['message']}. "
+                         f"Uncoupled, that flow would be {_g(cp['median_speed_uncoupled'])} {Vu}: "
                          f"{cp['relative_change_median']:.0%} off the coupled one (median; largest "
                          f"{cp['relative_change_max']:.0%}).")
         else:
             lines.append(f"- Uncoupled carpet (`coupling = \"none\"`): each cilium beats as in still fluid, although "
-                         f"the others' mean flow at it is {_g(cp['median_speed_uncoupled'])} L/tau (median). "
+                         f"the others' mean flow at it is {_g(cp['median_speed_uncoupled'])} {Vu} (median). "
                          f"With the filaments' drag against that flow (a linear estimate: slender-body drag of a "
                          f"straight filament) the flow they can sustain is about {_g(cp['median_speed_coupled'])} "
-                         f"L/tau: the uncoupled flow at the cilia is about {cp['relative_change_median']:.0%} off "
+                         f"{Vu}: the uncoupled flow at the cilia is about {cp['relative_change_median']:.0%} off "
                          f"(largest {cp['relative_change_max']:.0%}). `coupling = \"mean\"` solves it (needs a "
                          "table over the background flow).")
     lines += ["", "## How it was computed", ""]
@@ -154,6 +154,7 @@ def markdown(s: dict) -> str:
 
 def _design(s: dict, scene: dict) -> list:
     dd = s["design"]
+    Lu = "m" if s.get("units") == "SI" else "L"
     tgt = scene.get("target", {})
     kind = tgt.get("kind", "")
     angle = dd["residual_unit"] == "rad"
@@ -185,7 +186,7 @@ def _design(s: dict, scene: dict) -> list:
             txt += ", past the allowed: met by the computed flow, but not beyond the model's error"
     out.append(txt + ".")
     worst = ", ".join(f"({w['x']:.3g}, {w['y']:.3g}) {r(w['residual'])}" for w in dd["worst"][:3])
-    out.append(f"- Largest misses, at the control points (x, y in L): {worst}.")
+    out.append(f"- Largest misses, at the control points (x, y in {Lu}): {worst}.")
     lay = s.get("layout")
     txt = "- The layout: "
     if lay:
@@ -219,8 +220,8 @@ def _design(s: dict, scene: dict) -> list:
             if reach.get("width") is not None:
                 wm = reach.get("width_min")
                 txt += (f"; the narrowest transition across the line at that angle is "
-                        + ("wider than 8 spacings" if wm is None else f"about {wm:.3g} L")
-                        + f" (asked {reach['width']:.3g} L)")
+                        + ("wider than 8 spacings" if wm is None else f"about {wm:.3g} {Lu}")
+                        + f" (asked {reach['width']:.3g} {Lu})")
         elif tgt.get("angle") is not None:
             ask = abs(tgt["angle"])
             txt += f"; asked {ask:.3g} deg: " + (
