@@ -199,21 +199,22 @@ def test_expected_memory_follows_the_measured_peaks(tmp_path):
     from ciliary_carpet.output import resources as r
 
     mib = 2.0 ** 20
+    f = 80 * 80 * r._FIELD_BYTES_PER_POINT * r._PEAK_MARGIN  # the default field grid's part
     for n, one, two in r._PEAK_MIB:
         side = int(round(n ** 0.5))
         s = _scene(tmp_path, f"[carpet]\nshape = [{side}, {side}]\n")
-        assert r.expected_memory(s, 1) == pytest.approx(one * r._PEAK_MARGIN * mib)
-        assert r.expected_memory(s, 2) == pytest.approx(two * r._PEAK_MARGIN * mib)
-        assert r.expected_memory(s, 3) == pytest.approx((2 * two - one) * r._PEAK_MARGIN * mib)
+        assert r.expected_memory(s, 1) == pytest.approx(one * r._PEAK_MARGIN * mib + f)
+        assert r.expected_memory(s, 2) == pytest.approx(two * r._PEAK_MARGIN * mib + f)
+        assert r.expected_memory(s, 3) == pytest.approx((2 * two - one) * r._PEAK_MARGIN * mib + f)
     sizes = [4, 30, 60, 100, 150]
     one = [r.expected_memory(_scene(tmp_path, f"[carpet]\nshape = [{k}, {k}]\n"), 1) for k in sizes]
     assert all(a <= b for a, b in zip(one, one[1:]))
     # beyond 10^4 cilia: the last slope, at least linear
     (n1, a1, _), (n2, a2, _) = r._PEAK_MIB[-2:]
-    assert one[-1] == pytest.approx((a2 + (22500 - n2) * (a2 - a1) / (n2 - n1)) * r._PEAK_MARGIN * mib)
+    assert one[-1] == pytest.approx((a2 + (22500 - n2) * (a2 - a1) / (n2 - n1)) * r._PEAK_MARGIN * mib + f)
     planar = _scene(tmp_path, "[carpet]\nshape = [12, 12]\n")
     standing = _scene(tmp_path, '[carpet]\ngeometry = "standing"\nshape = [12, 12]\n')
-    assert r.expected_memory(standing, 2) == pytest.approx(r._STANDING * r.expected_memory(planar, 2))
+    assert r.expected_memory(standing, 2) == pytest.approx(r._STANDING * (r.expected_memory(planar, 2) - f) + f)
 
 
 def test_places_follow_the_memory_available(tmp_path, monkeypatch, caplog):

@@ -181,3 +181,19 @@ def test_every_summary_number_is_in_the_units_it_states(tmp_path):
     bound = sb["mean_field"]["max_error_bound"]
     assert f"accurate to {bound:.2g} m/s" in md and "L/tau" not in md.split("## What the model leaves out")[0]
     assert "(x, y in m)" in md and f"{sb['coupling']['median_speed_uncoupled']:.3g} m/s" in md
+
+
+def test_expected_memory_counts_the_field_grid():
+    """A render's expected peak grows with its field grid by at least the arrays it keeps per
+    point (points, velocity, error bound: 7 doubles) and by what an evaluation takes per point."""
+    from ciliary_carpet.output.resources import expected_memory
+
+    small = scene_from_dict({"output": {"field_shape": [80, 80]}})
+    big = scene_from_dict({"output": {"field_shape": [1000, 1000]}})
+    grew = expected_memory(big) - expected_memory(small)
+    n = 1000 * 1000 - 80 * 80
+    assert grew >= n * 7 * 8
+    assert grew >= n * 860  # an evaluation of the mean flow with its bound, at its peak (tracemalloc)
+    no_field = scene_from_dict({"output": {"field_shape": [1000, 1000], "field": False, "snapshots": 0,
+                                           "ftle": False}})
+    assert expected_memory(no_field) < expected_memory(small)

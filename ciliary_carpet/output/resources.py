@@ -97,6 +97,11 @@ def available_memory() -> float:
 _PEAK_MIB = ((100, 402.0, 608.0), (900, 758.0, 1149.0), (10_000, 1702.0, 2691.0))  # cilia, one place, two
 _STANDING = 1.46
 _PEAK_MARGIN = 1.15
+_FIELD_BYTES_PER_POINT = 1024
+"""Bytes per point of the field grid (``output.field_shape``) at a render's peak: an evaluation of
+the mean flow with its error bound takes 860 bytes per point at its peak (tracemalloc, 9 10^4
+points over 100 cilia, levels of detail at tol 1e-3), and the render keeps the points, the
+velocity and the bound of the grid (56 bytes per point) and the mean flow on it."""
 
 
 def expected_memory(scene: Scene, places: int = 1) -> float:
@@ -108,7 +113,9 @@ def expected_memory(scene: Scene, places: int = 1) -> float:
     Not a bound (:func:`check_resources` has the certain lower bounds): working-set peaks measured
     on renders at 100, 900 and 10^4 cilia (``_PEAK_MIB``, the largest scene of each size),
     interpolated linearly in the number of cilia and beyond 10^4 by the last slope, times 1.46 for
-    a standing carpet and 1.15 as a margin; each place after the second adds what the second did.
+    a standing carpet, each place after the second adding what the second did; plus the field
+    grid's (``output.field_shape``, :data:`_FIELD_BYTES_PER_POINT` per point; the measured renders'
+    80 x 80 grids took a few MB of it); all times 1.15 as a margin.
     It sizes a batch's workers and a render's places to a memory limit
     (:func:`places_that_fit`)."""
     import numpy as np
@@ -126,7 +133,10 @@ def expected_memory(scene: Scene, places: int = 1) -> float:
     total = one + max(0, int(places) - 1) * (two - one)
     if scene.carpet.geometry == "standing":
         total *= _STANDING
-    return total * _PEAK_MARGIN * 2.0 ** 20
+    o = scene.output
+    field = float(o.field_shape[0]) * float(o.field_shape[1]) * _FIELD_BYTES_PER_POINT if (
+        o.field or o.snapshots > 0 or o.ftle) else 0.0
+    return (total * 2.0 ** 20 + field) * _PEAK_MARGIN
 
 
 def places_that_fit(scene: Scene, places: int) -> int:
