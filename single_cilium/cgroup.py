@@ -4,7 +4,7 @@ A container (``docker run --cpus 2 --memory 4g``, a Kubernetes pod) or a batch j
 ``--mem``) runs its processes in a control group that caps their CPU time and memory, while the
 machine's core count (``os.cpu_count``, the CPU affinity) and ``/proc/meminfo`` still show the
 whole host. Sized from the host, a render on a 64-core node with a quota of 2 CPUs ran numba's
-parallel regions on 64 threads (the barrier waits of issue 23), and a batch started as many
+parallel regions on 64 threads (each parallel region's barrier waiting for descheduled threads), and a batch started as many
 workers as the host's memory holds, which the kernel then killed (SIGKILL, no message) when the
 group's memory ran out: a 30 x 30 render under a 1.2 GB limit, or the bundled focusing scene,
 which peaks at 0.62 GB, under a 0.56 GB limit.

@@ -3,8 +3,8 @@
 numba's parallel regions use as many threads as the machine has cores by default, and so does
 the BLAS. Two batch workers on two cores then run four threads on two cores, and the path lines'
 tens of thousands of short parallel regions wait at every barrier for a descheduled thread: a
-default two-scene batch ran more than ten times slower than its renders one after another
-(issue 23). A :class:`ThreadBudget` says how many workers run at once and how many numba and BLAS
+default two-scene batch can run more than ten times slower than its renders one after
+another. A :class:`ThreadBudget` says how many workers run at once and how many numba and BLAS
 threads each may use, with ``workers x numba x blas <= cores``; :meth:`ThreadBudget.applied` sets
 it in the worker (``numba.set_num_threads``, which is per thread, and threadpoolctl's BLAS limit)
 before the work starts, and :func:`threads_in_use` reports it (the render's ``summary.json``

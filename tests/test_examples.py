@@ -63,3 +63,30 @@ def test_pathlines_single_filament(monkeypatch, tmp_path):
     assert d["curved"] > 20 and abs(d["curved"] - d["tilted"]) < 2.0
     assert (tmp_path / "curved_pathlines.vtp").exists() and (tmp_path / "tilted_mean_field.vti").exists()
     assert all(p.reason.max() <= 3 for p in mod.paths.values())
+
+
+def test_carpet_flows():
+    ex = load("carpet_flows")
+    assert 0.1 < ex.speed_mean < 10 and 0 < ex.bound_mean < 1e-2 * ex.speed_mean * 10
+    assert ex.end_points.shape[0] == 8 and np.all(np.isfinite(ex.end_points))
+    # the tracers moved: the mean flow carries them away from their seeds over 20 tau
+    assert np.linalg.norm(ex.end_points[:, :2] - ex.seeds, axis=1).max() > 1.0
+    assert np.isfinite(ex.mixing_number)
+
+
+def test_design_a_scene():
+    ex = load("design_a_scene")
+    assert ex.scene_rms <= ex.scene.target.residual  # the bundled scene meets its threshold
+    assert ex.focus_rms < 0.05 and 5 < ex.pattern_max_deg < 60
+
+
+def test_coupled_carpet():
+    ex = load("coupled_carpet")
+    assert ex.residual < 1e-4 and 1 <= ex.steps <= 6
+    assert 0.5 < ex.speed_ratio < 1.0  # the cilia push against the flow they make (0.67 at 5 x 5)
+
+
+def test_standing_carpet():
+    ex = load("standing_carpet")
+    assert ex.mixer_rms < 0.1 and ex.mixer_error < 0.05
+    assert ex.wall_speed < 1e-12  # no slip on the substrate

@@ -32,7 +32,7 @@ therefore normalised by the cilium's **r.m.s. beat speed at that s over its cycl
 trigonometric polynomial), and its median, 90th percentile and maximum over the sampled
 cilia and instants are given for s = 1/2 and s = 1. The pointwise ratio induced / |dx/dt| is
 given too (median and 90th percentile only: its maximum is unbounded at the turning points); it
-is what issue 27 measured (uniform_deflection: 18 % at mid-length, 32 % at the tip, 90th
+is what an independent check measured (uniform_deflection: 18 % at mid-length, 32 % at the tip, 90th
 percentile 66-69 %, 12 cilia x 6 instants); here, 64 cilia x 6 instants, 19 %, 29 % and 65 %, and
 the r.m.s.-normalised medians 18 % and 28 % (the two differ little in the median, by design).
 A standing carpet's filament points, forces and force centres are taken in space (each cilium's
@@ -72,7 +72,7 @@ density n ~ d^-2.
 (a) The wall's effect on each cilium's own drag
 -----------------------------------------------
 The limit cycles use free-space resistive coefficients, in slender-body form (Gray & Hancock
-1955, with the filament's length as the cut-off, as issue 27 writes them; MODEL.md section 2
+1955, with the filament's length as the cut-off; MODEL.md section 2
 takes the slender limit c_perp = 2 c_par)
 
     c_par = 2 pi mu / (ln(2 L / a) - 1/2),   c_perp = 2 c_par,
@@ -125,8 +125,7 @@ The filaments' tangential coefficient eta already implies, through the free-spac
 (0.653 eta for a = 0.02 L; :func:`~ciliary_carpet.carpet.carpet.sbt_viscosity`), which is the
 carpet's default (``mu_source = "filaments"``). A carpet given another viscosity
 (``mu_source = "given"``, scene key ``[carpet] viscosity``) has flows mu_sbt / mu - 1 too fast
-(negative: too slow) against the filaments' own drag (``flow_speed_error``; it was -35 % for the
-former default mu = 1 = eta, issue 27).
+(negative: too slow) against the filaments' own drag (``flow_speed_error``; -35 % for mu = 1 = eta).
 
 The filament radius a is the carpet's blob (its filament radius, :data:`~ciliary_carpet.carpet.carpet.BLOB`
 when the carpet uses singular Stokeslets).

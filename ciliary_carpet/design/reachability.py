@@ -99,7 +99,7 @@ class Reachability:
     Not above a wall: there the designs miss for another reason (100 cilia, hexagonal, spacing 2,
     wall 0.5 L below the plane: a *uniform* 20 deg deflection 0.17 rad; focusing at 20 deg,
     widths 2 and 8 L, 0.16 and 0.09 rad, where the strip estimated 0.077 and 0.047), so a width
-    estimate would be optimistic; width_min is None. With the exact near field (issue 24) those
+    estimate would be optimistic; width_min is None. With the exact near field those
     designs end the same (0.166, 0.157, 0.091 rad), now with the design model within 2 % of the
     full model's objective: the miss is the target's -- above a wall each control point's flow
     is dominated by the few cilia around it, whose near field does not point along their thrust

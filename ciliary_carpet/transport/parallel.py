@@ -3,7 +3,7 @@
 A path-line run's tracers are independent of each other, and a render's end-point error estimate
 (its reference run) is independent of its path lines; but one flow evaluation costs a fixed
 per-time overhead (the carpet's state at that time, numba parallel regions too short for threads
-to help) plus a cost per point, so threads barely speed them up (issue 23). Processes do: the
+to help) plus a cost per point, so threads barely speed them up. Processes do: the
 work is cut into :class:`Task` s (e.g. chunks of tracers,
 :func:`~ciliary_carpet.transport.pathlines.pathline_tasks`) and handed to a small strategy object
 that says where they run:
@@ -78,7 +78,7 @@ class _Share:
     """One place's share of a pool's cores (``arr[k]`` numba threads allowed now), and the
     governor that takes lent threads only while they pay: threads parallel regions of 0.1 ms
     wait at every barrier for a thread the system has descheduled, so on a machine that other
-    jobs keep busy two threads can run many times slower than one (issue 23). The throughput
+    jobs keep busy two threads can run many times slower than one. The throughput
     (work units per second, an evaluation of m points counting ``1 + m / 50``) is measured over
     windows of :data:`WINDOW_S`; lent threads that do not beat one thread by :data:`GAIN` are given
     back for :data:`RETRY_S`."""
