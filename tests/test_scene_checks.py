@@ -197,3 +197,14 @@ def test_expected_memory_counts_the_field_grid():
     no_field = scene_from_dict({"output": {"field_shape": [1000, 1000], "field": False, "snapshots": 0,
                                            "ftle": False}})
     assert expected_memory(no_field) < expected_memory(small)
+
+
+def test_design_result_owns_read_only_copies_of_its_arrays():
+    from ciliary_carpet.design.result import Design
+
+    chi, res = np.array([1.0, 2.0]), np.array([0.1, 0.2])
+    d = Design(chi, np.zeros((2, 2)), np.ones((2, 2)), np.ones((2, 2)), res, 0.15, "angle")
+    chi[0], res[0] = 99.0, 9.0
+    assert d.chi_N[0] == 1.0 and d.residual[0] == 0.1 and d.worst(1)[0][0] == 1
+    with pytest.raises(ValueError, match="read-only"):
+        d.chi_N[1] = 0.0

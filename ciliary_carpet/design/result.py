@@ -51,7 +51,8 @@ class Design:
     :data:`~ciliary_carpet.design.inverse.INSIDE_WEIGHT`), residual_rms = sqrt(sum w_k r_k^2 / sum w_k);
     azimuth (N,) and height: a standing carpet's beat-plane azimuths psi [rad] and the height of its
     surface-flow plane (:mod:`~ciliary_carpet.design.surface`; None for a planar carpet), whose
-    targets and flows are then absolute directions and velocities in the plane z = height."""
+    targets and flows are then absolute directions and velocities in the plane z = height. The
+    arrays are copies of those given, read-only."""
 
     chi_N: np.ndarray
     control: np.ndarray
@@ -79,6 +80,17 @@ class Design:
     weights: np.ndarray | None = None
     azimuth: np.ndarray | None = None
     height: float | None = None
+
+    _ARRAYS = ("chi_N", "control", "target", "achieved", "residual", "speed_ratio", "weights", "azimuth")
+
+    def __post_init__(self) -> None:
+        """The arrays are the design's own: copies of what it is given, read-only."""
+        for k in self._ARRAYS:
+            v = getattr(self, k)
+            if v is not None:
+                a = np.array(v, dtype=float)
+                a.flags.writeable = False
+                object.__setattr__(self, k, a)
 
     def worst(self, k: int = 5) -> list[tuple[int, float, float, float]]:
         """The ``k`` worst control points: (index, x, y, residual)."""
