@@ -36,6 +36,7 @@ from paraview.simple import GetActiveView, GetSources, SaveScreenshot
 names = sorted(k[0] for k in GetSources())
 print('SOURCES', names)
 view = GetActiveView()
+print('AXES', view.AxesGrid.Visibility, view.AxesGrid.XTitle, view.AxesGrid.YTitle)
 view.ViewSize = [800, 600]
 SaveScreenshot(shot, view, ImageResolution=[800, 600])
 """
@@ -106,7 +107,8 @@ def test_script_opens_the_render_in_paraview_as_script_does(tiny, tmp_path, requ
             break
         time.sleep(2.0 * (attempt + 1))
     assert p.returncode == 0, out
-    lines = [ln for ln in out.splitlines() if ln.strip() and not ln.startswith("SOURCES")]
+    lines = [ln for ln in out.splitlines() if ln.strip() and not ln.startswith(("SOURCES", "AXES"))]
+    assert "AXES 1 x [L] y [L]" in out, out  # labelled axes, in the files' length unit
     assert not lines, out  # no error, no warning, nothing printed
     sources = out.split("SOURCES", 1)[1].splitlines()[0]
     for name in ("mean_field.vti", "layout.vtp", "cilia.pvd", "pathlines.vtp", "particles.pvd", "snapshots.pvd",

@@ -131,13 +131,47 @@ def colour(source, display, association, array, preset, title, slot=None, symmet
         bar.ComponentTitle = ""
         bar.WindowLocation = "Any Location"
         bar.Orientation = "Vertical"
-        bar.Position = [0.86, 0.04 + 0.31 * slot]  # room on the right for the labels and the title
-        bar.ScalarBarLength = 0.27
+        bar.Position = [0.85, 0.05 + 0.31 * slot]  # room on the right for the labels, the title above
+        bar.ScalarBarLength = 0.2
+        bar.HorizontalTitle = 1  # above the bar, read across: a vertical title runs into the labels
         bar.TitleFontSize = 8
         bar.LabelFontSize = 7
         bar.RangeLabelFormat = "%-#.3g"
         display.SetScalarBarVisibility(view, True)
     return lut
+
+
+def target_arrows(design, h):
+    """The design's target directions at its control points (``design.vtp``'s "target"), as
+    orange arrows of one length (``0.8 h``, the lattice spacing): what the flow was asked to do,
+    over the black arrows of what it does."""
+    if design is None or "target" not in design.PointData.keys():
+        return None
+    glyph = Glyph(registrationName="target directions", Input=design, GlyphType="Arrow")
+    glyph.OrientationArray = ["POINTS", "target"]
+    glyph.ScaleArray = ["POINTS", "No scale array"]
+    glyph.ScaleFactor = 0.8 * h
+    glyph.GlyphMode = "All Points"
+    g = Show(glyph, view)
+    ColorBy(g, None)
+    g.AmbientColor = g.DiffuseColor = [0.95, 0.45, 0.0]
+    return glyph
+
+
+def axes(view, length, planar):
+    """Labelled axes with ticks in the files' length unit around the data (ParaView's axes grid):
+    a planar view labels its lower x and left y edges only (the legend sits above)."""
+    grid = view.AxesGrid
+    grid.Visibility = 1
+    grid.XTitle, grid.YTitle, grid.ZTitle = "x [%s]" % length, "y [%s]" % length, "z [%s]" % length
+    grid.XTitleFontSize = grid.YTitleFontSize = grid.ZTitleFontSize = 16
+    grid.XLabelFontSize = grid.YLabelFontSize = grid.ZLabelFontSize = 14
+    if planar:
+        grid.AxesToLabel = 1 + 2  # min x, min y
+        grid.FacesToRender = 4  # the x-y face the carpet lies in
+    for k in ("XTitleColor", "YTitleColor", "ZTitleColor", "XLabelColor", "YLabelColor", "ZLabelColor",
+              "GridColor"):
+        setattr(grid, k, [0.9, 0.9, 0.9])
 
 
 def hidden(source):
@@ -155,7 +189,7 @@ if ftle is not None:
 path = load("pathlines.vtp")
 if path is not None:
     d = Show(path, view)
-    colour(path, d, "POINTS", "time", "Viridis (matplotlib)", "path lines: time [%s]" % TIME, slot=1)
+    colour(path, d, "POINTS", "time", "Viridis (matplotlib)", "path lines:\\ntime [%s]" % TIME, slot=1)
     d.LineWidth = 2.0
     shown.append("lines: path lines (time)")
 particles = load("particles.pvd")
@@ -185,7 +219,7 @@ field = load("mean_field.vti")
 if field is not None:
     d = Show(field, view)
     d.SetRepresentationType("Slice")
-    colour(field, d, "POINTS", "speed", "light greys", "mean speed [%s]" % SPEED, slot=0)
+    colour(field, d, "POINTS", "speed", "light greys", "mean speed\\n[%s]" % SPEED, slot=0)
     b = field.GetDataInformation().GetBounds()
     lo, hi = field.PointData["speed"].GetRange()
     n = 20  # arrows along the longer side: about 400 in all
@@ -218,6 +252,8 @@ if design is not None:
     d.RenderPointsAsSpheres = 1
     colour(design, d, "POINTS", "residual", "Reds", "design residual")
     hidden(design)
+    if field is not None and target_arrows(design, h) is not None:
+        shown.append("orange arrows: the target's directions")
 # the cilia (moving) and their bases, coloured by chi_N
 cilia = load("cilia.pvd")
 if cilia is not None:
@@ -240,16 +276,17 @@ t.WindowLocation = "Upper Left Corner"
 t.FontSize = 7
 t.Justification = "Left"
 
-# a 2D top view on the carpet (the mean field's box, else the layout's)
+# a 2D top view on the carpet (the mean field's box, else the layout's), with labelled axes
 view.InteractionMode = "2D"
 view.OrientationAxesVisibility = 0
+axes(view, LENGTH, True)
 box = (field or layout or path or cilia).GetDataInformation().GetBounds()
 cx, cy = 0.5 * (box[0] + box[1]), 0.5 * (box[2] + box[3])
 view.CameraFocalPoint = [cx, cy, 0.0]
 view.CameraPosition = [cx, cy, 10.0 * max(box[1] - box[0], box[3] - box[2], 1e-300)]
 view.CameraViewUp = [0.0, 1.0, 0.0]
 view.ResetCamera(box[0], box[1], box[2], box[3], 0.0, 0.0)
-view.CameraParallelScale = 0.55 * max(box[3] - box[2], (box[1] - box[0]) * 0.75)
+view.CameraParallelScale = 0.62 * max(box[3] - box[2], (box[1] - box[0]) * 0.75)  # room for the axes' labels
 # play through every data time step (cilia frames, particles); the time starts at 0. Nothing here
 # moves the animation: in the GUI under --script that hangs ParaView 5.11 (UpdateAnimationUsingDataTimeSteps,
 # AnimationTime), and the animation already spans the data's time range.
@@ -266,7 +303,7 @@ field = load("mean_field.vti")
 if field is not None:
     d = Show(field, view)
     d.SetRepresentationType("Slice")
-    colour(field, d, "POINTS", "speed", "Blues", "mean speed at the plane [%s]" % SPEED, slot=0)
+    colour(field, d, "POINTS", "speed", "Blues", "mean speed\\n[%s]" % SPEED, slot=0)
     d.Opacity = 0.55
     b = field.GetDataInformation().GetBounds()
     lo, hi = field.PointData["speed"].GetRange()
@@ -292,6 +329,9 @@ if section is not None:
     d.SetRepresentationType("Slice")
     colour(section, d, "POINTS", "speed", "Blues", "speed [%s]" % SPEED, separate=True)
     hidden(section)
+design = load("design.vtp")
+if design is not None and field is not None and target_arrows(design, h) is not None:
+    shown.append("orange arrows: the target's directions")
 for name in ("snapshots.pvd", "snapshots_section.pvd"):
     snap = load(name)
     if snap is not None:
@@ -327,6 +367,7 @@ t.Justification = "Left"
 # after a first render: paraview.simple resets the camera on a view's first render)
 Render(view)
 view.OrientationAxesVisibility = 1
+axes(view, LENGTH, False)
 box = (field or layout or path or cilia).GetDataInformation().GetBounds()
 top = max(box[5], 1.0)
 cx, cy = 0.5 * (box[0] + box[1]), 0.5 * (box[2] + box[3])
@@ -335,7 +376,7 @@ view.CameraFocalPoint = [cx, cy, 0.3 * top]
 view.CameraPosition = [cx + 0.35 * span, cy - 1.1 * span, 0.3 * top + 0.75 * span]
 view.CameraViewUp = [0.0, 0.0, 1.0]
 view.ResetCamera(box[0], box[1], box[2], box[3], 0.0, top)
-GetActiveCamera().Dolly(1.3)  # closer: the carpet fills the view
+GetActiveCamera().Dolly(1.1)  # closer, with room left for the axes' labels
 # play through every data time step (cilia frames, particles); nothing here moves the animation
 # (see the planar script: under --script that hangs ParaView 5.11's GUI)
 GetAnimationScene().PlayMode = "Snap To TimeSteps"
