@@ -12,6 +12,8 @@ What opens, readable at a glance (a 2D top view on the carpet, one legend per co
 - the path lines coloured by time ("Viridis"),
 - the cilia (``cilia.pvd``, moving) and their bases (``layout.vtp``) coloured by chi_N
   ("Cool to Warm"; symmetric about 0 when the layout has both signs),
+- the design's target directions at its control points as orange arrows (a render with a target),
+- labelled axes in the files' length unit (L, or m with ``[units]``),
 - the time, and a line saying what is shown.
 
 ParaView's clock plays through every data time step ("Snap To TimeSteps"): the cilia's frames
