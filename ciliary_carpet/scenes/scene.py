@@ -73,10 +73,6 @@ of its beat)."""
 MAX_LENGTH = 1e6
 """The largest spacing or wall distance (L) a scene takes: beyond it the flow sums lose their
 digits (a wall that far is free space: leave it out)."""
-MAX_FIELD_POINTS = 10 ** 8
-"""The most points of the field grid (``output.field_shape``)."""
-MAX_CILIA = 10 ** 7
-"""The most cilia of a carpet (``carpet.shape``, ``carpet.points``)."""
 MIN_BLOB = 1e-4
 """The smallest filament radius (L): slender-body theory at aspect ratio 5000."""
 CHI_E_MAX = 1e4
@@ -203,7 +199,7 @@ class CarpetSpec(Section):
     lattice: str = key("square", "row along +x; square; hexagonal (odd rows shifted by half a spacing, rows "
                        "sqrt(3)/2 spacing apart); explicit points", "str", choices=LATTICES)
     shape: tuple = key((10, 10), "number of cilia per direction (not with `\"points\"`; a row without it takes "
-                       "the first number)", "custom", shown="`[nx, ny]` ints (row: `n` or `[n]`), at most 1e7 cilia")
+                       "the first number)", "custom", shown="`[nx, ny]` ints (row: `n` or `[n]`)")
     spacing: float = key(2.0, 'nearest-neighbour distance (L), at least the filament length (closer cilia can touch); '
                          'for `"points"` the typical spacing (control points, pattern widths; the points themselves '
                          "must lie at least 1 L apart)", lo=MIN_SPACING, hi=MAX_LENGTH,
@@ -288,9 +284,6 @@ class CarpetSpec(Section):
                 raise r.fail("shape", f"two positive integers [nx, ny] for lattice = \"{lattice}\"", v)
             kw["shape"] = (int(v[0]), int(v[1]))
         n = len(kw["points"]) if lattice == "points" else math.prod(kw["shape"])
-        if n > MAX_CILIA:
-            raise r.fail("points" if lattice == "points" else "shape", f"at most {MAX_CILIA:g} cilia in all",
-                         r.data.get("points" if lattice == "points" else "shape"))
         kw["azimuth"] = _azimuth(r, n) if geometry == "standing" else None
         if geometry == "standing":
             if kw["wall"] is None:
@@ -381,7 +374,7 @@ class OutputSpec(Section):
                      "summary", "bool")
     field: bool = key(True, "the mean velocity field", "bool")
     field_shape: tuple[int, int] = key((80, 80), "grid of the velocity field", "custom",
-                                       shown="`[nx, ny]` ints >= 2, nx ny <= 1e8")
+                                       shown="`[nx, ny]` ints >= 2")
     field_margin: float = key(5.0, "how far the field grid extends beyond the carpet (L)", lo=0, hi=MAX_LENGTH)
     snapshots: int = key(4, "instantaneous velocity-field snapshots (one file each)", "int", lo=0, hi=1000)
     frames: int = key(40, "cilia shape frames over one period of the straight filament (one file each)", "int", lo=0,
@@ -399,8 +392,6 @@ class OutputSpec(Section):
         if (not isinstance(fs, list) or len(fs) != 2
                 or any(isinstance(x, bool) or not isinstance(x, int) or x < 2 for x in fs)):
             raise r.fail("field_shape", "two integers >= 2 [nx, ny]", fs)
-        if fs[0] * fs[1] > MAX_FIELD_POINTS:
-            raise r.fail("field_shape", f"at most {MAX_FIELD_POINTS:g} points in all [nx, ny]", fs)
         kw["field_shape"] = (int(fs[0]), int(fs[1]))
         return kw
 
