@@ -293,11 +293,12 @@ def _worker(func, task, conn) -> None:
         conn.close()
 
 
-def _run_local(tasks, jobs: int, on_done, grace: float = 2.5, on_start=None) -> None:
+def _run_local(tasks, jobs: int, on_done, grace: float = 2.5, on_start=None, func=None) -> None:
     """Each task in a fresh worker process, ``jobs`` at a time: a worker that dies (killed, out
     of memory) fails only its own scene, with its exit signal in the record. Interrupted, the
     running workers are stopped within about two ``grace`` periods (:func:`_stop`), each with
-    every process it started. ``on_start(task)`` is called as a task's worker starts."""
+    every process it started. ``on_start(task)`` is called as a task's worker starts; ``func``
+    (default :func:`_render_one`, an importable function) runs each task."""
     from multiprocessing.connection import wait as wait_any
 
     ctx = worker_context()
@@ -308,7 +309,7 @@ def _run_local(tasks, jobs: int, on_done, grace: float = 2.5, on_start=None) -> 
             while pending and len(running) < jobs:
                 t = pending.pop(0)
                 recv, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_worker, args=(_render_one, t, send))
+                proc = ctx.Process(target=_worker, args=(func or _render_one, t, send))
                 proc.start()
                 send.close()
                 running[proc] = (t, recv)
@@ -608,14 +609,13 @@ def _cmd_batch(a) -> int:
         recs = batch(a.scenes, a.output, scheduler=a.scheduler, jobs=a.jobs, threads=a.threads,
                      overwrite=a.overwrite, reduced=a.reduced, max_seconds=a.max_hours * 3600, backend=a.backend,
                      scheduler_timeout=a.scheduler_timeout, records=finished)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # the one line main prints says which scenes finished and which did not
         done = {r["scene"] for r in finished}
-        for r in finished:
-            print(f"ciliary-carpet: finished {_line(r)}", file=sys.stderr)
         left = [sc for sc in a.scenes if sc not in done]
-        if left:
-            print(f"ciliary-carpet: not finished: {', '.join(left)} (their folders are as they were; run the batch "
-                  f"again to render them)", file=sys.stderr)
+        fin = ", ".join(f"{r['scene']} ({r['status']}{'; ' + _verdict_text(r) if _verdict_text(r) else ''})"
+                        for r in finished)
+        a.note = (f"finished: {fin or 'none'}; not finished: {', '.join(left) or 'none'}"
+                  f"{' (run the batch again to render them)' if left else ''}; ")
         raise
     n = {k: sum(r["status"] == k for r in recs) for k in ("done", "skipped", "failed")}
     if a.json:
@@ -699,7 +699,8 @@ def main(argv=None) -> int:
         return 2
     except KeyboardInterrupt as exc:
         how = str(exc) if isinstance(exc, Terminated) else "interrupted"
-        print(f"ciliary-carpet: {how}; nothing half-written was left in the output folder", file=sys.stderr)
+        print(f"ciliary-carpet: {how}; {getattr(a, 'note', '')}nothing half-written was left in the output folder",
+              file=sys.stderr)
         return exit_status(exc)
     except CANNOT_MAKE as exc:
         if a.debug:

@@ -1,6 +1,7 @@
 """SIGTERM and SIGHUP (kill, Slurm, systemd, Docker, a closed terminal) are handled like Ctrl-C
 (issue 21, point 5): sent to the parent process alone of a real command, the workers are
 stopped, the staging folder is removed, one line is printed and the exit status is 128 + signum."""
+import json
 import os
 import signal
 import subprocess
@@ -109,7 +110,10 @@ def test_sigterm_to_a_batch_stops_its_workers_and_removes_staging(tmp_path, star
     assert len(kids) >= 3  # the fork server and two workers
     err = _signal_and_check(proc, signal.SIGTERM, kids)
     assert "terminated" in err
-    assert not out.exists() or not any(out.iterdir())  # staging folders removed, nothing placed
+    # staging folders removed, nothing placed: only the batch's index, which lists both as interrupted
+    assert not out.exists() or {x.name for x in out.iterdir()} <= {"batch.json", "batch.md"}
+    if (out / "batch.json").exists():
+        assert {r["status"] for r in json.loads((out / "batch.json").read_text())["scenes"]} == {"interrupted"}
 
 
 def test_sighup_to_a_render_removes_its_staging(tmp_path, started):
