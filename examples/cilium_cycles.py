@@ -24,7 +24,7 @@ summary = {k: (c.period, c.thrust_norm, c.thrust_angle, c.theta_lim, c.tip_area)
 if __name__ == "__main__":
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(3, 3, figsize=(12, 11))
+    fig, axes = plt.subplots(3, 3, figsize=(13, 11))
     for row, (k, c) in zip(axes, cycles.items()):
         d = c.data
         ax = row[0]
@@ -32,19 +32,30 @@ if __name__ == "__main__":
             ax.plot(d.x[j], d.y[j], lw=0.8)
             ax.arrow(0, 0, 0.5 * float(d.Fx[j]), 0.5 * float(d.Fy[j]), width=0.004, color="k", alpha=0.4)
         ax.arrow(0, 0, 0.5 * c.thrust_x, 0.5 * c.thrust_y, width=0.01, color="r")
-        ax.set(aspect="equal", title=rf"$\chi_N$ = {k}$\cdot 2\pi$: shapes, F (black), mean (red)")
-        row[1].plot(d.x[:, -1], d.y[:, -1])
-        row[1].set(aspect="equal", title=f"tip orbit, area {c.tip_area:.2e}")
-        t = d.phase * c.period
-        Fn = np.hypot(d.Fx, d.Fy)
-        ang = np.unwrap(np.arctan2(-d.Fx, d.Fy) - np.pi)
+        ax.set(aspect="equal", xlabel="x [L]", ylabel="y [L]",
+               title=rf"$\chi_N$ = {k}$\cdot 2\pi$: shapes, F/2 (black), mean (red)")
+        tip_x, tip_y = np.append(d.x[:, -1], d.x[0, -1]), np.append(d.y[:, -1], d.y[0, -1])  # closed orbit
+        row[1].plot(tip_x, tip_y)
+        row[1].set(aspect="equal", xlabel="x [L]", ylabel="y [L]", title=f"tip orbit, area {c.tip_area:.2e} L$^2$")
+        t = np.append(d.phase, 1.0) * c.period
+        Fx, Fy = np.append(d.Fx, d.Fx[0]), np.append(d.Fy, d.Fy[0])
+        Fn = np.hypot(Fx, Fy)
+        # the instantaneous thrust angle in the convention of thrust_angle (phi_F - pi), unwrapped and
+        # shifted by whole turns to lie about the mean's angle
+        ang = np.unwrap(np.arctan2(-Fx, Fy) - np.pi)
+        ang -= 2 * np.pi * np.round((np.mean(ang) - c.thrust_angle) / (2 * np.pi))
         row[2].plot(t, Fn, label="|F(t)|")
         row[2].axhline(c.thrust_norm, color="C0", ls="--", label="|mean F|")
         r2 = row[2].twinx()
         r2.plot(t, ang, color="C1")
         r2.axhline(c.thrust_angle, color="C1", ls="--")
         r2.axhline(c.theta_lim, color="k", ls=":")
-        row[2].set(xlabel="t", title="|F| (blue), angle (orange), theta_lim (dotted)")
+        r2.set_ylabel("angle [rad]")
+        row[2].set(xlabel="t [tau]", ylabel="|F| [B/L$^2$]",
+                   title="|F| (blue), angle (orange), means dashed,\ntheta_lim (dotted)")
+    if QUICK:  # say so on the picture: the gallery shows this coarse run
+        fig.suptitle("quick mode: degree 6, 32 phases, no error estimates (run without CILIA_EXAMPLE_QUICK for "
+                     "the converged cycles)", fontsize=9)
     fig.tight_layout()
     fig.savefig("cilium_cycles.png", dpi=110)
     for k, v in summary.items():

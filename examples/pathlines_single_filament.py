@@ -62,13 +62,15 @@ if __name__ == "__main__":
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.4), sharey=True)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.6), sharey=True, layout="constrained")
     X = grid[:, 0].reshape(shape[1], shape[0])
     Y = grid[:, 1].reshape(shape[1], shape[0])
+    # one speed scale for the three panels, under one colour bar
+    norm = plt.Normalize(0.0, max(float(np.nanmax(np.hypot(f[:, 0], f[:, 1]))) for f in fields.values()))
     for ax, (name, carpet) in zip(axes, scenes.items()):
         U = fields[name][:, 0].reshape(X.shape)
         V = fields[name][:, 1].reshape(X.shape)
-        ax.streamplot(X, Y, U, V, color=np.hypot(U, V), cmap="viridis", density=1.1, linewidth=0.7)
+        ax.streamplot(X, Y, U, V, color=np.hypot(U, V), cmap="viridis", norm=norm, density=1.1, linewidth=0.7)
         for p in paths[name].points:
             ax.plot(p[:, 0], p[:, 1], color="tab:red", lw=0.5, alpha=0.7)
         pos, _, _ = carpet.state(0.0)
@@ -77,6 +79,8 @@ if __name__ == "__main__":
         ax.set_aspect("equal")
         ax.set_xlim(-3, 3)
         ax.set_ylim(-4, 2)
-    fig.tight_layout()
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=axes, label="mean speed [L/tau]", shrink=0.8)
+    if QUICK:  # say so on the picture: the gallery shows this coarse run
+        fig.suptitle(f"quick mode: {n_seeds} tracers over {periods} beats (full: 24 over 20)", fontsize=9)
     fig.savefig(OUT / "pathlines_single_filament.png", dpi=120)
     print(deflection)

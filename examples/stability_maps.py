@@ -50,12 +50,16 @@ if __name__ == "__main__":
     for ax, (chi_N, (grid, bnd)) in zip(axes, study_a.items()):
         m = plot_stability_map(grid, ax, bnd, title=rf"$\chi_N$ = {chi_N / TWO_PI:g} $\cdot 2\pi$", norm=norm)
     fig.colorbar(m, ax=axes, label=r"flutter frequency $\beta/2\pi$  [$1/\tau$]")
+    if QUICK:  # say so on the picture: the gallery shows this coarse run
+        fig.suptitle(f"quick mode: a coarse {N_CHI_E} x {N_ETA} grid (published: 106 x 49)", fontsize=9)
     fig.savefig("stability_maps_a.png", dpi=150)
     fig, axes = plt.subplots(1, 4, figsize=(16, 4), sharey=True, layout="constrained")
     norm = frequency_norm([g for g, _ in study_b.values()])
     for ax, (k, (grid, bnd)) in zip(axes, study_b.items()):
         m = plot_stability_map(grid, ax, bnd, title=rf"$\chi_N$ = {k} $\cdot 2\pi$", norm=norm)
     fig.colorbar(m, ax=axes, label=r"flutter frequency $\beta/2\pi$  [$1/\tau$]")
+    if QUICK:
+        fig.suptitle(f"quick mode: a coarse {N_CHI_E} x {N_ETA} grid (published: 106 x 49)", fontsize=9)
     fig.savefig("stability_maps_b.png", dpi=150)
     print("flutter fraction (a):", flutter_fraction_a)
     print("lowest critical chi_E (b):", lowest_critical_chi_E_b)
