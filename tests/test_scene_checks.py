@@ -206,3 +206,9 @@ def test_design_result_owns_read_only_copies_of_its_arrays():
     assert d.chi_N[0] == 1.0 and d.residual[0] == 0.1 and d.worst(1)[0][0] == 1
     with pytest.raises(ValueError, match="read-only"):
         d.chi_N[1] = 0.0
+
+
+def test_carpet_refuses_a_wall_through_its_filaments(table):
+    with pytest.raises(ValueError, match=r"wall must be at least a filament diameter, 2 blob = 0.04 L"):
+        Carpet(layout.square(2, 2), 30.0, table, wall=1e-300)
+    assert Carpet(layout.square(2, 2), 30.0, table, wall=0.04).wall == 0.04

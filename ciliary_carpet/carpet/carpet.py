@@ -346,6 +346,9 @@ class Carpet:
                     raise ValueError(f"blob = {e:g} is larger than half the smallest spacing of the base points "
                                      f"({gap:g} L): the blobs of neighbouring filaments would overlap")
             object.__setattr__(self, "blob", e)
+        if not standing and self.wall is not None and self.wall < 2.0 * self.filament_radius:
+            raise ValueError(f"wall must be at least a filament diameter, 2 blob = {2.0 * self.filament_radius:g} L, "
+                             f"below the plane of a planar carpet (its filaments must not cut it), got {self.wall!r}")
         if self.coupling not in COUPLINGS:
             raise ValueError(f"coupling must be one of {', '.join(COUPLINGS)}, got {self.coupling!r}")
         u = None
