@@ -28,14 +28,15 @@ field of its resolved line frozen at the current step. The error of that Jacobia
 convergence (it stays linear, with the rate the neglected moments' share of dM/dU); every
 residual is of the full model (1). A carpet much larger than its cilia's reach needs Newton:
 the plain iteration U <- M(U) diverges once |A B| > 1 (the 2-norm, uniform carpets at spacing
-2 L, chi_N = 92, free space: 0.95 at 5 x 5, 2.2 at 10 x 10, 24 at 100 x 100), because every
+2 L, chi_N = 92, free space, at the coupled flow: 0.95 at 5 x 5, 2.2 at 10 x 10, and about 24 at
+100 x 100 in an independent implementation), because every
 cilium then answers the flow it is pushed with by a push back larger than the cause. The step is damped (lambda = 1, 1/2, 1/4, ..., at most
 :data:`MAX_HALVINGS` times) until the residual falls and every U_j lies in the table's flow grid.
 The linear solve is GMRES (matrix-free: one Stokeslet sum over the centres per product; relative
 tolerance :data:`GMRES_RTOL`). A has zero diagonal blocks (no self term), so trace(A B) = 0 and
-A B has eigenvalues of both signs of real part (the largest is about +0.15 at 5 x 5 and 10 x 10);
-but I - A B stays far from singular (its smallest singular value is about 0.85 there), so GMRES
-takes tens of products.
+A B has eigenvalues of both signs of real part (the largest is +0.14 at 5 x 5, +0.15 at
+10 x 10); but I - A B stays far from singular (its smallest singular value is 0.86 and 0.85
+there), so GMRES takes tens of products.
 
 Stops when the residual ``max_j |R_j| / max_j |M_j|`` is at most ``rtol`` (default
 :data:`RTOL`, ten times the evaluation's tolerance ``tol``: a smaller residual would be below
