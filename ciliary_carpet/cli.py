@@ -465,7 +465,8 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     in the order of ``scenes``; ``records``, a list given, gets each record as its scene ends
     (what finished, when interrupted). The batch's index, ``out_root/batch.json`` and
     ``out_root/batch.md`` (:func:`write_index`), lists them, also when interrupted (the scenes not
-    finished then with status "interrupted" or "not started")."""
+    finished then with status "interrupted" or "not started"); a batch in which no scene was
+    rendered or found up to date only updates an index a batch made before."""
     from tqdm.auto import tqdm
 
     scenes = [str(s) for s in scenes]
@@ -531,8 +532,8 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
                                   "out_dir": str(Path(out_root) / _name_of(sc))}
                                  for sc in scenes if sc not in done]
         listed = sorted(recs + rest, key=lambda r: order.get(r["scene"], len(order)))
-        if recs or rest:
-            write_index(out_root, listed)
+        if listed:  # a batch that rendered or checked no scene makes no index (it updates one made before)
+            write_index(out_root, listed, create=any(r["status"] in ("done", "skipped") for r in listed))
     return sorted(recs, key=lambda r: order[r["scene"]])
 
 
@@ -562,15 +563,18 @@ def _ours(path: Path) -> bool:
         return False
 
 
-def write_index(out_root, recs: list[dict]) -> None:
+def write_index(out_root, recs: list[dict], create: bool = True) -> None:
     """Write the batch index into ``out_root``: ``batch.json`` (strict JSON: ``written_by``, and
     ``scenes``: the records -- scene, status, verdict, residual, threshold, seconds, folder,
     message) and ``batch.md`` (a table of the same), each atomically. A file of those names that a
     batch did not write (no mark of it, or not a regular file) is kept, and that index file not
     written (a warning says so); an index that cannot be written is a warning, not a failure of
-    the renders. Nothing is written when ``out_root`` is not a folder (no render made it)."""
+    the renders. Nothing is written when ``out_root`` is not a folder (no render made it), nor,
+    unless ``create``, when it holds no index a batch wrote (only such an index is updated)."""
     root = Path(out_root)
     if not root.is_dir():  # no scene reached its folder: nothing to index, and no folder made for it
+        return
+    if not create and not any(os.path.lexists(root / n) and _ours(root / n) for n in INDEX):
         return
     rows = [{"scene": r.get("scene"), "status": r.get("status"), "verdict": r.get("verdict"),
              "residual": r.get("residual"), "threshold": r.get("threshold"), "residual_unit": r.get("residual_unit"),
