@@ -19,7 +19,9 @@ replaced or removed: files someone else put there are never touched, and a rende
 would replace one of them is refused before any work. The swap is journalled and signals cannot
 split it; a folder is complete (:func:`is_complete`) when it has the manifest and
 ``summary.json`` and no swap is under way, and current for a scene when it was made with the
-same settings (``package_version`` and ``scene_resolved`` in ``summary.json``).
+same settings (``package_version`` and ``scene_resolved`` in ``summary.json``) from inputs with
+the same contents (the scene, table and target files, whose SHA-256 the manifest's ``inputs``
+record).
 ``summary.json`` is strict JSON, and a render whose summary would hold a NaN or an infinity is
 a :class:`RenderError` (nothing is written). Before any work, :func:`check_resources` compares a
 lower bound of the memory and time the scene needs with what the machine has. Times are in units
