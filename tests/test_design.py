@@ -17,7 +17,7 @@ from ciliary_carpet.design.model import NEAR_RADIUS, DesignModel, NearField, ang
 from ciliary_carpet.design.result import DesignError
 from ciliary_carpet.design.tolerance import tolerance_study
 from ciliary_carpet.scenes.scene import SceneError, load_scene
-from ciliary_carpet.scenes.assembly import frame_of
+from ciliary_carpet.scenes.assembly import assemble, frame_of
 from ciliary_carpet.design.target import Frame, TargetError, control_points
 from single_cilium.table import ThrustTable
 
@@ -603,3 +603,51 @@ def test_scene_inside_swept_reaches_the_design(tmp_path, table):
     assert s["inside_swept"]["action"] == "drop" and s["inside_swept"]["count"] >= 2
     assert d.control.shape[0] == len(X) - s["inside_swept"]["count"]
     assert s["residual_error"] <= 0.5 * s["residual_threshold"]
+
+
+def test_samples_with_uncertainties_weight_the_design_and_its_verdict(tmp_path, table):
+    """PIV-like samples carry their uncertainty (columns du, dv): noise of 20 % of the speed on a
+    reachable flow cannot be met at [target] residual = 0.05 by any layout, but is met against
+    sqrt(0.05^2 + noise^2); a few wild samples given large uncertainties barely pull the design,
+    where given as exact they would."""
+    c0, X, U = _reachable(table, 4, 2.5, None, "scattered", seed=5)
+    rng = np.random.default_rng(11)
+    s = 0.2 * np.sqrt(np.mean(np.sum(U ** 2, axis=1)))  # 20 % noise, each component s / sqrt(2)
+    du = np.full(U.shape, s / math.sqrt(2))
+    noisy = U + du * rng.standard_normal(U.shape)
+    wild = np.arange(3)
+    noisy[wild] = -3 * U[wild]  # three wild vectors...
+    du[wild] = 10 * s  # ...that the measurement itself flags as unreliable
+
+    def scene_with(columns: bool):
+        f = tmp_path / ("unc.csv" if columns else "plain.csv")
+        head = "x,y,u,v,du,dv\n" if columns else "x,y,u,v\n"
+        rows = [f"{a},{b},{u},{v}" + (f",{e},{g}" if columns else "")
+                for (a, b), (u, v), (e, g) in zip(X, noisy, du)]
+        f.write_text(head + "\n".join(rows) + "\n")
+        body = ('[carpet]\nshape = [4, 4]\nspacing = 2.5\nphases = "random"\n[target]\nkind = "points"\n'
+                f'file = "{f.name}"\nresidual = 0.05\n')
+        return load_scene(_scene(tmp_path, body, f"{f.stem}.toml"))
+
+    scene = scene_with(True)
+    t = assemble(scene).target
+    assert t.data_uncertainty.shape == X.shape and t.sample_weights()[wild].max() < 0.02
+    noise = t.noise()
+    assert 0.15 < noise < 0.25  # the samples' relative rms noise, as made
+    assert t.threshold() == pytest.approx(math.hypot(0.05, noise))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        d, _ = design(scene)
+        d_plain, _ = design(scene_with(False))
+    assert d.threshold == pytest.approx(t.threshold())
+    assert d.residual_rms <= d.threshold and "samples' own relative rms noise" in d.message
+    # weighted: the design follows the reliable samples; unweighted, the wild ones pull it off
+    good = np.setdiff1d(np.arange(len(X)), wild)
+
+    def off(dd):  # relative rms miss of the true (noise-free) flow at the reliable points
+        u = dd.achieved[good]
+        return float(np.sqrt(np.mean(np.sum((u - U[good]) ** 2, axis=1)) / np.mean(np.sum(U[good] ** 2, axis=1))))
+
+    assert off(d) < 0.5 * off(d_plain)
+    assert d_plain.residual_rms > 0.05  # against noisy samples the plain threshold cannot be met
+    assert d_plain.threshold == pytest.approx(0.05)  # no uncertainties: the scene's residual as given

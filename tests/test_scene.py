@@ -363,7 +363,7 @@ def resolved_now() -> dict:
         t, fr, c = a.target, a.frame, a.carpet()
         d = {"scene": s.to_dict(),
              "target": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(t).items()
-                        if k not in ("data_points", "data_velocities")},
+                        if k not in ("data_points", "data_velocities", "data_uncertainty")},
              "frame": [fr.centre.tolist(), fr.flow_direction.tolist(), fr.spacing],
              "carpet": {"bases": _digest(c.bases), "chi_N": _digest(c.chi_N), "phases": _digest(c.phases),
                         "direction": c.direction, "wall": c.wall, "blob": c.blob, "mu": c.mu,
@@ -372,7 +372,8 @@ def resolved_now() -> dict:
             X = control_points(c.bases, fr, t.control)
             d["control"], d["deflection"] = _digest(X), _digest(t.deflection(X, fr))
         out[path.stem] = d
-    out["<defaults>"] = {"empty": scene_from_dict({}).to_dict(), "Target": vars(Target("uniform", 0.1))}
+    out["<defaults>"] = {"empty": scene_from_dict({}).to_dict(),
+                         "Target": {k: v for k, v in vars(Target("uniform", 0.1)).items() if k != "data_uncertainty"}}
     for k in ANGLE_KINDS:
         out["<defaults>"][k] = scene_from_dict({"target": {"kind": k}}).to_dict()
     return json.loads(json.dumps(out))

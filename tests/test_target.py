@@ -303,3 +303,21 @@ def test_registry_drives_the_schema_and_the_readme():
             t = Target(p.name, 0.4, centre=(0.0, 0.0), separation=3.0)
             A, keep = t.surface_directions(pts, fr)
             assert A.shape == (keep.sum(),) and keep.sum() >= 2 and np.all(np.abs(A) <= np.pi)
+
+
+def test_sample_uncertainties_come_as_a_pair_of_numbers_at_least_zero(tmp_path):
+    from ciliary_carpet.design.target import read_target_samples
+
+    p = tmp_path / "c.csv"
+    p.write_text("x,y,u,v,du,dv\n0,0,1,2,0.1,0.2\n1,0,1,2,0,0\n")
+    X, U, E = read_target_samples(p)
+    assert E.tolist() == [[0.1, 0.2], [0.0, 0.0]] and U.shape == (2, 2)
+    assert read_target_samples(tmp_path / "c.csv")[2] is not None
+    p.write_text("x,y,u,v\n0,0,1,2\n")
+    assert read_target_samples(p)[2] is None
+    p.write_text("x,y,u,v,du\n0,0,1,2,0.1\n")
+    with pytest.raises(TargetError, match="'du' without 'dv'"):
+        read_target_samples(p)
+    p.write_text("x,y,u,v,du,dv\n0,0,1,2,-0.1,0.1\n")
+    with pytest.raises(TargetError, match="du = -0.1 is negative"):
+        read_target_samples(p)

@@ -195,7 +195,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
                   spacing: float | None = None, floor_radius: float | None = None,
                   robust_sigma: float = 0.0, robust_samples: int = 16, robust_seed: int = 12345,
                   near_radius: float = NEAR_RADIUS, sweeps: int = 3, threshold: float | None = None,
-                  inside_swept: str = "use") -> Design:
+                  inside_swept: str = "use", sample_weights=None) -> Design:
     """Choose chi_N for the cilia of ``carpet`` (its bases, phases, field, wall and table are
     kept; its chi_N is the starting guess for velocity targets) so that the mean flow at
     ``control`` (P, 2) points along the deflection ``angles`` (P,) [rad, anticlockwise from the
@@ -214,8 +214,10 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     (:class:`~ciliary_carpet.design.model.NearField`; 0: carriers only); ``sweeps``: at most this many sweeps (:func:`~ciliary_carpet.design.model.sweep`)
     and restarts per pass; ``threshold``: the acceptance threshold on the rms residual, whose half
     the error bar is made to meet (module docstring; None: the checks' own bar);
-    ``inside_swept``: "use", "downweight" or "drop" the control points inside a swept region.
-    With a threshold, no further pass starts once the rms residual is below :data:`GOOD_ENOUGH`
+    ``inside_swept``: "use", "downweight" or "drop" the control points inside a swept region;
+    ``sample_weights`` (P,): relative weights of the control points in the objective and the rms
+    residual (e.g. inverse variances of measured samples, :meth:`~ciliary_carpet.design.target.Target.sample_weights`;
+    default all 1), multiplied by the swept-region weights. With a threshold, no further pass starts once the rms residual is below :data:`GOOD_ENOUGH`
     of it.
     The full-model checks use the tolerance ``check_tol`` (default
     max(tol, 3e-2): the levels of detail's bound is loose; on a 1000-cilium carpet the angles at
@@ -254,6 +256,11 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     # resolved there, see NearField), down-weighted or dropped as asked
     inside = check_control_points(carpet, X, spacing)
     w_pts = np.ones(X.shape[0])
+    if sample_weights is not None:
+        sw = np.asarray(sample_weights, dtype=float)
+        if sw.shape != (X.shape[0],) or not np.all(np.isfinite(sw)) or not np.all(sw > 0):
+            raise ValueError(f"sample_weights must be {X.shape[0]} finite numbers > 0, got shape {sw.shape}")
+        w_pts = sw / sw.mean()
     done = {"use": "used", "downweight": f"weighted {INSIDE_WEIGHT:g}", "drop": "dropped"}[inside_swept]
     inside_info = {"count": int(inside.size), "action": inside_swept, "indices": inside.tolist(),
                    "weight": {"use": 1.0, "downweight": INSIDE_WEIGHT, "drop": 0.0}[inside_swept]}
@@ -278,7 +285,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
             velocities = velocities[keep]
         X, w_pts = X[keep], w_pts[keep]
     elif inside.size and inside_swept == "downweight":
-        w_pts[inside] = INSIDE_WEIGHT
+        w_pts[inside] *= INSIDE_WEIGHT
     wsum = float(np.sum(w_pts))
     uniform_w = bool(np.all(w_pts == 1.0))
     check_tol = max(tol, 3e-2) if check_tol is None else float(check_tol)
@@ -570,9 +577,10 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     if scene.carpet.geometry == "standing":  # (the scene's key: a carpet of 10^4 cilia takes seconds to build)
         return _design_standing(scene, built)
     strict = target.strict
+    threshold = target.threshold()  # [target] residual, with sampled velocities' own noise
     kw = dict(tol=scene.tolerance, speed_floor=target.speed_floor, smoothness=target.smoothness,
               spacing=scene.carpet.spacing, robust_sigma=target.sigma if target.robust else 0.0,
-              threshold=float(target.residual), inside_swept=target.inside_swept)
+              threshold=threshold, inside_swept=target.inside_swept)
     if target.is_angle:
         # the local layout straight away (no carpet of straight cilia is built): the request at
         # each cilium's force centre, the centre of the straight filament
@@ -601,8 +609,9 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
     else:
         carpet = built.carpet()
         X, U = target.velocities()
-        d = design_layout(carpet, X, velocities=U, clip=not strict, **kw)
-    if d.residual_rms > target.residual:
+        d = design_layout(carpet, X, velocities=U, clip=not strict, sample_weights=target.sample_weights(), **kw)
+    verdict = _verdict_threshold(target)
+    if d.residual_rms > threshold:
         unit = "rad" if d.kind == "angle" else "relative"
         lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
         est, hint = [], ("Lower the target angle, widen the pattern, or move the control points away from the cilia"
@@ -620,16 +629,16 @@ def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carp
                        "points away from the cilia"
         est_s = f" (estimated on this carpet: {'; '.join(est)})" if est else ""
         msg = (f"{scene.source_name}: the cilia cannot make this target: rms residual {d.residual_rms:.3g} "
-               f"{unit} exceeds [target] residual = {target.residual:g}{est_s}; worst control points {lst}. {hint}")
+               f"{unit} exceeds {verdict}{est_s}; worst control points {lst}. {hint}")
         if strict:
             raise DesignError(msg)
         warnings.warn(msg + " (strict = false: returning the closest flow the cilia make)", UserWarning,
                       stacklevel=2)
-        d = _replace(d, message=d.message + f"; target NOT met ([target] residual = {target.residual:g}): the "
+        d = _replace(d, message=d.message + f"; target NOT met ({verdict}): the "
                      f"closest flow the cilia make; worst control points {lst}")
     else:
-        d = _replace(d, message=d.message + f"; target met ([target] residual = {target.residual:g})")
-    d = _replace(d, threshold=float(target.residual))
+        d = _replace(d, message=d.message + f"; target met ({verdict})")
+    d = _replace(d, threshold=threshold)
     if target.sigma > 0:
         d = _replace(d, tolerance=tolerance_study(d.carpet, d, target.sigma, target.samples).summary())
     return d, d.carpet
@@ -639,6 +648,16 @@ _POINTS_HINT = ("Lower the target speeds where the residual is largest, check th
                 "frame and in L/tau (a scene's [units] convert them), set [target] residual to the samples' own "
                 "relative noise if that is larger, or use more cilia")
 """What to change when a "points" target (sampled velocities, e.g. PIV) is not met."""
+
+
+def _verdict_threshold(target) -> str:
+    """The threshold a verdict is given against, in words: ``[target] residual``, and for sampled
+    velocities with uncertainties how it combines with their noise."""
+    n = target.noise()
+    if n == 0.0:
+        return f"[target] residual = {target.residual:g}"
+    return (f"threshold {target.threshold():.3g} = sqrt(residual^2 + noise^2): [target] residual = "
+            f"{target.residual:g} and the samples' own relative rms noise {n:.3g}")
 
 
 def _replace(d: Design, **kw) -> Design:
@@ -653,8 +672,10 @@ def _design_standing(scene, built) -> tuple[Design, Carpet]:
 
     target, frame, bases = built.target, built.frame, built.bases
     carpet = built.carpet()
+    threshold = target.threshold()  # [target] residual, with sampled velocities' own noise
+    verdict = _verdict_threshold(target)
     kw = dict(height=target.height, tol=scene.tolerance, speed_floor=target.speed_floor,
-              smoothness=target.smoothness, threshold=float(target.residual),
+              smoothness=target.smoothness, threshold=threshold,
               robust_sigma=target.sigma if target.robust else 0.0,
               robust_sigma_psi=math.radians(target.sigma_psi) if target.robust else 0.0)
     hint = ("Move the pattern's centres apart, raise target.height, or use more cilia" if target.is_surface
@@ -673,17 +694,18 @@ def _design_standing(scene, built) -> tuple[Design, Carpet]:
         check_control_points(carpet, X, scene.carpet.spacing)
         d = design_surface(carpet, X, velocities=U, strict=target.strict, **kw)
     unit = "rad" if d.kind == "angle" else "relative"
-    if d.residual_rms > target.residual:
+    if d.residual_rms > threshold:
         lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
         msg = (f"{scene.source_name}: the cilia cannot make this surface flow: rms residual {d.residual_rms:.3g} "
-               f"{unit} exceeds [target] residual = {target.residual:g}; worst control points {lst}. {hint}")
+               f"{unit} exceeds {verdict}; worst control points {lst}. {hint}")
         if target.strict:
             raise DesignError(msg)
         warnings.warn(msg + " (strict = false: returning the closest flow the cilia make)", UserWarning, stacklevel=3)
-        d = _replace(d, message=d.message + f"; target NOT met ([target] residual = {target.residual:g}): the closest "
+        d = _replace(d, message=d.message + f"; target NOT met ({verdict}): the closest "
                      f"flow the cilia make; worst control points {lst}")
     else:
-        d = _replace(d, message=d.message + f"; target met ([target] residual = {target.residual:g})")
+        d = _replace(d, message=d.message + f"; target met ({verdict})")
+    d = _replace(d, threshold=threshold)
     if target.sigma > 0 or target.sigma_psi > 0:
         d = _replace(d, tolerance=tolerance_study(d.carpet, d, target.sigma, target.samples,
                                                   sigma_psi=math.radians(target.sigma_psi)).summary())

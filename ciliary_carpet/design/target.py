@@ -203,7 +203,9 @@ class TargetSpec(Section):
     file: str | None = key(
         None, "CSV (header with columns x, y, u, v; `#` comments) or NetCDF (variables x, y, u, v along one "
         "dimension) of control points and target velocities (lab frame, model units L/tau), relative to the "
-        "scene file; required", "str", default_shown="-", kinds=_uses("file"))
+        "scene file; required. Optional columns (variables) du, dv: each sample's standard uncertainty of u and v "
+        "(L/tau, e.g. PIV's): the design then weights each sample by 1 / (du^2 + dv^2) and the verdict allows "
+        "for the samples' own noise (`residual`)", "str", default_shown="-", kinds=_uses("file"))
     control: str | tuple = key(
         "cells", 'where the designed mean flow is compared with the target: `"cilia"`: each base point moved '
         'half a spacing downstream; `"cells"`: the cell centres (circumcentres of the Delaunay triangles of the '
@@ -213,7 +215,9 @@ class TargetSpec(Section):
         "pairs", choices=("cells", "cilia"), kinds=_DIRECTION_KINDS)
     residual: float = key(
         0.05, 'acceptance threshold on the design\'s rms residual (rad for angle targets, relative to rms target '
-        'speed for `"points"`); the test suite checks it', lo=0, lo_open=True, kinds=_DESIGNED)
+        'speed for `"points"`); the test suite checks it. Samples with uncertainties (`file` columns du, dv) are '
+        'met at sqrt(residual^2 + n^2), n their relative rms noise: no design can come closer to noisy samples '
+        'than their noise', lo=0, lo_open=True, kinds=_DESIGNED)
     strict: bool = key(
         False, "`false`: clip unreachable angles and return the closest flow when the residual is above "
         "`residual` (with a warning); `true`: both are errors (exit status 3)", "bool", kinds=_DESIGNED)
@@ -422,6 +426,9 @@ class Target:
         ``robust_sigma``) and :func:`~ciliary_carpet.design.tolerance.tolerance_study`.
     data_points, data_velocities : ndarray or None
         (P, 2) arrays for kind "points" (else None); see :meth:`velocities`.
+    data_uncertainty : ndarray or None
+        (P, 2) standard uncertainties of the target velocities' components (L/tau, >= 0), for kind
+        "points" when the file gives them (columns du, dv); see :meth:`sample_weights`.
     source : str or None
         The control-point file for kind "points" (for messages).
     """
@@ -446,6 +453,7 @@ class Target:
     sigma_psi: float = spec_default("sigma_psi")
     data_points: np.ndarray | None = None
     data_velocities: np.ndarray | None = None
+    data_uncertainty: np.ndarray | None = None
     source: str | None = None
 
     def __post_init__(self) -> None:
@@ -491,6 +499,12 @@ class Target:
                 raise TargetError(f"target data_points {p.shape} and data_velocities {v.shape} must match")
             object.__setattr__(self, "data_points", _readonly(p))
             object.__setattr__(self, "data_velocities", _readonly(v))
+            if self.data_uncertainty is not None:
+                e = _points("target data_uncertainty", self.data_uncertainty)
+                if e.shape != p.shape or np.any(e < 0):
+                    raise TargetError(f"target data_uncertainty must be (P, 2) = {p.shape} numbers >= 0, got shape "
+                                      f"{e.shape}")
+                object.__setattr__(self, "data_uncertainty", _readonly(e))
 
     # -------------------------------------------------------------------- construction
     @classmethod
@@ -510,14 +524,14 @@ class Target:
                                   f"maximum (angle_max) for its default")
             else:
                 amp = DEFAULT_ANGLE_FRACTION * float(angle_max)
-        pts = vel = src = None
+        pts = vel = unc = src = None
         if spec.kind == "points":
             p = Path(spec.file).expanduser()
             if not p.is_absolute():
                 p = Path(base_dir if base_dir is not None else Path.cwd()) / p
-            pts, vel = read_target_points(p)
+            pts, vel, unc = read_target_samples(p)
             src = str(p)
-        return cls(amplitude=amp, data_points=pts, data_velocities=vel, source=src,
+        return cls(amplitude=amp, data_points=pts, data_velocities=vel, data_uncertainty=unc, source=src,
                    **{k: getattr(spec, k) for k in _FROM_SPEC})
 
     # -------------------------------------------------------------------- evaluation
@@ -572,6 +586,37 @@ class Target:
         if self.kind != "points":
             raise TargetError(f"a {self.kind!r} target has no target velocities (only kind 'points')")
         return np.array(self.data_points), np.array(self.data_velocities)
+
+    def sample_weights(self) -> np.ndarray | None:
+        """For kind "points" with uncertainties: (P,) weights of the samples in the design's
+        objective and rms residual, ``1 / (s_k^2 + s_0^2)`` scaled to mean 1, with ``s_k^2 = du_k^2 +
+        dv_k^2`` and ``s_0`` a tenth of the rms ``s`` (a sample given as exact does not outweigh
+        the others without bound); None without uncertainties (all weights 1)."""
+        if self.kind != "points" or self.data_uncertainty is None:
+            return None
+        s2 = np.sum(np.asarray(self.data_uncertainty) ** 2, axis=1)
+        s0 = 0.01 * float(np.mean(s2))
+        if s0 == 0.0:  # every sample given as exact
+            return None
+        w = 1.0 / (s2 + s0)
+        return w / w.mean()
+
+    def noise(self) -> float:
+        """For kind "points" with uncertainties: the samples' relative rms noise ``n`` =
+        sqrt(sum w_k s_k^2 / sum w_k |U_k|^2) (weights :meth:`sample_weights`), the rms residual a
+        design that makes the true flow exactly has against the samples, in the units of the
+        velocity residual (relative to the rms target speed); 0 without uncertainties."""
+        w = self.sample_weights()
+        if w is None:
+            return 0.0
+        s2 = np.sum(np.asarray(self.data_uncertainty) ** 2, axis=1)
+        u2 = np.sum(np.asarray(self.data_velocities) ** 2, axis=1)
+        return float(math.sqrt(np.sum(w * s2) / max(float(np.sum(w * u2)), 1e-300)))
+
+    def threshold(self) -> float:
+        """The rms residual at which the target counts as met: ``residual``, combined with the
+        samples' own noise for sampled velocities with uncertainties, sqrt(residual^2 + noise^2)."""
+        return float(math.hypot(self.residual, self.noise()))
 
 
 _FROM_SPEC = tuple(f.name for f in fields(Target) if f.name in keys_of(TargetSpec))
@@ -669,29 +714,57 @@ def reachable_check(angles, angle_range, clip: bool = False, *, what: str = "con
 
 # ------------------------------------------------------------------------------ control files
 def read_target_points(path) -> tuple[np.ndarray, np.ndarray]:
-    """Control points (P, 2) and target velocities (P, 2) from a file: CSV (``.csv``/``.txt``:
+    """Control points (P, 2) and target velocities (P, 2) from a file (:func:`read_target_samples`
+    without the uncertainties)."""
+    xy, uv, _ = read_target_samples(path)
+    return xy, uv
+
+
+def read_target_samples(path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Control points (P, 2), target velocities (P, 2) and, when the file gives them (columns or
+    variables ``du`` and ``dv``, both), the velocities' standard uncertainties (P, 2) (else None)
+    from a file: CSV (``.csv``/``.txt``:
     a header naming the columns x, y, u, v in any order, extra columns ignored, comma- or
     whitespace-separated, ``#`` starts a comment) or NetCDF (``.nc``, ``.nc4``, ``.cdf``, ``.h5``:
     variables x, y, u, v along one common dimension). Positions in L, velocities in model units
-    (L / tau), lab frame. Missing columns, non-numbers, NaN/inf and empty files are a
+    (L / tau), lab frame; uncertainties in L / tau, >= 0. Missing columns, one of du, dv without
+    the other, non-numbers, NaN/inf, negative uncertainties and empty files are a
     :class:`TargetError` naming the file and the line or variable."""
     p = Path(path)
     if not p.is_file():
         raise TargetError(f"{p}: no such control-point file")
     suf = p.suffix.lower()
     if suf in CSV_SUFFIXES or suf in NETCDF_SUFFIXES:
-        xy, uv = (_read_csv if suf in CSV_SUFFIXES else _read_netcdf)(p)
-        big = np.abs(np.column_stack([xy, uv])) > 1e150  # squares and sums of these stay finite
+        cols = (_read_csv if suf in CSV_SUFFIXES else _read_netcdf)(p)
+        big = np.abs(cols) > 1e150  # squares and sums of these stay finite
         if np.any(big):
             i, j = (int(k[0]) for k in np.nonzero(big))
-            raise TargetError(f"{p}: control point {i} (data row {i + 1}): {_COLS[j]} = {(xy if j < 2 else uv)[i, j % 2]:g}"
+            raise TargetError(f"{p}: control point {i} (data row {i + 1}): {_ALL_COLS[j]} = {cols[i, j]:g}"
                               f" is beyond +-1e150; positions are in L, velocities in L / tau")
-        return xy, uv
+        if cols.shape[1] > 4:
+            neg = np.nonzero(cols[:, 4:] < 0)
+            if neg[0].size:
+                i, j = int(neg[0][0]), int(neg[1][0])
+                raise TargetError(f"{p}: control point {i} (data row {i + 1}): {_UNC_COLS[j]} = {cols[i, 4 + j]:g} "
+                                  f"is negative; an uncertainty is >= 0 (L / tau)")
+        return cols[:, :2].copy(), cols[:, 2:4].copy(), (cols[:, 4:6].copy() if cols.shape[1] > 4 else None)
     raise TargetError(f"{p}: unknown control-point file type {suf!r} (CSV: {', '.join(CSV_SUFFIXES)}; "
                       f"NetCDF: {', '.join(NETCDF_SUFFIXES)})")
 
 
 _COLS = ("x", "y", "u", "v")
+_UNC_COLS = ("du", "dv")
+_ALL_COLS = _COLS + _UNC_COLS
+
+
+def _optional_pair(p: Path, present: list) -> tuple:
+    """The columns to read: x, y, u, v, and du, dv when both are ``present`` (one alone is an
+    error naming the other)."""
+    has = [c in present for c in _UNC_COLS]
+    if any(has) and not all(has):
+        there, missing = (_UNC_COLS if has[0] else _UNC_COLS[::-1])
+        raise TargetError(f"{p}: column {there!r} without {missing!r}: the uncertainties of u and v come as a pair")
+    return _ALL_COLS if all(has) else _COLS
 
 
 def _read_csv(p: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -715,30 +788,30 @@ def _read_csv(p: Path) -> tuple[np.ndarray, np.ndarray]:
     if missing:
         raise TargetError(f"{p}: line {n0}: header {head!r} lacks column(s) {', '.join(missing)} "
                           f"(needs x, y, u, v)")
-    dup = [c for c in _COLS if names.count(c) > 1]
+    want = _optional_pair(p, names)
+    dup = [c for c in want if names.count(c) > 1]
     if dup:
         raise TargetError(f"{p}: line {n0}: column(s) {', '.join(dup)} appear twice in the header")
-    col = {c: names.index(c) for c in _COLS}
+    col = {c: names.index(c) for c in want}
     rows = []
     for k, (n, ln) in enumerate(lines[1:], start=1):
         cells = split(ln)
         if len(cells) != len(names):
             raise TargetError(f"{p}: line {n} (data row {k}): {len(cells)} fields, the header has {len(names)}")
         vals = []
-        for c in _COLS:
+        for c in want:
             s = cells[col[c]]
             try:
                 x = float(s)
             except ValueError:
                 raise TargetError(f"{p}: line {n} (data row {k}): column {c!r} is not a number: {s!r}") from None
             if not math.isfinite(x):
-                raise TargetError(f"{p}: line {n} (data row {k}): column {c!r} is {s!r}; x, y, u, v must be finite")
+                raise TargetError(f"{p}: line {n} (data row {k}): column {c!r} is {s!r}; every value must be finite")
             vals.append(x)
         rows.append(vals)
     if not rows:
         raise TargetError(f"{p}: no data rows after the header")
-    a = np.array(rows)
-    return a[:, :2].copy(), a[:, 2:].copy()
+    return np.array(rows)
 
 
 def _read_netcdf(p: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -753,14 +826,15 @@ def _read_netcdf(p: Path) -> tuple[np.ndarray, np.ndarray]:
     if missing:
         raise TargetError(f"{p}: missing variable(s) {', '.join(missing)} (needs x, y, u, v along one dimension)")
     arrs = {}
-    dims = {c: ds[c].dims for c in _COLS}
-    for c in _COLS:
+    want = _optional_pair(p, list(ds.variables))
+    dims = {c: ds[c].dims for c in want}
+    for c in want:
         if len(dims[c]) != 1:
             raise TargetError(f"{p}: variable {c!r} must be 1-d, has dims {dims[c]}")
-    if len({dims[c] for c in _COLS}) != 1:
-        raise TargetError(f"{p}: variables x, y, u, v must share one dimension, have "
-                          f"{', '.join(f'{c}{dims[c]}' for c in _COLS)}")
-    for c in _COLS:
+    if len({dims[c] for c in want}) != 1:
+        raise TargetError(f"{p}: variables {', '.join(want)} must share one dimension, have "
+                          f"{', '.join(f'{c}{dims[c]}' for c in want)}")
+    for c in want:
         try:
             v = np.asarray(ds[c].values, dtype=float)
         except (TypeError, ValueError):
@@ -772,4 +846,4 @@ def _read_netcdf(p: Path) -> tuple[np.ndarray, np.ndarray]:
         arrs[c] = v
     if arrs["x"].size == 0:
         raise TargetError(f"{p}: no control points (dimension '{dims['x'][0]}' is empty)")
-    return np.column_stack([arrs["x"], arrs["y"]]), np.column_stack([arrs["u"], arrs["v"]])
+    return np.column_stack([arrs[c] for c in want])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+from ciliary_carpet.design.inverse import NEAR_CUTOFF_FRACTION
 from ciliary_carpet.design.target import PATTERNS
 
 __all__ = ["markdown"]
@@ -172,12 +173,22 @@ def _design(s: dict, scene: dict) -> list:
             head = f"- **Target met**: the designed carpet's mean flow is {r(rms)} rms {what}"
         else:
             head = f"- **Target NOT met**: the closest flow these cilia make is {r(rms)} rms {what}"
-        out.append(f"{head} at the {P} control points; the scene allows {r(thr)} (`[target] residual = {thr:g}`).")
+        given = tgt.get("residual", thr)
+        if abs(given - thr) > 1e-12 * thr:  # sampled velocities with uncertainties: their noise counts
+            allows = (f"the scene allows {r(thr)}: `[target] residual = {given:g}` combined with the samples' own "
+                      f"noise, {r(math.sqrt(max(thr * thr - given * given, 0.0)))} rms (no flow comes closer to noisy "
+                      f"samples than their noise)")
+        else:
+            allows = f"the scene allows {r(thr)} (`[target] residual = {thr:g}`)"
+        out.append(f"{head} at the {P} control points; {allows}.")
     else:
         out.append(f"- The designed carpet's mean flow is {r(rms)} rms {what} at the {P} control points.")
     hi = rms + err
-    txt = f"- The flow model's tolerance can move that figure by at most {r(err)} (a bound): the true rms is "
-    txt += f"between {r(rms - err)} and {r(hi)}" if err < rms else f"at most {r(hi)}"
+    if err == 0.0:
+        txt = "- The flow at the control points was summed exactly (every cilium resolved): no level-of-detail error"
+    else:
+        txt = f"- The flow model's tolerance can move that figure by at most {r(err)} (a bound): the true rms is "
+        txt += f"between {r(rms - err)} and {r(hi)}" if err < rms else f"at most {r(hi)}"
     if "met" in dd:
         thr = dd["residual_threshold"]
         if dd["met"] and hi <= thr:
@@ -192,8 +203,14 @@ def _design(s: dict, scene: dict) -> list:
     if lay:
         txt += f"chi_N (natural curvature) from {lay['chi_N_min']:.3g} to {lay['chi_N_max']:.3g}; "
     nc = dd["cilia_near_cutoff"]
-    txt += (f"{nc} of {s['n_cilia']} cilia close to the flutter cutoff (where the beat stops and the push fades)"
-            if nc else "no cilium close to the flutter cutoff (where the beat stops and the push fades)")
+    if s.get("geometry") == "standing":  # weak along the surface: chi_N near 0 (a straight beat) or the cutoff
+        txt += (f"{nc} of {s['n_cilia']} cilia pump weakly along the surface (below a quarter of the strongest: "
+                f"chi_N near 0, where the beat is symmetric, or near the flutter cutoff, where it stops)"
+                if nc else "no cilium pumps weakly along the surface")
+    else:
+        txt += (f"{nc} of {s['n_cilia']} cilia close to the flutter cutoff (their thrust below "
+                f"{NEAR_CUTOFF_FRACTION:.0%} of a straight cilium's: the beat stops there and the push fades)"
+                if nc else "no cilium close to the flutter cutoff (where the beat stops and the push fades)")
     out.append(txt + " (`layout.vtp`, `layout.nc`, `design.png`).")
     if dd.get("returned") == "local":
         out.append(f"- The starting layout (each cilium curved for the target on its own) was already the best: "
