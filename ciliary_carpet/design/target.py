@@ -204,8 +204,8 @@ class TargetSpec(Section):
         None, "CSV (header with columns x, y, u, v; `#` comments) or NetCDF (variables x, y, u, v along one "
         "dimension) of control points and target velocities (lab frame, model units L/tau), relative to the "
         "scene file; required. Optional columns (variables) du, dv: each sample's standard uncertainty of u and v "
-        "(L/tau, e.g. PIV's): the design then weights each sample by 1 / (du^2 + dv^2) and the verdict allows "
-        "for the samples' own noise (`residual`)", "str", default_shown="-", kinds=_uses("file"))
+        "(L/tau, e.g. PIV's): a planar carpet's design then weights each sample by 1 / (du^2 + dv^2), and every "
+        "verdict allows for the samples' own noise (`residual`)", "str", default_shown="-", kinds=_uses("file"))
     control: str | tuple = key(
         "cells", 'where the designed mean flow is compared with the target: `"cilia"`: each base point moved '
         'half a spacing downstream; `"cells"`: the cell centres (circumcentres of the Delaunay triangles of the '
