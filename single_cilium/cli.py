@@ -17,7 +17,7 @@ import numpy as np
 
 from .version import __version__
 from .files import strict_json
-from .signals import Terminated, exit_status, terminate_as_interrupt
+from .signals import Terminated, exit_status, interrupt_of, terminate_as_interrupt
 from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
 from .dynamics import simulate
 from .mesh import Mesh
@@ -339,20 +339,6 @@ def _check_args(args) -> None:
                          "--degree")
 
 
-def _interrupt_of(exc: BaseException) -> KeyboardInterrupt | None:
-    """The interrupt behind ``exc``: ``exc`` itself, or the KeyboardInterrupt (a signal) that a
-    compiled function returned with set ("SystemError: ... returned a result with an exception
-    set", which carries it as its cause)."""
-    seen = 0
-    while exc is not None and seen < 8:
-        if isinstance(exc, KeyboardInterrupt):
-            return exc
-        if not isinstance(exc, SystemError):
-            return None
-        exc, seen = exc.__cause__ or exc.__context__, seen + 1
-    return None
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
@@ -365,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 out = args.func(args)
             except SystemError as exc:  # a signal that came back through a compiled function
-                stop = _interrupt_of(exc)
+                stop = interrupt_of(exc)
                 if stop is None:
                     raise
                 raise stop from None

@@ -62,6 +62,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ._kernels import stage_terms, stage_residual
+from .signals import native_call
 from .equilibrium import equilibrium
 from .mesh import Mesh
 from .params import CiliumParams
@@ -173,8 +174,9 @@ class Filament:
         """``dg_U/dtheta`` on the free nodes, shape (n-1, n-1), for full nodal ``theta`` (n,)."""
         m = self.mesh
         U1, U2 = self.params.background
-        return stage_terms(np.ascontiguousarray(theta, dtype=float), np.zeros(self.n), m.cumulative,
-                            m.weights, float(self.params.eta), float(U1), float(U2))[2]
+        with native_call():  # a signal meanwhile waits for the kernel (single_cilium.signals)
+            return stage_terms(np.ascontiguousarray(theta, dtype=float), np.zeros(self.n), m.cumulative,
+                                m.weights, float(self.params.eta), float(U1), float(U2))[2]
 
     def _project(self, d: np.ndarray, theta: np.ndarray) -> np.ndarray:
         w = self.mesh.weights
@@ -221,8 +223,9 @@ class Filament:
         relax, cE = (0.0, 0.0) if self.kappa_frozen else (1.0, p.chi_E)
         m = self.mesh
         U1, U2 = p.background
-        return stage_residual(np.ascontiguousarray(Y, dtype=float), np.ascontiguousarray(Kd, dtype=float),
-                              m.cumulative, m.weights, self._K, self._B, p.eta, cE, p.chi_N, relax, U1, U2)
+        with native_call():  # a signal meanwhile waits for the kernel (single_cilium.signals)
+            return stage_residual(np.ascontiguousarray(Y, dtype=float), np.ascontiguousarray(Kd, dtype=float),
+                                  m.cumulative, m.weights, self._K, self._B, p.eta, cE, p.chi_N, relax, U1, U2)
 
     def factor(self, y: np.ndarray, sigmas) -> list["_SchurFactor"]:
         """Factorisations of ``sigma M(y) - J(y)`` for each ``sigma`` in ``sigmas`` (``J = df/dy``;
@@ -337,7 +340,8 @@ class Filament:
             th = th.copy()
             last = np.inf
             for it in range(max_iter):
-                gU, _, JU = stage_terms(th, zero, I, w, p.eta, lam * U1, lam * U2)
+                with native_call():
+                    gU, _, JU = stage_terms(th, zero, I, w, p.eta, lam * U1, lam * U2)
                 g = Kr @ th[1:] + Br @ (p.chi_E * np.sin(th) - p.chi_N) + gU
                 J = Kr + Br[:, 1:] * (p.chi_E * np.cos(th[1:]))[None, :] + JU
                 try:

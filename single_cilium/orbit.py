@@ -82,6 +82,7 @@ import numpy as np
 from scipy.sparse.linalg import LinearOperator, gmres
 
 from ._kernels import radau_steps
+from .signals import native_call
 from .filament import Filament
 from .radau import A_INV
 from .radau import P as _P
@@ -195,6 +196,8 @@ class ExactShooting(OrbitSolver):
     #: stage Newton tolerance (absolute, on theta increments) and iteration limit
     step_tol = 1e-12
     step_maxiter = 10
+    #: the longest (estimated) single call of the compiled period map: signals wait for a call
+    call_seconds = 2.0
 
     def __init__(self, fil: Filament, n_phase: int):
         super().__init__(fil, n_phase)
@@ -205,8 +208,30 @@ class ExactShooting(OrbitSolver):
                       float(fil.params.background[0]), float(fil.params.background[1]))
 
     def _steps(self, y0, h, n, sens):
-        Y, Yd, S, Sh, counts = radau_steps(np.ascontiguousarray(y0, dtype=float), float(h), int(n), sens,
-                                           *self._args)
+        """``n`` steps of size ``h`` from ``y0`` by the compiled kernel, in calls of at most
+        :attr:`call_seconds` (estimated) each: a signal is handled between calls (a kernel cannot
+        be interrupted), and the pieces are joined (the monodromy and its derivative in ``h``
+        by the chain rule)."""
+        N = y0.size
+        per_step = (1.5e-8 if sens else 1e-9) * float(N) ** 3
+        chunk = max(1, int(self.call_seconds / per_step))
+        Ys, Yds, S, Sh = [], [], None, None
+        counts = np.array([0, 0, -1], dtype=np.int64)
+        y, done = np.ascontiguousarray(y0, dtype=float), 0
+        while done < n:
+            k = min(chunk, int(n) - done)
+            with native_call():  # a signal meanwhile waits for the kernel (single_cilium.signals)
+                Yc, Ydc, Sc, Shc, cc = radau_steps(y, float(h), k, sens, *self._args)
+            counts[:2] += cc[:2]
+            Ys.append(Yc if done == 0 else Yc[1:])
+            Yds.append(Ydc if done == 0 else Ydc[1:])
+            S, Sh = (Sc, Shc) if S is None else ((Sc @ S, Sc @ Sh + Shc) if sens else (S, Sh))
+            done += k
+            if cc[2] >= 0:
+                counts[2] = done - k + cc[2]
+                break
+            y = np.ascontiguousarray(Yc[-1])
+        Y, Yd = (Ys[0], Yds[0]) if len(Ys) == 1 else (np.concatenate(Ys), np.concatenate(Yds))
         self.work["step_newton"] += int(counts[0])
         self.work["factorizations"] += int(counts[1])
         if counts[2] >= 0 or not np.all(np.isfinite(Y[-1])):

@@ -14,6 +14,13 @@ callback) then crashes the process with a segmentation fault. The handlers there
 where no frame of such a callback is on the stack, and otherwise deliver the signal again 50 ms
 later. Ctrl-C (SIGINT) gets the same treatment.
 
+Compiled code (numba) can also call back into the interpreter while it runs: the first call of a
+kernel that uses BLAS or LAPACK looks the routines up in SciPy from native code. A handler that
+raises there leaves the native code going on with a broken result (a segmentation fault, or
+``SystemError: CPUDispatcher(...) returned a result with an exception set``). Calls into such
+kernels are therefore marked with :func:`native_call`; a signal that arrives inside one is
+delivered again 50 ms later, until the call has returned.
+
 A process forked from one with these handlers (a ``fork`` pool worker) must not inherit them:
 its parent stops it with SIGTERM and expects it to die at once, even inside native code. The
 handlers are therefore reset to the defaults in a forked child (:func:`os.register_at_fork`),
@@ -27,7 +34,8 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["Terminated", "TERMINATING", "terminate_as_interrupt", "exit_status", "describe"]
+__all__ = ["Terminated", "TERMINATING", "terminate_as_interrupt", "exit_status", "describe", "native_call",
+           "interrupt_of"]
 
 TERMINATING: tuple[signal.Signals, ...] = tuple(
     s for s in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s is not None)
@@ -37,6 +45,35 @@ _CALLBACK_MODULES = (f"{os.sep}llvmlite{os.sep}", f"{os.sep}ctypes{os.sep}")  # 
 
 
 _ACTIVE: dict[int, dict] = {}  # per active block: {signal: the handler it replaced}
+_NATIVE = [0]  # depth of the main thread's calls into compiled code (native_call)
+
+
+@contextmanager
+def native_call() -> Iterator[None]:
+    """Mark a call into compiled code made by the main thread: a signal that arrives while it
+    runs is delivered again once it has returned (see the module docstring). Other threads
+    receive no signals; there it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _NATIVE[0] += 1
+    try:
+        yield
+    finally:
+        _NATIVE[0] -= 1
+
+
+def interrupt_of(exc: BaseException | None) -> KeyboardInterrupt | None:
+    """The interrupt behind ``exc``: ``exc`` itself if it is a KeyboardInterrupt, or the one a
+    ``SystemError("... returned a result with an exception set")`` carries as its cause (a
+    signal handled inside compiled code); None otherwise."""
+    for _ in range(8):
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        if not isinstance(exc, SystemError):
+            return None
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _reset_in_child() -> None:
@@ -126,7 +163,7 @@ def terminate_as_interrupt(signals: tuple = TERMINATING) -> Iterator[None]:
             return
         if signum != signal.SIGINT and fired:
             return
-        if _in_native_callback(frame):  # not here: again in a moment
+        if _NATIVE[0] or _in_native_callback(frame):  # not here: again in a moment
             timer = threading.Timer(_RETRY_S, os.kill, (owner, signum))
             timer.daemon = True
             timer.start()

@@ -145,3 +145,90 @@ def test_table_build_degree_below_the_error_estimate_is_a_scene_error(tmp_path):
         load_scene(scene)
     assert "got 0" not in str(e.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.toml"]
+
+
+# ------------------------------------------------------------------ single-cilium: options, signals
+@pytest.mark.parametrize("argv, names", [
+    (["cycle", "--chi-E", "200", "--eta", "1", "--chi-N", "60", "--degree", "1000"], ["--degree", "[4, 32]"]),
+    (["cycle", "--chi-E", "200", "--eta", "1", "--chi-N", "1e300"], ["--chi-N", "at most"]),
+    (["cycle", "--chi-E", "200", "--eta", "1", "--chi-N", "60", "--n-phase", "100000000"],
+     ["--n-phase", "hours", "at most"]),
+    (["stability", "--chi-E", "200", "--eta", "1", "--chi-N", "1e300"], ["--chi-N", "at most"]),
+    (["simulate", "--chi-E", "200", "--eta", "1", "--chi-N", "1e300", "--t-end", "1"], ["--chi-N", "at most"]),
+    (["table", "--chi-E", "200", "--eta", "1", "--chi-N", "0:100:3", "--degree", "2"], ["--degree", "[4, 32]"]),
+    (["table", "--chi-E", "200", "--eta", "1", "--chi-N", "0:100:3", "--n-phase", "1"], ["--n-phase", ">= 16"]),
+])
+def test_options_beyond_reason_are_refused_up_front_naming_the_option(tmp_path, capsys, argv, names):
+    """A degree, step count or curvature whose cost is beyond reason (or below what the method
+    needs) is refused before any work: exit 2, one line naming the option and its range or the
+    largest sensible value; nothing is created."""
+    from single_cilium.cli import main
+
+    if argv[0] == "table":
+        argv = argv + ["-o", str(tmp_path / "t.nc"), "--quiet"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "internal error" not in err, err
+    assert all(n in err for n in names), err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_signal_inside_a_compiled_kernel_waits_for_it_to_return():
+    """A SIGTERM that arrives while the main thread is inside a compiled kernel (which may call
+    back into the interpreter) is delivered once the kernel has returned, as Terminated."""
+    import signal
+    import time
+
+    from single_cilium.signals import Terminated, native_call, terminate_as_interrupt
+
+    with pytest.raises(Terminated):
+        with terminate_as_interrupt():
+            with native_call():
+                os.kill(os.getpid(), signal.SIGTERM)
+                end = time.monotonic() + 0.3
+                while time.monotonic() < end:  # Python code runs here: the handler is called, and waits
+                    pass
+                inside = "no signal inside"
+            assert inside == "no signal inside"
+            time.sleep(5.0)  # the signal comes again within 50 ms
+
+
+def test_a_signal_that_comes_back_through_compiled_code_exits_as_the_signal(monkeypatch, capsys):
+    """A compiled function that returns with the signal's exception set (``SystemError: ...
+    returned a result with an exception set``) ends the command as the signal does: 143 and one
+    line, never "internal error"."""
+    import single_cilium.cli as cli
+    from single_cilium.signals import Terminated
+
+    def interrupted(args):
+        try:
+            raise Terminated(15)
+        except Terminated as exc:
+            raise SystemError("CPUDispatcher(radau_steps) returned a result with an exception set") from exc
+
+    monkeypatch.setattr(cli, "cmd_cycle", interrupted)
+    assert cli.main(["cycle", "--chi-E", "200", "--eta", "1", "--chi-N", "60"]) == 143
+    err = capsys.readouterr().err
+    assert err.strip() == "single-cilium cycle: terminated by SIGTERM", err
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT", "SIGHUP"])
+def test_a_signal_during_a_cycle_exits_with_its_status_and_one_line(signame):
+    """SIGTERM, SIGINT or SIGHUP at staggered times during ``single-cilium cycle`` (the first
+    calls of its compiled kernels included, which once crashed or gave a SystemError): exit
+    128 + signum with one line, or the default action's status when it lands before the handlers
+    are installed; never a crash or a traceback (about 20 s)."""
+    import signal
+    import time
+
+    sig = getattr(signal, signame)
+    for delay in (1.6, 2.0, 2.3, 2.6, 3.0, 3.5):
+        proc = subprocess.Popen([sys.executable, "-m", "single_cilium.cli", "cycle", "--chi-E", "200", "--eta", "1",
+                                 "--chi-N", "60", "--degree", "24", "--n-phase", "256"], cwd=ROOT,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode in (128 + sig, -sig), (delay, proc.returncode, err[-2000:])
+        assert "Traceback" not in err and len(err.strip().splitlines()) <= 1, (delay, err[-2000:])
