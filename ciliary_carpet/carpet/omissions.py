@@ -219,7 +219,9 @@ class Omissions:
     speeds [L / tau].
 
     Mean push: ``pushback_median``, ``pushback_max`` (dimensionless): |mean flow of the others at
-    the force centre| * eta / |Fbar|; ``mean_flow_others_median`` [L / tau].
+    the force centre| * eta / |Fbar|; ``mean_flow_others_median`` [L / tau]; ``coupled``: whether
+    the carpet's cilia already beat in that mean flow (``coupling = "mean"``), so that the push is
+    modelled rather than left out.
 
     Spacing: ``spacing`` [L], the median nearest-neighbour distance of the base points (NaN for
     one cilium); ``spacing_exponent`` p of median tip ratio ~ spacing^-p (NaN when not measured);
@@ -281,6 +283,7 @@ class Omissions:
     mu_sbt: float
     flow_speed_error: float
     geometry: str = "planar"
+    coupled: bool = False
     wall_height_min: float | None = None
     wall_height_max: float | None = None
     wall_drag_along_max: float = math.nan
@@ -347,7 +350,12 @@ class Omissions:
             out.append(head + tail + ".")
         else:
             out.append("No cilium flutters: there is no interaction to size.")
-        if math.isfinite(self.pushback_median):
+        if math.isfinite(self.pushback_median) and self.coupled:
+            out.append(f"The other cilia's mean flow at a cilium is {_pct(self.pushback_median)} % (median; max "
+                       f"{_pct(self.pushback_max)} %) of the stream that would cancel its mean thrust (|Fbar| / eta): "
+                       "the coupling models it (each cilium's cycle and thrust are the table's in that flow), so "
+                       "it is not left out.")
+        elif math.isfinite(self.pushback_median):
             verdict = ("small: the table's thrusts stand" if self.pushback_max < TARGET_RATIO else
                        "the table's thrusts overstate what the cilia push against it" if self.pushback_max < 1 else
                        "the neighbours' mean flow would stall some cilia: the superposed mean flow is not one "
@@ -594,6 +602,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         wall_height=h, filament_radius=a, wall_drag_along=along, wall_drag_across=across,
         wall_drag_formula=wall_drag_formula(h, a), wall_regime=regime,
         mu=float(carpet.mu), mu_source=carpet.mu_source, mu_sbt=mu_sbt, flow_speed_error=mu_sbt / float(carpet.mu) - 1.0,
+        coupled=carpet.coupling != "none",
         **({} if not standing else dict(
             geometry="standing", wall_height_min=None if heights is None else float(heights.min()),
             wall_height_max=None if heights is None else float(heights.max()), wall_drag_along_max=low[0],

@@ -76,6 +76,7 @@ def markdown(s: dict) -> str:
             if still:
                 txt += f"; {still} of them do not beat (beyond the flutter cutoff) and stand still"
             lines.append(txt + ".")
+    lines += ["", *_verdict(s, Lu)]
     if "design" in s:
         lines += ["", "## The design", ""] + _design(s, scene)
     if any(k in s for k in ("mean_field", "snapshots", "pathlines", "mixing")):
@@ -151,6 +152,62 @@ def markdown(s: dict) -> str:
                      f"{w['checks']} checks with the full flow model.")
     lines += ["", "| stage | seconds |", "|---|---|"] + [f"| {k} | {v:.2f} |" for k, v in s["seconds"].items()]
     return "\n".join(lines) + "\n"
+
+
+UNRELIABLE_END_POINTS = 1.0
+"""End-point error estimate (in cilium lengths L) above which the path lines are flagged as
+unreliable in the summary's first lines: beyond a cilium's length they no longer resolve the
+carpet's structure."""
+
+COUPLING_MATTERS = 0.1
+"""Relative change of the flow at the cilia (uncoupled against the coupling's estimate) above which
+the first lines say that the uncoupled model is far from the coupled one."""
+
+
+def _verdict(s: dict, Lu: str) -> list:
+    """The summary's first lines: the verdict (or what the flow shown is), in which model, how far
+    that model is from the fuller one, and any result too uncertain to use."""
+    cp, dd = s.get("coupling"), s.get("design")
+    coupled = cp is not None and cp.get("model") == "mean"
+    model = ("the coupled model (each cilium beats in the mean flow the others make at it)" if coupled else
+             "the uncoupled model (each cilium beats as if in still fluid)")
+    if dd is not None and "met" in dd:
+        head = f"**Verdict: target {'met' if dd['met'] else 'NOT met'}, in {model}**"
+    else:
+        head = f"**The flow shown is {model}'s**"
+    if coupled:
+        head += (f"; the coupling solved to a residual of {_g(cp['residual'], 2)} "
+                 f"({cp.get('status', 'converged')}).")
+    elif cp is not None and math.isfinite(cp.get("relative_change_median", math.nan)):
+        rc = cp["relative_change_median"]
+        if rc > COUPLING_MATTERS:
+            head += (f". **That model is far from the coupled one here**: the flow at the cilia is about {rc:.0%} off "
+                     f"the flow they can sustain (a linear estimate; section \"Cilia that feel the flow\"), so the "
+                     f"flow drawn is faster than a device's; `[carpet] coupling = \"mean\"` (with a table over the "
+                     f"background flow) gives the verdict in the coupled model.")
+        else:
+            head += (f"; the coupled model would change the flow at the cilia by about {rc:.0%} (a linear estimate): "
+                     f"the verdict stands within that.")
+    elif s.get("omissions", {}).get("pushback", {}).get("median") is not None:
+        pb = s["omissions"]["pushback"]
+        if pb["median"] > COUPLING_MATTERS:
+            head += (f". **That model is far from the coupled one here**: the others' mean flow at a cilium is "
+                     f"{pb['median']:.0%} (median) of the stream that would cancel its thrust (section \"What the "
+                     f"model leaves out\"), so the flow drawn is faster than a device's.")
+        else:
+            head += (f"; the others' mean flow at a cilium is {pb['median']:.1%} (median) of the stream that would "
+                     f"cancel its thrust, so the coupled model would change little.")
+    else:
+        head += "."
+    out = [head]
+    e = s.get("pathlines", {}).get("end_point_error")
+    if e and e.get("max") is not None:
+        L = (s.get("scene_resolved", {}).get("units", {}).get("length_m", 1.0)  # a cilium's length, in Lu
+             if s.get("units") == "SI" else 1.0)
+        if e["max"] > UNRELIABLE_END_POINTS * L:
+            out.append(f"**Path lines unreliable**: their end points are uncertain by up to {_g(e['max'], 2)} {Lu} "
+                       f"(more than a cilium's length; section \"The flow\"): read them as a sketch of the flow.")
+    return out
 
 
 def _design(s: dict, scene: dict) -> list:
