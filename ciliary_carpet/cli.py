@@ -117,9 +117,11 @@ def _cmd_render(a) -> int:
         if a.json:
             _emit(strict_json({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
                                "seconds": s["seconds"]}) + "\n")
-        else:
-            _emit((res.out_dir / "summary.md").read_text())
-            _emit(f"wrote {len(res.files)} files to {res.out_dir}\n")
+        else:  # the summary's head (title, scene, verdict); the whole of it is one file away
+            head = (res.out_dir / "summary.md").read_text().split("\n## ", 1)[0].rstrip()
+            _emit(head + "\n\n")
+            _emit(f"wrote {len(res.files)} files to {res.out_dir}; the whole summary: "
+                  f"{res.out_dir / 'summary.md'}\n")
     except StdoutError as exc:
         raise StdoutError(exc.errno, f"{exc.strerror}; the render in {res.out_dir} is complete (its summary.md "
                                      f"says what it holds)") from None

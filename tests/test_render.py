@@ -40,7 +40,7 @@ def test_every_design_renders_and_meets_its_target(path, tmp_path):
     if scene.target.kind != "none":
         assert s["design"]["residual_rms"] <= scene.target.residual
         # the verdict comes first and names its model (these scenes are uncoupled)
-        assert "**Verdict: target met, in the uncoupled model" in head
+        assert "**Verdict: target met, in the uncoupled model**" in head
         ds_layout = tmp_path / scene.name / "layout.nc"
         assert ds_layout.exists()
         assert "design.png" in res.files and s["design"]["cilia_near_cutoff"] >= 0

@@ -14,10 +14,10 @@ def test_an_uncoupled_verdict_says_how_far_the_coupled_model_is():
     far = {"design": DESIGN, "coupling": {"model": "linear drag estimate", "relative_change_median": 1.42}}
     txt = _first(far)
     assert txt.startswith("**Verdict: target met, in the uncoupled model")
-    assert "far from the coupled one" in txt and "142%" in txt and 'coupling = \\"mean\\"' not in txt
+    assert "The coupled model differs here" in txt and "142%" in txt and 'coupling = \\"mean\\"' not in txt
     near = {"design": DESIGN, "coupling": {"model": "linear drag estimate",
                                            "relative_change_median": 0.5 * COUPLING_MATTERS}}
-    assert "far from" not in _first(near) and "the verdict stands" in _first(near)
+    assert "differs here" not in _first(near) and "the verdict stands" in _first(near)
 
 
 def test_a_coupled_verdict_says_so_with_its_residual():
@@ -25,14 +25,14 @@ def test_a_coupled_verdict_says_so_with_its_residual():
                                                        "relative_change_median": 1.4}}
     txt = _first(s)
     assert txt.startswith("**Verdict: target NOT met, in the coupled model") and "3e-05" in txt
-    assert "far from" not in txt
+    assert "differs here" not in txt
 
 
 def test_a_standing_verdict_uses_the_measured_push_of_the_neighbours():
     s = {"design": DESIGN, "omissions": {"pushback": {"median": 0.013}}}
     assert "1.3% (median)" in _first(s) and "would change little" in _first(s)
     s["omissions"]["pushback"]["median"] = 0.6
-    assert "far from the coupled one" in _first(s)
+    assert "The coupled model differs here" in _first(s)
 
 
 def test_unreliable_path_lines_are_flagged_first_in_their_units():
@@ -46,3 +46,16 @@ def test_unreliable_path_lines_are_flagged_first_in_their_units():
     assert "unreliable" not in " ".join(_verdict(si, "m"))
     si["pathlines"]["end_point_error"]["max"] = 2e-4
     assert "unreliable" in " ".join(_verdict(si, "m"))
+
+
+def test_render_prints_the_summarys_head_not_all_of_it(tmp_path, capsys):
+    from ciliary_carpet.cli import main
+
+    scene = tmp_path / "tiny.toml"
+    scene.write_text('name = "tiny"\n[carpet]\nlattice = "square"\nshape = [2, 2]\nspacing = 2.0\nchi_N = 3.0\n'
+                     '[output]\nn_seeds = 4\nperiods = 2.0\nfield_shape = [10, 10]\nsnapshots = 2\nframes = 8\n')
+    assert main(["render", str(scene), "-o", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert "**The flow shown is the uncoupled model's** (each cilium beats as if in still fluid)" in out
+    assert "## " not in out and "the whole summary: " in out  # the sections stay in the file
+    assert (tmp_path / "out" / "summary.md").read_text().count("\n## ") >= 3

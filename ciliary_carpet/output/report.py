@@ -169,29 +169,31 @@ def _verdict(s: dict, Lu: str) -> list:
     that model is from the fuller one, and any result too uncertain to use."""
     cp, dd = s.get("coupling"), s.get("design")
     coupled = cp is not None and cp.get("model") == "mean"
-    model = ("the coupled model (each cilium beats in the mean flow the others make at it)" if coupled else
-             "the uncoupled model (each cilium beats as if in still fluid)")
+    name, how = (("the coupled model", "each cilium beats in the mean flow the others make at it") if coupled else
+                 ("the uncoupled model", "each cilium beats as if in still fluid"))
     if dd is not None and "met" in dd:
-        head = f"**Verdict: target {'met' if dd['met'] else 'NOT met'}, in {model}**"
+        head = f"**Verdict: target {'met' if dd['met'] else 'NOT met'}, in {name}** ({how})"
+        what = "the verdict"
     else:
-        head = f"**The flow shown is {model}'s**"
+        head = f"**The flow shown is {name}'s** ({how})"
+        what = "the flow"
     if coupled:
         head += (f"; the coupling solved to a residual of {_g(cp['residual'], 2)} "
                  f"({cp.get('status', 'converged')}).")
     elif cp is not None and math.isfinite(cp.get("relative_change_median", math.nan)):
         rc = cp["relative_change_median"]
         if rc > COUPLING_MATTERS:
-            head += (f". **That model is far from the coupled one here**: the flow at the cilia is about {rc:.0%} off "
-                     f"the flow they can sustain (a linear estimate; section \"Cilia that feel the flow\"), so the "
-                     f"flow drawn is faster than a device's; `[carpet] coupling = \"mean\"` (with a table over the "
-                     f"background flow) gives the verdict in the coupled model.")
+            head += (f". **The coupled model differs here**: the flow at the cilia is about {rc:.0%} off the flow "
+                     f"they can sustain (a linear estimate; section \"Cilia that feel the flow\"), so the flow drawn "
+                     f"is faster than a device's; `[carpet] coupling = \"mean\"` (with a table over the background "
+                     f"flow) gives {what} in the coupled model.")
         else:
             head += (f"; the coupled model would change the flow at the cilia by about {rc:.0%} (a linear estimate): "
-                     f"the verdict stands within that.")
+                     f"{what} stands within that.")
     elif s.get("omissions", {}).get("pushback", {}).get("median") is not None:
         pb = s["omissions"]["pushback"]
         if pb["median"] > COUPLING_MATTERS:
-            head += (f". **That model is far from the coupled one here**: the others' mean flow at a cilium is "
+            head += (f". **The coupled model differs here**: the others' mean flow at a cilium is "
                      f"{pb['median']:.0%} (median) of the stream that would cancel its thrust (section \"What the "
                      f"model leaves out\"), so the flow drawn is faster than a device's.")
         else:
