@@ -90,9 +90,14 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         pool.warm()  # a process pool's fork server starts while the carpet is designed
         progress = progress if progress is not None else Progress()
         t0 = _time.perf_counter()
+        n = scene.carpet.n_cilia
+        progress.note(f"render {scene.name}: " + (f"designing the curvatures of {n} cilia for the "
+                                                   f"{scene.target.kind} target" if scene.target.kind != "none"
+                                                   else f"building the carpet of {n} cilia"))
         d, carpet = design(scene)  # table, range check, target and carpet: assembly.assemble
         clock = {"design": _time.perf_counter() - t0}
         plan = RenderPlan.decide(scene, carpet, designed=d is not None, estimate=estimate)  # errors before any output
+        progress.note(plan.describe() + f" (design {clock['design']:.1f} s)")
         outputs = [o for o in (cls() for cls in OUTPUTS.values()) if o.wanted(plan)]
         ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, _header(plan, carpet), clock, t0,
                             pool=pool)

@@ -1,7 +1,8 @@
 """Progress reporting strategies passed to long computations (``progress=`` arguments).
 
 A computation calls ``start(total, desc)``, then ``update(done)`` with the absolute amount done
-(e.g. the simulated time reached), then ``close()``. :class:`Progress` itself is silent; pass
+(e.g. the simulated time reached), then ``close()``; ``note(message)`` says, in a line, what a
+stage is about to do (what it will compute and why, before the wait). :class:`Progress` itself is silent; pass
 :class:`TqdmProgress` for a progress bar (the CLI does).
 """
 from __future__ import annotations
@@ -19,6 +20,9 @@ class Progress:
         pass
 
     def close(self) -> None:
+        pass
+
+    def note(self, message: str) -> None:
         pass
 
 
@@ -48,3 +52,11 @@ class TqdmProgress(Progress):
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+
+    def note(self, message: str) -> None:
+        """The line on stderr (above a bar that is shown)."""
+        import sys
+
+        from tqdm.auto import tqdm
+
+        tqdm.write(message, file=sys.stderr)

@@ -1,6 +1,9 @@
-"""The summary's first lines (issue 42, item 2): a verdict names the model it is given in and how
-far that model is from the coupled one, and flags results too uncertain to use; every sentence is
-true of its scene."""
+"""What a render tells, and what it costs (issue 42, items 2, 3, 7): the summary's first lines give
+a verdict in a named model, how far that model is from the coupled one, and flag results too
+uncertain to use; the terminal gets that head and a line of what will be computed before the wait;
+"auto" path lines, their animation and their files are sized to what a scene needs."""
+import pytest
+
 from ciliary_carpet.output.report import COUPLING_MATTERS, UNRELIABLE_END_POINTS, _verdict
 
 DESIGN = {"met": True, "residual_rms": 0.02, "residual_threshold": 0.05}
@@ -59,3 +62,62 @@ def test_render_prints_the_summarys_head_not_all_of_it(tmp_path, capsys):
     assert "**The flow shown is the uncoupled model's** (each cilium beats as if in still fluid)" in out
     assert "## " not in out and "the whole summary: " in out  # the sections stay in the file
     assert (tmp_path / "out" / "summary.md").read_text().count("\n## ") >= 3
+
+
+def test_auto_path_lines_follow_the_mean_flow_over_thousands_of_beats_and_say_so():
+    from ciliary_carpet.output.plan import RenderPlan, pathline_model
+    from ciliary_carpet.transport.flow import AUTO_RESOLVED_BEATS
+    from ciliary_carpet.output.resources import check_resources
+    from ciliary_carpet.scenes.assembly import assemble
+    from ciliary_carpet.scenes.scene import scene_from_dict
+
+    s = scene_from_dict({"carpet": {"shape": [2, 2]}, "tolerance": 1e-3})
+    assert pathline_model(s, 0.5 * AUTO_RESOLVED_BEATS) == ("resolved", "auto")
+    model, why = pathline_model(s, 1670)
+    assert model == "mean" and "1670 beats" in why and 'pathline_model = \\"resolved\\"' not in why
+    assert pathline_model(scene_from_dict({"output": {"pathline_model": "resolved"}}), 1670)[0] == "resolved"
+    # a slow carpet whose automatic duration is thousands of beats: the plan picks the mean flow and says so
+    slow = scene_from_dict({"carpet": {"shape": [2, 2], "chi_N": 150.0}, "output": {"n_seeds": 4}})
+    plan = RenderPlan.decide(slow, assemble(slow).carpet(), designed=False, estimate=check_resources(slow))
+    line = plan.describe()
+    beats = plan.duration / plan.beat.period
+    assert line.startswith("render ") and "4 path lines" in line and f"{beats:.0f} beats" in line
+    assert beats > AUTO_RESOLVED_BEATS and plan.pathline_model == "mean" and "in the mean flow (auto: " in line
+
+
+def test_a_long_run_animates_in_a_bounded_number_of_steps_on_the_right_clock():
+    from ciliary_carpet.output.outputs import _looped
+    from ciliary_carpet.output.plan import ANIMATION_STEPS
+
+    files = [f"f{k}" for k in range(40)]
+    bundled = _looped(files, 0.25, 27.5)  # 110 beats x 40 frames, as the bundled scenes: every frame of every beat
+    assert len(bundled) == 4401 <= ANIMATION_STEPS and bundled[-1] == (27.5, "f0")
+    few = _looped(files, 0.25, 2.5)  # 10 beats: looped exactly
+    assert len(few) == 401 and few[41] == (0.25 * 41 / 40, "f1")
+    long = _looped(files, 0.25, 417.5)  # 1670 beats: 66,800 entries, capped
+    assert len(long) == ANIMATION_STEPS and long[-1][0] == 417.5
+    t, f = long[7]
+    assert f == files[int(round(t / 0.25 * 40)) % 40]  # each step shows the frame of its phase
+
+
+def test_path_lines_are_thinned_for_viewing_with_their_ends_kept_and_said(tmp_path):
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    from ciliary_carpet.render import render
+    from ciliary_carpet.scenes.scene import scene_from_dict
+
+    tiny = {"name": "tiny", "carpet": {"lattice": "square", "shape": [2, 2], "spacing": 2.0, "chi_N": 3.0},
+            "output": {"n_seeds": 4, "periods": 2.0, "field_shape": [10, 10], "snapshots": 1, "frames": 8,
+                       "pathline_points": 5, "ftle": False}}
+    res = render(scene_from_dict(tiny), tmp_path / "tiny")
+    p = res.summary["pathlines"]
+    assert p["points"] > p["points_written"] and p["points_written"] <= 5 * p["tracers"]
+    r = vtk.vtkXMLPolyDataReader()
+    r.SetFileName(str(res.out_dir / "pathlines.vtp"))
+    r.Update()
+    lines = r.GetOutput()
+    assert lines.GetNumberOfPoints() == p["points_written"]
+    t = vtk_to_numpy(lines.GetPointData().GetArray("time"))
+    assert t.max() == pytest.approx(res.summary["pathlines"]["duration"])  # every line's end is kept
+    assert "`pathlines.vtp` holds" in (res.out_dir / "summary.md").read_text()

@@ -132,7 +132,7 @@ _DIMENSIONS = [  # (dotted path pattern, power of length, power of time); the fi
     (r"^(n_cilia|tolerance|beat\.beating|layout\.|design\.(residual_(rms|max|error|threshold|error_tol)|local_rms|objective"
      r"|local_objective|control_points|cilia_near_cutoff|worst\[\]\.(index|residual)|speed_ratio_min|clipped"
      r"|reachability\.(\w+_deg|width_rms|residual_threshold|width_scan\[\]\[1\])|inside_swept\.|tolerance\.)"
-     r"|mean_field\.(points|fidelity\.|section\.points|section\.fidelity\.)|snapshots\.|pathlines\.(tracers|periods"
+     r"|mean_field\.(points|fidelity\.|section\.points|section\.fidelity\.)|snapshots\.|pathlines\.(tracers|periods|points"
      r"|beats|flow_tol|rtol|samples_per_period|outcome\.|stopped_early|end_point_error\.tracers)"
      r"|mixing\.(mixing_number|grid|defined_fraction|uniform_pump\.)|omissions\.|coupling\.(relative_change_\w+"
      r"|residual|rtol|iterations|evaluations|history|contraction|normal_flow)|scene_resolved\.|standing\.azimuth_deg\.)",

@@ -97,7 +97,7 @@ from ciliary_carpet.design import Design
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.figures import design_picture, preview, standing_preview
 from ciliary_carpet.output.paraview import SCRIPT, write_script
-from ciliary_carpet.output.plan import FieldGrid, RenderPlan
+from ciliary_carpet.output.plan import ANIMATION_STEPS, FieldGrid, RenderPlan
 from ciliary_carpet.output.report import markdown
 from ciliary_carpet.output.vtkfiles import write_cilia, write_field, write_points, write_pvd
 from ciliary_carpet.transport.ftle import ftle_field
@@ -245,10 +245,15 @@ def _write_flow(path: Path, grid: FieldGrid, sample, plan: RenderPlan, time: flo
 
 def _looped(files: list, beat: float, span: float) -> list:
     """(time, file) entries that repeat one beat's ``files`` (at k beat / n) from 0 until
-    ``span`` is covered: a .pvd of them plays the beat on over the whole time range."""
+    ``span`` is covered: a .pvd of them plays the beat on over the whole time range. Beyond
+    :data:`~ciliary_carpet.output.plan.ANIMATION_STEPS` entries, that many at equal steps over ``span`` instead, each showing
+    the frame of its phase in the beat (a stroboscope: the clock stays right, the beat is sampled)."""
     n = len(files)
     count = max(n + 1, int(math.ceil(span / beat * n - 1e-9)) + 1)
-    return [(k * beat / n, files[k % n]) for k in range(count)]
+    if count <= ANIMATION_STEPS:
+        return [(k * beat / n, files[k % n]) for k in range(count)]
+    times = np.linspace(0.0, span, ANIMATION_STEPS)
+    return [(float(t), files[int(round(t / beat * n)) % n]) for t in times]
 
 
 class LayoutOutput(Output):
@@ -637,7 +642,7 @@ class PathLinesOutput(Output):
             pl = join_pathlines([r.value for r in results[:n]], t_end=duration, wall=wall,
                                 where=[r.where for r in results[:n]], workers=pool.workers)
             ref = results[n]
-            pl.write(ctx.stage / "pathlines.vtp", scales=plan.scales)
+            pl.write(ctx.stage / "pathlines.vtp", scales=plan.scales, max_points=o.pathline_points or None)
             pl.write_particles(ctx.stage / "particles.pvd", scales=plan.scales)
         with ctx.timed("pathline_error"):  # (its reference ran with the path lines above)
             err = end_point_error(pl, ref.value, idx, what)
@@ -646,8 +651,11 @@ class PathLinesOutput(Output):
         ctx.summary["pathlines"] = {
             "tracers": int(seeds.shape[0]), "duration": duration * T, "duration_from": plan.duration_from,
             "periods": duration / plan.T0, "beats": duration / plan.beat.period, "model": model,
+            "model_from": plan.model_from,
             "flow_tol": flow.tol if model != "mean" else None, "rtol": rtol, "atol": atol * L,
             "samples_per_period": o.samples_per_period, "outcome": pl.counts(),
+            "points": int(sum(t.size for t in pl.times)),
+            "points_written": int(sum(k.size for k in pl.thinned(o.pathline_points or None))),
             "stopped_early": int(np.sum(pl.reason == UNDERFLOW)), "status": pl.status, "message": pl.message,
             "work": pl.stats, "end_point_error": dict(err, max=err["max"] * L, median=err["median"] * L),
             "parallel": {"where": repr(pool), "places": pool.workers,

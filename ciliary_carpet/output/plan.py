@@ -15,7 +15,11 @@ Path lines: unless the scene sets ``[output] periods``, the duration is long eno
 to cross the whole carpet at the carpet's median mean speed (1.25 times the carpet's extent along
 the flow plus three spacings, divided by that speed). The flow they follow is the time-resolved
 beat or the long-time mean flow (``[output] pathline_model``; "auto" takes the mean flow when the
-scene's tolerance allows its measured error). ``[output] periods`` counts periods of the straight
+scene's tolerance allows its measured error, or when the run is longer than
+:data:`~ciliary_carpet.transport.flow.AUTO_RESOLVED_BEATS` beats: following every beat of
+thousands costs minutes and files of hundreds of MB for lines whose error the mean flow's
+estimate states anyway).
+:meth:`RenderPlan.describe` says all this in a line before the work starts. ``[output] periods`` counts periods of the straight
 filament, T0 = T(chi_N = 0); the snapshots and frames sample one beat of the cilia themselves
 (each beats with its own period T(chi_N): their median, :class:`Beat`).
 
@@ -38,7 +42,7 @@ from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.resources import Estimate
 from ciliary_carpet.output.vtkfiles import grid_points
 from ciliary_carpet.scenes.scene import Scene
-from ciliary_carpet.transport.flow import MEAN_MODEL_ERROR
+from ciliary_carpet.transport.flow import AUTO_RESOLVED_BEATS, MEAN_MODEL_ERROR
 from ciliary_carpet.transport.pathlines import check_output_size, check_seeds
 
 __all__ = ["RenderPlan", "FieldGrid", "Beat", "seed_points", "pathline_duration", "pathline_model",
@@ -47,6 +51,11 @@ __all__ = ["RenderPlan", "FieldGrid", "Beat", "seed_points", "pathline_duration"
 SECTION_TOP = 2.0
 """A standing carpet's vertical section reaches this many times the target plane's height
 (``[output] height``, at least 1 L) above the substrate."""
+ANIMATION_STEPS = 10_000
+"""Most entries of a looped .pvd (``cilia.pvd``, ``snapshots.pvd``): ParaView's animation has a
+step per entry, and tens of thousands (a run over thousands of beats) make it slow to open and
+to play."""
+
 DOMAIN_MARGIN = 10.0
 """A standing carpet's tracers are followed within this distance [L] of its bases and seeds
 across, and up to this far above the target plane (the planar default domain's margin)."""
@@ -260,13 +269,20 @@ def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, s
     return 1.25 * travel / speed, f"auto: crossing {travel:.3g} L at the median mean speed {speed:.3g} L/tau"
 
 
-def pathline_model(scene: Scene) -> str:
-    """The flow the tracers follow: ``[output] pathline_model``, "auto" resolved to "mean" when
-    the scene's tolerance is at least :data:`~ciliary_carpet.transport.flow.MEAN_MODEL_ERROR`."""
+def pathline_model(scene: Scene, beats: float | None = None) -> tuple[str, str]:
+    """The flow the tracers follow and why, in words: ``[output] pathline_model``, "auto"
+    resolved to "mean" when the scene's tolerance is at least
+    :data:`~ciliary_carpet.transport.flow.MEAN_MODEL_ERROR` or the run lasts more than
+    :data:`~ciliary_carpet.transport.flow.AUTO_RESOLVED_BEATS` ``beats``, else to "resolved"."""
     m = scene.output.pathline_model
-    if m == "auto":
-        return "mean" if scene.tolerance >= MEAN_MODEL_ERROR else "resolved"
-    return m
+    if m != "auto":
+        return m, "scene"
+    if scene.tolerance >= MEAN_MODEL_ERROR:
+        return "mean", f"auto: the tolerance {scene.tolerance:g} allows the mean flow's error"
+    if beats is not None and beats > AUTO_RESOLVED_BEATS:
+        return "mean", (f"auto: {beats:.0f} beats, more than {AUTO_RESOLVED_BEATS} to follow one by one; "
+                        f"[output] pathline_model = \"resolved\" follows them")
+    return "resolved", "auto"
 
 
 @dataclass(frozen=True, eq=False)
@@ -293,6 +309,8 @@ class RenderPlan:
         The tracers' start points (with path lines).
     pathline_model : str or None
         "mean" or "resolved" (with path lines).
+    model_from : str or None
+        Why that model, in words (:func:`pathline_model`).
     duration : float or None
         The path lines' duration [tau] (with path lines or the FTLE, which runs for a quarter of it).
     duration_from : str or None
@@ -318,6 +336,7 @@ class RenderPlan:
     duration_from: str | None
     section: FieldGrid | None = None
     domain: tuple | None = None
+    model_from: str | None = None
 
     @classmethod
     def decide(cls, scene: Scene, carpet: Carpet, *, designed: bool, estimate: Estimate) -> "RenderPlan":
@@ -330,11 +349,31 @@ class RenderPlan:
         if o.pathlines:  # PathLineError (output too large for memory)
             check_output_size(carpet, seeds.shape[0], duration, o.samples_per_period)
         standing = carpet.geometry == "standing"
-        return cls(scene=scene, estimate=estimate, designed=designed, T0=T0, beat=Beat.of(carpet, T0),
+        beat = Beat.of(carpet, T0)
+        model, why = (pathline_model(scene, duration / beat.period if beat.period > 0 else None) if o.pathlines
+                      else (None, None))
+        return cls(scene=scene, estimate=estimate, designed=designed, T0=T0, beat=beat,
                    grid=FieldGrid.around(scene, carpet), scales=carpet.scales, seeds=seeds,
-                   pathline_model=pathline_model(scene) if o.pathlines else None, duration=duration,
+                   pathline_model=model, duration=duration,
                    duration_from=how, section=FieldGrid.section(scene, carpet) if standing else None,
-                   domain=standing_domain(scene, carpet, seeds) if standing else None)
+                   domain=standing_domain(scene, carpet, seeds) if standing else None, model_from=why)
+
+    def describe(self) -> str:
+        """What the render will compute, in a line, before it starts: the field grid, and the
+        path lines' tracers, flow model and duration with how each was chosen."""
+        o = self.scene.output
+        nx, ny = self.grid.shape[:2]
+        parts = [f"mean field on {nx} x {ny} points"]
+        if o.pathlines:
+            beats = self.duration / self.beat.period if self.beat.period > 0 else math.nan
+            flow = "the mean flow" if self.pathline_model == "mean" else "the time-resolved flow"
+            why = "as the scene's [output] pathline_model asks" if self.model_from == "scene" else self.model_from
+            long = "as the scene's [output] periods asks" if self.duration_from == "scene" else self.duration_from
+            parts.append(f"{self.seeds.shape[0]} path lines in {flow} ({why}) for {self.duration:.4g} tau = "
+                         f"{beats:.0f} beats ({long})")
+        if o.ftle:
+            parts.append("the FTLE over a quarter of that" if o.pathlines else "the FTLE")
+        return f"render {self.scene.name}: " + "; ".join(parts)
 
     @property
     def units(self) -> tuple[float, float, float]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 from ciliary_carpet.design.inverse import NEAR_CUTOFF_FRACTION
+from ciliary_carpet.output.plan import ANIMATION_STEPS, DOMAIN_MARGIN
 from ciliary_carpet.design.target import PATTERNS
 
 __all__ = ["markdown"]
@@ -95,7 +96,7 @@ def markdown(s: dict) -> str:
         lines.append(f"- **Instantaneous flow**: {n} snapshot{'s' if n > 1 else ''} over one beat "
                      "(`snapshots.pvd`; hidden when ParaView opens).")
     if "pathlines" in s:
-        lines += _pathlines(s["pathlines"], dur, Lu, Vu)
+        lines += _pathlines(s["pathlines"], dur, Lu, Vu, s.get("geometry") == "standing")
     if "mixing" in s:
         mx = s["mixing"]
         flow = "the mean flow" if mx["model"] == "mean" else "the time-resolved flow"
@@ -123,6 +124,11 @@ def markdown(s: dict) -> str:
         if spread > 1e-6:
             txt += (f"; the cilia's own periods differ by up to {spread:.1%}, so after the first beat the "
                     "animated cilia keep the first beat's phases, not the drifting ones of the computed flow")
+        frames = scene.get("output", {}).get("frames") or 0
+        if frames and beat["loop_until"] / beat["period"] * frames > ANIMATION_STEPS:
+            txt += (f"; over {beat['loop_until'] / beat['period']:.0f} beats the animation has "
+                    f"{ANIMATION_STEPS} steps, each showing the cilia at its own phase of the beat (a "
+                    "stroboscope: the beat itself is not resolved at that speed)")
         lines.append(txt + ".")
     if s.get("omissions", {}).get("lines"):
         lines += ["", "## What the model leaves out", ""] + [f"- {t}" for t in s["omissions"]["lines"]]
@@ -314,7 +320,7 @@ def _design(s: dict, scene: dict) -> list:
     return out
 
 
-def _pathlines(p: dict, dur, Lu: str, Vu: str) -> list:
+def _pathlines(p: dict, dur, Lu: str, Vu: str, standing: bool = False) -> list:
     flow = "the time-resolved flow (the beat included)" if p["model"] == "resolved" else \
         "the long-time mean flow (the beat averaged out)"
     oc = p["outcome"]
@@ -322,7 +328,11 @@ def _pathlines(p: dict, dur, Lu: str, Vu: str) -> list:
     if oc.get("reached end time"):
         ends.append(f"{oc['reached end time']} reached the end")
     if oc.get("left the domain"):
-        ends.append(f"{oc['left the domain']} left the flow's domain")
+        where = (f"reached the substrate (where the flow stops) or left the region followed ({_g(DOMAIN_MARGIN)} "
+                 f"{Lu} beyond the carpet and the seeds, and above the target plane)" if standing else
+                 f"left the region followed ({_g(DOMAIN_MARGIN)} {Lu} beyond the carpet and the seeds, where its "
+                 f"flow has faded)")
+        ends.append(f"{oc['left the domain']} {where}: their lines end there")
     if oc.get("step size underflow"):
         ends.append(f"{oc['step size underflow']} stopped early (the integrator's step size vanished, next to a "
                     "cilium)")
@@ -331,8 +341,14 @@ def _pathlines(p: dict, dur, Lu: str, Vu: str) -> list:
         why = "as the scene's `[output] periods` asks"
     else:
         why = "long enough to cross the carpet" + (f" ({how.split(': ', 1)[1]}, plus 25%)" if ": " in how else "")
+    if p.get("model_from", "scene") not in ("scene", "auto"):
+        why += f"; {p['model_from'].split(': ', 1)[-1]}, so they follow the mean flow"
     out = [f"- **Path lines** (`pathlines.vtp`, `particles.pvd`): {p['tracers']} tracers followed {flow} for "
            f"{dur(p['duration'])}, {why}: {', '.join(ends) or 'none moved'}."]
+    if p.get("points_written", p.get("points")) != p.get("points"):
+        out.append(f"- `pathlines.vtp` holds {p['points_written']} of the lines' {p['points']} points (each line "
+                   f"evenly thinned, its end kept: a file sized for viewing); `[output] pathline_points = 0` "
+                   "writes them all.")
     e = p["end_point_error"]
     if p["model"] == "mean":
         out.append(f"- The mean flow moves their end points by up to {_g(e['max'], 2)} {Lu} (median "

@@ -50,7 +50,7 @@ from ciliary_carpet.carpet.carpet import BLOB, sbt_viscosity
 from ciliary_carpet.carpet.coupling import COUPLINGS
 from ciliary_carpet.carpet.geometry import GEOMETRIES
 from ciliary_carpet.scenes.paths import check_name, check_scene_paths
-from ciliary_carpet.transport.flow import FLOWS, MEAN_MODEL_ERROR
+from ciliary_carpet.transport.flow import AUTO_RESOLVED_BEATS, FLOWS, MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
 from ciliary_carpet.stokes import BACKENDS
 from ciliary_carpet.design.target import KINDS, SURFACE_KINDS, TargetSpec, kinds_table
@@ -367,9 +367,13 @@ class OutputSpec(Section):
         "its median mean speed)", lo=0, lo_open=True)
     pathline_model: str = key(
         "auto", 'the flow tracers follow: time-resolved beat, or the long-time mean flow ("auto": the mean flow '
-        f"when `tolerance` >= its measured error, {MEAN_MODEL_ERROR:g})", "str",
+        f"when `tolerance` >= its measured error, {MEAN_MODEL_ERROR:g}, or the run lasts more than "
+        f"{AUTO_RESOLVED_BEATS} beats; the render says which before it starts)", "str",
         choices=("auto", *FLOWS))
     samples_per_period: int = key(16, "path-line points per beat (dense output)", "int", lo=1, hi=1000)
+    pathline_points: int = key(2000, "most points of one tracer's line in `pathlines.vtp` (evenly strided, its end "
+                               "kept; the summary says when lines were thinned): files sized for viewing; 0 writes "
+                               "every point", "int", lo=0, hi=10_000_000)
     ftle: bool = key(True, "the finite-time Lyapunov exponent field (`ftle.vti`) and the mixing number in the "
                      "summary", "bool")
     field: bool = key(True, "the mean velocity field", "bool")

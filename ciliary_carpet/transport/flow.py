@@ -80,6 +80,9 @@ __all__ = ["Flow", "ResolvedFlow", "MeanFlow", "SteadyMeanFlow", "FLOWS", "above
 STEPS_PER_BEAT = 16
 """The time-resolved flow caps an integrator's steps at the shortest beat period over this
 (:class:`ResolvedFlow`; module docstring for what it buys)."""
+AUTO_RESOLVED_BEATS = 300
+"""Most beats an "auto" path-line run follows in the time-resolved flow; a longer run follows the
+mean flow (the bundled planar scenes run 50-110 beats; a slow standing vortex over 1,600)."""
 MEAN_MODEL_ERROR = 0.05
 """End-point error of the long-time model (:class:`MeanFlow`) relative to the distance travelled,
 against time-resolved path lines: the largest over 20 of the render's tracers of the designed

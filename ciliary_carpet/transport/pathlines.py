@@ -130,15 +130,33 @@ class PathLines:
         """Number of tracers per termination reason."""
         return {REASONS[k]: int(np.sum(self.reason == k)) for k in range(len(REASONS))}
 
-    def write(self, path, scales=None) -> Path:
+    def write(self, path, scales=None, max_points: int | None = None) -> Path:
         """Write as a .vtp (one polyline per tracer; point data time, IntegrationTime, velocity,
         speed; cell data SeedIds, TerminationReason with its names in field data), in SI units
-        when ``scales`` (a Scales) is given."""
+        when ``scales`` (a Scales) is given; with ``max_points``, at most that many points of each
+        tracer (:meth:`thinned`)."""
         from ciliary_carpet.output.vtkfiles import write_pathlines
 
         L, T = (scales.length_m, scales.time_s) if scales is not None else (1.0, 1.0)
-        return write_pathlines(path, [p * L for p in self.points], [t * T for t in self.times],
-                               [v * (L / T) for v in self.velocities], self.seed_ids, self.reason, REASONS)
+        keep = self.thinned(max_points)
+        return write_pathlines(path, [p[k] * L for p, k in zip(self.points, keep)],
+                               [t[k] * T for t, k in zip(self.times, keep)],
+                               [v[k] * (L / T) for v, k in zip(self.velocities, keep)], self.seed_ids, self.reason,
+                               REASONS)
+
+    def thinned(self, max_points: int | None) -> list:
+        """Per tracer, the indices of its samples a file of at most ``max_points`` points per line
+        keeps: every k-th, the last one always (all of them when ``max_points`` is None or 0, or
+        the line is short enough)."""
+        out = []
+        for t in self.times:
+            n = t.size
+            if not max_points or n <= max_points:
+                out.append(np.arange(n))
+            else:
+                step = int(math.ceil((n - 1) / (max_points - 1))) if max_points > 1 else n
+                out.append(np.unique(np.append(np.arange(0, n, step), n - 1)))
+        return out
 
     def write_particles(self, path, scales=None, max_frames: int = 200) -> Path:
         """Write the tracers' positions over time as ParaView's ParticlePath gives them: a
