@@ -26,7 +26,9 @@ import signal
 import stat
 import sys
 import time as _time
+import warnings
 from concurrent.futures import Executor
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -174,6 +176,23 @@ def _cmd_design(a) -> int:
     return 0
 
 
+@contextmanager
+def plain_warnings(prog: str = "ciliary-carpet"):
+    """Within: each warning printed once, as one plain line ``PROG: warning: MESSAGE`` on stderr
+    (no source path, no code line, not repeated however often or wherever it is raised)."""
+    seen: set = set()
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = " ".join(str(message).split())
+        if text not in seen:
+            seen.add(text)
+            print(f"{prog}: warning: {text}", file=sys.stderr if file is None else file)
+
+    with warnings.catch_warnings():  # the filters stay as they are; only how a warning is shown changes
+        warnings.showwarning = show
+        yield
+
+
 def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool, max_seconds: float = 86400.0,
                 backend: str | None = None, budget: ThreadBudget | None = None, threads: int | None = None) -> dict:
     """One batch task (runs in a worker): never raises (but Ctrl-C), returns a record. It runs
@@ -183,7 +202,7 @@ def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool, 
         budget = ThreadBudget.for_task()
         if threads is not None:
             budget = replace(budget, numba=max(1, int(threads)))
-    with budget.applied():
+    with budget.applied(), plain_warnings():
         return _render_task(scene_path, out_root, overwrite, reduced, max_seconds, backend)
 
 
@@ -698,7 +717,8 @@ def main(argv=None) -> int:
         os.environ[ALLOW_ENV] = "1"  # inherited by batch workers
     src = getattr(a, "scene", None)
     try:
-        with terminate_as_interrupt():  # SIGTERM, SIGHUP: the Ctrl-C cleanup, exit 128 + signum
+        # SIGTERM, SIGHUP: the Ctrl-C cleanup, exit 128 + signum; warnings as plain lines, once each
+        with terminate_as_interrupt(), plain_warnings():
             return {"render": _cmd_render, "design": _cmd_design, "batch": _cmd_batch}[a.cmd](a)
     except StdoutError as exc:
         print(f"ciliary-carpet: {exc.strerror}", file=sys.stderr)

@@ -121,3 +121,17 @@ def test_path_lines_are_thinned_for_viewing_with_their_ends_kept_and_said(tmp_pa
     t = vtk_to_numpy(lines.GetPointData().GetArray("time"))
     assert t.max() == pytest.approx(res.summary["pathlines"]["duration"])  # every line's end is kept
     assert "`pathlines.vtp` holds" in (res.out_dir / "summary.md").read_text()
+
+
+def test_warnings_print_once_as_plain_lines(capsys):
+    import warnings
+
+    from ciliary_carpet.cli import plain_warnings
+
+    with plain_warnings():
+        for where in range(3):  # the same message from three places, and again
+            warnings.warn_explicit("the closest flow the cilia make", UserWarning, f"f{where}.py", where)
+        warnings.warn_explicit("another\n  message", UserWarning, "g.py", 1)
+    err = capsys.readouterr().err
+    assert err == ("ciliary-carpet: warning: the closest flow the cilia make\n"
+                   "ciliary-carpet: warning: another message\n")
