@@ -130,8 +130,11 @@ class Scales:
 class FlowSample:
     """Velocities at points with their error bound and the fidelity used.
 
-    velocity (M, 3); error_bound (M,): the rigorous bound of the levels of detail against the
-    resolved sum (zero where every pair was resolved); pairs: number of (cilium, point) pairs
+    velocity (M, 3) in L / tau (the model's units: lengths in cilium lengths L, times in the
+    filament's relaxation time tau), lab frame (x, y in the carpet's plane for a planar carpet,
+    z up from the substrate for a standing one); error_bound (M,) in L / tau: the rigorous bound
+    of the levels of detail on ``|velocity - resolved sum|`` at each point (zero where every pair
+    was resolved); pairs: number of (cilium, point) pairs
     evaluated at each level (``point`` or ``mean``, and ``resolved``); tol: the tolerance asked
     for; work: counters of the work done: ``sources``, the (point, source) interactions summed
     (the cost: each is one kernel evaluation), ``ranges``, the source ranges of the sparse sum
@@ -563,10 +566,12 @@ class Carpet:
 
     # ------------------------------------------------------------------ flow
     def evaluate(self, points, when: When, tol: float = 1e-3) -> FlowSample:
-        """Fluid velocity at ``points`` (M, 2) or (M, 3), at an :class:`Instant` ``(t)`` or the
-        :class:`CycleMean` ``()``, each pair of a cilium and a point summed at the cheapest level
-        of detail whose bound meets ``tol`` (0: everything resolved), with the rigorous bound of
-        the result (module docstring; :mod:`~ciliary_carpet.carpet.carriers`)."""
+        """Fluid velocity at ``points`` (M, 2) or (M, 3) [L; (M, 2) means z = 0], at an
+        :class:`Instant` ``(t)`` [tau] or the :class:`CycleMean` ``()``, each pair of a cilium and
+        a point summed at the cheapest level of detail whose bound meets ``tol`` (relative to the
+        carpet's far-field flow; 0: everything resolved), with the rigorous bound of the result
+        (module docstring; :mod:`~ciliary_carpet.carpet.carriers`). Returns a :class:`FlowSample`
+        (velocities and bounds in L / tau)."""
         x = self._targets(points)
         tol = self._tol(tol)
         s, plan, car = self._sum(x, when, tol, bound=True)
