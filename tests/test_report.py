@@ -135,3 +135,12 @@ def test_warnings_print_once_as_plain_lines(capsys):
     err = capsys.readouterr().err
     assert err == ("ciliary-carpet: warning: the closest flow the cilia make\n"
                    "ciliary-carpet: warning: another message\n")
+
+
+def test_a_standing_carpet_is_clamped_where_its_summary_says():
+    from ciliary_carpet.output.report import _clamped
+
+    assert _clamped(0.0, "L") == "clamped on the substrate z = 0 (a no-slip wall)"
+    raised = _clamped(0.5, "L")  # on posts: the clamps are not on the substrate
+    assert "0.5 L above the substrate" in raised and "z = -0.5 L" in raised and "on the substrate" not in raised
+    assert "no wall" in _clamped(None, "m")

@@ -57,9 +57,7 @@ def markdown(s: dict) -> str:
         az = st["azimuth_deg"]
         turn = (f"all turned to {az['min']:.3g} deg" if az["max"] - az["min"] < 1e-9 else
                 f"turned from {az['min']:.3g} to {az['max']:.3g} deg (median {az['median']:.3g})")
-        wall = ("no wall (free space)" if st["wall_below_clamps"] is None else "the substrate itself, a no-slip wall"
-                if st["wall_below_clamps"] == 0 else f"a no-slip wall {_g(st['wall_below_clamps'])} {Lu} below the clamps")
-        lines.append(f"Standing carpet: each cilium is clamped on the substrate z = 0 ({wall}) with the field along "
+        lines.append(f"Standing carpet: each cilium is {_clamped(st['wall_below_clamps'], Lu)} with the field along "
                      f"+z, its beat plane turned about the normal by its azimuth (anticlockwise from +x): {turn}. The "
                      f"flow is three-dimensional: its mean is shown on the target plane z = {_g(st['target_height'])} "
                      f"{Lu} (`mean_field.vti`) and on a vertical section through the carpet's centre down to the wall "
@@ -168,6 +166,16 @@ carpet's structure."""
 COUPLING_MATTERS = 0.1
 """Relative change of the flow at the cilia (uncoupled against the coupling's estimate) above which
 the first lines say that the uncoupled model is far from the coupled one."""
+
+
+def _clamped(h: float | None, Lu: str) -> str:
+    """Where a standing carpet's cilia are clamped, given the wall's distance ``h`` below the
+    clamps (None: no wall)."""
+    if h is None:
+        return "clamped at z = 0 in free space (no wall)"
+    if h == 0:
+        return "clamped on the substrate z = 0 (a no-slip wall)"
+    return f"clamped at z = 0, {_g(h)} {Lu} above the substrate (a no-slip wall at z = -{_g(h)} {Lu})"
 
 
 def _verdict(s: dict, Lu: str) -> list:
