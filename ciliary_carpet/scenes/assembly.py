@@ -112,12 +112,12 @@ def _build(scene: "Scene", p: Path) -> None:
     try:
         _build_table(scene, p)
     except ConvergenceError as exc:
-        keys = (f"table.build.n (now {b.n}: a finer chi_N grid, each cycle started from its neighbours')"
-                + (f", table.build.flow_points (now {b.flow_points}: a finer flow grid) or a smaller "
+        keys = (f"a larger table.build.n (now {b.n}: a finer chi_N grid, each cycle started from its neighbours')"
+                + (f", a larger table.build.flow_points (now {b.flow_points}: a finer flow grid), a smaller "
                    f"table.build.flow (now {b.flow:g})" if b.flow is not None else "")
-                + f", or table.build.degree (now {b.degree})")
+                + f" or a larger table.build.degree (now {b.degree})")
         raise TableBuildError(f"{scene.source_name}: [table.build] could not compute the thrust table {p}: "
-                              f"{' '.join(str(exc).split())}; in the scene, raise {keys}") from None
+                              f"{' '.join(str(exc).split())}; in the scene, try {keys}") from None
 
 
 def _build_table(scene: "Scene", p: Path) -> None:
