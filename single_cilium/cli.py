@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -125,8 +126,6 @@ def cmd_map(args) -> dict:
         m = plot_stability_map(ds, ax, boundary)
         fig.colorbar(m, ax=ax, label=r"flutter frequency $\beta / 2\pi$")
         fig.tight_layout()
-        from pathlib import Path
-
         Path(args.png).parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(args.png, dpi=120)
         plt.close(fig)
@@ -201,7 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
     ps = sub.add_parser("simulate", help="nonlinear dynamics from a perturbed equilibrium")
     _add_params(ps)
     ps.add_argument("--t-end", dest="t_end", type=float, required=True, help="final time (units of tau)")
-    ps.add_argument("-o", "--output", help="NetCDF file for the time series")
+    ps.add_argument("-o", "--output", help="NetCDF file for the time series (an existing file needs --overwrite)")
+    ps.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT")
     ps.add_argument("--rtol", type=float, default=1e-8, help="relative tolerance (default 1e-8)")
     ps.add_argument("--degree", type=int, default=12, help="polynomial degree per element (default 12)")
     ps.add_argument("--n-out", dest="n_out", type=int, default=1001, help="output times (default 1001)")
@@ -236,7 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="orbit solver (default shooting: exact-monodromy shooting; newton-krylov: the "
                          "previous solver, kept as a cross-check)")
     py.add_argument("--no-error-estimate", action="store_true")
-    py.add_argument("-o", "--output", help="NetCDF file with the cycle over one period")
+    py.add_argument("-o", "--output", help="NetCDF file with the cycle over one period (an existing file needs "
+                                            "--overwrite)")
+    py.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT")
     py.add_argument("--json", action="store_true")
     py.set_defaults(func=cmd_cycle)
 
@@ -276,8 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
     pm.add_argument("--chi-E", dest="chi_E", type=_grid, required=True, help="'start:stop:num' or a list")
     pm.add_argument("--eta", type=_grid, required=True, help="'start:stop:num' or a list")
     pm.add_argument("--degree", type=int, default=8)
-    pm.add_argument("-o", "--output", help="NetCDF file")
-    pm.add_argument("--png", help="PNG figure (flutter coloured by frequency)")
+    pm.add_argument("-o", "--output", help="NetCDF file (an existing file needs --overwrite)")
+    pm.add_argument("--png", help="PNG figure (flutter coloured by frequency; an existing file needs --overwrite)")
+    pm.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT or PNG")
     pm.add_argument("--no-boundary", dest="boundary", action="store_false",
                     help="do not trace the Hopf boundary over the PNG")
     pm.add_argument("--quiet", action="store_true")
@@ -320,6 +323,14 @@ def _check_args(args) -> None:
     """Refuse, before any work, settings out of range or whose cost is beyond reason: a
     ValueError naming the option, its valid range or the largest sensible value."""
     cmd = args.command
+    for opt in ("output", "png"):  # an existing file is replaced only with --overwrite
+        target = getattr(args, opt, None)
+        if target is not None and Path(target).exists():
+            flag = "-o" if opt == "output" else "--png"
+            if Path(target).is_dir():
+                raise ValueError(f"{flag} {target}: is a folder; name a file")
+            if not args.overwrite:
+                raise ValueError(f"{flag} {target} exists: give --overwrite to replace it, or choose another path")
     if not hasattr(args, "degree"):
         return
     with_estimate = cmd in ("cycle", "table") and not args.no_error_estimate

@@ -79,8 +79,8 @@ def test_design_layout_on_a_full_disk(full_disk, tmp_path):
 def test_simulate_output_on_a_full_disk(full_disk):
     _free(full_disk, 65536)  # the file fills the disk midway (HDF5 segfaulted: exit 139)
     r = subprocess.run([sys.executable, "-m", "single_cilium.cli", "simulate", "--chi-E", "200", "--eta", "1",
-                        "--t-end", "0.05", "--n-out", "2000", "--degree", "6", "--no-error-estimate", "--quiet", "-o",
-                        str(full_disk / "sim.nc")], capture_output=True, text=True, env=ENV, timeout=240)
+                        "--t-end", "0.05", "--n-out", "2000", "--degree", "6", "--no-error-estimate", "--quiet", "--overwrite",
+                        "-o", str(full_disk / "sim.nc")], capture_output=True, text=True, env=ENV, timeout=240)
     _one_line(r, str(full_disk / "sim.nc"))
     _check(full_disk, "sim.nc")
 

@@ -233,3 +233,23 @@ def test_a_signal_during_a_cycle_exits_with_its_status_and_one_line(signame):
         _, err = proc.communicate(timeout=60)
         assert proc.returncode in (128 + sig, -sig), (delay, proc.returncode, err[-2000:])
         assert "Traceback" not in err and len(err.strip().splitlines()) <= 1, (delay, err[-2000:])
+
+
+@pytest.mark.parametrize("argv", [
+    ["simulate", "--chi-E", "200", "--eta", "1", "--t-end", "0.01", "--n-out", "2", "--degree", "6",
+     "--no-error-estimate", "--quiet", "-o", "{f}"],
+    ["cycle", "--chi-E", "200", "--eta", "1", "--chi-N", "150", "--degree", "6", "--n-phase", "32",
+     "--no-error-estimate", "-o", "{f}"],
+    ["map", "--chi-N", "50", "--chi-E", "190,210", "--eta", "1,2", "--degree", "6", "--quiet", "--png", "{f}"],
+])
+def test_every_single_cilium_output_replaces_a_file_only_with_overwrite(tmp_path, capsys, argv):
+    """``-o`` (and ``--png``) of every single-cilium command refuses an existing file before any
+    work, exit 2 with one line naming it and ``--overwrite``; the file is unchanged."""
+    from single_cilium.cli import main
+
+    mine = tmp_path / "mine.dat"
+    mine.write_text("my data")
+    assert main([a.format(f=mine) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and str(mine) in err and "--overwrite" in err, err
+    assert mine.read_text() == "my data" and sorted(p.name for p in tmp_path.iterdir()) == ["mine.dat"]
