@@ -132,6 +132,33 @@ def cmd_map(args) -> dict:
     return out
 
 
+def cmd_thrust_curve(args) -> dict:
+    """The design curve of one field from a thrust table (the shipped one by default), with its
+    error estimates, as a PNG (:func:`single_cilium.figures.plot_thrust_curve`)."""
+    from .table import ThrustTable
+
+    table = ThrustTable.default() if args.table is None else ThrustTable.load(args.table)
+    if "chi_N_cutoff" not in table.ds.attrs or "phase" not in table.ds.dims or table.ds.chi_N.ndim != 1 \
+            or any(d in table.ds.dims for d in ("chi_E", "U_par", "U_perp")):
+        raise ValueError(f"--table {args.table}: a table of one field in still fluid is needed (this one is over "
+                         "chi_E or the background flow)")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .figures import plot_thrust_curve
+
+    fig = plot_thrust_curve(table, n=args.points)
+    Path(args.png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.png, dpi=args.dpi)
+    plt.close(fig)
+    return {"png": args.png, "table": args.table or "default", "chi_E": float(table.ds.attrs["chi_E"]),
+            "eta": float(table.ds.attrs["eta"]), "chi_N_cutoff": float(table.ds.attrs["chi_N_cutoff"]),
+            "thrust_norm_error_max": float(np.nanmax(table.ds.thrust_norm_error.values)),
+            "thrust_angle_error_max": float(np.nanmax(table.ds.thrust_angle_error.values))}
+
+
 def cmd_cycle(args) -> dict:
     c = limit_cycle(_params(args), degree=args.degree, n_phase=args.n_phase, rtol=args.rtol,
                     method=args.method, error_estimate=not args.no_error_estimate)
@@ -286,6 +313,17 @@ def build_parser() -> argparse.ArgumentParser:
     pm.add_argument("--quiet", action="store_true")
     pm.add_argument("--json", action="store_true")
     pm.set_defaults(func=cmd_map)
+
+    pq = sub.add_parser("thrust-curve", help="the design curve: mean thrust and its angle against chi_N, with "
+                                             "their error estimates, as a figure (PNG)")
+    pq.add_argument("--png", required=True, help="PNG figure (an existing file needs --overwrite)")
+    pq.add_argument("--table", default=None,
+                    help="a thrust table of one field (NetCDF; default: the shipped chi_E = 200, eta = 1)")
+    pq.add_argument("--points", type=int, default=400, help="points along chi_N (default 400)")
+    pq.add_argument("--dpi", type=int, default=200, help="resolution of the PNG (default 200)")
+    pq.add_argument("--overwrite", action="store_true", help="replace an existing PNG")
+    pq.add_argument("--json", action="store_true")
+    pq.set_defaults(func=cmd_thrust_curve)
     return ap
 
 
@@ -331,6 +369,9 @@ def _check_args(args) -> None:
                 raise ValueError(f"{flag} {target}: is a folder; name a file")
             if not args.overwrite:
                 raise ValueError(f"{flag} {target} exists: give --overwrite to replace it, or choose another path")
+    for opt, lo in (("points", 2), ("dpi", 20)):
+        if getattr(args, opt, lo) < lo:
+            raise ValueError(f"--{opt} must be an integer >= {lo}, got {getattr(args, opt)}")
     if not hasattr(args, "degree"):
         return
     with_estimate = cmd in ("cycle", "table") and not args.no_error_estimate

@@ -145,3 +145,15 @@ def test_thrust_curve_draws_its_error_estimates():
     e = np.concatenate([ln.get_ydata() for ln in bottom.get_lines()])
     assert np.all(e > 0) and e.max() >= float(np.nanmax(table.ds.thrust_norm_error.values))
     plt.close(fig)
+
+
+def test_single_cilium_thrust_curve_command(tmp_path, capsys):
+    from single_cilium.cli import main
+
+    png = tmp_path / "thrust.png"
+    assert main(["thrust-curve", "--png", str(png), "--points", "60", "--dpi", "80", "--json"]) == 0
+    assert png.stat().st_size > 10_000
+    out = capsys.readouterr().out
+    assert '"chi_N_cutoff": 162.77' in out and '"thrust_norm_error_max"' in out
+    assert main(["thrust-curve", "--png", str(png)]) == 2  # an existing figure is kept without --overwrite
+    assert "--overwrite" in capsys.readouterr().err
