@@ -178,19 +178,24 @@ def _cmd_design(a) -> int:
 
 @contextmanager
 def plain_warnings(prog: str = "ciliary-carpet"):
-    """Within: each warning printed once, as one plain line ``PROG: warning: MESSAGE`` on stderr
-    (no source path, no code line, not repeated however often or wherever it is raised)."""
+    """Within: each warning shown once, as one plain line ``PROG: warning: MESSAGE`` on stderr
+    (no source path, no code line, not repeated however often or wherever it is raised). Only
+    how a warning is formatted changes: the filters stay, and so does whatever records them."""
     seen: set = set()
+    before = warnings.formatwarning
 
-    def show(message, category, filename, lineno, file=None, line=None):
+    def plain(message, category, filename, lineno, line=None) -> str:
         text = " ".join(str(message).split())
-        if text not in seen:
-            seen.add(text)
-            print(f"{prog}: warning: {text}", file=sys.stderr if file is None else file)
+        if text in seen:
+            return ""
+        seen.add(text)
+        return f"{prog}: warning: {text}\n"
 
-    with warnings.catch_warnings():  # the filters stay as they are; only how a warning is shown changes
-        warnings.showwarning = show
+    warnings.formatwarning = plain
+    try:
         yield
+    finally:
+        warnings.formatwarning = before
 
 
 def _render_one(scene_path: str, out_root: str, overwrite: bool, reduced: bool, max_seconds: float = 86400.0,

@@ -7,7 +7,11 @@ stage is about to do (what it will compute and why, before the wait). :class:`Pr
 """
 from __future__ import annotations
 
+import logging
+
 __all__ = ["Progress", "TqdmProgress"]
+
+logger = logging.getLogger(__name__)
 
 
 class Progress:
@@ -54,9 +58,12 @@ class TqdmProgress(Progress):
             self._bar = None
 
     def note(self, message: str) -> None:
-        """The line on stderr (above a bar that is shown)."""
+        """The line on stderr (above a bar that is shown) when stderr is a terminal, where a person
+        waits for it; logged at INFO level (``-v``) in any case, so that a job's log can have it."""
         import sys
 
         from tqdm.auto import tqdm
 
-        tqdm.write(message, file=sys.stderr)
+        logger.info(message)
+        if getattr(sys.stderr, "isatty", lambda: False)():
+            tqdm.write(message, file=sys.stderr)

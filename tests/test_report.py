@@ -123,18 +123,25 @@ def test_path_lines_are_thinned_for_viewing_with_their_ends_kept_and_said(tmp_pa
     assert "`pathlines.vtp` holds" in (res.out_dir / "summary.md").read_text()
 
 
-def test_warnings_print_once_as_plain_lines(capsys):
-    import warnings
+def test_warnings_print_once_as_plain_lines():
+    import subprocess
+    import sys
 
-    from ciliary_carpet.cli import plain_warnings
-
-    with plain_warnings():
-        for where in range(3):  # the same message from three places, and again
-            warnings.warn_explicit("the closest flow the cilia make", UserWarning, f"f{where}.py", where)
-        warnings.warn_explicit("another\n  message", UserWarning, "g.py", 1)
-    err = capsys.readouterr().err
-    assert err == ("ciliary-carpet: warning: the closest flow the cilia make\n"
-                   "ciliary-carpet: warning: another message\n")
+    code = """if True:
+        import warnings
+        from ciliary_carpet.cli import plain_warnings
+        with plain_warnings():
+            for where in range(3):  # the same message from three places
+                warnings.warn_explicit("the closest flow the cilia make", UserWarning, f"f{where}.py", where)
+            warnings.warn_explicit("another\\n  message", UserWarning, "g.py", 1)
+        warnings.warn_explicit("after", UserWarning, "h.py", 1)  # the usual format again
+    """
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    lines = p.stderr.splitlines()
+    assert lines[:2] == ["ciliary-carpet: warning: the closest flow the cilia make",
+                         "ciliary-carpet: warning: another message"]
+    assert lines[2].startswith("h.py:1: UserWarning: after")
 
 
 def test_a_standing_carpet_is_clamped_where_its_summary_says():

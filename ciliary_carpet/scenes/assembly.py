@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import single_cilium.table as _table
+from single_cilium.progress import Progress
 from single_cilium.table import TableError, ThrustTable
 
 from single_cilium.radau import ConvergenceError
@@ -47,8 +48,12 @@ class TableBuildError(DesignError):
 _TABLE_CACHE: dict = {}
 
 
-def load_table(scene: "Scene") -> ThrustTable:
+def load_table(scene: "Scene", progress: Progress | None = None) -> ThrustTable:
     """The scene's thrust table (``[table]``): loaded, built first if asked (``[table.build]``), and check that it is for the scene's field.
+
+    A build says first, through ``progress`` (:class:`~single_cilium.progress.Progress`: its
+    ``note``, then a bar over the rows), what it computes and how long that is expected to take
+    (:func:`build_estimate`).
 
     Tables are cached per (file, modification time), so repeated loads are free; treat the
     returned table as read-only.
@@ -76,7 +81,7 @@ def load_table(scene: "Scene") -> ThrustTable:
                     f"use file = \"default\" for the shipped table (chi_E = 200, eta = 1), or add a "
                     f"[table.build] section (n, degree) to compute it there (takes minutes)")
             _check_build_paths(scene, p)
-            _build(scene, p)
+            _build(scene, p, progress)
         st = p.stat()
         key = (str(p.resolve()), st.st_mtime_ns, st.st_size)
         table = _TABLE_CACHE.get(key)
@@ -105,12 +110,12 @@ def _check_build_paths(scene: "Scene", p: Path) -> None:
         return  # table.file itself was allowed outside (allow_outside): so is its row folder
     check_derived(scene.source_name, "table.file", "the table build's row folder", table_parts(p), scene.base_dir)
 
-def _build(scene: "Scene", p: Path) -> None:
+def _build(scene: "Scene", p: Path, progress: Progress | None = None) -> None:
     """Compute the scene's table into ``p`` (:func:`_build_table`); a computation that does not
     converge is a :class:`TableBuildError` saying which ``[table.build]`` keys to change."""
     b = scene.table.build
     try:
-        _build_table(scene, p)
+        _build_table(scene, p, progress)
     except ConvergenceError as exc:
         keys = (f"a larger table.build.n (now {b.n}: a finer chi_N grid, each cycle started from its neighbours')"
                 + (f", a larger table.build.flow_points (now {b.flow_points}: a finer flow grid), a smaller "
@@ -120,7 +125,20 @@ def _build(scene: "Scene", p: Path) -> None:
                               f"{' '.join(str(exc).split())}; in the scene, try {keys}") from None
 
 
-def _build_table(scene: "Scene", p: Path) -> None:
+ROW_CORE_SECONDS = 0.55
+"""CPU seconds one table row takes at the default discretisation (degree 8, 64 phases, error
+estimates): 525 rows of a table over the flow in 141 s on 2 shared cores
+(benchmarks/results/bench_table_flow.md), the chi_N table's 42 rows in about 20 s on 2."""
+
+
+def build_estimate(rows: int, degree: int, cores: int) -> float:
+    """Seconds a table build of ``rows`` rows is expected to take on ``cores`` cores:
+    :data:`ROW_CORE_SECONDS` per row, scaled like a cycle's Newton solves with the mesh
+    (``(degree / 8)^3``)."""
+    return rows * ROW_CORE_SECONDS * (degree / 8.0) ** 3 / max(1, cores)
+
+
+def _build_table(scene: "Scene", p: Path, progress: Progress | None = None) -> None:
     from single_cilium import flutter_cutoff
 
     f, b = scene.field, scene.table.build
@@ -131,8 +149,8 @@ def _build_table(scene: "Scene", p: Path) -> None:
     c = cut.chi_N_cutoff
     if b.flow is None:
         grid = np.concatenate([np.linspace(0.0, c, b.n)[:-1], [1.05 * c]])
-        logger.info("building the thrust table %s (chi_E = %g, eta = %g, %d rows)", p, f.chi_E, f.eta, grid.size)
-        _table.build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p)
+        _announce(progress, p, f, grid.size, b.degree, f"{grid.size} rows over chi_N")
+        _table.build_table(f.chi_E, f.eta, grid, degree=b.degree, path=p, progress=progress)
         return
     # over the flow: the rows reach past every corner flow's cutoff (each flow's own is added),
     # short of the coiled limit
@@ -141,9 +159,22 @@ def _build_table(scene: "Scene", p: Path) -> None:
                for u in (-b.flow, b.flow) for q in (-b.flow, b.flow)]
     top = min(1.05 * max([c] + [x for x in corners if math.isfinite(x)]), 0.95 * abs(f.chi_E))
     grid = np.linspace(0.0, top, b.n)
-    logger.info("building the thrust table %s over the flow (chi_E = %g, eta = %g, %d rows x %d x %d flows)", p,
-                f.chi_E, f.eta, grid.size, U.size, U.size)
-    _table.build_table(f.chi_E, f.eta, grid, U_par=U, U_perp=U, degree=b.degree, path=p)
+    _announce(progress, p, f, grid.size * U.size ** 2, b.degree,
+              f"{grid.size} rows over chi_N x {U.size} x {U.size} background flows")
+    _table.build_table(f.chi_E, f.eta, grid, U_par=U, U_perp=U, degree=b.degree, path=p, progress=progress)
+
+
+def _announce(progress: Progress | None, p: Path, f, rows: int, degree: int, what: str) -> None:
+    """Say, before a table build, what it computes and how long it is expected to take."""
+    from single_cilium.threads import cores
+
+    n = cores()
+    eta = build_estimate(rows, degree, n)
+    msg = (f"building the thrust table {p} for chi_E = {f.chi_E:g}, eta = {f.eta:g}: {what}, about "
+           f"{eta / 60:.1f} min on {n} core{'s' if n > 1 else ''} (the finished rows are kept in {p}.parts/)")
+    logger.info(msg)
+    if progress is not None:
+        progress.note(msg)
 
 
 def frame_of(scene: "Scene", bases=None) -> Frame:
