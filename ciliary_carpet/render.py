@@ -47,6 +47,7 @@ from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, OutputFolder
 from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY, RenderContext
 from ciliary_carpet.output.plan import RenderPlan
 from ciliary_carpet.output.resources import ResourceError, check_resources
+from ciliary_carpet.scenes.assembly import load_table
 from ciliary_carpet.scenes.scene import Scene, as_scene
 from ciliary_carpet.stokes import Auto, backend_named
 from ciliary_carpet.transport.parallel import InProcess
@@ -94,13 +95,20 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         progress.note(f"render {scene.name}: " + (f"designing the curvatures of {n} cilia for the "
                                                    f"{scene.target.kind} target" if scene.target.kind != "none"
                                                    else f"building the carpet of {n} cilia"))
-        d, carpet = design(scene)  # table, range check, target and carpet: assembly.assemble
-        clock = {"design": _time.perf_counter() - t0}
+        table_file = scene.table.path(scene)
+        built = table_file is not None and not table_file.exists()
+        load_table(scene, progress=progress)  # a [table.build] says what it computes, and shows its rows
+        t_table = _time.perf_counter() - t0
+        d, carpet = design(scene)  # table (now cached), range check, target and carpet: assembly.assemble
+        clock = {"table": t_table, "design": _time.perf_counter() - t0 - t_table}
         plan = RenderPlan.decide(scene, carpet, designed=d is not None, estimate=estimate)  # errors before any output
         progress.note(plan.describe() + f" (design {clock['design']:.1f} s)")
         outputs = [o for o in (cls() for cls in OUTPUTS.values()) if o.wanted(plan)]
-        ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, _header(plan, carpet), clock, t0,
-                            pool=pool)
+        head = _header(plan, carpet)
+        head["table"] = {"file": "default" if table_file is None else str(table_file), "built": built}
+        if built:  # a [table.build] computed it for this render: what it cost
+            head["table"].update(build_seconds=t_table, size_bytes=table_file.stat().st_size)
+        ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, head, clock, t0, pool=pool)
         progress.start(len(outputs), f"render {scene.name}")
         try:
             for k, o in enumerate(outputs, 1):

@@ -151,3 +151,34 @@ def test_a_standing_carpet_is_clamped_where_its_summary_says():
     raised = _clamped(0.5, "L")  # on posts: the clamps are not on the substrate
     assert "0.5 L above the substrate" in raised and "z = -0.5 L" in raised and "on the substrate" not in raised
     assert "no wall" in _clamped(None, "m")
+
+
+def test_a_table_built_for_a_render_is_announced_shown_and_recorded(tmp_path):
+    from ciliary_carpet.render import render
+    from ciliary_carpet.scenes.scene import load_scene
+    from single_cilium.progress import Progress
+
+    class Notes(Progress):
+        def __init__(self):
+            self.notes, self.bars = [], []
+
+        def note(self, message):
+            self.notes.append(message)
+
+        def start(self, total, desc=""):
+            self.bars.append(desc)
+
+    scene = tmp_path / "s.toml"
+    scene.write_text('[table]\nfile = "t.nc"\n[table.build]\nn = 4\ndegree = 6\n[carpet]\nshape = [2, 2]\n'
+                     'chi_N = 40.0\n[output]\nn_seeds = 3\nperiods = 1.0\nfield_shape = [6, 6]\nsnapshots = 1\n'
+                     'frames = 4\npreview = false\nftle = false\n')
+    seen = Notes()
+    res = render(load_scene(scene), tmp_path / "a", progress=seen)
+    build = [n for n in seen.notes if n.startswith("building the thrust table")]
+    assert len(build) == 1 and "4 rows over chi_N" in build[0] and " min on " in build[0], seen.notes
+    assert "thrust table" in seen.bars  # the build's own bar, over its rows
+    t = res.summary["table"]
+    assert t["built"] and t["build_seconds"] > 0 and t["size_bytes"] == (tmp_path / "t.nc").stat().st_size
+    assert "was computed for this render" in (res.out_dir / "summary.md").read_text()
+    again = render(load_scene(scene), tmp_path / "b")  # the table is there now: read, not built
+    assert again.summary["table"] == {"file": str(tmp_path / "t.nc"), "built": False}

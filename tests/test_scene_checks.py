@@ -134,7 +134,7 @@ _DIMENSIONS = [  # (dotted path pattern, power of length, power of time); the fi
      r"|reachability\.(\w+_deg|width_rms|residual_threshold|width_scan\[\]\[1\])|inside_swept\.|tolerance\.)"
      r"|mean_field\.(points|fidelity\.|section\.points|section\.fidelity\.)|snapshots\.|pathlines\.(tracers|periods|points"
      r"|beats|flow_tol|rtol|samples_per_period|outcome\.|stopped_early|end_point_error\.tracers)"
-     r"|mixing\.(mixing_number|grid|defined_fraction|uniform_pump\.)|omissions\.|coupling\.(relative_change_\w+"
+     r"|mixing\.(mixing_number|grid|defined_fraction|uniform_pump\.)|omissions\.|table\.|coupling\.(relative_change_\w+"
      r"|residual|rtol|iterations|evaluations|history|contraction|normal_flow)|scene_resolved\.|standing\.azimuth_deg\.)",
      0, 0),
 ]

@@ -148,6 +148,10 @@ def markdown(s: dict) -> str:
                          f"(largest {cp['relative_change_max']:.0%}). `coupling = \"mean\"` solves it (needs a "
                          "table over the background flow).")
     lines += ["", "## How it was computed", ""]
+    tb = s.get("table")
+    if tb and tb.get("built"):
+        lines.append(f"- The thrust table `{tb['file']}` was computed for this render (`[table.build]`): "
+                     f"{tb['build_seconds']:.0f} s, {tb['size_bytes'] / 1e6:.1f} MB; later renders read it.")
     lines.append(f"- Flow tolerance {s['tolerance']:g} (relative to the carpet's far-field flow); flow sums: "
                  f"{s['backend']}.")
     if "design" in s:

@@ -125,10 +125,10 @@ def _build(scene: "Scene", p: Path, progress: Progress | None = None) -> None:
                               f"{' '.join(str(exc).split())}; in the scene, try {keys}") from None
 
 
-ROW_CORE_SECONDS = 0.55
+ROW_CORE_SECONDS = 0.6
 """CPU seconds one table row takes at the default discretisation (degree 8, 64 phases, error
-estimates): 525 rows of a table over the flow in 141 s on 2 shared cores
-(benchmarks/results/bench_table_flow.md), the chi_N table's 42 rows in about 20 s on 2."""
+estimates), pool start included: 525 rows of a table over the flow in 141 s on 2 shared cores
+(0.54; benchmarks/results/bench_table_flow.md), 12 rows over chi_N in 3.6 s on 2 (0.61)."""
 
 
 def build_estimate(rows: int, degree: int, cores: int) -> float:
