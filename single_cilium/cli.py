@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -437,10 +438,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: internal error: {type(exc).__name__}: {_one_line(exc)} (rerun with --debug for the "
               f"traceback)", file=sys.stderr)
         return 1
-    if text is not None:
-        print(text)
-    else:
-        _print_table(out)
+    try:
+        if text is not None:
+            print(text)
+        else:
+            _print_table(out)
+        sys.stdout.flush()
+    except OSError as exc:  # a full disk, a closed pipe: the result was computed, stdout could not take it
+        try:
+            sys.stdout = open(os.devnull, "w")  # nothing more to flush into the broken stream at exit
+        except OSError:
+            pass
+        print(f"{name}: cannot write to standard output: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     return 0
 
 

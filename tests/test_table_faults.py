@@ -253,3 +253,14 @@ def test_every_single_cilium_output_replaces_a_file_only_with_overwrite(tmp_path
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and str(mine) in err and "--overwrite" in err, err
     assert mine.read_text() == "my data" and sorted(p.name for p in tmp_path.iterdir()) == ["mine.dat"]
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (Linux)")
+def test_a_standard_output_that_cannot_be_written_is_named():
+    """``single-cilium ... > /dev/full`` exits 2 with one line naming standard output (the
+    result was computed; only printing it failed), never a traceback."""
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, "-m", "single_cilium.cli", "equilibrium", "--chi-E", "200", "--chi-N",
+                            "100"], stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip() == "single-cilium equilibrium: cannot write to standard output: No space left on device"
