@@ -109,9 +109,10 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         if built:  # a [table.build] computed it for this render: what it cost
             head["table"].update(build_seconds=t_table, size_bytes=table_file.stat().st_size)
         ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, head, clock, t0, pool=pool)
-        progress.start(len(outputs), f"render {scene.name}")
+        progress.start(len(outputs), f"render {scene.name}", uniform=False)  # stages of unequal cost
         try:
             for k, o in enumerate(outputs, 1):
+                progress.stage(o.name)
                 o.write(ctx)
                 progress.update(k)
             folder.place()  # the manifest (sizes, hashes), then the swap

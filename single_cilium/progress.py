@@ -2,7 +2,9 @@
 
 A computation calls ``start(total, desc)``, then ``update(done)`` with the absolute amount done
 (e.g. the simulated time reached), then ``close()``; ``note(message)`` says, in a line, what a
-stage is about to do (what it will compute and why, before the wait). :class:`Progress` itself is silent; pass
+stage is about to do (what it will compute and why, before the wait), and ``stage(name)`` names
+the part now running. ``start(..., uniform=False)`` says that the units of work differ in cost
+(a render's stages), so that no time remaining is extrapolated from them. :class:`Progress` itself is silent; pass
 :class:`TqdmProgress` for a progress bar (the CLI does).
 """
 from __future__ import annotations
@@ -17,7 +19,10 @@ logger = logging.getLogger(__name__)
 class Progress:
     """Silent progress reporter: the base class and the default."""
 
-    def start(self, total: float, desc: str = "") -> None:
+    def start(self, total: float, desc: str = "", uniform: bool = True) -> None:
+        pass
+
+    def stage(self, name: str) -> None:
         pass
 
     def update(self, done: float) -> None:
@@ -39,13 +44,19 @@ class TqdmProgress(Progress):
         self._bar = None
         self._done = 0.0
 
-    def start(self, total: float, desc: str = "") -> None:
+    def start(self, total: float, desc: str = "", uniform: bool = True) -> None:
         from tqdm.auto import tqdm
 
-        self._bar = tqdm(total=float(total), desc=desc, delay=self.delay, unit="t",
-                         bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} [{elapsed}<{remaining}]",
-                         **self.kwargs)
+        when = "[{elapsed}<{remaining}]" if uniform else "[{elapsed}]"
+        self._bar = tqdm(total=float(total), desc=desc, delay=self.delay,
+                         bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} " + when, **self.kwargs)
+        self._desc = desc
         self._done = 0.0
+
+    def stage(self, name: str) -> None:
+        """Show ``name`` after the bar's description (the part now running)."""
+        if self._bar is not None:
+            self._bar.set_description(f"{self._desc}: {name}" if self._desc else name)
 
     def update(self, done: float) -> None:
         if self._bar is not None and done > self._done:

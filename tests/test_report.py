@@ -160,13 +160,16 @@ def test_a_table_built_for_a_render_is_announced_shown_and_recorded(tmp_path):
 
     class Notes(Progress):
         def __init__(self):
-            self.notes, self.bars = [], []
+            self.notes, self.bars, self.stages = [], [], []
 
         def note(self, message):
             self.notes.append(message)
 
-        def start(self, total, desc=""):
-            self.bars.append(desc)
+        def start(self, total, desc="", uniform=True):
+            self.bars.append((desc, uniform))
+
+        def stage(self, name):
+            self.stages.append(name)
 
     scene = tmp_path / "s.toml"
     scene.write_text('[table]\nfile = "t.nc"\n[table.build]\nn = 4\ndegree = 6\n[carpet]\nshape = [2, 2]\n'
@@ -176,7 +179,10 @@ def test_a_table_built_for_a_render_is_announced_shown_and_recorded(tmp_path):
     res = render(load_scene(scene), tmp_path / "a", progress=seen)
     build = [n for n in seen.notes if n.startswith("building the thrust table")]
     assert len(build) == 1 and "4 rows over chi_N" in build[0] and " min on " in build[0], seen.notes
-    assert "thrust table" in seen.bars  # the build's own bar, over its rows
+    assert ("thrust table", True) in seen.bars  # the build's own bar, over its rows: a time remaining
+    # the render's bar names each stage and extrapolates no time from stages of unequal cost
+    assert [u for d, u in seen.bars if d.startswith("render ")] == [False]
+    assert "pathlines" in seen.stages and "summary" in seen.stages
     t = res.summary["table"]
     assert t["built"] and t["build_seconds"] > 0 and t["size_bytes"] == (tmp_path / "t.nc").stat().st_size
     assert "was computed for this render" in (res.out_dir / "summary.md").read_text()
