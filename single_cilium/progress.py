@@ -56,7 +56,8 @@ class TqdmProgress(Progress):
     def stage(self, name: str) -> None:
         """Show ``name`` after the bar's description (the part now running)."""
         if self._bar is not None:
-            self._bar.set_description(f"{self._desc}: {name}" if self._desc else name)
+            # (no refresh of its own: a bar still within its delay stays unshown)
+            self._bar.set_description(f"{self._desc}: {name}" if self._desc else name, refresh=False)
 
     def update(self, done: float) -> None:
         if self._bar is not None and done > self._done:

@@ -255,7 +255,7 @@ def test_missing_table_with_build_builds_it(tmp_path, monkeypatch):
     monkeypatch.setattr(single_cilium, "flutter_cutoff",
                         lambda chi_E, eta, degree: Cutoff(chi_E, eta, 100.0, 1.0, 0.0, "", 0))
 
-    def fake_build(chi_E, eta, grid, degree, path):
+    def fake_build(chi_E, eta, grid, degree, path, progress=None):
         calls.append((chi_E, eta, np.asarray(grid), degree, Path(path)))
         table_mod.ThrustTable.default().save(path)
 
