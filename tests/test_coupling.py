@@ -176,6 +176,7 @@ def test_design_model_answers_through_the_flow(flow):
     assert dm.gradient(chi + d, g) @ e == pytest.approx(fd, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_scene_builds_a_flow_table_and_couples(tmp_path):
     """A scene with [table.build] flow builds the table over the flow where it names it, and its
     coupled carpet converges (a coarse table: 4 rows, 3 x 3 flows, degree 6: about 15 s)."""

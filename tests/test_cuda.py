@@ -183,8 +183,10 @@ def test_kernels_compile_for_the_gpu(precision, monkeypatch):
                 assert not [o for o in ops if o.endswith(".f32")]
 
 
+@pytest.mark.slow
 def test_simulator_suite():
-    """The simulator tests of this file, in a child process (module docstring)."""
+    """The simulator tests of this file, in a child process (module docstring; about 25 s: in the
+    slow set, which CI runs)."""
     if SIM:
         pytest.skip("this is the child process")
     env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
