@@ -429,12 +429,10 @@ def _group_forces(out, n, pos, start, centre, delta, inv6):  # pragma: no cover 
     the forces f = inv6 (F, D_x / delta, D_y / delta, T_xx / delta^2, T_xy / delta^2,
     T_yy / delta^2) of :func:`_carrier_sets`. The rows' weights are made once for all instants,
     the sums run over each instant's contiguous rows (no square roots: the solve of
-    :func:`_carrier_sets` also sums the forces' norms): 0.37 ms instead of 0.71 ms for the 2500
-    groups of 100 x 100 cilia at a step's five instants (one thread; the same numbers to 3e-16).
-    The sums run in their written order (no ``reassoc``): with it the copy numba compiled in a
-    process and the copy it loaded from its cache gave numbers 2.8e-14 apart on the same inputs,
-    and a 100 x 100 render's end-point estimate read 2.2978e-4 L right after the cache was emptied
-    and 2.2861e-4 L in every render after (now 2.3380e-4 L in both); 0.57 instead of 0.51 ms."""
+    :func:`_carrier_sets` also sums the forces' norms; timings in benchmarks/results/bench_large.md).
+    The sums run in their written order (no ``reassoc``), so that the copy numba compiles in a
+    process and the copy it loads from its cache give the same numbers: a render's results do not
+    depend on numba's cache."""
     nt = out.shape[0]
     for g in prange(centre.shape[0]):
         d = delta[g]

@@ -603,10 +603,8 @@ class PathLinesOutput(Output):
     The tracers' chunks (:data:`~ciliary_carpet.transport.pathlines.CHUNK_SIZE`) and the estimate's
     reference run (:func:`error_reference`) go to ``ctx.pool`` together, biggest first, and the
     summary's own computations after them (:func:`summary_tasks`): on two cores the reference, then
-    those, run beside the path lines (the numbers do not depend on the pool). Measured on the
-    uniform_deflection scene at 30 x 30 (one render each, ``--threads 2``): 17.3 s instead of
-    19.7 s with the code before (the far carriers in fp32 too), 0.7 s of it the omissions and 0.8 s
-    the coupling estimate now done in the worker."""
+    those, run beside the path lines (the numbers do not depend on the pool; the timings are in
+    benchmarks/results/bench_pathlines_parallel.md)."""
 
     name = "pathlines"
     files = (r"pathlines\.vtp", r"particles_\d+\.vtp", r"particles\.pvd")

@@ -505,8 +505,7 @@ class RegularisedBlake(Kernel):
     asymmetry of 1e-35). In float64 the two sides agree to rounding: the image terms are each of
     size up to about ``1/|R_eps| + h^2/|R_eps|^3 + h/|R_eps|^2`` and cancel in part, and the
     difference is a few ulps of that scale (measured at most 2.7, tested to 64:
-    tests/test_treecode.py). The earlier "reciprocal only up
-    to O(eps^2)" was wrong; what is O(eps^2 / r^2) is its difference from Blake's tensor."""
+    tests/test_treecode.py); what is O(eps^2 / r^2) is its difference from Blake's tensor."""
 
     eps: float = 0.02
     wall: Wall = Wall()

@@ -400,14 +400,9 @@ def _next_step(left: float, h: float, equal: bool) -> float:
     """The next step toward an end ``left`` ahead, given the step ``h`` the error test allows:
     all that is left when it is within ``h`` (up to 1e-9 h), else ``h``, or, with ``equal`` (the
     smaller steps of the tracers that failed a step, :meth:`_Run.advance`), what is left split
-    into the fewest equal parts no longer than ``h`` (at least h / 2: no short remainder).
-
-    Measured on the render's 100 tracers over the designed uniform_deflection carpet (flow tol
-    1e-4, rtol 1e-9, atol 2e-7 L, one thread; ``benchmarks/bench_evaluation.py --pathlines 0.1``,
-    benchmarks/results/bench_evaluation.md): over a tenth of the duration, 100 x 100 took 1063
-    tries of a step instead of 1231 (84 rejected instead of 240), 11.6 s instead of 12.5 s; 30 x 30
-    496 instead of 563, 1.78 s instead of 1.84 s. The 30 x 30 end points moved closer to a run at
-    rtol 1e-11 (over a quarter of the duration: at most 4.9e-5 L from it instead of 9.2e-5 L)."""
+    into the fewest equal parts no longer than ``h`` (at least h / 2: no short remainder), which
+    saves rejected steps (``benchmarks/bench_evaluation.py --pathlines 0.1``,
+    benchmarks/results/bench_evaluation.md)."""
     if left - h < 1e-9 * h:
         return left
     if equal:
