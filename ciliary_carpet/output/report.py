@@ -219,12 +219,13 @@ def _verdict(s: dict, Lu: str) -> list:
                      f"cancel its thrust, so the coupled model would change little.")
     else:
         head += "."
-    out = [head]
+    out = [head]  # (each its own paragraph)
     e = s.get("pathlines", {}).get("end_point_error")
     if e and e.get("max") is not None:
         L = (s.get("scene_resolved", {}).get("units", {}).get("length_m", 1.0)  # a cilium's length, in Lu
              if s.get("units") == "SI" else 1.0)
         if e["max"] > UNRELIABLE_END_POINTS * L:
+            out.append("")
             out.append(f"**Path lines unreliable**: their end points are uncertain by up to {_g(e['max'], 2)} {Lu} "
                        f"(more than a cilium's length; section \"The flow\"): read them as a sketch of the flow.")
     return out

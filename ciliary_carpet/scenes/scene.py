@@ -371,7 +371,7 @@ class OutputSpec(Section):
         f"{AUTO_RESOLVED_BEATS} beats; the render says which before it starts)", "str",
         choices=("auto", *FLOWS))
     samples_per_period: int = key(16, "path-line points per beat (dense output)", "int", lo=1, hi=1000)
-    pathline_points: int = key(2000, "most points of one tracer's line in `pathlines.vtp` (evenly strided, its end "
+    pathline_points: int = key(10_000, "most points of one tracer's line in `pathlines.vtp` (evenly strided, its end "
                                "kept; the summary says when lines were thinned): files sized for viewing; 0 writes "
                                "every point", "int", lo=0, hi=10_000_000)
     ftle: bool = key(True, "the finite-time Lyapunov exponent field (`ftle.vti`) and the mixing number in the "
