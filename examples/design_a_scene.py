@@ -21,8 +21,9 @@ import numpy as np
 import ciliary_carpet as cc
 from ciliary_carpet.design.target import control_points
 
-HERE = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd() / "examples"
-SCENE = HERE.parent / "designs" / "uniform_deflection.toml"
+HERE = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+DESIGNS = next(d / "designs" for d in (HERE, *HERE.parents) if (d / "designs").is_dir())  # the bundled scenes
+SCENE = DESIGNS / "uniform_deflection.toml"
 
 # 1. from a scene file: the front door (the scene at its reduced size, seconds)
 scene = cc.load_scene(SCENE).reduced()
@@ -30,7 +31,7 @@ d, carpet = cc.design(scene)                       # Design, and the Carpet with
 scene_rms, scene_error = float(d.residual_rms), float(d.residual_error)
 
 # 2. from objects: the scene's builder gives the table, target and frame of any scene file
-built = cc.assemble(cc.load_scene(HERE.parent / "designs" / "focusing.toml").reduced())
+built = cc.assemble(cc.load_scene(DESIGNS / "focusing.toml").reduced())
 frame, target = built.frame, built.target
 plain = built.carpet()                             # the scene's carpet, straight cilia
 X = control_points(plain.bases, frame, "cells")    # (P, 2) where the flow is compared with the target

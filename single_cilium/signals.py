@@ -64,9 +64,9 @@ def native_call() -> Iterator[None]:
 
 
 def interrupt_of(exc: BaseException | None) -> KeyboardInterrupt | None:
-    """The interrupt behind ``exc``: ``exc`` itself if it is a KeyboardInterrupt, or the one a
-    ``SystemError("... returned a result with an exception set")`` carries as its cause (a
-    signal handled inside compiled code); None otherwise."""
+    """The interrupt behind ``exc``: ``exc`` itself if it is a KeyboardInterrupt, or the one that
+    a SystemError saying a compiled function "returned a result with an exception set" carries as
+    its cause (a signal handled inside compiled code); None otherwise."""
     for _ in range(8):
         if isinstance(exc, KeyboardInterrupt):
             return exc

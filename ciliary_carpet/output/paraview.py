@@ -138,7 +138,7 @@ def colour(source, display, association, array, preset, title, slot=None, symmet
         bar.HorizontalTitle = 1  # above the bar, read across: a vertical title runs into the labels
         bar.TitleFontSize = 8
         bar.LabelFontSize = 7
-        bar.RangeLabelFormat = "%-#.3g"
+        bar.RangeLabelFormat = "%-.3g"  # 142, 0.0762, 1.5e-05: no trailing point
         display.SetScalarBarVisibility(view, True)
     return lut
 
