@@ -51,7 +51,12 @@ ftle = ftle_field(mean_flow, (0.0, 18.0, 0.0, 18.0), (20, 20), 5.0)
 mixing_number = float(ftle.mixing_number)
 
 if __name__ == "__main__":
+    import os
+    from pathlib import Path
+
+    OUT = Path(os.environ.get("CILIA_EXAMPLE_OUT", "out/carpet_flows"))  # the folder the files go to
+    OUT.mkdir(parents=True, exist_ok=True)
     print(f"mean speed up to {speed_mean:.3g} L/tau (error bound {bound_mean:.1e}); mixing number "
           f"{mixing_number:.3g}")
-    resolved.write("pathlines.vtp")                               # polylines for ParaView
-    ftle.write("ftle.vti")
+    resolved.write(OUT / "pathlines.vtp")                         # polylines for ParaView
+    ftle.write(OUT / "ftle.vti")
