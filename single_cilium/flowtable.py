@@ -10,8 +10,11 @@ Mirror symmetry: ``(chi_N, U_par, U_perp) -> (-chi_N, U_par, -U_perp)`` mirrors 
 ``chi_N >= 0`` only and serves negative chi_N by it, so its ``U_perp`` grid should be symmetric
 about 0 to serve both signs of chi_N over the same flows.
 
-How a point is interpolated (:class:`FlowGrid`; ``k = min(3, n - 1)`` per axis of ``n`` grid
-values, tensor-product interpolating splines: cubic with four or more values, not-a-knot):
+How a point is interpolated (:class:`FlowGrid`; per axis of ``n`` grid values, the Lagrange
+polynomial of degree ``k = min(3, n - 1)`` through the ``k + 1`` grid values around the point's
+cell, tensor products of the two axes: a point reads its 4 x 4 grid flows, never the whole grid,
+so the cost of a lookup does not grow with the grid; continuous, with jumps of O(h^3) in the
+slope between cells):
 
 * the flutter cutoff ``chi_c(U)`` from the grid flows' cutoffs (each one a row of its flow);
 * on the flutter branch (``|chi_N| <= chi_c(U)``), at the fixed fraction ``r = chi_N / chi_c(U)``
@@ -43,7 +46,6 @@ import math
 
 import numpy as np
 import xarray as xr
-from scipy.interpolate import make_interp_spline
 
 from .cycle import thrust_angle
 from .equilibrium import NoLimitAngleError, limit_angle
@@ -85,7 +87,6 @@ class FlowGrid:
         c = ds.chi_N.values
         self.chi_N_range = (float(c[0]), float(c[-1]))
         self.n_phase, self.n_s = ds.sizes["phase"], ds.sizes["s"]
-        self._basis: dict = {}
         # grid flows whose flutter branch does not end at a cutoff row: no onsets to line up
         self.unaligned: dict = {}
         self.branch: dict = {}
@@ -111,16 +112,31 @@ class FlowGrid:
     # ------------------------------------------------------------------ weights
     def _weights(self, axis: int, x: np.ndarray, lower: bool) -> np.ndarray:
         """(n, m) interpolation weights of the grid values of ``axis`` at ``x`` (already in
-        range): the spline of degree ``min(3, m - 1)`` (one lower with ``lower``); exactly one-hot
-        at a grid value."""
+        range): the Lagrange polynomial of degree ``k = min(3, m - 1)`` (one lower with ``lower``)
+        through the ``k + 1`` grid values nearest the point's cell (module docstring); exactly
+        one-hot at a grid value. At most ``k + 1`` weights of a row are non-zero, whatever the
+        grid's size: a point reads only the grid flows next to it."""
         g = self.grids[axis]
         m = g.size
+        n = x.size
         if m == 1:
-            return np.ones((x.size, 1))
+            return np.ones((n, 1))
         k = max(0, min(3, m - 1) - int(lower))
-        if (axis, k) not in self._basis:
-            self._basis[(axis, k)] = make_interp_spline(g, np.eye(m), k=k)
-        W = self._basis[(axis, k)](x)
+        i = np.clip(np.searchsorted(g, x, side="right") - 1, 0, m - 2)  # the cell [g_i, g_i+1]
+        if k % 2:  # an even number of values: as many on each side of the cell
+            start = i - (k - 1) // 2
+        else:  # an odd number: the extra one on the side nearer the point
+            near_hi = (x - g[i]) > (g[i + 1] - x)
+            start = i - k // 2 + near_hi.astype(int)
+        idx = np.clip(start, 0, m - k - 1)[:, None] + np.arange(k + 1)[None, :]
+        xs = g[idx]
+        L = np.ones((n, k + 1))
+        for a in range(k + 1):
+            for b in range(k + 1):
+                if a != b:
+                    L[:, a] *= (x - xs[:, b]) / (xs[:, a] - xs[:, b])
+        W = np.zeros((n, m))
+        np.put_along_axis(W, idx, L, axis=1)
         hit = np.minimum(np.searchsorted(g, x), m - 1)
         exact = g[hit] == x
         W[exact] = np.eye(m)[hit[exact]]

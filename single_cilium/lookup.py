@@ -31,9 +31,12 @@ from .params import CiliumParams
 from .tablefile import (FIELDS, ODD, REGIMES, REST_FIELDS, REST_SCALARS, SAFETY, SCALARS, U_DIMS, TableError,
                         coiled, read, regime_of, validate)
 
-__all__ = ["ThrustTable", "DEFAULT_FILE"]
+__all__ = ["ThrustTable", "DEFAULT_FILE", "DEFAULT_FLOW_FILE"]
 
 DEFAULT_FILE = "table_chiE200_eta1.nc"
+DEFAULT_FLOW_FILE = "flow_chiE200_eta1.nc"
+"""The shipped table over the background flow (chi_E = 200, eta = 1): what a coupled carpet of
+that field reads (:meth:`ThrustTable.default` with ``flow=True``)."""
 _THRUST = ("thrust_x", "thrust_y", "thrust_norm", "thrust_angle")
 _STEADY = ("stable", "flutter", "divergence")  # rows with a steady state (its force and spectrum)
 #: what :meth:`ThrustTable.rest` serves: the steady state's force, force per length and leading eigenvalue
@@ -227,9 +230,13 @@ class ThrustTable:
         return cls(read(path), str(path))
 
     @classmethod
-    def default(cls) -> "ThrustTable":
-        """The shipped table for (chi_E, eta) = (200, 1) (regenerate: ``python -m single_cilium.table``)."""
-        return cls.load(resources.files("single_cilium") / "data" / DEFAULT_FILE)
+    def default(cls, flow: bool = False) -> "ThrustTable":
+        """A shipped table for (chi_E, eta) = (200, 1): over chi_N in still fluid, or with
+        ``flow`` over the background flow too (U_par, U_perp in [-1.5, 1.5] L/tau, spacing 0.5:
+        every flow a carpet of that field sustains, below 0.87 L/tau, with margin; its
+        interpolation error against fresh cycles is in benchmarks/results/bench_table_flow.md).
+        Regenerate with ``python -m single_cilium.table`` (``--flow``)."""
+        return cls.load(resources.files("single_cilium") / "data" / (DEFAULT_FLOW_FILE if flow else DEFAULT_FILE))
 
     def cutoff(self, chi_E: float | None = None, *, U_par: float | None = None,
                U_perp: float | None = None) -> float:

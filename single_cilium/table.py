@@ -46,7 +46,7 @@ import xarray as xr
 from .version import __version__
 from .files import write_netcdf
 from .cycle import CycleError, LimitCycle, check_cycle_cost, check_degree, limit_cycle
-from .lookup import DEFAULT_FILE, ThrustTable
+from .lookup import DEFAULT_FILE, DEFAULT_FLOW_FILE, ThrustTable
 from .mesh import Mesh
 from .params import CiliumParams
 from .progress import Progress
@@ -490,18 +490,33 @@ def _assemble(grid: TableGrid, rows: dict, grid_list: list, n_phase: int, s_grid
     return ds.assign_coords(phase=np.arange(n_phase) / n_phase, s=s_grid)
 
 
-if __name__ == "__main__":  # regenerate the shipped default table
+SHIPPED_FLOW = np.linspace(-1.5, 1.5, 7)
+"""The flow grid of the shipped table over the background flow (each component, L / tau)."""
+SHIPPED_FLOW_CHI_N = np.linspace(0.0, 190.0, 20)
+"""Its chi_N grid (plus each flow's cutoff row): 1.05 x the largest cutoff over the grid's flows."""
+
+
+if __name__ == "__main__":  # regenerate the shipped tables
     import argparse
 
-    ap = argparse.ArgumentParser(description="regenerate the shipped default thrust table (chi_E=200, eta=1)")
+    from .tablefile import compact
+
+    ap = argparse.ArgumentParser(description="regenerate a shipped thrust table (chi_E=200, eta=1): over chi_N in "
+                                 "still fluid, or with --flow over the background flow (about 5 minutes on 2 cores)")
     ap.add_argument("--n", type=int, default=41, help="chi_N grid points in [0, cutoff] (default 41)")
+    ap.add_argument("--flow", action="store_true", help="the table over the background flow (SHIPPED_FLOW)")
     args = ap.parse_args()
-    cut = flutter_cutoff(200.0, 1.0, degree=8).chi_N_cutoff
-    grid = np.linspace(0.0, cut, args.n)[:-1]
-    grid = np.concatenate([grid, [cut + 0.05 * cut]])
-    out = Path(__file__).parent / "data" / DEFAULT_FILE
-    t = build_table(200.0, 1.0, grid)
-    for k in FIELDS:  # shapes and force densities in float32: 1e-7, far below the interpolation error
-        t.ds[k].encoding["dtype"] = "float32"
-    t.save(out)
-    print(f"wrote {out}: {t.ds.sizes}")
+    if args.flow:
+        out = Path(__file__).parent / "data" / DEFAULT_FLOW_FILE
+        t = build_table(200.0, 1.0, SHIPPED_FLOW_CHI_N, U_par=SHIPPED_FLOW, U_perp=SHIPPED_FLOW)
+        write_netcdf(compact(t.ds), out)
+    else:
+        cut = flutter_cutoff(200.0, 1.0, degree=8).chi_N_cutoff
+        grid = np.linspace(0.0, cut, args.n)[:-1]
+        grid = np.concatenate([grid, [cut + 0.05 * cut]])
+        out = Path(__file__).parent / "data" / DEFAULT_FILE
+        t = build_table(200.0, 1.0, grid)
+        for k in FIELDS:  # shapes and force densities in float32: 1e-7, far below the interpolation error
+            t.ds[k].encoding["dtype"] = "float32"
+        t.save(out)
+    print(f"wrote {out}: {dict(ThrustTable.load(out).ds.sizes)}")
