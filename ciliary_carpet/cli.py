@@ -38,6 +38,7 @@ from single_cilium.signals import Terminated, exit_status, terminate_as_interrup
 from single_cilium.table import TableError
 from single_cilium.threads import ThreadBudget, threads_in_use
 
+from ciliary_carpet.carpet.coupling import CouplingError
 from ciliary_carpet.design import DesignError, design
 from ciliary_carpet.design.target import TargetError, UnreachableTargetError
 from ciliary_carpet.output.resources import available_memory, expected_memory, places_that_fit
@@ -53,7 +54,7 @@ logger = logging.getLogger(__name__)
 
 BAD_INPUT = (SceneError, TargetError, TableError, RenderError, OutputError, OSError, MemoryError, ValueError,
              CudaUnavailableError)
-CANNOT_MAKE = (DesignError, UnreachableTargetError)
+CANNOT_MAKE = (DesignError, UnreachableTargetError, CouplingError)  # before BAD_INPUT: a CouplingError is a ValueError
 
 
 def _scene(path: str, reduced: bool, backend: str | None = None) -> Scene:

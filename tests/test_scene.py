@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from ciliary_carpet.scenes import scene as scene_mod
-from ciliary_carpet.scenes.assembly import load_table, target_of
+from ciliary_carpet.scenes.assembly import assemble, load_table, target_of
 from ciliary_carpet.scenes.scene import (
     CarpetSpec,
     OutputSpec,
@@ -199,10 +199,17 @@ def test_malformed_toml_names_file_and_position(tmp_path):
 
 
 def test_table_default_is_the_shipped_table(tmp_path):
+    """file = "default": the shipped table over the background flow for the default coupled
+    carpet, the still-fluid one (finer in chi_N) for coupling = "none"."""
     s = load_scene(write(tmp_path, '[table]\nfile = "default"\n'))
+    assert s.carpet.coupling == "mean"
     t = load_table(s)
     assert (t.chi_E, t.eta) == (200.0, 1.0)
+    assert t.U_range == ((-1.5, 1.5), (-1.5, 1.5))
     assert load_table(s) is t  # cached
+    s = load_scene(write(tmp_path, '[table]\nfile = "default"\n[carpet]\ncoupling = "none"\n', "none.toml"))
+    t = load_table(s)
+    assert t.U_range == ((0.0, 0.0), (0.0, 0.0))
     lo, hi = t.thrust_angle_range()
     assert abs(lo) < 1e-9 and 0.9 < hi < 0.95
 
@@ -260,7 +267,8 @@ def test_missing_table_with_build_builds_it(tmp_path, monkeypatch):
         table_mod.ThrustTable.default().save(path)
 
     monkeypatch.setattr(table_mod, "build_table", fake_build)
-    s = load_scene(write(tmp_path, '[table]\nfile = "built.nc"\n[table.build]\nn = 5\ndegree = 6\n'))
+    s = load_scene(write(tmp_path, '[table]\nfile = "built.nc"\n[table.build]\nn = 5\ndegree = 6\n'
+                         '[carpet]\ncoupling = "none"\n'))
     assert s.table.build == TableBuild(n=5, degree=6)
     t = load_table(s)
     assert t.chi_E == 200.0 and (tmp_path / "built.nc").exists()
@@ -269,6 +277,38 @@ def test_missing_table_with_build_builds_it(tmp_path, monkeypatch):
     assert np.allclose(grid, [0, 25, 50, 75, 105])
     load_table(s)  # exists now: not built again
     assert len(calls) == 1
+
+
+def test_missing_table_of_a_coupled_scene_is_built_over_the_shipped_flow_grid(tmp_path, monkeypatch):
+    """The default coupled carpet and a [table.build] without `flow`: the table is built over the
+    shipped flow table's grid (7 x 7 flows in [-1.5, 1.5], 20 chi_N rows up to 1.05 x the largest
+    corner cutoff); a still-fluid file with the default coupling is refused, saying what to do."""
+    import single_cilium
+    import single_cilium.table as table_mod
+    from single_cilium.stability import Cutoff
+
+    calls = []
+    monkeypatch.setattr(single_cilium, "flutter_cutoff",
+                        lambda chi_E, eta, degree, background=(0.0, 0.0): Cutoff(chi_E, eta, 100.0 + background[1],
+                                                                                 1.0, 0.0, "", 0))
+
+    def fake_build(chi_E, eta, grid, U_par, U_perp, degree, path, progress=None):
+        calls.append((np.asarray(grid), np.asarray(U_par), np.asarray(U_perp)))
+        table_mod.ThrustTable.default(flow=True).save(path)
+
+    monkeypatch.setattr(table_mod, "build_table", fake_build)
+    s = load_scene(write(tmp_path, '[table]\nfile = "built.nc"\n[table.build]\n'))
+    assert s.carpet.coupling == "mean" and s.table.build.flow is None
+    t = load_table(s)
+    (grid, up, uq), = calls
+    assert np.allclose(up, np.linspace(-1.5, 1.5, 7)) and np.allclose(uq, up)
+    assert grid.size == 20 and grid[0] == 0.0 and grid[-1] == pytest.approx(1.05 * 101.5)
+    assert t.U_range == ((-1.5, 1.5), (-1.5, 1.5))
+    still = tmp_path / "still.nc"
+    table_mod.ThrustTable.default().save(still)
+    s = load_scene(write(tmp_path, '[table]\nfile = "still.nc"\n', "still.toml"))
+    with pytest.raises(SceneError, match=r'coupling = "mean" \(the default.*still fluid.*\[table.build\].*coupling = "none"'):
+        assemble(s)
 
 
 def test_reduced_shrinks(tmp_path):

@@ -265,18 +265,19 @@ def check_parents(path) -> None:
 
 def scene_inputs(scene) -> dict[str, Path]:
     """The files a render of ``scene`` reads, by role: ``"scene"`` (its file; none for a scene
-    made in memory), ``"table.file"`` (the shipped table for ``file = "default"``) and
+    made in memory), ``"table.file"`` (for ``file = "default"`` the shipped table the carpet's coupling reads) and
     ``"target.file"`` (when the target names one), as absolute paths."""
     from importlib import resources
 
-    from single_cilium.lookup import DEFAULT_FILE
+    from single_cilium.lookup import DEFAULT_FILE, DEFAULT_FLOW_FILE
 
     found: dict[str, Path] = {}
     if getattr(scene, "source", None) is not None:
         found["scene"] = Path(scene.source)
     table = scene.table.path(scene)
+    shipped = DEFAULT_FLOW_FILE if scene.carpet.coupling == "mean" else DEFAULT_FILE
     found["table.file"] = table if table is not None else Path(str(resources.files("single_cilium") / "data"
-                                                                   / DEFAULT_FILE))
+                                                                   / shipped))
     target_file = getattr(scene.target, "file", None)
     if isinstance(target_file, str) and target_file.strip():
         t = Path(target_file).expanduser()

@@ -134,10 +134,11 @@ class TableBuild(Section):
     degree: int = key(inspect.signature(_table.build_table).parameters["degree"].default,  # build_table's own default
                       "mesh degree of that computation (`single_cilium.table.build_table`)", "int", lo=4, hi=32)
     flow: float | None = key(None, "U_max: build the table over a grid of background flows, `U_par` and `U_perp` each "
-                             "in [-U_max, U_max] (L/tau) with `flow_points` values (needed by `carpet.coupling = "
-                             "\"mean\"`; the chi_N grid then reaches 1.05 x the largest cutoff of the grid's corners; "
-                             "about 5 minutes on 2 cores for U_max = 2)", lo=0, lo_open=True, hi=100,
-                             default_shown="- (still fluid)")
+                             "in [-U_max, U_max] (L/tau) with `flow_points` values and `n` chi_N rows reaching 1.05 x "
+                             "the largest cutoff of the grid's corners. Absent: with `carpet.coupling = \"mean\"` (the "
+                             "default) the shipped flow table's grid (U_max = 1.5, 7 x 7 flows, 20 chi_N rows: about "
+                             "5 minutes on 2 cores), with `coupling = \"none\"` still fluid",
+                             lo=0, lo_open=True, hi=100, default_shown="- (see text)")
     flow_points: int = key(5, "values per flow component with `flow` (odd: U = 0 is a flow of the grid)", "int", lo=3,
                            hi=101)
 
@@ -152,9 +153,10 @@ class TableSpec(Section):
 
     SECTION = "table"
 
-    file: str = key("default", '`"default"`: the table shipped with single_cilium (chi_E = 200, eta = 1); else a '
-                    "NetCDF table path, relative to the scene file. Its (chi_E, eta) must match `[field]` "
-                    "(relative 1e-9)", "str")
+    file: str = key("default", '`"default"`: a table shipped with single_cilium (chi_E = 200, eta = 1): over the '
+                    'background flow for a coupled carpet (`carpet.coupling = "mean"`, the default), over chi_N in '
+                    'still fluid for `coupling = "none"`; else a NetCDF table path, relative to the scene file. Its '
+                    "(chi_E, eta) must match `[field]` (relative 1e-9)", "str")
     build: TableBuild | None = key(None, "the `[table.build]` section", "table")
 
     @classmethod
@@ -231,9 +233,11 @@ class CarpetSpec(Section):
                                   "(slender-body theory at radius `blob`: 0.653 eta for the default)",
                                   lo=0, lo_open=True, default_shown="- (from eta)",
                                   shown=f"float, [1/{VISCOSITY_FACTOR:g}, {VISCOSITY_FACTOR:g}] x the filaments'")
-    coupling: str = key("none", '`"none"`: each cilium beats as in still fluid; `"mean"`: each beats in the mean flow '
-                        "the others make at it, solved self-consistently (needs a table over the background flow: "
-                        "`[table.build] flow`)", "str", choices=COUPLINGS)
+    coupling: str = key("mean", '`"mean"`: each cilium beats in the mean flow the others make at it, solved '
+                        "self-consistently (the flow a carpet really makes; needs a table over the background flow: "
+                        'the shipped one for chi_E = 200, eta = 1, else `[table.build]`); `"none"`: each beats as '
+                        "in still fluid (the uncoupled model: faster flows than the cilia can sustain)", "str",
+                        choices=COUPLINGS)
     blob: float = key(BLOB, "blob size of the regularised Stokeslets in L: the filament radius (the flow stays "
                       "bounded at the filaments)", lo=MIN_BLOB, hi=0.5, hi_open=True,
                       what=f"a length in [{MIN_BLOB:g}, 0.5) L (the filament radius)",
@@ -267,6 +271,8 @@ class CarpetSpec(Section):
         if r.has("wave_vector") and phases != "wave":
             raise SceneError(f"{src}: carpet.wave_vector applies only to phases = \"wave\" (here phases = \"{phases}\")")
         kw = values(r, CarpetSpec)
+        if geometry == "standing" and not r.has("coupling"):
+            kw["coupling"] = "none"
         default = spec["shape"][1]
         if lattice == "points":
             kw["shape"] = ()
