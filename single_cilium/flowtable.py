@@ -46,6 +46,7 @@ import math
 
 import numpy as np
 import xarray as xr
+from numba import njit, prange
 
 from .cycle import thrust_angle
 from .equilibrium import NoLimitAngleError, limit_angle
@@ -55,6 +56,35 @@ from .tablefile import FIELDS, ODD, REGIMES, REST_FIELDS, REST_SCALARS, SAFETY, 
 __all__ = ["FlowGrid", "thrust_angle_of"]
 
 _DERIVED = ("thrust_norm", "thrust_angle")
+
+
+@njit(cache=True, parallel=True)
+def _blend(ptr, knot, weight, u, bx, nbx, coef, out):  # pragma: no cover - compiled
+    """``out[i] = sum_p weight[p] S_knot[p](u[p])`` over ``p in ptr[i]:ptr[i + 1]``: each grid
+    flow's cycle data at its own point of its branch, weighted across the flows, in one pass per
+    point. ``S_k`` is grid flow k's cubic piecewise polynomial in u (scipy's PPoly layout:
+    breakpoints ``bx[k, :nbx[k]]``, coefficients ``coef[k, m, j, q]`` of ``(u - bx_j)^(3 - m)``,
+    the end pieces continued outside)."""
+    n = ptr.size - 1
+    mq = out.shape[1]
+    for i in prange(n):
+        for q in range(mq):
+            out[i, q] = 0.0
+        for p in range(ptr[i], ptr[i + 1]):
+            k = knot[p]
+            x = u[p]
+            lo, hi = 0, nbx[k] - 2
+            while lo < hi:
+                mid = (lo + hi + 1) // 2
+                if bx[k, mid] <= x:
+                    lo = mid
+                else:
+                    hi = mid - 1
+            dx = x - bx[k, lo]
+            w = weight[p]
+            for q in range(mq):
+                out[i, q] += w * (((coef[k, 0, lo, q] * dx + coef[k, 1, lo, q]) * dx + coef[k, 2, lo, q]) * dx
+                                  + coef[k, 3, lo, q])
 _THRUST_ANGLE = np.vectorize(thrust_angle, otypes=[float])
 
 
@@ -253,6 +283,7 @@ class FlowGrid:
         trail = {n: (self.n_phase, self.n_s) if n in FIELDS else (self.n_s,) if n in REST_FIELDS else ()
                  for n in names}
         out = {n: np.zeros((a.size,) + trail[n]) for n in names}
+        blend = [n for n in names if n in FIELDS]  # on the branch: one compiled pass (_blend_fields)
         used = []
         for (i, j), t in self.knots.items():
             w = W[:, i, j]
@@ -266,16 +297,68 @@ class FlowGrid:
                     continue
                 sel = slice(None) if sel.all() else np.flatnonzero(sel)  # all: no gather and scatter (25 % faster)
                 ws = w[sel]
-                cyc = t.cycles(x[sel]) if is_on and set(names) & set(FIELDS) else None  # once per grid flow
                 for name in names:
+                    if is_on and name in blend:
+                        continue
                     if is_on and name not in REST_SCALARS + REST_FIELDS:
-                        v = cyc[name] if name in FIELDS else self._knot_values(t, name, x[sel], nu, True)
+                        v = self._knot_values(t, name, x[sel], nu, True)
                         if nu:  # d/dchi_N of g(chi_N c_ij / C)
                             v = v * (self.cut[i, j] / C[sel]) ** nu
                     else:
                         v = self._knot_values(t, name, a[sel], nu, is_on)
                     out[name][sel] += ws.reshape((-1,) + (1,) * len(trail[name])) * v
+        if blend and np.any(on):
+            self._blend_fields(blend, W, r, on, out)
         return out, on, used
+
+    def _stacked(self):
+        """The grid flows' cubic pieces of the cycle data in u, stacked for :func:`_blend` (made
+        on first use): knot index per (i, j), breakpoints (K, P) and coefficients
+        (K, 4, P - 1, 4 n_phase n_s), x, y, fx, fy side by side."""
+        got = self.__dict__.get("_stack")
+        if got is None:
+            ids = {ij: k for k, ij in enumerate(self.branch)}
+            sp = [[self.knots[ij]._splines[f] for f in FIELDS] for ij in self.branch]
+            P = max(s[0].x.size for s in sp)
+            m = self.n_phase * self.n_s
+            bx = np.full((len(sp), P), np.inf)
+            nbx = np.empty(len(sp), np.int64)
+            coef = np.zeros((len(sp), 4, P - 1, len(FIELDS) * m))
+            for k, s in enumerate(sp):
+                nb = s[0].x.size
+                bx[k, :nb], nbx[k] = s[0].x, nb
+                for f, one in enumerate(s):
+                    coef[k, :, :nb - 1, f * m:(f + 1) * m] = one.c.reshape(4, nb - 1, m)
+            # each grid flow's variable u: sqrt(its cutoff - chi_N), or chi_N itself (no cutoff row)
+            own = np.array([np.nan if self.knots[ij]._cut is None else self.knots[ij]._cut for ij in self.branch])
+            got = self.__dict__["_stack"] = (ids, bx, nbx, coef, own)
+        return got
+
+    def _blend_fields(self, names, W, r, on, out) -> None:
+        """The cycle data ``names`` (of FIELDS) at the points on the branch, into ``out``: each
+        point's grid flows of non-zero weight, each at its point ``r chi_c`` of its branch (as
+        :meth:`_evaluate`), in one compiled pass over the points (:func:`_blend`)."""
+        ids, bx, nbx, coef, own = self._stacked()
+        pts = np.flatnonzero(on)
+        Wf = W[pts].reshape(pts.size, -1)
+        rows, cols = np.nonzero(Wf)  # row-major: grouped by point
+        flows = list(self.branch)
+        ij = [(c // W.shape[2], c % W.shape[2]) for c in range(Wf.shape[1])]
+        kid = np.array([ids.get(t, -1) for t in ij], dtype=np.int64)[cols]
+        if np.any(kid < 0):  # (the stencil refuses grid flows without a branch before this)
+            raise TableError(f"{self.source}: a grid flow without a flutter branch takes part")
+        lo = np.array([self.branch[f][0] for f in flows])[kid]
+        hi = np.array([self.branch[f][1] for f in flows])[kid]
+        cut = self.cut.reshape(-1)[cols]
+        x = np.clip(r[pts][rows] * cut, lo, hi)
+        u = np.where(np.isnan(own[kid]), x, np.sqrt(np.maximum(own[kid] - x, 0.0)))
+        ptr = np.searchsorted(rows, np.arange(pts.size + 1)).astype(np.int64)
+        res = np.empty((pts.size, coef.shape[3]))
+        _blend(ptr, kid, Wf[rows, cols].astype(float), u, bx, nbx, coef, res)
+        m = self.n_phase * self.n_s
+        for name in names:
+            f = FIELDS.index(name)
+            out[name][pts] = res[:, f * m:(f + 1) * m].reshape(pts.size, self.n_phase, self.n_s)
 
     def _scalars(self, names, a, up, uq, nu: int = 0, lower: bool = False) -> tuple[dict, np.ndarray]:
         """Scalars, the thrust's norm and angle from its interpolated components (interpolating
