@@ -234,11 +234,16 @@ class Carpet:
     blob : regularisation length eps of the Stokeslets (:data:`BLOB`, the filament radius), > 0
         and at most half the smallest distance between base points; None: singular Stokeslets
         (the flow is then unbounded at the filaments).
-    background : (N, 2) or None: the uniform flow each cilium beats in (lab frame, L / tau), read
-        from a table over the background flow (:class:`~ciliary_carpet.carpet.cycles.CycleData`);
-        None: each beats as in still fluid (the uncoupled model). A coupled carpet
-        (:func:`~ciliary_carpet.carpet.coupling.couple`) sets it to the mean flow the other cilia
-        make at each one.
+    background : (N, 2) or None: the uniform flow U_j each cilium beats in (L / tau), in each
+        cilium's 2D frame, read from a table over the background flow
+        (:class:`~ciliary_carpet.carpet.cycles.CycleData`; the table's ``U_perp`` across the field,
+        ``U_par`` along it); None: each beats as in still fluid (the uncoupled model). Planar
+        carpet: the lab frame's (x, y) in the plane z = 0 (the table reads ``rotation^T U_j``).
+        Standing carpet: cilium j's beat plane, U_j = (u . e_psi_j, u . e_z) for a flow u in
+        space, so that ``U_perp = U_j[0]`` (horizontal, along e_psi_j) and ``U_par = U_j[1]``
+        (up, along the field); the flow's component along e_z x e_psi_j, normal to the beat
+        plane, does not enter. A coupled carpet (:func:`~ciliary_carpet.carpet.coupling.couple`)
+        sets it to the mean flow the other cilia make at each one, in the same frames.
     geometry : ``"planar"`` (default: every filament in the plane z = 0, the field in it along
         ``direction``) or ``"standing"``: cilium j clamped at ``bases[j]`` on the substrate z = 0,
         the field along +z, its beat plane turned about the normal by ``azimuth[j]``
@@ -326,9 +331,6 @@ class Carpet:
             if self.direction != 0.0:
                 raise ValueError("a standing carpet's field is along +z, normal to its substrate: turn its cilia "
                                  f"with azimuth, not direction (got direction = {self.direction!r})")
-            if self.coupling != "none" or self.background is not None:
-                raise ValueError("coupling and background flows are modelled for planar carpets only: a standing "
-                                 "carpet's cilia beat as in still fluid (coupling = 'none', no background)")
             psi = np.mod(psi, 2.0 * math.pi)
         elif self.azimuth is not None:
             raise ValueError("azimuth is for standing carpets (geometry = 'standing'); a planar carpet's field "
@@ -359,14 +361,15 @@ class Carpet:
             res = couple(replace(self, coupling="none", background=None))  # (its bases checked there)
             for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces",
                       "_mean_blocks", "_instant_blocks", "bases", "chi_N",
-                      "phases", "direction"):
+                      "phases", "direction", "azimuth"):
                 object.__setattr__(self, k, getattr(res.carpet, k))
             object.__setattr__(self, "coupled", res)
             return
         if self.background is not None:
             u = np.array(self.background, dtype=float)
             if u.shape != (n, 2) or not np.all(np.isfinite(u)):
-                raise ValueError(f"background must be {n} finite in-plane flows, shape ({n}, 2), got shape {u.shape}")
+                where = "in each cilium's beat plane (along e_psi, e_z)" if standing else "in the plane"
+                raise ValueError(f"background must be {n} finite flows {where}, shape ({n}, 2), got shape {u.shape}")
         object.__setattr__(self, "background", _frozen(u))
         object.__setattr__(self, "bases", _frozen(b))
         object.__setattr__(self, "chi_N", _frozen(c))
@@ -376,7 +379,7 @@ class Carpet:
                            else float(self.viscosity))
         object.__setattr__(self, "azimuth", _frozen(psi))
         if standing:  # each cilium's 2D frame is its beat plane, clamp at the origin
-            cycles = CycleData(self.table, self.chi_N, np.zeros((n, 2)), self.phases, np.eye(2), None,
+            cycles = CycleData(self.table, self.chi_N, np.zeros((n, 2)), self.phases, np.eye(2), u,
                                embedding=standing_embedding(b, psi))
             self._check_above_substrate(cycles)
         else:
@@ -597,13 +600,16 @@ class Carpet:
 
     def others_mean_flow(self, js=None, tol: float = 1e-4) -> np.ndarray:
         """(len(js), 3) the cycle-mean flow that all the *other* cilia make at the force centres
-        c_j of cilia ``js`` (default all): the carpet's :class:`CycleMean` flow at c_j
-        (:meth:`velocity` at ``tol``) minus cilium j's own cycle-averaged resolved line (the
-        same kernel, blob, wall and weights as the carpet's resolved mean: the carpet resolves a
-        cilium at its own centre, so the subtraction removes exactly that term, to rounding).
-        The background flow a coupled cilium feels (:mod:`~ciliary_carpet.carpet.coupling`)."""
+        c_j of cilia ``js`` (default all), in space (lab frame, L / tau): the carpet's
+        :class:`CycleMean` flow at c_j (:meth:`velocity` at ``tol``) minus cilium j's own
+        cycle-averaged resolved line (the same kernel, blob, wall and weights as the carpet's
+        resolved mean: the carpet resolves a cilium at its own centre, so the subtraction removes
+        exactly that term, to rounding). The centres are :attr:`CycleData.centre3
+        <ciliary_carpet.carpet.cycles.CycleData.centre3>`: in the plane z = 0 for a planar carpet,
+        in each beat plane above the substrate for a standing one. The background flow a coupled
+        cilium feels is its in-frame part (:mod:`~ciliary_carpet.carpet.coupling`)."""
         js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).ravel()
-        cen = np.concatenate([self.cycles.centre[js], np.zeros((js.size, 1))], axis=1)
+        cen = np.ascontiguousarray(self.cycles.centre3[js])
         u = self.velocity(cen, CycleMean(), tol)
         # each centre minus its own cilium's resolved mean line: the blocks the resolved mean
         # flow sums (ResolvedSources, made in one compiled pass or copied where kept)

@@ -10,10 +10,24 @@ where u_others,j is the cycle-mean flow of the carpet whose cilia beat in the fl
 cilium j's own (:meth:`Carpet.others_mean_flow <ciliary_carpet.carpet.carpet.Carpet.others_mean_flow>`),
 and each cilium's cycle, period and thrust come from a thrust table over the background flow
 (:mod:`single_cilium.flowtable`; its ``U_par`` along the field, ``U_perp`` across it) at U_j.
-Only the in-plane components of U_j enter (the filaments beat in the plane; above a wall the
-mean flow at the plane has a small normal component, which the planar model cannot feel and
-:attr:`Coupling.normal_flow` reports). U_j is the flow at one point: how much the others'
-flow varies along a filament is what the omissions' interaction ratio measures.
+U_j is the flow at one point: how much the others' flow varies along a filament is what the
+omissions' interaction ratio measures.
+
+Frames. Every U_j, M_j, thrust and force here is a 2-vector in cilium j's 2D frame
+(:class:`~ciliary_carpet.carpet.geometry.Embedding`: a vector v of the frame is ``axes_j @ v``
+in space, ``axes_j`` (3, 2) with orthonormal columns), and only the flow's part in that frame
+enters, M_j = axes_j^T u_others,j(c_j):
+
+* planar carpet: the frame is the lab plane z = 0 (axes e_x, e_y; the table reads
+  ``rotation^T U_j``), the centres c_j lie in it; above a wall the mean flow there has a small
+  component along e_z, which the planar filaments cannot feel;
+* standing carpet: the frame is cilium j's beat plane (axes e_psi_j, e_z; the field frame
+  itself, ``rotation`` the identity), c_j its force centre in space, above the substrate:
+  U_j = (u . e_psi_j, u . e_z) = (``U_perp``, ``U_par``); the horizontal component along
+  e_z x e_psi_j, normal to the beat plane, is what it cannot feel.
+
+The part normal to each frame, w_j = u_others,j . (axes_j[:, 0] x axes_j[:, 1]), is reported as
+:attr:`Coupling.normal_flow`.
 
 Solver: Newton's method on R(U) = U - M(U) with an approximate Jacobian, each step solved
 exactly for that approximation,
@@ -21,19 +35,24 @@ exactly for that approximation,
     (I - A B(U)) dU = -R(U),      U <- U + lambda dU,
 
 where B(U) = blockdiag(d Fbar_j / d U_j) is each cilium's mean-thrust derivative (the table's
-splines, central differences of step :data:`DU`, in the lab frame) and A the cycle-mean flow at
-the other cilia's centres of point forces at the centres (the carpet's kernel, blob and wall;
-no self term): the far field of each cilium, with its dipole and higher moments, and the near
-field of its resolved line frozen at the current step. The error of that Jacobian only slows the
-convergence (it stays linear, with the rate the neglected moments' share of dM/dU); every
-residual is of the full model (1). A carpet much larger than its cilia's reach needs Newton:
-the plain iteration U <- M(U) diverges once |A B| > 1 (the 2-norm, uniform carpets at spacing
-2 L, chi_N = 92, free space, at the coupled flow: 0.95 at 5 x 5, 2.2 at 10 x 10, and about 24 at
-100 x 100 in an independent implementation), because every
-cilium then answers the flow it is pushed with by a push back larger than the cause. The step is damped (lambda = 1, 1/2, 1/4, ..., at most
-:data:`MAX_HALVINGS` times) until the residual falls and every U_j lies in the table's flow grid.
-The linear solve is GMRES (matrix-free: one Stokeslet sum over the centres per product; relative
-tolerance :data:`GMRES_RTOL`). A has zero diagonal blocks (no self term), so trace(A B) = 0 and
+splines, central differences of step :data:`DU`, in each cilium's 2D frame) and A the cycle-mean
+flow at the other cilia's centres of point forces at the centres (the carpet's kernel, blob and
+wall; no self term): block (i, j) is axes_i^T G(c_i, c_j) axes_j / (8 pi mu) for i != j and zero
+for i = j, a force f_j of cilium j's frame acting along axes_j f_j at c_j in space and the
+velocity at c_i read in cilium i's frame (each cilium's own point force is left out of the sum
+at its centre: the self term G(c_j, c_j) of the regularised kernel and its wall image differs
+from cilium to cilium when their heights differ): the far field of each cilium, with its dipole
+and higher moments, and the near field of its resolved line frozen at the current step. The error
+of that Jacobian only slows the convergence (it stays linear, with the rate the neglected
+moments' share of dM/dU); every residual is of the full model (1). A carpet much larger than
+its cilia's reach needs Newton: the plain iteration U <- M(U) diverges once |A B| > 1 (the
+2-norm, uniform planar carpets at spacing 2 L, chi_N = 92, free space, at the coupled flow: 0.95
+at 5 x 5, 2.2 at 10 x 10, and about 24 at 100 x 100 in an independent implementation), because
+every cilium then answers the flow it is pushed with by a push back larger than the cause. The
+step is damped (lambda = 1, 1/2, 1/4, ..., at most :data:`MAX_HALVINGS` times) until the
+residual falls and every U_j lies in the table's flow grid. The linear solve is GMRES
+(matrix-free: one Stokeslet sum over the centres per product, each centre's own term left out;
+relative tolerance :data:`GMRES_RTOL`). A has zero diagonal blocks (no self term), so trace(A B) = 0 and
 A B has eigenvalues of both signs of real part (the largest is +0.14 at 5 x 5, +0.15 at
 10 x 10); but I - A B stays far from singular (its smallest singular value is 0.86 and 0.85
 there), so GMRES takes tens of products.
@@ -47,8 +66,9 @@ outside the table's grid raises :class:`CouplingError` naming the cilium, its fl
 The linear estimate without a flow table (:func:`coupling_estimate`). A carpet whose table is for
 still fluid cannot be solved, but the size of the coupling can be estimated: with the slender-body
 drag of a straight filament along the field, d Fbar_j / d U_j = -eta L (t t^T + 2 (I - t t^T))
-(t the field direction), the linear coupled flow solves (I - A B) U = M(0): how far the
-uncoupled flow M(0) is from it is the coupling's size in the summary of an uncoupled carpet.
+(t the field direction in each cilium's 2D frame: ``rotation[:, 1]``, e_z's (0, 1) for a standing
+cilium), the linear coupled flow solves (I - A B) U = M(0): how far the uncoupled flow M(0) is from
+it is the coupling's size in the summary of an uncoupled carpet.
 """
 from __future__ import annotations
 
@@ -60,9 +80,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.sparse.linalg import LinearOperator, gmres
 
-from single_cilium.tablefile import TableError
-
-from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
+from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
 
@@ -100,9 +118,11 @@ class Coupling:
     carpet : Carpet
         The coupled carpet (``background`` = U).
     background : (N, 2) ndarray
-        U_j, the others' mean flow at each cilium (lab frame, L / tau).
+        U_j, the others' mean flow at each cilium's force centre (L / tau), its part in the
+        cilium's 2D frame (module docstring: the lab plane's (x, y) for a planar carpet,
+        (u . e_psi_j, u . e_z) in the beat plane for a standing one).
     uncoupled : (N, 2) ndarray
-        M(0), the others' mean flow at each cilium of the uncoupled carpet.
+        M(0), the others' mean flow at each cilium of the uncoupled carpet, in the same frames.
     residual, rtol : float
         max_j |U_j - M_j(U)| / max_j |M_j(U)| at the end, and the one asked.
     history : tuple
@@ -115,8 +135,10 @@ class Coupling:
         abs(A B) estimated by the power method at the solution (above 1 the plain iteration
         U <- M(U) would diverge).
     normal_flow : float
-        max_j abs(w_j) / max_j abs(U_j), the mean flow's component normal to the plane at the
-        centres (zero in free space), which the planar filaments cannot feel.
+        max_j abs(w_j) / max_j abs(U_j) (the denominator the largest component of U), w_j the
+        others' mean flow's component normal to cilium j's 2D frame at its centre, which it
+        cannot feel: along e_z for a planar carpet (zero in free space), horizontal and normal
+        to the beat plane (along e_z x e_psi_j) for a standing one.
     wall_s : float
         Seconds spent."""
 
@@ -159,33 +181,66 @@ class Coupling:
                 "wall_s": self.wall_s, **self.change()}
 
 
-def _operator(carpet: Carpet, centres: np.ndarray):
-    """The product f -> A f, (2N,) -> (2N,) (x, y per cilium): the cycle-mean flow at each centre
-    of point forces f at the other centres (module docstring): the carpet's kernel regularised
-    at its filament radius, its wall and viscosity, less the self term."""
-    n = centres.shape[0]
-    kern = make_kernel(None if carpet.wall is None else Wall(z=-float(carpet.wall)), carpet.filament_radius)
-    c3 = np.column_stack([centres, np.zeros(n)])
-    # the self term S (the same at every centre: all lie in the plane z = 0), columns e_x, e_y
-    S = np.column_stack([stokeslet_velocity(c3[:1], c3[:1], e[None], carpet.mu, kernel=kern)[0, :2]
-                         for e in np.eye(3)[:2]])
+def _kernel(carpet: Carpet):
+    """The kernel of A: the carpet's wall (``Wall(z=-wall)``, the substrate of a standing carpet
+    at ``wall = 0``), regularised at the filament radius (also for a carpet of singular Stokeslets:
+    the point forces of A stand at the centres, not on the filaments)."""
+    return make_kernel(None if carpet.wall is None else Wall(z=-float(carpet.wall)), carpet.filament_radius)
+
+
+def _in_frames(carpet: Carpet, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flows ``u`` (N, 3) in space at the cilia, split: (N, 2) the part in each cilium's 2D frame,
+    ``axes_j^T u_j``, and (N,) the component normal to it, ``u_j . (axes_j[:, 0] x axes_j[:, 1])``
+    (along e_z for a planar carpet; along e_psi_j x e_z = -(e_z x e_psi_j), horizontal, for a
+    standing one)."""
+    ax = carpet.embedding.axes
+    normal = np.cross(ax[:, :, 0], ax[:, :, 1])
+    return np.einsum("jqa,jq->ja", ax, u), np.einsum("jq,jq->j", normal, u)
+
+
+def _others_ranges(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The CSR lists of a ranged Stokeslet sum over ``n`` sources at ``n`` targets that leave each
+    target's own source out: target i sums sources [0, i) and [i + 1, n)."""
+    i = np.arange(n, dtype=np.int64)
+    rng = np.empty((2 * n, 2), dtype=np.int64)
+    rng[0::2, 0], rng[0::2, 1] = 0, i
+    rng[1::2, 0], rng[1::2, 1] = i + 1, n
+    return np.arange(0, 2 * n + 1, 2, dtype=np.int64), rng
+
+
+def _operator(carpet: Carpet):
+    """The product f -> A f, (2N,) -> (2N,) (2 components per cilium, each in its 2D frame): the
+    cycle-mean flow at each centre c_i (:attr:`CycleData.centre3
+    <ciliary_carpet.carpet.cycles.CycleData.centre3>`, in space) of point forces ``axes_j @ f_j``
+    at the other centres j != i, read in cilium i's frame, ``axes_i^T u(c_i)`` (module docstring):
+    the carpet's wall and viscosity, regularised at its filament radius (:func:`_kernel`). The
+    self term (which differs from cilium to cilium with the centre's height above a wall) is left
+    out of the sum itself, for each cilium (:func:`_others_ranges`), not subtracted: A's diagonal
+    blocks are exactly zero."""
+    c3 = np.ascontiguousarray(carpet.cycles.centre3)
+    ax = carpet.embedding.axes
+    n = c3.shape[0]
+    kern = _kernel(carpet)
+    ptr, rng = _others_ranges(n)
 
     def apply(f2: np.ndarray) -> np.ndarray:
-        f = f2.reshape(n, 2)
-        u = stokeslet_velocity(c3, c3, np.column_stack([f, np.zeros(n)]), carpet.mu, kernel=kern,
-                               backend=carpet.backend)[:, :2]
-        return (u - f @ S.T).ravel()
+        f = np.ascontiguousarray(np.einsum("jqa,ja->jq", ax, f2.reshape(n, 2)))
+        u = stokeslet_velocity_ranges(c3, c3, f, ptr, rng, carpet.mu, kernel=kern, backend=carpet.backend)
+        return np.einsum("jqa,jq->ja", ax, u).ravel()
     return apply
 
 
 def _field_frame(carpet: Carpet, U: np.ndarray) -> dict:
-    """The table's keywords for lab-frame flows U (N, 2): U_perp along e1, U_par along e2."""
+    """The table's keywords for flows U (N, 2) in each cilium's 2D frame: ``U_perp`` along the
+    field frame's e1, ``U_par`` along e2 (the field), ``rotation^T U_j`` (a standing carpet's
+    rotation is the identity: its 2D frames are the field frames)."""
     u = U @ carpet.rotation
     return {"U_perp": u[:, 0], "U_par": u[:, 1]}
 
 
 def _outside(carpet: Carpet, U: np.ndarray) -> np.ndarray:
-    """(N,) whether U_j lies outside the table's flow grid (after the mirror for chi_N < 0)."""
+    """(N,) whether U_j (N, 2, each cilium's 2D frame) lies outside the table's flow grid (after
+    the mirror for chi_N < 0)."""
     (p0, p1), (q0, q1) = carpet.table.U_range
     k = _field_frame(carpet, U)
     q = np.where(carpet.chi_N < 0, -k["U_perp"], k["U_perp"])
@@ -200,8 +255,10 @@ def _thrust(table, chi, U_par, U_perp, nu: int = 0) -> np.ndarray:
 
 
 def _thrust_derivative(carpet: Carpet, U: np.ndarray) -> np.ndarray:
-    """(N, 2, 2) d Fbar_j / d U_j in the lab frame: central differences of step DU of the table's
-    mean thrust (one-sided at the grid's edge)."""
+    """(N, 2, 2) d Fbar_j / d U_j in each cilium's 2D frame (the lab plane of a planar carpet,
+    the beat plane of a standing one), at flows U (N, 2) in those frames: central differences of
+    step DU of the table's mean thrust (one-sided at the grid's edge), rotated from the field
+    frame by ``rotation`` (the identity for a standing carpet)."""
     t, c, R = carpet.table, carpet.chi_N, carpet.rotation
     (p0, p1), (q0, q1) = t.U_range
     k = _field_frame(carpet, U)
@@ -230,10 +287,11 @@ def _gmres(matvec, rhs: np.ndarray) -> np.ndarray:
 
 
 def _others(carpet: Carpet, U: np.ndarray | None, tol: float) -> tuple[Carpet, np.ndarray]:
-    """The carpet in the flows U and the others' mean flow at its centres (N, 3)."""
+    """The carpet in the flows U (N, 2, each cilium's 2D frame) and the others' mean flow at its
+    centres in space (N, 3)."""
     try:
         c = replace(carpet, background=U)
-    except TableError as exc:
+    except ValueError as exc:  # a TableError, or cilia that touch or (standing) dip below the substrate in U
         raise CouplingError(f"the coupled carpet cannot be built: {exc}") from None
     return c, c.others_mean_flow(tol=tol)
 
@@ -251,21 +309,24 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
 
     Parameters
     ----------
-    carpet : the :class:`~ciliary_carpet.carpet.carpet.Carpet` (``coupling = "none"``; its
-        ``background`` is ignored: the solve starts from still fluid); its table must be over the
-        background flow. (A carpet made with ``coupling = "mean"`` calls this itself.)
+    carpet : the :class:`~ciliary_carpet.carpet.carpet.Carpet`, planar or standing
+        (``coupling = "none"``; its ``background`` is ignored: the solve starts from still fluid);
+        its table must be over the background flow. (A carpet made with ``coupling = "mean"``
+        calls this itself.)
     tol : the tolerance of each evaluation of the mean flow (:meth:`Carpet.others_mean_flow`).
     rtol : the relative residual to reach (default :data:`RTOL`); at least ``tol``.
     max_iter : most Newton steps.
 
     Returns
     -------
-    Coupling : the coupled carpet, the flows, the residual history and the status.
+    Coupling : the coupled carpet, the flows U (N, 2, each cilium's 2D frame), the residual
+        history and the status.
 
     Raises
     ------
-    CouplingError : a table for still fluid, or a flow that leaves the table's grid (the message
-        names the cilium, its flow and the grid).
+    CouplingError : a table for still fluid, a flow that leaves the table's grid (the message
+        names the cilium, its flow and the grid), or a carpet that cannot be made in the flows
+        (cilia that touch; a standing cilium that dips below its substrate).
     """
     if not hasattr(carpet, "others_mean_flow"):
         raise TypeError(f"carpet must be a Carpet, got {type(carpet).__name__}")
@@ -280,10 +341,10 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
     U = np.zeros((n, 2))
     # still fluid: the carpet itself when it has no background (its cycles are the table's at U = 0)
     cur, m = (carpet, carpet.others_mean_flow(tol=tol)) if carpet.background is None else _others(carpet, U, tol)
-    uncoupled = m[:, :2].copy()
+    uncoupled = _in_frames(carpet, m)[0]
 
     def residual(U, m):
-        M = m[:, :2]
+        M = _in_frames(carpet, m)[0]
         return (U - M), float(np.abs(U - M).max() / max(np.abs(M).max(), 1e-300))
     R, res = residual(U, m)
     history, evals, status, it = [res], 1, "max_iter", 0
@@ -294,7 +355,7 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
         if it >= int(max_iter):
             break
         B = _thrust_derivative(cur, U)
-        A = _operator(cur, cur.centres)
+        A = _operator(cur)
         dU = _gmres(lambda x: x - A(np.einsum("jab,jb->ja", B, x.reshape(n, 2)).ravel()), -R.ravel()).reshape(n, 2)
         lam, accepted = 1.0, False
         for _ in range(MAX_HALVINGS + 1):
@@ -324,7 +385,7 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
         logger.info("coupled carpet: Newton step %d, step length %g, residual %.3g", it, lam, res)
     # |A B| at the solution, by the power method (10 products)
     B = _thrust_derivative(cur, U)
-    A = _operator(cur, cur.centres)
+    A = _operator(cur)
     x = np.random.default_rng(0).standard_normal(2 * n)
     rho = 0.0
     for _ in range(10):
@@ -334,7 +395,7 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
         if ny == 0.0:  # one cilium, or none beating: no coupling
             break
         x = y / ny
-    normal = float(np.abs(m[:, 2]).max() / max(np.abs(U).max(), 1e-300))
+    normal = float(np.abs(_in_frames(carpet, m)[1]).max() / max(np.abs(U).max(), 1e-300))
     msg = {"converged": f"coupled: residual {res:.2g} <= rtol {rtol:g} after {it} Newton steps ({evals} evaluations)",
            "max_iter": f"NOT converged: residual {res:.2g} > rtol {rtol:g} after {it} Newton steps; raise max_iter",
            "stalled": f"NOT converged: no damped Newton step lowered the residual {res:.2g} (rtol {rtol:g}); "
@@ -350,11 +411,11 @@ def coupling_estimate(carpet: Carpet, tol: float = 1e-4) -> dict:
     Returns the medians of |M(0)_j| and |U_j| over the fluttering cilia and the median and largest
     |M(0)_j - U_j| / |U_j| (the uncoupled flow's error, in this estimate)."""
     n = carpet.n
-    m0 = carpet.others_mean_flow(tol=tol)[:, :2]
-    t = carpet.rotation[:, 1]
+    m0 = _in_frames(carpet, carpet.others_mean_flow(tol=tol))[0]
+    t = carpet.rotation[:, 1]  # the field in each cilium's 2D frame
     P = np.outer(t, t)
     B = -float(carpet.table.eta) * (P + 2.0 * (np.eye(2) - P))
-    A = _operator(carpet, carpet.centres)
+    A = _operator(carpet)
     U = _gmres(lambda x: x - A((x.reshape(n, 2) @ B.T).ravel()), m0.ravel()).reshape(n, 2)
     fl = carpet.flutter
     s, s0 = np.linalg.norm(U[fl], axis=1), np.linalg.norm(m0[fl], axis=1)
@@ -372,7 +433,9 @@ class CouplingResponse:
     """How a coupled carpet's mean forces answer a change of its cilia's own (the design model's
     coupling, :class:`~ciliary_carpet.design.model.DesignModel`).
 
-    At a coupled state (U, the carpet ``carpet`` with ``coupling = "mean"``), a change dF of the
+    Every vector here is in each cilium's 2D frame (module docstring), A the Newton step's
+    (:func:`_operator`) as a dense matrix. At a coupled state (U, the carpet ``carpet`` with
+    ``coupling = "mean"``), a change dF of the
     cilia's mean forces at fixed flows (a change of curvature: :meth:`forces`, the table's thrust
     at each cilium's own flow U_j) changes the flows by dU = A dF^c and the forces by P dU,
     P = blockdiag(d Fbar_j / d U_j), so that to first order (the monopole level of the solver's
@@ -394,28 +457,32 @@ class CouplingResponse:
         if n > DENSE_CILIA:
             raise ValueError(f"CouplingResponse is dense: at most {DENSE_CILIA} cilia, got {n}")
         self.n = n
-        P = _thrust_derivative(carpet, carpet.background)  # (N, 2, 2)
-        c3 = np.column_stack([carpet.centres, np.zeros(n)])
-        kern = make_kernel(None if carpet.wall is None else Wall(z=-float(carpet.wall)), carpet.filament_radius)
+        U = carpet.coupled.background  # (N, 2): the carpet's own is None where the solve stayed at U = 0
+        P = _thrust_derivative(carpet, U)  # (N, 2, 2)
+        c3 = np.ascontiguousarray(carpet.cycles.centre3)
+        ax = carpet.embedding.axes
+        kern = _kernel(carpet)
         t = np.tile(c3, (n, 1))  # target t for source k at row k n + t
         ptr = np.arange(n * n + 1, dtype=np.int64)
         k = np.repeat(np.arange(n, dtype=np.int64), n)
         rng = np.column_stack([k, k + 1])
-        A = np.empty((n, 2, n, 2))  # A[t, a, k, b]: velocity a at centre t of a unit force b at centre k
+        # A[t, a, k, b]: component a (cilium t's frame) of the velocity at centre t of a unit force
+        # along cilium k's frame axis b at centre k
+        A = np.empty((n, 2, n, 2))
         for b in range(2):
-            f = np.zeros((n, 3))
-            f[:, b] = 1.0
+            f = np.ascontiguousarray(ax[:, :, b])
             u = stokeslet_velocity_ranges(t, c3, f, ptr, rng, carpet.mu, kernel=kern, backend=carpet.backend)
-            A[:, :, :, b] = u[:, :2].reshape(n, n, 2).transpose(1, 2, 0)
+            A[:, :, :, b] = np.einsum("tqa,ktq->tak", ax, u.reshape(n, n, 3))
         A[np.arange(n), :, np.arange(n), :] = 0.0  # the others only
         PA = np.einsum("jab,jbkc->jakc", P, A).reshape(2 * n, 2 * n)
         self._lu = lu_factor(np.eye(2 * n) - PA)
         self._table, self._rot = carpet.table, carpet.rotation
-        self._flow = _field_frame(carpet, carpet.background)
+        self._flow = _field_frame(carpet, U)
 
     def forces(self, chi, nu: int = 0) -> np.ndarray:
-        """(N, 2) the cilia's mean forces (lab frame) at curvatures ``chi`` in the coupled state's
-        flows U (frozen), or their chi derivatives (``nu = 1``): the table's thrust at (chi_j, U_j)."""
+        """(N, 2) the cilia's mean forces (each cilium's 2D frame: the lab plane of a planar carpet,
+        the beat plane of a standing one) at curvatures ``chi`` in the coupled state's flows U
+        (frozen), or their chi derivatives (``nu = 1``): the table's thrust at (chi_j, U_j)."""
         return _thrust(self._table, np.asarray(chi, dtype=float), nu=nu, **self._flow) @ self._rot.T
 
     def apply(self, dF: np.ndarray) -> np.ndarray:
