@@ -221,7 +221,7 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     U_par, U_perp : float or array_like, optional
         A grid of uniform background flows (strictly increasing, finite; one value or more
         each; the other defaults to ``[0]``): ``U = U_par e2 + U_perp e1`` in the field frame,
-        units ``L / tau`` (``CiliumParams(..., background=(U_perp, U_perp))``; signs in
+        units ``L / tau`` (``CiliumParams(..., background=(U_perp, U_par))``; signs in
         :mod:`single_cilium.flowtable`; :data:`DEFAULT_U` for both covers a bundled-size
         carpet). The table gets the leading dims ``U_par, U_perp`` and is interpolated in the
         flow by :class:`ThrustTable`; negative chi_N are served by the mirror image, at

@@ -65,7 +65,16 @@ def simpson(n: int) -> np.ndarray:
 
 def _modes(table: ThrustTable, floor: float = 1e-7) -> int:
     """Number of phase harmonics (k = 0..K-1) above ``floor`` times the largest, over every row of
-    the table (the table stores float32: its harmonics level off near 1e-8)."""
+    the table (the table stores float32: its harmonics level off near 1e-8). Counted once per
+    table (a coupled solve builds a carpet per trial flow)."""
+    key = ("_carpet_modes", floor)
+    got = table.__dict__.get(key)
+    if got is None:
+        got = table.__dict__[key] = _count_modes(table, floor)
+    return got
+
+
+def _count_modes(table: ThrustTable, floor: float) -> int:
     fl = table.ds.flutter.values.astype(bool)
     if not np.any(fl):
         return 1
