@@ -250,7 +250,7 @@ def shipped(say, original: str) -> None:
 
     say("Errors against fresh cycles of the same discretisation. 'err F' = |F - F_fresh| (absolute; F the mean thrust "
         f"vector, |F| {min(p['fresh'].thrust_norm for p in pts):.2f}-{max(p['fresh'].thrust_norm for p in pts):.1f} "
-        "here), 'err F / |F|' where |F_fresh| >= {SMALL_F} (the thrust of a flow nearly cancels "
+        f"here), 'err F / |F|' where |F_fresh| >= {SMALL_F} (the thrust of a flow nearly cancels "
         "elsewhere), 'T' the period (relative), 'angle' the thrust angle [rad], 'x' the shape (max over the stored "
         "phase samples and s; chi_N >= 0 only: a mirrored cycle starts at the mirror image of phase 0), 'est.' the "
         "table's thrust_interpolation_error at the point, 'err / est.' their ratio (below 1: the estimate holds), "
