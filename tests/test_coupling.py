@@ -144,7 +144,10 @@ def test_scene_keys(tmp_path, still):
         scene_from_dict({**base, "carpet": {**base["carpet"], "viscosity": -1.0}})
     with pytest.raises(SceneError, match="flow_points must be odd"):
         scene_from_dict({**base, "table": {"file": "t.nc", "build": {"flow": 2.0, "flow_points": 4}}})
-    c = assemble(scene_from_dict({**base, "carpet": {**base["carpet"], "viscosity": 2.0}}), still).carpet()
+    with pytest.raises(SceneError, match=r'needs a thrust table over the background.*coupling = "none"'):
+        assemble(scene_from_dict(base), still)  # coupled by default: a still-fluid table is refused
+    c = assemble(scene_from_dict({**base, "carpet": {**base["carpet"], "viscosity": 2.0, "coupling": "none"}}),
+                 still).carpet()
     assert c.mu == 2.0 and c.mu_source == "given"
 
 

@@ -82,8 +82,10 @@ def test_design_a_scene():
 
 def test_coupled_carpet():
     ex = load("coupled_carpet")
-    assert ex.residual < 1e-4 and 1 <= ex.steps <= 6
-    assert 0.5 < ex.speed_ratio < 1.0  # the cilia push against the flow they make (0.67 at 5 x 5)
+    assert ex.residual <= 1e-3 and 1 <= ex.steps <= 6
+    # the cilia push against the flow they make: 5 x 5 at spacing 2, 0.284 L/tau coupled against
+    # 0.426 uncoupled (benchmarks/results/bench_coupling.md)
+    assert 0.6 < ex.speed_ratio < 0.75 and 0.27 < ex.coupled_speed < 0.30
 
 
 def test_standing_carpet():

@@ -107,7 +107,10 @@ def test_layout_nc_carries_the_azimuth_and_the_omissions_are_sized_in_space(pump
     assert w["geometry"] == "standing" and 0.1 < w["height_min_L"] <= w["height_L"] <= w["height_max_L"] < 1.0
     assert w["drag_ratio_across_lowest"] >= w["drag_ratio_across"] > 1.0
     assert s["omissions"]["interaction"]["tip"]["median"] > 0
-    assert "coupling" not in s
+    # coupled by default: each cilium beats in the in-plane part of the others' mean flow
+    cp = s["coupling"]
+    assert cp["model"] == "mean" and cp["status"] == "converged" and cp["residual"] <= cp["rtol"]
+    assert 0 < cp["median_speed_coupled"] < cp["median_speed_uncoupled"] and 0 <= cp["normal_flow"] < 1
 
 
 def test_resolved_path_lines_from_a_line_of_seeds_stay_above_the_wall(tmp_path):
@@ -144,11 +147,10 @@ def test_resolved_path_lines_from_a_line_of_seeds_stay_above_the_wall(tmp_path):
     ({"carpet": {"geometry": "standing", "wall": -1.0}}, "carpet.wall"),
     ({"carpet": {"wall": 0.0}}, "carpet.wall"),
     ({"output": {"height": 2.0}}, "output.height"),
-    ({"carpet": {"geometry": "standing", "coupling": "mean"}}, "carpet.coupling"),
     ({"carpet": {"geometry": "standing"}, "target": {"kind": "uniform"}}, "target"),
     ({"carpet": {"geometry": "upright"}}, "carpet.geometry"),
 ], ids=["direction", "azimuth-planar", "azimuth-nan", "azimuth-inf-in-list", "azimuth-list-length",
-        "azimuth-type", "wall-negative", "wall-zero-planar", "height-planar", "coupling", "target", "geometry"])
+        "azimuth-type", "wall-negative", "wall-zero-planar", "height-planar", "target", "geometry"])
 def test_keys_that_do_not_fit_the_geometry_are_scene_errors(data, key):
     with pytest.raises(SceneError, match=key):
         scene_from_dict(data)

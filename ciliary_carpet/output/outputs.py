@@ -685,7 +685,7 @@ def summary_tasks(ctx: RenderContext, pool_only: bool = True) -> list:
         return []
     c, tol = ctx.carpet, min(ctx.plan.scene.tolerance, 1e-3)
     out = [("omissions", Task("the summary: what the model leaves out", _omissions_summary, (c, tol), cost=0.0))]
-    if c.geometry == "planar" and c.coupled is None:  # (the estimate is a planar carpet's: its cilia's flow in their plane)
+    if c.coupled is None:  # uncoupled: the linear estimate of the coupling's size (each cilium's frame)
         out.append(("coupling", Task("the summary: the size of the coupling", _coupling_summary, (c, tol), cost=0.0)))
     return out
 
@@ -803,7 +803,7 @@ class SummaryOutput(Output):
                     task = todo[name]
                     summary[name] = task.func(*task.args, **task.kwargs)
         c = ctx.carpet
-        if c.geometry == "planar" and c.coupled is not None:  # solved: the carpet says how
+        if c.coupled is not None:  # solved: the carpet says how
             summary["coupling"] = c.coupled.summary()
         if "coupling" in summary:  # its speeds in the summary's units
             V = ctx.plan.units[2]

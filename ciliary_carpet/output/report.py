@@ -139,6 +139,11 @@ def markdown(s: dict) -> str:
                          f"Uncoupled, that flow would be {_g(cp['median_speed_uncoupled'])} {Vu}: "
                          f"{cp['relative_change_median']:.0%} off the coupled one (median; largest "
                          f"{cp['relative_change_max']:.0%}).")
+            nf = cp.get("normal_flow")
+            if nf is not None and nf > 0.01:
+                lines.append(f"- The part of the others' mean flow a cilium cannot feel, normal to its beat plane "
+                             f"(its beat is planar), reaches {nf:.0%} of the largest flow it beats in (`normal_flow`); "
+                             "the model leaves it out.")
         else:
             lines.append(f"- Uncoupled carpet (`coupling = \"none\"`): each cilium beats as in still fluid, although "
                          f"the others' mean flow at it is {_g(cp['median_speed_uncoupled'])} {Vu} (median). "

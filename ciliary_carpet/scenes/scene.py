@@ -260,19 +260,13 @@ class CarpetSpec(Section):
             raise SceneError(f"{src}: carpet.points applies only to lattice = \"points\" (here "
                              f"lattice = \"{lattice}\")")
         geometry = r.get("geometry", *spec["geometry"])
-        if geometry == "standing":
-            if r.has("coupling") and r.data["coupling"] != "none":
-                raise SceneError(f'{src}: carpet.coupling applies only to geometry = "planar" (a standing carpet\'s '
-                                 f'cilia beat as in still fluid: coupling = "none"), got {r.data["coupling"]!r}')
-        elif r.has("azimuth"):
+        if geometry != "standing" and r.has("azimuth"):
             raise SceneError(f'{src}: carpet.azimuth applies only to geometry = "standing" (a planar carpet is turned '
                              f'by field.direction)')
         phases = r.get("phases", *spec["phases"])
         if r.has("wave_vector") and phases != "wave":
             raise SceneError(f"{src}: carpet.wave_vector applies only to phases = \"wave\" (here phases = \"{phases}\")")
         kw = values(r, CarpetSpec)
-        if geometry == "standing" and not r.has("coupling"):
-            kw["coupling"] = "none"
         default = spec["shape"][1]
         if lattice == "points":
             kw["shape"] = ()
