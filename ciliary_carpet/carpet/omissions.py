@@ -3,8 +3,11 @@
 The carpet's flow superposes filaments that each beat on their own limit cycle, computed for a
 single filament in fluid at rest, far from any wall, with resistive coefficients that fix a
 viscosity of their own. :func:`omissions` measures, for any :class:`~ciliary_carpet.carpet.carpet.Carpet`,
-how large the three neglected effects are, and :class:`Omissions` says it in numbers (with units)
-and in one plain sentence each (:meth:`Omissions.lines`, :meth:`Omissions.summary`).
+how large the neglected effects are, and :class:`Omissions` says it in numbers (with units)
+and in one plain sentence each (:meth:`Omissions.lines`, :meth:`Omissions.summary`): (b) the
+cilia's hydrodynamic interaction and the neighbours' mean push, (a) the wall's effect on each
+cilium's own drag, the viscosity's consistency, and (d) the oscillating part of the others' flow,
+which even a coupled carpet leaves out, and the thrust it shifts.
 
 (b) Hydrodynamic interaction between cilia
 ------------------------------------------
@@ -43,9 +46,10 @@ Sampling: at most ``n_cilia`` (default 64) fluttering cilia, drawn without repla
 ``numpy.random.default_rng(seed)`` (all of them when there are fewer; still cilia neither beat
 nor push and are not sampled), and ``n_instants`` (default 6) instants t_k = k T / n_instants,
 k = 0 .. n_instants - 1, T the median period of the fluttering cilia. Each instant is one carpet
-evaluation at 2 x n_cilia points, plus one mean-flow evaluation at the sampled force centres
-and the spread carpet's direct sums (below): measured on 2 shared cores, about 1.5 s for 10 x 10
-and 6 s for 100 x 100 (``spacing=False``: about 1 s and 4.5 s), after the carpet is built.
+evaluation at 2 x n_cilia points (and the force centres of section (d)), plus one mean-flow
+evaluation at the sampled force centres and the spread carpet's direct sums (below): measured on
+2 shared cores, about 1.5 s for 10 x 10 and 6 s for 100 x 100 (``spacing=False``: about 1 s and
+4.5 s), after the carpet is built, before section (d) added its instants (its cost: there).
 
 The mean push of the neighbours. A filament held in a uniform stream U feels about eta U per
 unit length (eta the model's tangential resistive coefficient, MODEL.md section 2; 2 eta across
@@ -129,6 +133,80 @@ carpet's default (``mu_source = "filaments"``). A carpet given another viscosity
 
 The filament radius a is the carpet's blob (its filament radius, :data:`~ciliary_carpet.carpet.carpet.BLOB`
 when the carpet uses singular Stokeslets).
+
+(d) The oscillating part of the others' flow
+--------------------------------------------
+A coupled carpet (``coupling = "mean"``, :mod:`~ciliary_carpet.carpet.coupling`) lets cilium j beat
+in the cycle-mean flow U_j that the other cilia make at its force centre c_j
+(:meth:`Carpet.others_mean_flow <ciliary_carpet.carpet.carpet.Carpet.others_mean_flow>`); an
+uncoupled one lets it beat in still fluid. Both leave out the oscillating part
+
+    u'_j(t) = u_others(c_j, t) - U_j,
+
+u_others(c_j, t) the carpet's flow at c_j at t (:meth:`Carpet.velocity
+<ciliary_carpet.carpet.carpet.Carpet.velocity>` at ``tol``) minus cilium j's own resolved line at t
+(as in (b)). Only its part in the cilium's 2D frame counts, axes_j^T u (the x, y components for a
+planar carpet; for a standing one, at the force centre in space, the components along e_psi_j and
+e_z of its beat plane). Its size is the ``oscillation_ratio``
+
+    r_j = sqrt(< |u'_j(t)|^2 >_cycle) / |U_j|,
+
+median and max over the sampled cilia (NaN without another fluttering cilium: there is no flow of
+others). The cilia beat at (nearly) one period, so u'_j correlates with cilium j's own phase and
+shifts its mean thrust at first order. With MODEL.md section 2's resistive force theory, the
+filament held in its shape at phase phi in a uniform flow u exerts on the fluid the force K_j(phi) u,
+
+    K_j(phi) = -eta int_0^1 (2 I - t t^T) ds,     dF_j = < K_j(phi_j(t)) u'_j(t) >_cycle,
+
+t(s, phi) the unit tangent of the table's shape x(s, phi), y(s, phi) in the cilium's 2D frame
+(second-order differences in s, normalised; Simpson's rule; at the table's phase samples,
+interpolated trigonometrically in phase: :func:`drag_tensor`, :func:`thrust_shift`), and dF_j,
+like the thrust, the force on the fluid (single_cilium's ``thrust_convention``). Reported:
+``thrust_shift_ratio`` |dF_j| / |Fbar_j| (Fbar_j the cilium's mean thrust,
+:attr:`CycleData.F_mean <ciliary_carpet.carpet.cycles.CycleData>`) and, for a coupled carpet,
+``thrust_shift_of_coupling`` |dF_j| / |Fbar_j(U_j) - Fbar_j(0)|, against the change of the thrust
+that the coupling models (both ends the table's mean thrust in the flow); medians and maxima. It
+is a **first-order estimate of a quasi-static drag response**: the shape's own response to u'
+(the beat changes in the flow, and with it the force) is neglected, and the mean flows it would
+change are not re-solved. For a steady flow the same estimate, <K_j>, can be held against the flow
+table's d Fbar / d U, which includes the beat's response: on the coupled uniform_deflection they
+agree across the field (-1.74 eta) and differ by 25 % along it (-1.26 against -1.00 eta). A model
+in which the cilia's phases emerge from the flow they feel (an issue to come) would include it.
+
+Sampling. The cilia of (b); ``n_oscillation`` (:data:`N_OSCILLATION` = 12) instants evenly spaced
+over each cilium's own period T_j, t_jk = t_c + (k - (n - 1) / 2) T_j / n. The uniform rule on n
+points averages a trigonometric polynomial of degree below n exactly; the harmonics of u' at a
+force centre fall as 1, 0.1, 1.5e-2, 4e-3, 7e-4, 2e-4, 3e-5 (uniform_deflection) and K's as 1, 0.4,
+4e-2, 4e-3, 1.7e-3, 3e-4, 4e-5, so the products' harmonics from the 12th on are some 1e-6 of the
+first. Measured against 24 instants (uniform 4 x 4 carpets, random and synchronous phases, every
+sum resolved): 12 give the ratio to 6e-8 and the shift to 2e-6 of itself, 8 instants to 2e-5 and
+6e-4, 6 to 7e-4 and 1.3e-2 (tests/test_neglected.py compares 8, 12 and 24). 12 is twice
+:data:`N_INSTANTS`, so every interaction instant is one of them: the force centres join those
+evaluations, and a carpet whose cilia share the median period T costs 6 evaluations more.
+
+Periods. Cilia of different periods (curvatures; a coupled carpet's flows: 0.7 % apart on the
+coupled uniform_deflection) would each need instants of their own. Instead the sampled cilia are
+grouped by period (:data:`PERIOD_GROUP` = 2 %: those within 2 % of T, then from the shortest period
+up, each group within a factor 1.04): each group's flow is evaluated at n instants evenly spaced
+over its period T_g, and each cilium's own window, centred on the group's, is read from their
+trigonometric interpolant (the others' flow is smooth in t). Measured (coupled
+uniform_deflection, 17 cilia, each against 12 evaluations at its own instants): windows up to
+0.5 % off T_g give the shift to 0.05 % (median; max 0.4 %) and the ratio to 5e-5, where the group's
+window itself, uninterpolated, errs by 2 % (max 6 %) of the shift (a small mean of a large
+oscillating product, sensitive to its window); windows 1, 2, 3, 5 % off give the shift to 0.06,
+0.2, 0.5, 1.1 % (median; max 0.3, 0.9, 1.7, 3.8 %). ``oscillation_window`` is the largest offset
+interpolated. Each group costs n evaluations of the carpet's flow at its centres, eight instants
+prepared at a time (:meth:`Carpet.prepare <ciliary_carpet.carpet.carpet.Carpet.prepare>`), and
+each cilium's own line at each (one state and one short sum an instant). Measured on 2 busy shared
+cores, uniform_deflection (one group, 6 instants more): some 0.2 s of CPU, a quarter more than
+the omissions took before (coupled: 0.65 to 0.83 s CPU, 0.98 to 1.24 s wall; medians of 10).
+
+Measured on uniform_deflection (10 x 10, spacing 2 L, 64 cilia, seed 0): in still fluid, ratio
+0.52 (median; max 1.34), shift 3.2 % of |Fbar| (max 11 %); coupled (the shipped flow table), ratio
+1.2 (max 3.1), shift 8.4 % (max 24 %), 6.8 % (max 24 %) of the coupling's change of the thrust.
+A uniform 4 x 4 carpet (chi_N = 92, spacing 2 L) with synchronous phases has a ratio of 6.0
+(median), with random phases 2.7: in step, the neighbours' oscillations add up at a centre; out of
+step they partly cancel while the mean stays.
 """
 from __future__ import annotations
 
@@ -141,13 +219,23 @@ from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant, sbt_viscosi
 from ciliary_carpet.carpet.cycles import simpson
 from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 
-__all__ = ["Omissions", "omissions", "wall_drag_ratios", "wall_drag_formula", "N_CILIA", "N_INSTANTS",
-           "TARGET_RATIO", "SPREAD", "SPREAD_SOURCES"]
+__all__ = ["Omissions", "omissions", "wall_drag_ratios", "wall_drag_formula", "drag_tensor", "thrust_shift",
+           "N_CILIA", "N_INSTANTS", "N_OSCILLATION", "PERIOD_GROUP", "TARGET_RATIO", "SPREAD", "SPREAD_SOURCES"]
 
 N_CILIA = 64
 """Default largest number of sampled cilia."""
 N_INSTANTS = 6
 """Default number of instants over one (median) beat period."""
+N_OSCILLATION = 12
+"""Default number of instants over a cilium's own period at which the oscillating part of the
+others' flow and the cilium's drag are sampled (module docstring, section (d)): the uniform rule on
+12 points averages a trigonometric polynomial of degree up to 11 exactly, and the products
+averaged have fallen to some 1e-6 of their largest harmonic there (measured: the shift to 2e-6 of
+itself; 8 instants leave 6e-4, 6 leave 1.3e-2). Twice :data:`N_INSTANTS`, so that every
+interaction instant is one of them."""
+PERIOD_GROUP = 0.02
+"""Sampled cilia whose periods lie within this relative distance of a common period share that
+period's instants (their own windows interpolated from them: module docstring, section (d))."""
 TARGET_RATIO = 0.1
 """The interaction level at which :attr:`Omissions.spacing_10` is given (median tip ratio)."""
 SPREAD = 2.0
@@ -244,6 +332,19 @@ class Omissions:
     a, same units), ``flow_speed_error`` = mu_sbt / mu - 1 (dimensionless: the carpet's flow
     speeds relative to consistent ones, minus 1).
 
+    Oscillating part of the others' flow (section (d); per sampled cilium, NaN where it has no
+    fluttering neighbour): ``oscillation_ratio`` (n_sampled,), r.m.s. over its cycle of |u'| at its
+    force centre over |U| (the others' cycle-mean flow there, both in its beat plane),
+    ``oscillation_ratio_median``, ``oscillation_ratio_max``; ``thrust_shift`` (n_sampled, 2) [B / L^2],
+    dF = <K u'>, the first-order shift of its mean force on the fluid (its 2D frame, as
+    :attr:`Carpet.mean_thrust <ciliary_carpet.carpet.carpet.Carpet.mean_thrust>`), and
+    ``thrust_shift_ratio`` (n_sampled,) = |dF| / |Fbar|, ``thrust_shift_median``,
+    ``thrust_shift_max``; ``thrust_shift_of_coupling`` (n_sampled,) = |dF| / |Fbar(U) - Fbar(0)|,
+    ``thrust_shift_of_coupling_median``, ``thrust_shift_of_coupling_max`` (coupled carpets; NaN
+    otherwise); ``oscillation_instants`` (instants per cycle), ``oscillation_groups`` (period groups
+    evaluated), ``oscillation_window`` (the largest |T_j / T_g - 1| over which a cilium's window
+    was interpolated; 0 when every sampled cilium beats at its group's period).
+
     Sampling: ``n_cilia`` (carpet), ``cilia`` (the sampled indices), ``instants`` [tau], ``tol``,
     ``seed``."""
 
@@ -288,6 +389,19 @@ class Omissions:
     wall_height_max: float | None = None
     wall_drag_along_max: float = math.nan
     wall_drag_across_max: float = math.nan
+    oscillation_ratio: np.ndarray = None
+    oscillation_ratio_median: float = math.nan
+    oscillation_ratio_max: float = math.nan
+    thrust_shift: np.ndarray = None
+    thrust_shift_ratio: np.ndarray = None
+    thrust_shift_median: float = math.nan
+    thrust_shift_max: float = math.nan
+    thrust_shift_of_coupling: np.ndarray = None
+    thrust_shift_of_coupling_median: float = math.nan
+    thrust_shift_of_coupling_max: float = math.nan
+    oscillation_instants: int = N_OSCILLATION
+    oscillation_groups: int = 0
+    oscillation_window: float = math.nan
 
     def summary(self) -> dict:
         """Strict-JSON-safe dict (floats, ints, strings; NaN as None) of the scalar results and
@@ -324,6 +438,22 @@ class Omissions:
                          "drag_ratio_across_lowest": f(self.wall_drag_across_max)}
                         if self.geometry == "standing" else {})},
             "viscosity": {"mu": f(self.mu), "source": self.mu_source, "mu_sbt": f(self.mu_sbt), "flow_speed_error": f(self.flow_speed_error)},
+            "oscillation": {
+                "definition": "r.m.s. over the cilium's cycle of |u'| / |U|: u' = flow of the other cilia at its force "
+                              "centre minus its cycle mean U there, both in the cilium's beat plane",
+                "ratio": {"median": f(self.oscillation_ratio_median), "max": f(self.oscillation_ratio_max)},
+                "thrust_shift": {
+                    "definition": "|dF| / |Fbar|, dF = <K(t) u'(t)> over the cilium's cycle, K(t) the resistive-force "
+                                  "drag of its shape at t against a uniform flow (force on the fluid per unit flow): "
+                                  "a first-order estimate of a quasi-static drag response (the shape's own response "
+                                  "neglected)",
+                    "median": f(self.thrust_shift_median), "max": f(self.thrust_shift_max),
+                    "of_coupling_definition": "|dF| / |Fbar(U) - Fbar(0)| (coupled carpets only)",
+                    "of_coupling_median": f(self.thrust_shift_of_coupling_median),
+                    "of_coupling_max": f(self.thrust_shift_of_coupling_max)},
+                "instants": int(self.oscillation_instants), "period_groups": int(self.oscillation_groups),
+                "window_interpolated_max": f(self.oscillation_window),
+            },
             "lines": self.lines(),
         }
 
@@ -363,6 +493,8 @@ class Omissions:
             out.append(f"The other cilia's mean flow at a cilium is {_pct(self.pushback_median)} % (median; max "
                        f"{_pct(self.pushback_max)} %) of the stream that would cancel its own mean thrust "
                        f"(|Fbar| / eta): {verdict}.")
+        if len(self.cilia):
+            out.append(self._oscillation_line())
         if self.geometry == "standing" and self.wall_height is not None:
             out.append(self._standing_wall_line())
         elif self.wall_height is None:
@@ -392,6 +524,30 @@ class Omissions:
                    f"{100 * abs(self.flow_speed_error):.0f} % too {direction} against the filaments' own drag.")
         return out
 
+
+    def _oscillation_line(self) -> str:
+        """The sentence of the oscillating part of the others' flow and the thrust it shifts."""
+        if not math.isfinite(self.oscillation_ratio_median):
+            return ("No other cilium beats: there is no oscillating flow of the others at a cilium, and no thrust "
+                    "for it to shift.")
+        size = f"{self.oscillation_ratio_median:.2g} times the mean (median; max {self.oscillation_ratio_max:.2g})"
+        shift = (f"shifts its mean thrust by {_pct(self.thrust_shift_median)} % of |Fbar| (median; max "
+                 f"{_pct(self.thrust_shift_max)} %)")
+        estimate = ("a first-order estimate of the quasi-static resistive drag of the beating shape in that flow (the "
+                    "shape's own response neglected)")
+        emerge = ("a model in which the cilia's phases emerge from the flow they feel (an issue to come) would "
+                  "include it.")
+        if self.coupled:
+            of = ""
+            if math.isfinite(self.thrust_shift_of_coupling_median):
+                of = (f", {_pct(self.thrust_shift_of_coupling_median)} % (median; max "
+                      f"{_pct(self.thrust_shift_of_coupling_max)} %) of the coupling's own change of the thrust")
+            return ("The coupling lets each cilium beat in the others' cycle-mean flow at its force centre but leaves "
+                    f"out the oscillation about that mean, whose r.m.s. over the cilium's beat is {size} and which, "
+                    f"correlated with the cilium's own beat, {shift}{of}: {estimate}; {emerge}")
+        return ("The others' flow at a cilium's force centre oscillates about its cycle mean with an r.m.s. over the "
+                f"cilium's beat of {size} and, correlated with the cilium's own beat, {shift}: {estimate}; the model "
+                f"leaves this out, as it leaves out the mean flow, and {emerge}")
 
     def _standing_wall_line(self) -> str:
         """The wall's sentence for standing cilia (their mean heights above it)."""
@@ -455,17 +611,172 @@ def _pad(a: np.ndarray) -> np.ndarray:
     return np.concatenate([a, np.zeros(a.shape[:-1] + (1,))], axis=-1)
 
 
+def _trig_at(samples: np.ndarray, t: np.ndarray, period: float) -> np.ndarray:
+    """The trigonometric interpolant of ``samples`` (n, m, ...), taken at t_k = k period / n
+    (k = 0 .. n-1) for each of m columns, at the times ``t`` (e, m) of each column: (e, m, ...).
+    For even n the Nyquist harmonic is taken as its cosine (the real interpolant)."""
+    n = samples.shape[0]
+    c = np.fft.rfft(samples, axis=0)
+    f = np.arange(c.shape[0])
+    wt = np.full(f.size, 2.0)
+    wt[0] = 1.0
+    if n % 2 == 0:
+        wt[-1] = 1.0
+    e = np.exp((2j * np.pi / period) * f[:, None, None] * np.asarray(t, dtype=float)[None]) * (wt / n)[:, None, None]
+    return np.einsum("fem,fm...->em...", e, c).real
+
+
+def _drag_samples(carpet: Carpet, xs: np.ndarray) -> np.ndarray:
+    """(len(js), n_phase, 2, 2) K at the table's phase samples of cilia whose shapes are ``xs``
+    (len(js), n_phase, n_s, 2) (:meth:`Carpet.cycle_samples`, each cilium's 2D frame): the force on
+    the fluid per unit uniform flow of the filament held in its shape (module docstring, (d)),
+    -eta int_0^1 (2 I - t t^T) ds, the tangent t the shape's derivative in s (second order,
+    normalised), the integral the carpet's Simpson rule."""
+    s = carpet.s
+    tg = np.gradient(xs, s, axis=2, edge_order=2)
+    tg /= np.linalg.norm(tg, axis=-1, keepdims=True)
+    tt = np.einsum("jpsa,jpsb,s->jpab", tg, tg, simpson(s.size), optimize=True)
+    return -float(carpet.table.eta) * (2.0 * np.eye(2) - tt)
+
+
+def drag_tensor(carpet: Carpet, js, phases) -> np.ndarray:
+    """K_j(phi) (len(js), m, 2, 2) of cilia ``js`` at their phases ``phases`` (len(js), m) (or (m,),
+    the same for all), in each cilium's 2D frame (the lab plane of a planar carpet, the beat plane
+    of a standing one): the force the filament held in its shape at that phase exerts on the fluid
+    per unit uniform flow, by MODEL.md section 2's resistive force theory (module docstring,
+    section (d)): a flow u gives the force K u on the fluid. The trigonometric interpolant in phase
+    of its values at the table's phase samples (K's harmonics fall to some 1e-9 of the largest by
+    the 16th of the 32 the samples hold). Its quadrature in s (second-order differences, Simpson)
+    and a chord-and-midpoint one agree to 0.2 % (measured, chi_N = 92)."""
+    js = np.asarray(js, dtype=np.int64).reshape(-1)
+    ph = np.broadcast_to(np.asarray(phases, dtype=float), (js.size,) + np.shape(phases)[-1:])
+    ks = _drag_samples(carpet, carpet.cycle_samples(js)[0])  # (len(js), n_phase, 2, 2)
+    return _trig_at(np.moveaxis(ks, 1, 0), np.mod(ph, 1.0).T, 1.0).transpose(1, 0, 2, 3)
+
+
+def thrust_shift(carpet: Carpet, js, times, flow) -> np.ndarray:
+    """dF_j = < K_j(phi_j(t)) u_j(t) > (len(js), 2): the first-order shift of the mean force on the
+    fluid of cilia ``js`` (each one's 2D frame) by the uniform flows ``flow`` (m, len(js), 2) [L / tau,
+    in the same frames] at the times ``times`` (m, len(js)) or (m,) [tau], averaged with equal
+    weights (instants evenly spaced over each cilium's period: the cycle average). K:
+    :func:`drag_tensor` at each cilium's phase phi_j(t) = phases_j + t / T_j."""
+    js = np.asarray(js, dtype=np.int64).reshape(-1)
+    t = np.asarray(times, dtype=float)
+    t = np.broadcast_to(t[:, None] if t.ndim == 1 else t, (t.shape[0], js.size))
+    u = np.asarray(flow, dtype=float).reshape(t.shape + (2,))
+    ph = carpet.phases[js][None] + t / carpet.periods[js][None]
+    K = drag_tensor(carpet, js, ph.T)  # (len(js), m, 2, 2)
+    return np.einsum("jmab,mjb->ja", K, u) / t.shape[0]
+
+
+def _period_groups(periods: np.ndarray, T: float, spread: float) -> list[tuple[float, np.ndarray]]:
+    """The sampled cilia (``periods`` (n,)) in groups that share one period's instants (module
+    docstring, (d)): first those within ``spread`` of ``T`` (the interaction's period: their
+    instants include the interaction's), then, from the shortest period up, each group the
+    periods within a factor 1 + 2 ``spread`` of its shortest, at the geometric mean of its
+    shortest and longest. [(T_g, indices into periods)]."""
+    idx = np.arange(periods.size)
+    near = np.abs(periods / T - 1.0) <= spread
+    out = [(float(T), idx[near])] if near.any() else []
+    rest = idx[~near][np.argsort(periods[~near], kind="stable")]
+    while rest.size:
+        lo = periods[rest[0]]
+        take = periods[rest] <= lo * (1.0 + 2.0 * spread)
+        g = rest[take]
+        out.append((math.sqrt(lo * float(periods[g].max())), np.sort(g)))
+        rest = rest[~take]
+    return out
+
+
+def _oscillation(carpet: Carpet, js: np.ndarray, groups: list, at_centres: list, um: np.ndarray, n_o: int,
+                 tol: float, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The oscillating part of the others' flow at the force centres of cilia ``js`` and the
+    thrust it shifts (module docstring, (d)): the r.m.s. ratio (len(js),), dF (len(js), 2) and the
+    largest relative window interpolated over. ``groups``: :func:`_period_groups`; ``at_centres``:
+    per group the carpet's flow (n_o, group size, 3) in space at the centres at its instants and the
+    group's own resolved lines then (n_o, group size x n_s, 3, twice: sources, weighted forces),
+    NaN where not yet evaluated (evaluated here); ``um`` (len(js), 3): the others' cycle-mean flow
+    at the centres; ``xs``: the cilia's shapes at the table's phase samples."""
+    nj = js.size
+    if int(np.count_nonzero(carpet.flutter)) <= 1:  # no other cilium beats: nothing to size
+        return np.full(nj, np.nan), np.full((nj, 2), np.nan), math.nan
+    standing = carpet.geometry == "standing"
+    n_s = carpet.s.size
+    w = simpson(n_s)
+    axes = carpet.embedding.axes[js]  # (len(js), 3, 2): the part of a flow each cilium can feel
+    U = np.einsum("jab,ja->jb", axes, um)
+    centres3 = carpet.in_space("centres", js) if standing else _pad(carpet.centres[js])
+    Ks = np.moveaxis(_drag_samples(carpet, xs), 1, 0)  # (n_phase, len(js), 2, 2)
+    periods = carpet.periods[js]
+    osc, shift, window = np.full(nj, np.nan), np.zeros((nj, 2)), 0.0
+    for (Tg, g), (flow, src, force) in zip(groups, at_centres):
+        todo = [m for m in range(n_o) if np.isnan(flow[m, 0, 0])]  # the others: with the interaction
+        for i, m in enumerate(todo):
+            if i % 8 == 0:  # their carriers made together (Carpet.prepare keeps 8 instants)
+                carpet.prepare([Tg * q / n_o for q in todo[i:i + 8]], tol)
+            t = Tg * m / n_o
+            src[m], force[m] = _own_line(carpet, t, js[g], w)
+            flow[m] = carpet.velocity(centres3[g], Instant(t), tol)
+        # minus each cilium's own resolved line at each instant: one sum over all of them
+        own = _own(carpet, np.ascontiguousarray(np.tile(centres3[g], (n_o, 1))), src.reshape(-1, 3),
+                   force.reshape(-1, 3), 1, n_s)
+        up = np.einsum("jab,mja->mjb", axes[g], flow - own.reshape(flow.shape)) - U[g][None]  # (n_o, group, 2)
+        Tj = periods[g]
+        # each cilium's own window, centred on the group's: t_jk = t_c + (k - (n_o - 1) / 2) T_j / n_o
+        t = Tg * (n_o - 1) / (2 * n_o) + (np.arange(n_o) - (n_o - 1) / 2)[:, None] * Tj[None] / n_o
+        if np.any(Tj != Tg):
+            up = _trig_at(up, t, Tg)
+            window = max(window, float(np.max(np.abs(Tj / Tg - 1.0))))
+        K = _trig_at(Ks[:, g], np.mod(carpet.phases[js[g]][None] + t / Tj[None], 1.0), 1.0)  # (n_o, group, 2, 2)
+        shift[g] = np.einsum("mjab,mjb->ja", K, up) / n_o
+        rms, un = np.sqrt((up ** 2).sum(-1).mean(axis=0)), np.linalg.norm(U[g], axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            osc[g] = np.where(un > 0, rms / un, np.nan)
+    return osc, shift, window
+
+
+def _own_line(carpet: Carpet, t: float, js: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The resolved lines of cilia ``js`` at time ``t`` in space: sources and forces times the
+    Simpson weights ``w``, (len(js) x n_s, 3) each (what the carpet sums for them at ``t``)."""
+    if carpet.geometry == "standing":
+        pos, frc, _ = carpet.state_in_space(t, js)
+        return pos.reshape(-1, 3), (frc * w[None, :, None]).reshape(-1, 3)
+    pos, frc, _ = carpet.state(t, js)
+    return _pad(pos.reshape(-1, 2)), _pad((frc * w[None, :, None]).reshape(-1, 2))
+
+
+def _coupling_change(carpet: Carpet, js: np.ndarray) -> np.ndarray:
+    """(len(js), 2) Fbar_j(U_j) - Fbar_j(0) of a coupled carpet's cilia ``js`` (lab frame): the
+    change of each one's mean thrust that the coupling models, both ends from the table's mean
+    thrust in the flow (the same interpolation), U_j the carpet's background."""
+    if carpet.background is None:
+        return np.full((js.size, 2), np.nan)
+    R = carpet.rotation
+    u = np.asarray(carpet.background, dtype=float)[js] @ R  # field frame: U_perp along e1, U_par along e2
+    chi = carpet.chi_N[js]
+
+    def thrust(par, perp):
+        return np.stack([carpet.table.scalar(k, chi, U_par=par, U_perp=perp) for k in ("thrust_x", "thrust_y")],
+                        axis=-1) @ R.T
+
+    return thrust(u[:, 1], u[:, 0]) - thrust(np.zeros(js.size), np.zeros(js.size))
+
+
 def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_instants: int = N_INSTANTS,
-              seed: int = 0, spacing: bool = True) -> Omissions:
+              seed: int = 0, spacing: bool = True, n_oscillation: int = N_OSCILLATION) -> Omissions:
     """Size what ``carpet``'s model leaves out (module docstring): the cilia's hydrodynamic
     interaction at ``n_instants`` instants of a beat on at most ``n_cilia`` fluttering cilia
     drawn with ``seed``, the carpet's flow evaluated at tolerance ``tol``; the neighbours' mean
     push; with ``spacing`` the spacing power law (a direct sum of the carpet spread by
-    :data:`SPREAD`); the wall's effect on the filaments' drag; the viscosity's consistency."""
+    :data:`SPREAD`); the oscillating part of the others' flow at the sampled cilia's force
+    centres and the thrust it shifts, at ``n_oscillation`` instants over each one's period; the
+    wall's effect on the filaments' drag; the viscosity's consistency."""
     if not isinstance(carpet, Carpet):
         raise TypeError(f"carpet must be a Carpet, got {type(carpet).__name__}")
-    if int(n_cilia) < 1 or int(n_instants) < 1:
-        raise ValueError(f"n_cilia and n_instants must be >= 1, got {n_cilia!r}, {n_instants!r}")
+    if int(n_cilia) < 1 or int(n_instants) < 1 or int(n_oscillation) < 1:
+        raise ValueError(f"n_cilia, n_instants and n_oscillation must be >= 1, got {n_cilia!r}, {n_instants!r}, "
+                         f"{n_oscillation!r}")
+    n_o = int(n_oscillation)
     tol = float(tol)
     standing = carpet.geometry == "standing"
     s = carpet.s
@@ -496,6 +807,20 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
     err = 0.0
     pushback = np.full(nj, np.nan)
     mean_others = np.full(nj, np.nan)
+    osc = np.full(nj, np.nan)
+    shift = np.zeros((nj, 2))
+    shift_ratio = np.full(nj, np.nan)
+    shift_coupling = np.full(nj, np.nan)
+    window = math.nan
+    # the oscillating part (section (d)): the others' flow at the force centres, in space, at the
+    # instants of each period group; the group at the median period T shares the interaction's
+    groups = _period_groups(periods[js], T, PERIOD_GROUP) if nj else []
+    centres3 = carpet.in_space("centres", js) if standing else _pad(carpet.centres[js])
+    at_centres = [(np.full((n_o, g.size, 3), np.nan), np.empty((n_o, g.size * n_s, 3)),
+                   np.empty((n_o, g.size * n_s, 3))) for _, g in groups]
+    shared = {}
+    if groups and groups[0][0] == T and np.all(np.abs(periods[js][groups[0][1]] / T - 1.0) <= PERIOD_GROUP):
+        shared = {k: k * n_o // int(n_instants) for k in range(int(n_instants)) if (k * n_o) % int(n_instants) == 0}
     exponent = spacing_10 = math.nan
     if nj:
         # r.m.s. beat speed at s = 1/2 and 1 over each cilium's own cycle (phases m / M)
@@ -525,14 +850,24 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
                 targets = _pad(pos[:, pts].reshape(-1, 2))  # (nj * 2, 3)
                 src = _pad(pos.reshape(-1, 2))
                 force = _pad((frc * w[None, :, None]).reshape(-1, 2))
-            sample = carpet.evaluate(targets, Instant(t), tol)
-            u = sample.velocity - _own(carpet, targets, src, force, 2, n_s)
+            m = shared.get(k)
+            if m is None:
+                sample = carpet.evaluate(targets, Instant(t), tol)
+                vel, bound = sample.velocity, sample.error_bound
+            else:  # the first group's force centres in the same evaluation
+                g = groups[0][1]
+                sample = carpet.evaluate(np.concatenate([targets, centres3[g]]), Instant(t), tol)
+                vel, bound = sample.velocity[:2 * nj], sample.error_bound[:2 * nj]
+                at_centres[0][0][m] = sample.velocity[2 * nj:]
+                at_centres[0][1][m] = src.reshape(nj, n_s, 3)[g].reshape(-1, 3)
+                at_centres[0][2][m] = force.reshape(nj, n_s, 3)[g].reshape(-1, 3)
+            u = vel - _own(carpet, targets, src, force, 2, n_s)
             ind = np.linalg.norm(u, axis=1).reshape(nj, 2)
             ratio[:, k] = (ind / vrms).T
             own = np.linalg.norm(carpet.beat_velocity(t, js)[:, pts], axis=-1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 pointwise[:, k] = (ind / own).T
-            err = max(err, float(np.max(sample.error_bound.reshape(nj, 2) / vrms)))
+            err = max(err, float(np.max(bound.reshape(nj, 2) / vrms)))
             if k in spread_k and standing:  # the same, in space
                 shift = _pad((spread - 1.0) * bases)
                 p_all, f_all, _ = carpet.state_in_space(t)
@@ -567,6 +902,15 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         fbar = np.linalg.norm(carpet.mean_thrust[js], axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             pushback = np.where(fbar > 0, mean_others * eta / fbar, np.nan)
+
+        # (d) the oscillating part of the others' flow and the thrust it shifts
+        osc, shift, window = _oscillation(carpet, js, groups, at_centres, um, n_o, tol, xs)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shift_ratio = np.where(fbar > 0, np.linalg.norm(shift, axis=1) / fbar, np.nan)
+        if carpet.coupling != "none":
+            dF = _coupling_change(carpet, js)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                shift_coupling = np.linalg.norm(shift, axis=1) / np.linalg.norm(dF, axis=1)
 
     mid, tip = _stats(ratio[0].ravel()), _stats(ratio[1].ravel())
     pw_mid, pw_tip = _stats(pointwise[0].ravel()), _stats(pointwise[1].ravel())
@@ -603,6 +947,12 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         wall_drag_formula=wall_drag_formula(h, a), wall_regime=regime,
         mu=float(carpet.mu), mu_source=carpet.mu_source, mu_sbt=mu_sbt, flow_speed_error=mu_sbt / float(carpet.mu) - 1.0,
         coupled=carpet.coupling != "none",
+        oscillation_ratio=osc, oscillation_ratio_median=_stats(osc)[0], oscillation_ratio_max=_stats(osc)[2],
+        thrust_shift=shift, thrust_shift_ratio=shift_ratio, thrust_shift_median=_stats(shift_ratio)[0],
+        thrust_shift_max=_stats(shift_ratio)[2], thrust_shift_of_coupling=shift_coupling,
+        thrust_shift_of_coupling_median=_stats(shift_coupling)[0],
+        thrust_shift_of_coupling_max=_stats(shift_coupling)[2], oscillation_instants=n_o,
+        oscillation_groups=len(groups), oscillation_window=window,
         **({} if not standing else dict(
             geometry="standing", wall_height_min=None if heights is None else float(heights.min()),
             wall_height_max=None if heights is None else float(heights.max()), wall_drag_along_max=low[0],
