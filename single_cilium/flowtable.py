@@ -38,8 +38,8 @@ interval between rows). The change estimates the quadratic interpolant's error, 
 of the cubic's with room. Against fresh cycles of the shipped table's discretisation at 120
 points off its grid (U spacing 0.5, chi_N spacing 10; |U| up to 2, chi_N from 0 to above the
 cutoff, both signs) the thrust's error was at most 4.9e-4 (2.6e-4 of |F|; 1.1e-4 at
-|U| < 0.9), at most 0.36 of the estimate (0.72 with a factor 1, 0.80 from the change at the
-point alone) and a median 1/20 of it; the period within 1.9e-4 (relative), the angle 1.8e-4 rad.
+|U| < 0.9), at most 0.36 of the estimate (0.72 with a factor 1, 0.41 from the change at the
+point alone) and a median 1/21 of it; the period within 1.9e-4 (relative), the angle 1.8e-4 rad.
 Measured in benchmarks/results/bench_table_flow.md (section 4) and asserted in
 tests/test_table_flow.py.
 """
