@@ -59,7 +59,8 @@ def test_render_prints_the_summarys_head_not_all_of_it(tmp_path, capsys):
                      '[output]\nn_seeds = 4\nperiods = 2.0\nfield_shape = [10, 10]\nsnapshots = 2\nframes = 8\n')
     assert main(["render", str(scene), "-o", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
-    assert "**The flow shown is the uncoupled model's** (each cilium beats as if in still fluid)" in out
+    assert ("**The flow shown is the coupled model's** (each cilium beats in the mean flow the others make at it)"
+            in out)
     assert "## " not in out and "the whole summary: " in out  # the sections stay in the file
     assert (tmp_path / "out" / "summary.md").read_text().count("\n## ") >= 3
 
@@ -173,7 +174,7 @@ def test_a_table_built_for_a_render_is_announced_shown_and_recorded(tmp_path):
 
     scene = tmp_path / "s.toml"
     scene.write_text('[table]\nfile = "t.nc"\n[table.build]\nn = 4\ndegree = 6\n[carpet]\nshape = [2, 2]\n'
-                     'chi_N = 40.0\n[output]\nn_seeds = 3\nperiods = 1.0\nfield_shape = [6, 6]\nsnapshots = 1\n'
+                     'coupling = "none"\nchi_N = 40.0\n[output]\nn_seeds = 3\nperiods = 1.0\nfield_shape = [6, 6]\nsnapshots = 1\n'
                      'frames = 4\npreview = false\nftle = false\n')
     seen = Notes()
     res = render(load_scene(scene), tmp_path / "a", progress=seen)
