@@ -168,7 +168,9 @@ def test_uniform_standing_carpet_is_slowed_by_its_coupling(flow):
     assert math.isfinite(r.normal_flow) and 0.1 < r.normal_flow < 0.6
     assert s.max() < 0.05  # far inside the table's flow grid
     est = coupling_estimate(replace(c, coupling="none", background=None))
-    assert est["median_speed_uncoupled"] == pytest.approx(ch["median_speed_uncoupled"], rel=1e-9)
+    # the same M(0): the estimate's at tol 1e-4, the solve's at its loose LOOSE_TOL = 1e-2 (6e-4
+    # apart here, above the wall: the bound is relative to the far fields, the flow small)
+    assert est["median_speed_uncoupled"] == pytest.approx(ch["median_speed_uncoupled"], rel=2e-3)
     assert est["median_speed_coupled"] < est["median_speed_uncoupled"]
     assert est["relative_change_median"] == pytest.approx(ch["relative_change_median"], rel=0.5)
 

@@ -243,7 +243,9 @@ class Carpet:
         space, so that ``U_perp = U_j[0]`` (horizontal, along e_psi_j) and ``U_par = U_j[1]``
         (up, along the field); the flow's component along e_z x e_psi_j, normal to the beat
         plane, does not enter. A coupled carpet (:func:`~ciliary_carpet.carpet.coupling.couple`)
-        sets it to the mean flow the other cilia make at each one, in the same frames.
+        sets it to the mean flow the other cilia make at each one, in the same frames; given
+        with ``coupling = "mean"`` it is the solve's first guess (a solution for nearby
+        curvatures: fewer Newton steps), replaced by the solution.
     geometry : ``"planar"`` (default: every filament in the plane z = 0, the field in it along
         ``direction``) or ``"standing"``: cilium j clamped at ``bases[j]`` on the substrate z = 0,
         the field along +z, its beat plane turned about the normal by ``azimuth[j]``
@@ -358,7 +360,11 @@ class Carpet:
             raise ValueError(f"coupling must be one of {', '.join(COUPLINGS)}, got {self.coupling!r}")
         u = None
         if self.coupling == "mean":
-            res = couple(replace(self, coupling="none", background=None))  # (its bases checked there)
+            start = None if self.background is None else np.array(self.background, dtype=float)
+            if start is not None and (start.shape != (n, 2) or not np.all(np.isfinite(start))):
+                raise ValueError(f"background (the coupled solve's first guess) must be {n} finite flows, shape "
+                                 f"({n}, 2), got shape {start.shape}")
+            res = couple(replace(self, coupling="none", background=None), start=start)  # (its bases checked there)
             for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces",
                       "_mean_blocks", "_instant_blocks", "bases", "chi_N",
                       "phases", "direction", "azimuth"):
