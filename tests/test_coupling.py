@@ -233,3 +233,25 @@ def test_one_cilium_and_a_wall(flow):
     free, wall = _carpet(flow, coupling="mean"), _carpet(flow, wall=0.5, coupling="mean")
     assert wall.coupled.converged and wall.coupled.normal_flow > 0 and free.coupled.normal_flow == 0
     assert wall.coupled.change()["relative_change_median"] < free.coupled.change()["relative_change_median"]
+
+
+def test_first_guess_and_inexact_newton(flow):
+    """A coupled carpet with other curvatures (replace(c, chi_N=...), as a design's checks do)
+    starts from the last solution: fewer evaluations of M than from still fluid, the same flows
+    to the solver's tolerance, and M(0) for the summary evaluated on demand. The certifying
+    evaluation is at tol: the final residual is of the accurate M."""
+    c = _carpet(flow, coupling="mean")
+    cold = c.coupled
+    assert cold.converged and cold._uncoupled is not None
+    chi = c.chi_N + np.linspace(-2.0, 2.0, c.n)
+    warm = replace(c, chi_N=chi).coupled
+    fresh = _carpet(flow, coupling="mean")
+    fresh = replace(fresh, chi_N=chi, background=None).coupled
+    assert warm.converged and fresh.converged
+    assert warm.evaluations < fresh.evaluations, (warm.evaluations, fresh.evaluations)
+    scale = np.abs(fresh.background).max()
+    assert np.abs(warm.background - fresh.background).max() <= 2 * (warm.rtol + fresh.rtol) * scale
+    assert warm._uncoupled is None  # not needed by the solve ...
+    np.testing.assert_allclose(warm.uncoupled, fresh.uncoupled, rtol=0, atol=1e-3 * scale)  # ... made on demand
+    M = replace(warm.carpet).others_mean_flow(tol=1e-4)[:, :2]
+    assert np.abs(warm.background - M).max() <= warm.rtol * np.abs(M).max() * 1.01

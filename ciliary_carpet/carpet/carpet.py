@@ -56,7 +56,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from single_cilium.checks import finite, positive
-from single_cilium.table import ThrustTable
+from single_cilium.table import TableError, ThrustTable
 
 from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers, InstantCarriers
 from ciliary_carpet.carpet.coupling import COUPLINGS, couple
@@ -364,7 +364,11 @@ class Carpet:
             if start is not None and (start.shape != (n, 2) or not np.all(np.isfinite(start))):
                 raise ValueError(f"background (the coupled solve's first guess) must be {n} finite flows, shape "
                                  f"({n}, 2), got shape {start.shape}")
-            res = couple(replace(self, coupling="none", background=None), start=start)  # (its bases checked there)
+            try:  # the solve starts from the first guess (a flow the table serves), else from still fluid
+                base = replace(self, coupling="none", background=start)
+            except TableError:
+                base = replace(self, coupling="none", background=None)
+            res = couple(base)  # (its bases checked there)
             for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces",
                       "_mean_blocks", "_instant_blocks", "bases", "chi_N",
                       "phases", "direction", "azimuth"):

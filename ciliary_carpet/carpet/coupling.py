@@ -126,7 +126,8 @@ class Coupling:
         cilium's 2D frame (module docstring: the lab plane's (x, y) for a planar carpet,
         (u . e_psi_j, u . e_z) in the beat plane for a standing one).
     uncoupled : (N, 2) ndarray
-        M(0), the others' mean flow at each cilium of the uncoupled carpet, in the same frames.
+        M(0), the others' mean flow at each cilium of the uncoupled carpet, in the same frames
+        (at :data:`LOOSE_TOL`; evaluated on first use when the solve started from a first guess).
     residual, rtol : float
         max_j |U_j - M_j(U)| / max_j |M_j(U)| at the end, and the one asked.
     history : tuple
@@ -149,7 +150,7 @@ class Coupling:
 
     carpet: Carpet
     background: np.ndarray
-    uncoupled: np.ndarray
+    _uncoupled: np.ndarray | None
     residual: float
     rtol: float
     history: tuple
@@ -164,6 +165,13 @@ class Coupling:
     @property
     def converged(self) -> bool:
         return self.status == "converged"
+
+    @property
+    def uncoupled(self) -> np.ndarray:
+        if self._uncoupled is None:  # the carpet in still fluid, made once, on demand
+            still = replace(self.carpet, background=None)
+            object.__setattr__(self, "_uncoupled", _in_frames(still, still.others_mean_flow(tol=LOOSE_TOL))[0])
+        return self._uncoupled
 
     def change(self) -> dict:
         """How far the uncoupled flow at the cilia is from the coupled one: the median and largest
@@ -309,16 +317,15 @@ def _check_table(carpet: Carpet) -> None:
                             "scene, [table.build] flow = U_max")
 
 
-def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int = MAX_ITER,
-           start: np.ndarray | None = None) -> Coupling:
+def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int = MAX_ITER) -> Coupling:
     """Solve the coupled carpet (1) of the module docstring by damped Newton steps.
 
     Parameters
     ----------
     carpet : the :class:`~ciliary_carpet.carpet.carpet.Carpet`, planar or standing
-        (``coupling = "none"``; its ``background`` is ignored: the solve starts from still fluid);
-        its table must be over the background flow. (A carpet made with ``coupling = "mean"``
-        calls this itself.)
+        (``coupling = "none"``); its ``background`` is the first guess of U (None: still fluid;
+        e.g. the solution for nearby curvatures, which saves Newton steps); its table must be
+        over the background flow. (A carpet made with ``coupling = "mean"`` calls this itself.)
     tol : the tolerance of the evaluation of the mean flow (:meth:`Carpet.others_mean_flow`)
         that certifies the solution. Inexact Newton: the evaluations before it are made at
         ``min(LOOSE_TOL, max(tol, res / 10))`` at the current residual ``res`` (and the uncoupled
@@ -326,8 +333,6 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
         ``tol`` before it is accepted.
     rtol : the relative residual to reach (default :data:`RTOL`); at least ``tol``.
     max_iter : most Newton steps.
-    start : (N, 2) or None, the first guess of U (each cilium's 2D frame; e.g. the solution for
-        nearby curvatures); None, or a guess outside the table's flow grid: still fluid.
 
     Returns
     -------
@@ -350,25 +355,19 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
     _check_table(carpet)
     t0 = time.perf_counter()
     n = carpet.n
-    U = np.zeros((n, 2))
     loose = max(tol, LOOSE_TOL)
-    # still fluid: the carpet itself when it has no background (its cycles are the table's at U = 0)
-    cur, m = (carpet, carpet.others_mean_flow(tol=loose)) if carpet.background is None else _others(carpet, U, loose)
-    uncoupled = _in_frames(carpet, m)[0]
-    evals, at = 1, loose  # full evaluations of M; the tolerance of the current one
+    # the first guess: the carpet itself (still fluid when it has no background)
+    U = np.zeros((n, 2)) if carpet.background is None else np.array(carpet.background, dtype=float)
+    if np.any(_outside(carpet, U)):
+        carpet, U = replace(carpet, background=None), np.zeros((n, 2))
+    cur, m = carpet, carpet.others_mean_flow(tol=loose)
+    uncoupled = _in_frames(carpet, m)[0] if carpet.background is None else None
+    evals, at = 1, loose  # evaluations of M; the tolerance of the current one
 
     def residual(U, m):
         M = _in_frames(carpet, m)[0]
         return (U - M), float(np.abs(U - M).max() / max(np.abs(M).max(), 1e-300))
     R, res = residual(U, m)
-    if start is not None:
-        s0 = np.asarray(start, dtype=float)
-        if s0.shape == (n, 2) and np.all(np.isfinite(s0)) and not np.any(_outside(carpet, s0)):
-            cs, ms = _others(carpet, s0, min(loose, max(tol, res / 10)))
-            evals += 1
-            Rs, rs = residual(s0, ms)
-            if rs < res:
-                U, cur, m, R, res, at = s0, cs, ms, Rs, rs, min(loose, max(tol, res / 10))
     history, status, it = [res], "max_iter", 0
     while True:
         if res <= rtol and at > tol:  # certify at the tolerance asked
@@ -429,7 +428,7 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
            "max_iter": f"NOT converged: residual {res:.2g} > rtol {rtol:g} after {it} Newton steps; raise max_iter",
            "stalled": f"NOT converged: no damped Newton step lowered the residual {res:.2g} (rtol {rtol:g}); "
                       "loosen rtol or tighten tol (the evaluation's error may exceed the residual asked)"}[status]
-    return Coupling(carpet=cur, background=U, uncoupled=uncoupled, residual=res, rtol=rtol, history=tuple(history),
+    return Coupling(carpet=cur, background=U, _uncoupled=uncoupled, residual=res, rtol=rtol, history=tuple(history),
                     iterations=it, evaluations=evals, status=status, message=msg, contraction=rho, normal_flow=normal,
                     wall_s=time.perf_counter() - t0)
 
