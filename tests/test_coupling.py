@@ -255,3 +255,22 @@ def test_first_guess_and_inexact_newton(flow):
     np.testing.assert_allclose(warm.uncoupled, fresh.uncoupled, rtol=0, atol=1e-3 * scale)  # ... made on demand
     M = replace(warm.carpet).others_mean_flow(tol=1e-4)[:, :2]
     assert np.abs(warm.background - M).max() <= warm.rtol * np.abs(M).max() * 1.01
+
+
+def test_a_coupling_that_does_not_converge_renders_nothing(tmp_path, monkeypatch, capsys):
+    """A scene whose coupled solve stops unconverged: exit 3, one line with the residual history,
+    and no render folder (nothing is drawn from a flow that was not solved)."""
+    import ciliary_carpet.carpet.carpet as carpet_mod
+    from ciliary_carpet.cli import main
+
+    def one_step(c, **kw):  # the solver stopped after a single Newton step, unconverged
+        return couple(c, max_iter=0)
+
+    monkeypatch.setattr(carpet_mod, "couple", one_step)
+    scene = tmp_path / "s.toml"
+    scene.write_text('name = "s"\n[carpet]\nshape = [3, 3]\nchi_N = 92.0\n[output]\nn_seeds = 2\nperiods = 1.0\n'
+                     'field_shape = [6, 6]\nsnapshots = 1\nframes = 2\npreview = false\nftle = false\n')
+    assert main(["render", str(scene), "-o", str(tmp_path / "out")]) == 3
+    err = capsys.readouterr().err
+    assert "not solved" in err and "NOT converged" in err and "residual after each Newton step" in err, err
+    assert not (tmp_path / "out" / "summary.json").exists()

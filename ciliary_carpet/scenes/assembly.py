@@ -242,7 +242,9 @@ class Assembly:
         if c.coupled is not None and not c.coupled.converged:  # nothing is drawn from a flow not solved
             h = ", ".join(f"{r:.2g}" for r in c.coupled.history)
             raise CouplingError(f"{s.source_name}: the coupled carpet was not solved: {c.coupled.message} "
-                                f"(residual after each Newton step: {h}); nothing was rendered from it")
+                                f"(residual after each Newton step: {h}); nothing was rendered from it. "
+                                f'[carpet] coupling = "none" renders the uncoupled model instead (its summary '
+                                f"estimates how far that is from the coupled one)")
         return c
 
 
