@@ -74,14 +74,15 @@ def test_every_input_a_scene_names_is_hashed_and_a_replaced_table_is_noticed(tmp
     import shutil
 
     from ciliary_carpet.output.folder import input_records, inputs_differ, scene_inputs
-    from single_cilium.lookup import DEFAULT_FILE
+    from single_cilium.lookup import DEFAULT_FILE, DEFAULT_FLOW_FILE
 
     shipped = ROOT / "single_cilium" / "data" / DEFAULT_FILE
     shutil.copy(shipped, tmp_path / "tab.nc")
     p = _scene(tmp_path, POINTS.replace("[target]", '[table]\nfile = "tab.nc"\n[target]'), csv=CSV)
     scene = load_scene(p)
     assert set(scene_inputs(scene)) == {"scene", "table.file", "target.file"}
-    assert scene_inputs(load_scene(_scene(tmp_path, TINY, "d.toml")))["table.file"].name == DEFAULT_FILE
+    # file = "default": the shipped table the carpet reads, over the flow for the default coupled carpet
+    assert scene_inputs(load_scene(_scene(tmp_path, TINY, "d.toml")))["table.file"].name == DEFAULT_FLOW_FILE
     out = tmp_path / "o"
     out.mkdir()
     (out / MANIFEST).write_text(json.dumps({"files": {}, "inputs": input_records(scene)}))

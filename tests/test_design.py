@@ -625,7 +625,8 @@ def test_samples_with_uncertainties_weight_the_design_and_its_verdict(tmp_path, 
         rows = [f"{a},{b},{u},{v}" + (f",{e},{g}" if columns else "")
                 for (a, b), (u, v), (e, g) in zip(X, noisy, du)]
         f.write_text(head + "\n".join(rows) + "\n")
-        body = ('[carpet]\nshape = [4, 4]\nspacing = 2.5\nphases = "random"\n[target]\nkind = "points"\n'
+        # the samples are a flow of the uncoupled carpet (_reachable): the scene's model is that one
+        body = ('[carpet]\nshape = [4, 4]\nspacing = 2.5\nphases = "random"\ncoupling = "none"\n[target]\nkind = "points"\n'
                 f'file = "{f.name}"\nresidual = 0.05\n')
         return load_scene(_scene(tmp_path, body, f"{f.stem}.toml"))
 

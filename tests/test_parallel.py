@@ -287,7 +287,10 @@ def test_render_is_the_same_on_a_pool(tmp_path):
     from ciliary_carpet.scenes.scene import load_scene
 
     scene_file = tmp_path / "tiny.toml"
-    scene_file.write_text('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\n'
+    # uncoupled: the coupling's size is then an estimate computed for the summary (a coupled
+    # carpet says its own, from the solve)
+    scene_file.write_text('[carpet]\nshape = [2, 2]\ncoupling = "none"\n[output]\nn_seeds = 3\nperiods = 0.5\n'
+                          'field_shape = [6, 6]\n'
                           'snapshots = 0\nframes = 1\npreview = false\nftle = false\n')
     scene = load_scene(scene_file)
     render(scene, tmp_path / "one", pool=pool_for_threads(1))
@@ -310,7 +313,10 @@ def test_summary_computations_run_beside_the_path_lines(tmp_path):
     from ciliary_carpet.scenes.scene import load_scene
 
     scene_file = tmp_path / "tiny.toml"
-    scene_file.write_text('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\n'
+    # uncoupled: the coupling's size is then an estimate computed for the summary (a coupled
+    # carpet says its own, from the solve)
+    scene_file.write_text('[carpet]\nshape = [2, 2]\ncoupling = "none"\n[output]\nn_seeds = 3\nperiods = 0.5\n'
+                          'field_shape = [6, 6]\n'
                           'snapshots = 0\nframes = 1\npreview = false\nftle = false\n')
     scene = load_scene(scene_file)
     render(scene, tmp_path / "one", pool=pool_for_threads(1))

@@ -125,7 +125,9 @@ def test_a_table_build_that_cannot_converge_exits_3_naming_the_scene_keys(tmp_pa
     monkeypatch.setattr(table_mod, "build_table",
                         lambda *a, **kw: real_build(*a, executor=ThreadPoolExecutor(1), **kw))
     scene = tmp_path / "s.toml"
-    scene.write_text(TINY + '[table]\nfile = "t.nc"\n[table.build]\nn = 3\ndegree = 4\n')
+    # a still-fluid build (coupling = "none"): its rows are row_<i>.nc
+    scene.write_text(TINY.replace("[carpet]\n", '[carpet]\ncoupling = "none"\n') + '[table]\nfile = "t.nc"\n'
+                     '[table.build]\nn = 3\ndegree = 4\n')
     code = main(["render", str(scene), "-o", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert code == 3, err
