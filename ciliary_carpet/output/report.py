@@ -308,7 +308,11 @@ def _design(s: dict, scene: dict) -> list:
     if reach is not None:
         floor = tgt.get("speed_floor")
         keep = f"keeping {floor:.0%} of a straight cilium's push" if floor is not None else "at the speed floor"
-        txt = (f"- What these cilia can make (estimated before designing): one cilium turns its push by up to "
+        coupled = (s.get("coupling") or {}).get("model") == "mean"
+        when = ("estimated before designing, for cilia beating in still fluid: in the flow they make together "
+                "they turn it further, so a coupled design can reach beyond these figures" if coupled
+                else "estimated before designing")
+        txt = (f"- What these cilia can make ({when}): one cilium turns its push by up to "
                f"{reach['angle_max_deg']:.1f} deg ({reach['angle_floor_deg']:.1f} deg {keep})")
         if kind in _TWO_SIDED:
             txt += (f"; a pattern that turns the flow both ways ({kind}) holds about {reach['pattern_max_deg']:.1f} "
