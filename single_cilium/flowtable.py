@@ -317,7 +317,8 @@ class FlowGrid:
     def _stacked(self):
         """The grid flows' cubic pieces of the cycle data in u, stacked for :func:`_blend` (made
         on first use): knot index per (i, j), breakpoints (K, P) and coefficients
-        (K, 4, P - 1, 4 n_phase n_s), x, y, fx, fy side by side."""
+        (K, 4, P - 1, 4 n_phase n_s), x, y, fx, fy side by side; each grid flow's own splines
+        then read their coefficients from it (views, not copies)."""
         got = self.__dict__.get("_stack")
         if got is None:
             ids = {ij: k for k, ij in enumerate(self.branch)}
@@ -332,6 +333,8 @@ class FlowGrid:
                 bx[k, :nb], nbx[k] = s[0].x, nb
                 for f, one in enumerate(s):
                     coef[k, :, :nb - 1, f * m:(f + 1) * m] = one.c.reshape(4, nb - 1, m)
+                    # the grid flow's own spline reads the same numbers (one copy in memory)
+                    one.c = coef[k, :, :nb - 1, f * m:(f + 1) * m].reshape(one.c.shape)
             # each grid flow's variable u: sqrt(its cutoff - chi_N), or chi_N itself (no cutoff row)
             own = np.array([np.nan if self.knots[ij]._cut is None else self.knots[ij]._cut for ij in self.branch])
             got = self.__dict__["_stack"] = (ids, bx, nbx, coef, own)
