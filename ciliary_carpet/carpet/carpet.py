@@ -364,11 +364,7 @@ class Carpet:
             if start is not None and (start.shape != (n, 2) or not np.all(np.isfinite(start))):
                 raise ValueError(f"background (the coupled solve's first guess) must be {n} finite flows, shape "
                                  f"({n}, 2), got shape {start.shape}")
-            try:  # the solve starts from the first guess (a flow the table serves), else from still fluid
-                base = replace(self, coupling="none", background=start)
-            except TableError:
-                base = replace(self, coupling="none", background=None)
-            res = couple(base)  # (its bases checked there)
+            res = couple(self._first_guess(start))  # (its bases checked there; no reference kept here)
             for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces",
                       "_mean_blocks", "_instant_blocks", "bases", "chi_N",
                       "phases", "direction", "azimuth"):
@@ -607,6 +603,14 @@ class Carpet:
         if precision not in ("fp64", "fp32"):
             raise ValueError(f"precision must be 'fp64' or 'fp32', got {precision!r}")
         return self._sum(self._targets(points), when, self._tol(tol), precision=precision)[0].velocity
+
+    def _first_guess(self, start: np.ndarray | None) -> "Carpet":
+        """The uncoupled carpet in the flows ``start`` (the coupled solve's first guess), or in
+        still fluid when there is none or the table does not serve it."""
+        try:
+            return replace(self, coupling="none", background=start)
+        except TableError:
+            return replace(self, coupling="none", background=None)
 
     def others_mean_flow(self, js=None, tol: float = 1e-4) -> np.ndarray:
         """(len(js), 3) the cycle-mean flow that all the *other* cilia make at the force centres

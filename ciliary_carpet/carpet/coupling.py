@@ -401,6 +401,7 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
                 Rn, rn = residual(Un, mn)
                 if rn < res:
                     U, cur, m, R, res, at, accepted = Un, cn, mn, Rn, rn, tk, True
+                    carpet = cur  # the next trial carpets are made from it; the one before can go
                     break
             lam *= 0.5
         it += 1
