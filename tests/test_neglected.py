@@ -331,11 +331,7 @@ def test_thrust_shift_of_a_uniform_oscillating_flow(table):
 
 
 def _flow_table():
-    for p in (ROOT / "single_cilium" / "data" / "flow_chiE200_eta1.nc", Path("/work/flowtable/flow200_7.nc")):
-        if p.exists():
-            return ThrustTable.load(p)
-    pytest.skip("no thrust table over the background flow (single_cilium/data/flow_chiE200_eta1.nc): a coupled "
-                "carpet cannot be made")
+    return ThrustTable.default(flow=True)  # the shipped table over the background flow
 
 
 def test_coupled_carpet_oscillation_and_its_share_of_the_coupling():
