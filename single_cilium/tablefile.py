@@ -155,6 +155,7 @@ def compact(ds: xr.Dataset, phase_step: int = 2, bits: int = 13) -> xr.Dataset:
             out[k] = (out[k].dims, r, out[k].attrs)
             enc["dtype"] = "float32"
         out[k].encoding = enc
+    out.attrs["field_bits"] = int(bits)  # what a reader may trust of the fields (a carpet's harmonics)
     out.attrs["storage"] = (f"fields x, y, fx, fy, rest_fx, rest_fy: every {int(phase_step)} phase samples of the "
                             f"{ds.sizes['phase']} computed, float32 rounded to {int(bits)} mantissa bits (relative "
                             f"{2.0 ** -(int(bits) + 1):.1e}); scalars float64 as computed")
