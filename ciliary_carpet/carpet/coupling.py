@@ -382,7 +382,8 @@ def couple(carpet: Carpet, tol: float = 1e-4, rtol: float = RTOL, max_iter: int 
         if it >= int(max_iter):
             break
         tk = min(loose, max(tol, res / 10))  # inexact Newton: the evaluation a step's residual needs
-        if at > tk:  # the current residual at least that accurate before a step is taken from it
+        if at > 2 * tk:  # the current residual (about) that accurate before a step is taken from it
+            # (by halves at least: at most log2(LOOSE_TOL / tol) such evaluations in a solve)
             m = cur.others_mean_flow(tol=tk)
             evals += 1
             at = tk
