@@ -220,6 +220,11 @@ class ThrustTable:
         c = self.ds.chi_N.values
         return float(c[0]), float(c[-1])
 
+    def __reduce__(self):
+        """Pickled (sent to a worker process) as its dataset and name: the splines and the stacked
+        coefficients of a table over the flow (hundreds of MB) are made again where they are used."""
+        return (type(self), (self.ds, self._source))
+
     def save(self, path) -> Path:
         """Write as NetCDF4/HDF5 (h5netcdf), atomically."""
         return write_netcdf(self.ds, path)

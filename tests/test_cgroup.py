@@ -151,7 +151,7 @@ def test_real_groups_limit_cores_and_memory(tmp_path):
     render of 10 x 10 cilia gets one place, in a subprocess moved into them; the groups are
     removed after."""
     scene = tmp_path / "s.toml"
-    scene.write_text("[carpet]\nshape = [10, 10]\n")
+    scene.write_text('[carpet]\nshape = [10, 10]\ncoupling = "none"\n')  # one uncoupled place fits in 600 MB
     base = _v1_root()
     if base is None:
         pytest.skip("needs root and cgroup v1 cpu and memory controllers to make groups")
@@ -195,25 +195,32 @@ def _scene(tmp_path, text: str):
 
 def test_expected_memory_follows_the_measured_peaks(tmp_path):
     """At the measured sizes the estimate is the largest measured peak times the margin; it grows
-    with the cilia and the places; a standing carpet takes more."""
+    with the cilia and the places; a standing carpet takes more; a coupled carpet adds its table
+    and trial carpets (the peaks were measured uncoupled)."""
     from ciliary_carpet.output import resources as r
 
     mib = 2.0 ** 20
     f = 80 * 80 * r._FIELD_BYTES_PER_POINT * r._PEAK_MARGIN  # the default field grid's part
     for n, one, two in r._PEAK_MIB:
         side = int(round(n ** 0.5))
-        s = _scene(tmp_path, f"[carpet]\nshape = [{side}, {side}]\n")
+        s = _scene(tmp_path, f"[carpet]\nshape = [{side}, {side}]\ncoupling = \"none\"\n")
+        c = _scene(tmp_path, f"[carpet]\nshape = [{side}, {side}]\n")  # coupled: the default
+        here, per_place, per_cilium = r._COUPLED_MIB
+        for places in (1, 2, 3):
+            assert r.expected_memory(c, places) - r.expected_memory(s, places) == pytest.approx(
+                (here + (places - 1) * per_place + n * per_cilium) * r._PEAK_MARGIN * mib)
         assert r.expected_memory(s, 1) == pytest.approx(one * r._PEAK_MARGIN * mib + f)
         assert r.expected_memory(s, 2) == pytest.approx(two * r._PEAK_MARGIN * mib + f)
         assert r.expected_memory(s, 3) == pytest.approx((2 * two - one) * r._PEAK_MARGIN * mib + f)
     sizes = [4, 30, 60, 100, 150]
-    one = [r.expected_memory(_scene(tmp_path, f"[carpet]\nshape = [{k}, {k}]\n"), 1) for k in sizes]
+    one = [r.expected_memory(_scene(tmp_path, f"[carpet]\nshape = [{k}, {k}]\ncoupling = \"none\"\n"), 1)
+           for k in sizes]
     assert all(a <= b for a, b in zip(one, one[1:]))
     # beyond 10^4 cilia: the last slope, at least linear
     (n1, a1, _), (n2, a2, _) = r._PEAK_MIB[-2:]
     assert one[-1] == pytest.approx((a2 + (22500 - n2) * (a2 - a1) / (n2 - n1)) * r._PEAK_MARGIN * mib + f)
-    planar = _scene(tmp_path, "[carpet]\nshape = [12, 12]\n")
-    standing = _scene(tmp_path, '[carpet]\ngeometry = "standing"\nshape = [12, 12]\n')
+    planar = _scene(tmp_path, '[carpet]\nshape = [12, 12]\ncoupling = "none"\n')
+    standing = _scene(tmp_path, '[carpet]\ngeometry = "standing"\nshape = [12, 12]\ncoupling = "none"\n')
     assert r.expected_memory(standing, 2) == pytest.approx(r._STANDING * (r.expected_memory(planar, 2) - f) + f)
 
 

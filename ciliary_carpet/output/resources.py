@@ -97,6 +97,11 @@ def available_memory() -> float:
 _PEAK_MIB = ((100, 402.0, 608.0), (900, 758.0, 1149.0), (10_000, 1702.0, 2691.0))  # cilia, one place, two
 _STANDING = 1.46
 _PEAK_MARGIN = 1.15
+_COUPLED_MIB = (600.0, 100.0, 0.12)
+"""What a coupled carpet adds to a render's peak (MiB): the table over the flow in this process,
+in each further place (it is sent there as its dataset), and per cilium (the coupled solve's trial
+carpets). Measured: a 3 x 3 coupled render 998 / 1313 MB at one / two places against 402 / 623
+uncoupled; a 100 x 100 coupled design 3.67 GB against 1.88 (benchmarks/results/bench_coupling.md)."""
 _FIELD_BYTES_PER_POINT = 1024
 """Bytes per point of the field grid (``output.field_shape``) at a render's peak: an evaluation of
 the mean flow with its error bound takes 860 bytes per point at its peak (tracemalloc, 9 10^4
@@ -113,7 +118,8 @@ def expected_memory(scene: Scene, places: int = 1) -> float:
     Not a bound (:func:`check_resources` has the certain lower bounds): working-set peaks measured
     on renders at 100, 900 and 10^4 cilia (``_PEAK_MIB``, the largest scene of each size),
     interpolated linearly in the number of cilia and beyond 10^4 by the last slope, times 1.46 for
-    a standing carpet, each place after the second adding what the second did; plus the field
+    a standing carpet, each place after the second adding what the second did; a coupled carpet
+    adds its table and trial carpets (:data:`_COUPLED_MIB`); plus the field
     grid's (``output.field_shape``, :data:`_FIELD_BYTES_PER_POINT` per point; the measured renders'
     80 x 80 grids took a few MB of it); all times 1.15 as a margin.
     It sizes a batch's workers and a render's places to a memory limit
@@ -133,6 +139,9 @@ def expected_memory(scene: Scene, places: int = 1) -> float:
     total = one + max(0, int(places) - 1) * (two - one)
     if scene.carpet.geometry == "standing":
         total *= _STANDING
+    if scene.carpet.coupling == "mean":
+        here, per_place, per_cilium = _COUPLED_MIB
+        total += here + max(0, int(places) - 1) * per_place + n * per_cilium
     o = scene.output
     field = float(o.field_shape[0]) * float(o.field_shape[1]) * _FIELD_BYTES_PER_POINT if (
         o.field or o.snapshots > 0 or o.ftle) else 0.0
