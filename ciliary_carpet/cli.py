@@ -34,7 +34,7 @@ from pathlib import Path
 
 from single_cilium.files import strict_json, write_bytes, write_netcdf
 from single_cilium.progress import TqdmProgress
-from single_cilium.signals import Terminated, exit_status, terminate_as_interrupt
+from single_cilium.signals import Terminated, exit_status, interrupt_of, terminate_as_interrupt
 from single_cilium.table import TableError
 from single_cilium.threads import ThreadBudget, threads_in_use
 
@@ -730,10 +730,7 @@ def main(argv=None) -> int:
         print(f"ciliary-carpet: {exc.strerror}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        how = str(exc) if isinstance(exc, Terminated) else "interrupted"
-        print(f"ciliary-carpet: {how}; {getattr(a, 'note', '')}nothing half-written was left in the output folder",
-              file=sys.stderr)
-        return exit_status(exc)
+        return _interrupted(a, exc)
     except CANNOT_MAKE as exc:
         if a.debug:
             raise
@@ -745,11 +742,21 @@ def main(argv=None) -> int:
         print(f"ciliary-carpet: {_one_line(exc, None if isinstance(exc, OutputPathError) else src)}", file=sys.stderr)
         return 2
     except Exception as exc:  # noqa: BLE001 -- a bug: one line, the traceback with --debug
+        if interrupt_of(exc) is not None:  # a signal handled inside compiled code (a SystemError carries it)
+            return _interrupted(a, interrupt_of(exc))
         if a.debug:
             raise
         print(f"ciliary-carpet: internal error: {_one_line(exc, src)} (rerun with --debug for the traceback)",
               file=sys.stderr)
         return 1
+
+
+def _interrupted(a, exc: KeyboardInterrupt) -> int:
+    """Ctrl-C or a signal: one line, exit 128 + signum (130 for Ctrl-C)."""
+    how = str(exc) if isinstance(exc, Terminated) else "interrupted"
+    print(f"ciliary-carpet: {how}; {getattr(a, 'note', '')}nothing half-written was left in the output folder",
+          file=sys.stderr)
+    return exit_status(exc)
 
 
 if __name__ == "__main__":

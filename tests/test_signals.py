@@ -138,3 +138,33 @@ def test_sigterm_to_a_table_build_stops_its_pool_workers(tmp_path, started):
     err = _signal_and_check(proc, signal.SIGTERM, kids)
     assert "single-cilium table: terminated by SIGTERM" in err
     assert not out.exists() and 0 < len(list(parts.glob("row_*.nc"))) < 25  # finished rows kept for the resume
+
+
+def test_a_signal_inside_a_compiled_path_line_kernel_is_reported_as_the_signal(tmp_path, monkeypatch, capsys):
+    """A signal handled while a numba function runs surfaces as a SystemError ("returned a result
+    with an exception set") carrying the interrupt: a pool's task relabelling keeps the interrupt,
+    and the command line exits 128 + signum with its one line, not "internal error" (CI saw exit 1
+    when a SIGHUP landed in the path lines' reference run)."""
+    import ciliary_carpet.cli as cli
+    from ciliary_carpet.transport.parallel import _relabel
+    from single_cilium.signals import Terminated
+
+    def kernel_hit():
+        try:
+            raise Terminated(signal.SIGHUP)
+        except KeyboardInterrupt as k:
+            raise SystemError("CPUDispatcher(<function _lists>) returned a result with an exception set") from k
+
+    try:
+        kernel_hit()
+    except SystemError as exc:
+        got = _relabel(exc, "path lines' error estimate: the reference run")
+    assert isinstance(got, Terminated) and got.signum == signal.SIGHUP
+    assert isinstance(_relabel(ValueError("bad"), "task"), ValueError)  # anything else keeps its label
+
+    monkeypatch.setattr(cli, "_cmd_render", lambda a: kernel_hit())
+    scene = tmp_path / "s.toml"
+    scene.write_text('name = "s"\n')
+    assert cli.main(["render", str(scene), "-o", str(tmp_path / "o")]) == 128 + signal.SIGHUP
+    err = capsys.readouterr().err
+    assert "internal error" not in err and "SIGHUP" in err, err

@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 from single_cilium.progress import Progress
+from single_cilium.signals import interrupt_of
 from single_cilium.threads import ThreadBudget
 
 logger = logging.getLogger(__name__)
@@ -185,7 +186,12 @@ def _call(task: Task, where: str) -> TaskResult:
 
 def _relabel(exc: BaseException, label: str) -> BaseException:
     """``exc`` with its message prefixed by ``label`` (the same type where it can be rebuilt from
-    one message, else a RuntimeError naming the type)."""
+    one message, else a RuntimeError naming the type); a signal's interrupt, also one that a
+    compiled function's SystemError carries (:func:`~single_cilium.signals.interrupt_of`), as
+    itself: the command line reports the signal, not an internal error."""
+    intr = interrupt_of(exc)
+    if intr is not None:
+        return intr
     msg = f"{label}: {exc}"
     try:
         new = type(exc)(msg)
