@@ -169,7 +169,8 @@ def _canonical(
         h = np.arctan2(cross, dot)  # half of theta - phi, in (-pi, pi)
         # both underflow (|f| and b + a near the smallest doubles): the same in units of T > 0
         lo = (np.abs(cross) < _TINY) & (np.abs(dot) < _TINY) & (T > 0.0)
-        q = 2.0 * E[lo] / T[lo] + bpa
+        with np.errstate(under="ignore"):  # 2 E / T in logs: E itself may have underflowed where 2 E / T has not
+            q = (np.exp(math.log(2.0 * b) - bs[lo]) / -np.expm1(-bs[lo]) if b > 0.0 else 2.0 * E[lo] / T[lo]) + bpa
         h[lo] = np.arctan2(f, q)
         theta = phi + 2.0 * h
         if shape:
@@ -184,7 +185,7 @@ def _canonical(
             far = ~near  # |chi_E| s > 1: ln|v|^2 = b s + 2 ln(|scaled v|), error ~ eps s
             with np.errstate(divide="ignore"):  # log(0) where lo: replaced on the next line
                 lv = np.log(0.5 * np.hypot(cross, dot), where=far, out=np.zeros_like(s))
-            lv[lo] = np.log(T[lo]) + np.log(0.5 * np.hypot(f, q))
+            lv[lo] = np.log(T[lo]) + (np.log(np.hypot(f, q)) - math.log(2.0))  # (halving 5e-324 gives 0)
             y[far] = (bs[far] + 2.0 * lv[far]) / chi_E
     else:
         # coiled: |chi_E| < chi_N, f > 0, theta increases by 2 pi per period 2 pi / w
