@@ -408,3 +408,20 @@ def test_subnormal_curvatures_are_finite(chi_E, chi_N):
     assert np.all(np.isfinite(theta))
     assert all(np.all(np.isfinite(v)) for v in shape)
     assert np.max(np.abs(theta - chi_N * s)) <= 1e-323
+
+
+@pytest.mark.parametrize("chi_N", [5e-324, 1e-320, 1e-300])
+def test_reversed_field_with_the_smallest_curvatures_flips_where_the_perturbation_has_grown(chi_N):
+    """chi_E = -746 (the field against the clamped filament), chi_N at the smallest doubles: the
+    filament stays up until chi_N e^{|chi_E| s} has grown to O(1), then flips. For 5e-324 that is
+    beyond s = 1 (theta(1) = 0.0064, not pi); every shape keeps |r(s)| <= s (exp(-|chi_E| s)
+    underflows before 2 exp(-|chi_E| s) / T does: the flip was once placed at the clamp)."""
+    p = CiliumParams(-746.0, 1.0, chi_N)
+    s = np.linspace(0.0, 1.0, 11)
+    x, y = equilibrium_shape(p, s)
+    assert np.all(np.hypot(x, y) <= s + 1e-6)
+    th = float(equilibrium(p, [1.0])[0])
+    if chi_N == 5e-324:
+        assert 0.0 < th < 0.01 and y[-1] > 0.999
+    else:  # flipping before s = 1: the tip turns back down
+        assert th > 2.5 and y[-1] < 1.0 - 1e-3
