@@ -103,6 +103,7 @@ TINY = ('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_s
         'frames = 1\npreview = false\n')
 
 
+@pytest.mark.slow  # 20 s: a real (failing) table build; the default run stays under 10 minutes on 2 cores
 def test_a_table_build_that_cannot_converge_exits_3_naming_the_scene_keys(tmp_path, monkeypatch, capsys):
     """A render whose ``[table.build]`` meets a cycle that does not converge exits 3 with one line
     naming the row and the ``[table.build]`` keys to change (never exit 1 "internal error"); the
