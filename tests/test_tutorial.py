@@ -34,7 +34,7 @@ def test_the_tutorial_runs_as_written(tmp_path):
                            text=True, timeout=600)
         assert p.returncode == 0, f"block {k} exited {p.returncode}:\n{block}\n{p.stdout[-3000:]}\n{p.stderr[-3000:]}"
     s = (tmp_path / "out" / "uniform_deflection" / "summary.md").read_text()
-    assert "**Verdict: target met, in the uncoupled model**" in s
+    assert "**Verdict: target met, in the coupled model**" in s
     assert (tmp_path / "out" / "my_vortex" / "open_in_paraview.py").is_file()
     assert (tmp_path / "piv_layout.nc").is_file() and (tmp_path / "out" / "batch" / "batch.md").is_file()
     assert (tmp_path / "thrust_curve.png").stat().st_size > 10_000 and (tmp_path / "map.png").is_file()
