@@ -77,7 +77,7 @@ def bundled(scenes: list[str], serial: bool, out: str | None, limit: float | Non
     """The bundled scenes: the default batch, the solo renders, the batch with --jobs 1; the
     table is rewritten after each run (so a run stopped at ``limit`` s still leaves the others)."""
     from ciliary_carpet.scenes.scene import load_scene
-    from single_cilium.threads import ThreadBudget, cores
+    from cilia_runtime.threads import ThreadBudget, cores
 
     names = [load_scene(ROOT / s).name for s in scenes]
     root = Path(tempfile.mkdtemp(prefix="bench_batch_bundled."))
@@ -147,7 +147,7 @@ def dask_runs(scenes: list[str], repeat: int, out: str | None) -> None:
     import distributed
 
     from ciliary_carpet.cli import batch
-    from single_cilium.threads import cores
+    from cilia_runtime.threads import cores
 
     c = cores()
     shapes = [(f"1 worker process x {c} threads", dict(n_workers=1, threads_per_worker=c, processes=True)),

@@ -105,7 +105,7 @@ def _stage(plan, carpet, d, how: str) -> tuple[float, dict, float]:
     render makes them with its summary, after the stage: here they are run and timed after it."""
     from ciliary_carpet.output.outputs import PathLinesOutput, RenderContext, summary_tasks
     from ciliary_carpet.transport.parallel import InProcess, pool_for_threads
-    from single_cilium.threads import ThreadBudget
+    from cilia_runtime.threads import ThreadBudget
 
     from ciliary_carpet.transport.parallel import ProcessPool
 

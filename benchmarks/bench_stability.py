@@ -27,7 +27,7 @@ import scipy.linalg as sla
 from scipy.sparse.linalg import eigs
 
 from single_cilium import CiliumParams, Filament, Mesh
-from single_cilium._blas import single_threaded_blas
+from cilia_runtime.blas import single_threaded_blas
 from single_cilium.stability import _leading, _pencil, flutter_boundary, flutter_cutoff, spectrum, stability_map
 
 

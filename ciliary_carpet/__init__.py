@@ -31,7 +31,7 @@ Example::
     s = carpet.evaluate([[0.0, 0.0, 0.5]], cc.CycleMean(), tol=1e-3)
     cc.render(scene, "out/focusing")
 """
-from single_cilium.numba_cache import ensure_writable_cache as _ensure_writable_cache
+from cilia_runtime.numba_cache import ensure_writable_cache as _ensure_writable_cache
 
 _ensure_writable_cache(__path__[0])  # before any module compiles: a read-only install, an unwritable home
 

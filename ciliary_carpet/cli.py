@@ -32,11 +32,11 @@ from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
-from single_cilium.files import strict_json, write_bytes, write_netcdf
-from single_cilium.progress import TqdmProgress
-from single_cilium.signals import Terminated, exit_status, interrupt_of, terminate_as_interrupt
+from cilia_runtime.files import strict_json, write_bytes, write_netcdf
+from cilia_runtime.progress import TqdmProgress
+from cilia_runtime.signals import Terminated, exit_status, interrupt_of, terminate_as_interrupt
 from single_cilium.table import TableError
-from single_cilium.threads import ThreadBudget, threads_in_use
+from cilia_runtime.threads import ThreadBudget, threads_in_use
 
 from ciliary_carpet.carpet.coupling import CouplingError
 from ciliary_carpet.design import DesignError, design
@@ -458,7 +458,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
 
     Default: each scene in a fresh worker process, ``jobs`` at a time, so that a worker that
     dies (killed, out of memory) fails only its own scene. Each worker gets its share of the
-    cores (:class:`~single_cilium.threads.ThreadBudget`): ``jobs`` (default: as many as there
+    cores (:class:`~cilia_runtime.threads.ThreadBudget`): ``jobs`` (default: as many as there
     are scenes and cores, and as fit the available memory) times ``threads`` numba threads
     (default: the cores divided among the workers) times one BLAS thread; on Dask each task
     gets the cores of its worker divided among the worker's threads. Each render's summary
@@ -531,7 +531,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
             _run_local(tasks, budget.workers, on_done, on_start=lambda t: started.add(where.get(t[0], t[0])))
         else:
             if executor is None:
-                from single_cilium.scheduler import connect
+                from cilia_runtime.scheduler import connect
 
                 client = connect(scheduler, scheduler_timeout, workers=1)
                 executor = client.get_executor()

@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from single_cilium.progress import Progress
+from cilia_runtime.progress import Progress
 
 from ciliary_carpet.design import design
 from ciliary_carpet.output import RenderError

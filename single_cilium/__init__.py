@@ -20,7 +20,7 @@ limit_cycle       periodic orbit by shooting with the exact monodromy (single_ci
 """
 from .version import __version__
 
-from .numba_cache import ensure_writable_cache as _ensure_writable_cache
+from cilia_runtime.numba_cache import ensure_writable_cache as _ensure_writable_cache
 
 _ensure_writable_cache(__path__[0])  # before any module compiles: a read-only install, an unwritable home
 
@@ -30,7 +30,6 @@ from .mesh import Mesh
 from .filament import Filament
 from .steady import SteadyState, steady_state
 from .radau import ConvergenceError
-from .progress import Progress, TqdmProgress
 from .dynamics import Simulation, simulate
 from .cycle import CycleError, LimitCycle, MeanThrust, limit_cycle, mean_thrust
 from .stability import (Cutoff, FlutterBoundary, ResolutionWarning, Stability, flutter_boundary,
@@ -40,7 +39,7 @@ __all__ = [
     "CiliumParams", "PhysicalCilium", "equilibrium", "equilibrium_shape", "limit_angle",
     "NoLimitAngleError", "steady_state", "SteadyState", "Mesh", "Filament", "simulate", "Simulation",
     "ConvergenceError",
-    "Progress", "TqdmProgress", "stability", "Stability", "ResolutionWarning", "flutter_cutoff",
+    "stability", "Stability", "ResolutionWarning", "flutter_cutoff",
     "Cutoff", "flutter_boundary", "FlutterBoundary", "stability_map", "limit_cycle", "LimitCycle",
     "CycleError", "mean_thrust", "MeanThrust", "__version__",
 ]

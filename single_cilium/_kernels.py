@@ -17,14 +17,14 @@ normal at the node, not on ``U``) picks the stream up, and the derivative with r
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 # the Radau IIA(5) tableau (its one home; compile-time constants of the kernels here)
 from .radau import C as C_NODES
 from .radau import MU_COMPLEX, MU_REAL, TI_COMPLEX, TI_REAL
 from .radau import T as T_MAT
 
-__all__ = ["stage_residual", "radau_steps", "first_parallel_region"]
+__all__ = ["stage_residual", "radau_steps"]
 
 
 
@@ -415,15 +415,3 @@ def radau_steps(y0, h, n_steps, sens, Ainv, P, I, w, Kmat, Bmat, eta, chi_E, chi
         y = ynew
         Y[k + 1] = y
     return Y, Yd, S, Sh, counts
-
-
-@njit(cache=True, parallel=True)
-def _one_region(x):  # pragma: no cover - compiled
-    for i in prange(x.shape[0]):
-        x[i] = i
-
-
-def first_parallel_region() -> None:
-    """Run one trivial parallel region: numba chooses its threading layer at the first one
-    (:func:`single_cilium.threads.threadsafe_layer` asks which it chose)."""
-    _one_region(np.zeros(2))

@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from .version import __version__
-from .files import strict_json
-from .signals import Terminated, exit_status, interrupt_of, terminate_as_interrupt
+from cilia_runtime.files import strict_json
+from cilia_runtime.signals import Terminated, exit_status, interrupt_of, terminate_as_interrupt
 from .equilibrium import NoLimitAngleError, equilibrium, equilibrium_shape, limit_angle
 from .dynamics import simulate
 from .mesh import Mesh
 from .params import CiliumParams
-from .progress import TqdmProgress
+from cilia_runtime.progress import TqdmProgress
 from .radau import ConvergenceError
 from .stability import flutter_boundary, flutter_cutoff, stability, stability_map
 from .cycle import N_PHASE_START, check_cycle_cost, check_degree, check_mesh_size, limit_cycle
@@ -102,7 +102,7 @@ def cmd_cutoff(args) -> dict:
 
 
 def cmd_map(args) -> dict:
-    from .files import write_netcdf
+    from cilia_runtime.files import write_netcdf
 
     ds = stability_map(args.chi_N, chi_E=args.chi_E, eta=args.eta, degree=args.degree,
                        progress=None if args.quiet else TqdmProgress(delay=0.5))
@@ -164,7 +164,7 @@ def cmd_cycle(args) -> dict:
     c = limit_cycle(_params(args), degree=args.degree, n_phase=args.n_phase, rtol=args.rtol,
                     method=args.method, error_estimate=not args.no_error_estimate)
     if args.output and c.data is not None:
-        from .files import write_netcdf
+        from cilia_runtime.files import write_netcdf
 
         write_netcdf(c.data, args.output)
     out = c.as_dict()

@@ -55,7 +55,7 @@ import xarray as xr
 from scipy.optimize import brentq
 
 from .version import __version__
-from ._blas import single_threaded_blas
+from cilia_runtime.blas import single_threaded_blas
 from .equilibrium import NoLimitAngleError, limit_angle
 from .filament import Filament
 from .mesh import Mesh

@@ -20,11 +20,11 @@ import numpy as np
 import xarray as xr
 
 from .version import __version__
-from ._blas import single_threaded_blas
+from cilia_runtime.blas import single_threaded_blas
 from .filament import Filament
 from .mesh import Mesh
 from .params import CiliumParams
-from .progress import Progress
+from cilia_runtime.progress import Progress
 from .radau import ConvergenceError, Radau, RadauStats
 
 logger = logging.getLogger(__name__)
@@ -168,7 +168,7 @@ class Simulation:
 
     def save(self, path) -> None:
         """Write the dataset as NetCDF4/HDF5 (engine h5netcdf), atomically."""
-        from .files import write_netcdf
+        from cilia_runtime.files import write_netcdf
 
         write_netcdf(self.data, path)
 
@@ -213,7 +213,7 @@ def simulate(
     error_estimate : bool
         Run the two companion runs that estimate the error (about 1.5x the work).
     progress : Progress, optional
-        E.g. :class:`~single_cilium.progress.TqdmProgress`.
+        E.g. :class:`~cilia_runtime.progress.TqdmProgress`.
 
     Returns
     -------

@@ -62,7 +62,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from ._kernels import stage_terms, stage_residual
-from .signals import native_call
+from cilia_runtime.signals import native_call
 from .equilibrium import equilibrium
 from .mesh import Mesh
 from .params import CiliumParams
@@ -174,7 +174,7 @@ class Filament:
         """``dg_U/dtheta`` on the free nodes, shape (n-1, n-1), for full nodal ``theta`` (n,)."""
         m = self.mesh
         U1, U2 = self.params.background
-        with native_call():  # a signal meanwhile waits for the kernel (single_cilium.signals)
+        with native_call():  # a signal meanwhile waits for the kernel (cilia_runtime.signals)
             return stage_terms(np.ascontiguousarray(theta, dtype=float), np.zeros(self.n), m.cumulative,
                                 m.weights, float(self.params.eta), float(U1), float(U2))[2]
 
@@ -223,7 +223,7 @@ class Filament:
         relax, cE = (0.0, 0.0) if self.kappa_frozen else (1.0, p.chi_E)
         m = self.mesh
         U1, U2 = p.background
-        with native_call():  # a signal meanwhile waits for the kernel (single_cilium.signals)
+        with native_call():  # a signal meanwhile waits for the kernel (cilia_runtime.signals)
             return stage_residual(np.ascontiguousarray(Y, dtype=float), np.ascontiguousarray(Kd, dtype=float),
                                   m.cumulative, m.weights, self._K, self._B, p.eta, cE, p.chi_N, relax, U1, U2)
 

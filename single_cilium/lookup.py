@@ -23,7 +23,7 @@ import xarray as xr
 from scipy.interpolate import CubicSpline, make_interp_spline
 from scipy.optimize import brentq
 
-from .files import write_netcdf
+from cilia_runtime.files import write_netcdf
 from .equilibrium import NoLimitAngleError, limit_angle
 from .fieldtable import field_between
 from .flowtable import FlowGrid, thrust_angle_of

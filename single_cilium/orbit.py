@@ -82,7 +82,7 @@ import numpy as np
 from scipy.sparse.linalg import LinearOperator, gmres
 
 from ._kernels import radau_steps
-from .signals import native_call
+from cilia_runtime.signals import native_call
 from .filament import Filament
 from .radau import A_INV
 from .radau import P as _P
@@ -220,7 +220,7 @@ class ExactShooting(OrbitSolver):
         y, done = np.ascontiguousarray(y0, dtype=float), 0
         while done < n:
             k = min(chunk, int(n) - done)
-            with native_call():  # a signal meanwhile waits for the kernel (single_cilium.signals)
+            with native_call():  # a signal meanwhile waits for the kernel (cilia_runtime.signals)
                 Yc, Ydc, Sc, Shc, cc = radau_steps(y, float(h), k, sens, *self._args)
             counts[:2] += cc[:2]
             Ys.append(Yc if done == 0 else Yc[1:])

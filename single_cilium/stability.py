@@ -53,11 +53,11 @@ import xarray as xr
 from scipy.optimize import brentq
 
 from .version import __version__
-from ._blas import single_threaded_blas
+from cilia_runtime.blas import single_threaded_blas
 from .filament import Filament
 from .mesh import Mesh
 from .params import CiliumParams
-from .progress import Progress
+from cilia_runtime.progress import Progress
 
 logger = logging.getLogger(__name__)
 
@@ -559,7 +559,7 @@ def stability_map(chi_N: float, *, chi_E, eta, degree: int = 8, executor: Execut
     if own:
         from concurrent.futures import ProcessPoolExecutor
 
-        from .threads import cores
+        from cilia_runtime.threads import cores
 
         executor = ProcessPoolExecutor(max_workers=cores())  # a container's CPU quota, not the host's cores
     progress.start(len(tasks), "stability map")

@@ -44,12 +44,12 @@ import numpy as np
 import xarray as xr
 
 from .version import __version__
-from .files import write_netcdf
+from cilia_runtime.files import write_netcdf
 from .cycle import CycleError, LimitCycle, check_cycle_cost, check_degree, limit_cycle
 from .lookup import DEFAULT_FILE, DEFAULT_FLOW_FILE, ThrustTable
 from .mesh import Mesh
 from .params import CiliumParams
-from .progress import Progress
+from cilia_runtime.progress import Progress
 from .radau import ConvergenceError
 from .stability import flutter_cutoff, stability
 from .tablefile import FIELDS, FRAME, REST_FIELDS, SCHEMA_VERSION, TableError, coiled, with_attrs
@@ -79,9 +79,9 @@ def _chunk(args):
     0.36-0.40 s unseeded). Rows at a column's own cutoff and another flow's cutoff are left to
     the caller; coiled rows are only marked. Each row is written to ``parts`` if given. Runs
     with the thread budget in ``args`` (the pool's share of the cores per worker), or its Dask
-    worker's share (:meth:`~single_cilium.threads.ThreadBudget.for_task`).
+    worker's share (:meth:`~cilia_runtime.threads.ThreadBudget.for_task`).
     Returns ``[(key, row)]``."""
-    from .threads import ThreadBudget
+    from cilia_runtime.threads import ThreadBudget
 
     budget = args[-1] if args[-1] is not None else ThreadBudget.for_task()
     with budget.applied():
@@ -244,7 +244,7 @@ def build_table(chi_E, eta: float, chi_N, *, U_par=None, U_perp=None, degree: in
     scheduler_timeout : float, optional
         Seconds to wait for ``scheduler`` to answer as a Dask scheduler (default 20, or the
         environment's ``CILIA_SCHEDULER_TIMEOUT``); an address that does not is an OSError
-        (:class:`~single_cilium.scheduler.SchedulerError`) after that wait, never a hang.
+        (:class:`~cilia_runtime.scheduler.SchedulerError`) after that wait, never a hang.
     path : path-like, optional
         Where the table is written; finished rows are kept in ``<path>.parts/`` while building,
         so a rerun after an interruption computes only the missing rows (rows of another field,
@@ -415,19 +415,19 @@ def _run(grid: TableGrid, eta, todo, weight, settings, parts, skip, rows, execut
     budget = None  # a Dask worker's task takes its worker's share; another executor's, the cores
     if executor is None:
         if scheduler is not None:
-            from .scheduler import connect
+            from cilia_runtime.scheduler import connect
 
             own = connect(scheduler, scheduler_timeout)
             executor = own.get_executor()
         else:
             from concurrent.futures import ProcessPoolExecutor
 
-            from .threads import ThreadBudget, cores
+            from cilia_runtime.threads import ThreadBudget, cores
 
             own = executor = ProcessPoolExecutor(max_workers=cores())
             budget = ThreadBudget(workers=cores(), numba=1, blas=1)  # a process per core, one thread each
     try:
-        from .threads import cores
+        from cilia_runtime.threads import cores
 
         chunks = _balanced_chunks(todo, weight, cores())
         tasks = [(grid, eta, c, settings, str(parts) if parts else None, skip, budget) for c in chunks]

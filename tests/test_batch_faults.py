@@ -184,7 +184,7 @@ def test_a_standard_output_that_cannot_be_written_is_named_not_the_scene(tmp_pat
 # ------------------------------------------------------------------------------ 4: a scheduler without workers
 def test_a_scheduler_without_workers_is_said_and_the_wait_is_bounded(tmp_path, caplog):
     distributed = pytest.importorskip("distributed")
-    from single_cilium.scheduler import SchedulerError
+    from cilia_runtime.scheduler import SchedulerError
 
     p = _scene(tmp_path, TINY)
     with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
@@ -267,7 +267,7 @@ def task(folder):
 RUN = """
 import sys
 from ciliary_carpet.cli import _run_local
-from single_cilium.signals import terminate_as_interrupt
+from cilia_runtime.signals import terminate_as_interrupt
 import stubborn
 with terminate_as_interrupt():
     _run_local([(sys.argv[1],), (sys.argv[1],)], 2, print, func=stubborn.task)

@@ -1,4 +1,4 @@
-"""The limits of a control group (single_cilium.cgroup): read from fake /proc and cgroup trees of
+"""The limits of a control group (cilia_runtime.cgroup): read from fake /proc and cgroup trees of
 both interface versions, and, where this machine lets a test make groups (root, cgroup v1 memory
 and cpu controllers), from real ones in a subprocess."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from single_cilium import cgroup
+from cilia_runtime import cgroup
 
 
 def _write(path: Path, text: str) -> None:
@@ -168,7 +168,7 @@ def test_real_groups_limit_cores_and_memory(tmp_path):
             pytest.skip(f"cannot make cgroups here: {exc}")
         code = ("import os, sys; pid = str(os.getpid());"
                 f"open('{cpu}/cgroup.procs', 'w').write(pid); open('{mem}/cgroup.procs', 'w').write(pid);"
-                "from single_cilium.threads import cores;"
+                "from cilia_runtime.threads import cores;"
                 "from ciliary_carpet.output.resources import available_memory, places_that_fit;"
                 "from ciliary_carpet.scenes.scene import load_scene;"
                 f"print(cores(), available_memory(), places_that_fit(load_scene({str(scene)!r}), 2))")

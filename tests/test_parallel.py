@@ -13,7 +13,7 @@ from ciliary_carpet.transport.flow import Flow, ResolvedFlow
 from ciliary_carpet.transport.parallel import InProcess, ProcessPool, Task, WorkerDied, pool_for_threads
 from ciliary_carpet.transport.pathlines import chunks, join_pathlines, pathline_tasks, pathlines
 from single_cilium.table import ThrustTable
-from single_cilium.threads import threads_in_use
+from cilia_runtime.threads import threads_in_use
 
 
 @pytest.fixture(scope="module")

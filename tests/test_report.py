@@ -157,7 +157,7 @@ def test_a_standing_carpet_is_clamped_where_its_summary_says():
 def test_a_table_built_for_a_render_is_announced_shown_and_recorded(tmp_path):
     from ciliary_carpet.render import render
     from ciliary_carpet.scenes.scene import load_scene
-    from single_cilium.progress import Progress
+    from cilia_runtime.progress import Progress
 
     class Notes(Progress):
         def __init__(self):

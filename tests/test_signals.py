@@ -147,7 +147,7 @@ def test_a_signal_inside_a_compiled_path_line_kernel_is_reported_as_the_signal(t
     when a SIGHUP landed in the path lines' reference run)."""
     import ciliary_carpet.cli as cli
     from ciliary_carpet.transport.parallel import _relabel
-    from single_cilium.signals import Terminated
+    from cilia_runtime.signals import Terminated
 
     def kernel_hit():
         try:

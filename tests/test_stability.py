@@ -138,7 +138,7 @@ def test_stability_map(tmp_path):
     assert ds.alpha.sel(chi_E=200.0, eta=1.0) == pytest.approx(r.alpha, rel=1e-12)
     assert ds.regime.sel(chi_E=200.0, eta=1.0) == 1
     assert ds.frequency.sel(chi_E=200.0, eta=1.0) == pytest.approx(r.beta / TWO_PI)
-    from single_cilium.files import write_netcdf
+    from cilia_runtime.files import write_netcdf
     write_netcdf(ds, tmp_path / "map.nc")
     back = xr.open_dataset(tmp_path / "map.nc", engine="h5netcdf")
     assert back.alpha.attrs["units"] == "1" and back.attrs["chi_N"] == chi_N

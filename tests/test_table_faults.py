@@ -10,9 +10,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
-_COMPILE = ("import single_cilium\n"
-            "from single_cilium._kernels import first_parallel_region\n"
-            "first_parallel_region()\n"
+_COMPILE = ("from cilia_runtime.threads import threadsafe_layer\n"
+            "threadsafe_layer()\n"  # compiles (or loads) one cached parallel kernel
             "print('ok')\n")
 
 
@@ -31,7 +30,7 @@ def test_a_damaged_numba_cache_file_is_discarded_and_rebuilt(tmp_path, damage):
     first = _python(_COMPILE, cache)
     assert first.returncode == 0 and first.stdout.strip() == "ok", first.stderr[-2000:]
     suffix = ".nbi" if damage == "truncated index" else ".nbc"
-    files = sorted(cache.rglob(f"_kernels._one_region-*{suffix}"))
+    files = sorted(cache.rglob(f"threads._one_region-*{suffix}"))
     assert files, sorted(str(p) for p in cache.rglob("*"))
     bad = files[0]
     data = bad.read_bytes()
@@ -183,7 +182,7 @@ def test_a_signal_inside_a_compiled_kernel_waits_for_it_to_return():
     import signal
     import time
 
-    from single_cilium.signals import Terminated, native_call, terminate_as_interrupt
+    from cilia_runtime.signals import Terminated, native_call, terminate_as_interrupt
 
     with pytest.raises(Terminated):
         with terminate_as_interrupt():
@@ -202,7 +201,7 @@ def test_a_signal_that_comes_back_through_compiled_code_exits_as_the_signal(monk
     returned a result with an exception set``) ends the command as the signal does: 143 and one
     line, never "internal error"."""
     import single_cilium.cli as cli
-    from single_cilium.signals import Terminated
+    from cilia_runtime.signals import Terminated
 
     def interrupted(args):
         try:

@@ -367,7 +367,7 @@ def test_shipped_flow_table_is_compacted(shipped):
 def test_compact_keeps_the_scalars_and_rounds_the_fields(flow, tmp_path):
     """compact: scalars bit for bit, fields at every 2nd phase sample within 2**-14 relative (13
     mantissa bits), also after the round trip through its file."""
-    from single_cilium.files import write_netcdf
+    from cilia_runtime.files import write_netcdf
     from single_cilium.tablefile import FIELDS, REST_FIELDS, compact
 
     t, path = flow

@@ -5,9 +5,9 @@ import json
 import numba
 import pytest
 
-import single_cilium.threads as threads_mod
+import cilia_runtime.threads as threads_mod
 from ciliary_carpet.cli import batch
-from single_cilium.threads import ThreadBudget
+from cilia_runtime.threads import ThreadBudget
 
 TINY = ('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\nsnapshots = 0\n'
         'frames = 1\npreview = false\n')
@@ -86,7 +86,7 @@ def test_a_threaded_dask_worker_is_warned_about_once(monkeypatch, caplog):
     worker = types.SimpleNamespace(state=types.SimpleNamespace(nthreads=2))
     monkeypatch.setattr(distributed, "get_worker", lambda: worker)
     monkeypatch.setattr(threads_mod, "_WARNED", [])
-    with caplog.at_level("WARNING", logger="single_cilium.threads"):
+    with caplog.at_level("WARNING", logger="cilia_runtime.threads"):
         assert ThreadBudget.for_task(n_cores=4) == ThreadBudget(workers=2, numba=2, blas=1)
         ThreadBudget.for_task(n_cores=4)
     said = [r.getMessage() for r in caplog.records if "--nthreads 1" in r.getMessage()]
@@ -143,7 +143,7 @@ def test_two_scenes_side_by_side_on_one_threaded_dask_worker(tmp_path, monkeypat
 
 _WORKQUEUE = """
 import threading, numpy as np
-from single_cilium.threads import ThreadBudget, threadsafe_layer
+from cilia_runtime.threads import ThreadBudget, threadsafe_layer
 from ciliary_carpet.stokes import stokeslet_velocity
 rng = np.random.default_rng(1)
 x, y, f = rng.random((300, 3)), rng.random((2000, 3)) + 2, rng.random((2000, 3))

@@ -10,7 +10,7 @@ import pyvista as pv
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
-import single_cilium.files as single_cilium_files
+import cilia_runtime.files as single_cilium_files
 from ciliary_carpet.output import vtkfiles
 from ciliary_carpet.output.vtkfiles import (
     OutputError,

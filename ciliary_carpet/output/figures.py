@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from single_cilium.files import usual_mode
+from cilia_runtime.files import usual_mode
 
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.scenes.scene import Scene

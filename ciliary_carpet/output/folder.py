@@ -88,7 +88,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from single_cilium.files import strict_json, usual_mode
+from cilia_runtime.files import strict_json, usual_mode
 
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY

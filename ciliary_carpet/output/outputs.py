@@ -87,8 +87,8 @@ from pathlib import Path
 
 import numpy as np
 
-from single_cilium.files import non_finite, strict_json, write_netcdf
-from single_cilium.threads import threads_in_use
+from cilia_runtime.files import non_finite, strict_json, write_netcdf
+from cilia_runtime.threads import threads_in_use
 
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant
 from ciliary_carpet.carpet.coupling import coupling_estimate

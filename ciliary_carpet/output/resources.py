@@ -55,7 +55,7 @@ class Estimate:
 def available_memory() -> float:
     """MemAvailable (Linux), or the physical memory, capped by RLIMIT_AS minus what this process
     already maps and by what this process's control group can still take (a container's or a
-    batch job's memory limit, :func:`single_cilium.cgroup.memory_headroom`)."""
+    batch job's memory limit, :func:`cilia_runtime.cgroup.memory_headroom`)."""
     avail = None
     try:
         with open("/proc/meminfo") as fh:
@@ -79,7 +79,7 @@ def available_memory() -> float:
             avail = min(avail, max(float(soft) - mapped, 0.0))
     except (ImportError, OSError, ValueError):
         pass
-    from single_cilium.cgroup import memory_headroom
+    from cilia_runtime.cgroup import memory_headroom
 
     room = memory_headroom()
     if room is not None:

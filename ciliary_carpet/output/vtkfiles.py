@@ -42,7 +42,7 @@ import numpy as np
 import pyvista as pv
 
 from single_cilium.checks import finite
-from single_cilium.files import OutputFileError, write_bytes
+from cilia_runtime.files import OutputFileError, write_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ _INT32 = np.iinfo(np.int32)
 
 
 class OutputError(OutputFileError):
-    """An output path that cannot be written: :class:`single_cilium.files.OutputFileError` (one line
+    """An output path that cannot be written: :class:`cilia_runtime.files.OutputFileError` (one line
     naming the file and the reason; ``path``, ``reason``, ``errno``; picklable) under the name the
     carpet layer's callers catch."""
 
@@ -194,7 +194,7 @@ def _check_suffix(path, ext: str) -> Path:
 
 def _atomic_write(path: Path, make: Callable[[], bytes]) -> Path:
     """Write the bytes ``make()`` returns to ``path`` atomically
-    (:func:`single_cilium.files.write_bytes`: a hidden temporary in ``path``'s folder, plain
+    (:func:`cilia_runtime.files.write_bytes`: a hidden temporary in ``path``'s folder, plain
     :func:`os.write`, then a rename).
 
     Raises OutputError (naming ``path``) when the folder or the file cannot be written (a full

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import single_cilium.table as _table
-from single_cilium.progress import Progress
+from cilia_runtime.progress import Progress
 from single_cilium.table import TableError, ThrustTable
 
 from single_cilium.radau import ConvergenceError
@@ -52,7 +52,7 @@ _TABLE_CACHE: dict = {}
 def load_table(scene: "Scene", progress: Progress | None = None) -> ThrustTable:
     """The scene's thrust table (``[table]``): loaded, built first if asked (``[table.build]``), and check that it is for the scene's field.
 
-    A build says first, through ``progress`` (:class:`~single_cilium.progress.Progress`: its
+    A build says first, through ``progress`` (:class:`~cilia_runtime.progress.Progress`: its
     ``note``, then a bar over the rows), what it computes and how long that is expected to take
     (:func:`build_estimate`).
 
@@ -171,7 +171,7 @@ def _build_table(scene: "Scene", p: Path, progress: Progress | None = None) -> N
 
 def _announce(progress: Progress | None, p: Path, f, rows: int, degree: int, what: str) -> None:
     """Say, before a table build, what it computes and how long it is expected to take."""
-    from single_cilium.threads import cores
+    from cilia_runtime.threads import cores
 
     n = cores()
     eta = build_estimate(rows, degree, n)

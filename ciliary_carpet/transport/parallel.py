@@ -13,7 +13,7 @@ that says where they run:
 * :class:`ProcessPool`: ``processes`` worker processes, and this process as one more worker while
   they start (``parent_works``). Workers start from a fork server (never by forking this
   process: a process that has run the OpenMP-parallel kernels cannot fork safely), each with
-  one numba thread and one BLAS thread (:class:`~single_cilium.threads.ThreadBudget`: workers x
+  one numba thread and one BLAS thread (:class:`~cilia_runtime.threads.ThreadBudget`: workers x
   numba x BLAS threads never exceed the cores the caller gives). The biggest tasks go first
   (:attr:`Task.cost`). Large objects named in ``shared`` (a carpet) are pickled once and sent
   once to each worker, however many tasks use them. Workers write no files. ``warm()`` starts
@@ -39,7 +39,7 @@ Failures: a task that raises is re-raised in the caller, its message prefixed wi
 label (e.g. ``"path lines: chunk 2 of 4 (tracers 50-74)"``), the worker's traceback chained; a
 worker that dies (killed, out of memory) is a :class:`WorkerDied` naming the task it ran. Either
 stops the pool at once (no hang). Ctrl-C, or SIGTERM / SIGHUP under the command line
-(:func:`~single_cilium.signals.terminate_as_interrupt`), reaches the caller as a
+(:func:`~cilia_runtime.signals.terminate_as_interrupt`), reaches the caller as a
 KeyboardInterrupt: the workers are stopped (SIGTERM, then SIGKILL after a grace period) before it
 propagates, and the pool is closed on every path.
 """
@@ -56,9 +56,9 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
-from single_cilium.progress import Progress
-from single_cilium.signals import interrupt_of
-from single_cilium.threads import ThreadBudget
+from cilia_runtime.progress import Progress
+from cilia_runtime.signals import interrupt_of
+from cilia_runtime.threads import ThreadBudget
 
 logger = logging.getLogger(__name__)
 
@@ -187,7 +187,7 @@ def _call(task: Task, where: str) -> TaskResult:
 def _relabel(exc: BaseException, label: str) -> BaseException:
     """``exc`` with its message prefixed by ``label`` (the same type where it can be rebuilt from
     one message, else a RuntimeError naming the type); a signal's interrupt, also one that a
-    compiled function's SystemError carries (:func:`~single_cilium.signals.interrupt_of`), as
+    compiled function's SystemError carries (:func:`~cilia_runtime.signals.interrupt_of`), as
     itself: the command line reports the signal, not an internal error."""
     intr = interrupt_of(exc)
     if intr is not None:
@@ -323,7 +323,7 @@ def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) ->
                 os._exit(1)
 
     threading.Thread(target=orphaned, name="orphan-watch", daemon=True).start()
-    from single_cilium.signals import terminate_as_interrupt
+    from cilia_runtime.signals import terminate_as_interrupt
 
     try:  # SIGTERM (the parent stopping it) ends it like Ctrl-C: cleanly, its finalizers run
         with terminate_as_interrupt(), budget.applied(), (_placed(allow, place) if allow is not None else _nothing()):

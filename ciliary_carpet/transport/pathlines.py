@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from single_cilium.progress import Progress
+from cilia_runtime.progress import Progress
 
 from ciliary_carpet.transport.flow import Flow
 from ciliary_carpet.transport.parallel import adjust_threads

@@ -27,9 +27,19 @@ from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, dataclass
 
+import numpy as np
+from numba import njit, prange
+
 __all__ = ["ThreadBudget", "cores", "threads_in_use", "threadsafe_layer"]
 
 logger = logging.getLogger(__name__)
+
+
+@njit(cache=True, parallel=True)
+def _one_region(x):  # pragma: no cover - compiled
+    """One trivial parallel region (numba chooses its threading layer at the first one)."""
+    for i in prange(x.shape[0]):
+        x[i] = i
 
 _LOCAL = threading.local()  # .budgets: the budgets applied in this thread, innermost last
 _SERIAL = threading.RLock()  # held by applied budgets under a threading layer that is not thread-safe
@@ -51,13 +61,11 @@ def threadsafe_layer() -> bool:
     try:
         layer = numba.threading_layer()
     except ValueError:  # no parallel region has run in this process yet: one, one thread at a time
-        from single_cilium._kernels import first_parallel_region
-
         with _SERIAL:
             try:
                 layer = numba.threading_layer()
             except ValueError:
-                first_parallel_region()
+                _one_region(np.zeros(2))  # numba chooses its layer at the first parallel region
                 layer = numba.threading_layer()
     return layer != "workqueue"
 
@@ -79,7 +87,7 @@ def cores() -> int:
     """The cores this process may run on: its CPU affinity where the system tells (else the
     machine's count), at most the whole CPUs of its control group's quota (a container's
     ``--cpus``, rounded down, at least one: a thread more than the quota pays for waits at every
-    barrier; :func:`single_cilium.cgroup.cpu_quota`)."""
+    barrier; :func:`cilia_runtime.cgroup.cpu_quota`)."""
     try:
         n = max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
