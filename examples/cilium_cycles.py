@@ -5,7 +5,7 @@ The limit cycles at chi_N in {8, 16, 24}*2pi (chi_E = 200, eta = 1).
 
 For each cycle: filament snapshots over one period with the clamp force F (force on the fluid)
 as arrows, the tip orbit (its enclosed area measures the non-reciprocity), and ``|F(t)|`` and its
-angle over a period beside the means. The mean thrust is much smaller than ``|F(t)|``, and its angle
+angle over a period with the means. The mean thrust is much smaller than ``|F(t)|``, and its angle
 (phi_Fbar - pi) lies a little above the equilibrium's theta_lim.
 Run as a script it writes cilium_cycles.png (CILIA_EXAMPLE_QUICK=1 for a coarse, fast run).
 """

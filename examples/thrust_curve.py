@@ -2,7 +2,7 @@
 ================
 
 The design curve: thrust magnitude and angle against chi_N under one field (chi_E = 200,
-eta = 1), from the shipped lookup table, beside the equilibrium's theta_lim. Curvature tilts the
+eta = 1), from the shipped lookup table, with the equilibrium's theta_lim. Curvature tilts the
 thrust: the angle follows theta_lim (a little above it) and the magnitude falls to zero at the
 flutter cutoff. Run as a script it writes thrust_curve.png, each curve with its error estimate
 (``single-cilium thrust-curve --png thrust_curve.png`` draws the same figure).

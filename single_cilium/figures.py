@@ -71,7 +71,7 @@ def plot_thrust_curve(table, n: int = 400, fig=None):
     estimates.
 
     Top panel: ``|Fbar|`` (units ``B / L^2``, left axis) and the thrust angle (rad, right axis;
-    ``thrust_angle = phi_Fbar - pi``, MODEL.md section 5) beside the equilibrium's ``theta_lim``,
+    ``thrust_angle = phi_Fbar - pi``, MODEL.md section 5) with the equilibrium's ``theta_lim``,
     each with a band of +-its error estimate (the rows' discretisation error, interpolated, plus
     the interpolation error between rows); the cutoff dashed. Bottom panel: those error
     estimates on a log scale (absolute: ``B / L^2`` and rad), so that bands too thin to see

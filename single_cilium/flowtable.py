@@ -35,13 +35,13 @@ Error estimate (:meth:`FlowGrid.interpolation_error`): ``SAFETY = 2`` times the 
 from the quadratic to the cubic interpolant in U over the point's cell (at the point and 1/3 and
 2/3 across the cell in each axis), plus the grid flows' own estimate in chi_N (the same, over the
 interval between rows). The change estimates the quadratic interpolant's error, an upper bound
-of the cubic's with room. Against fresh cycles of the shipped table's discretisation at 120
-points off its grid (U spacing 0.5, chi_N spacing 10; |U| up to 2, chi_N from 0 to above the
-cutoff, both signs) the thrust's error was at most 4.9e-4 (2.6e-4 of |F|; 1.1e-4 at
-|U| < 0.9), at most 0.36 of the estimate (0.72 with a factor 1, 0.41 from the change at the
-point alone) and a median 1/21 of it; the period within 1.9e-4 (relative), the angle 1.8e-4 rad.
-Measured in benchmarks/results/bench_table_flow.md (section 4) and asserted in
-tests/test_table_flow.py.
+of the cubic's with room. Accuracy of the shipped table (U spacing 0.5, chi_N spacing 10),
+against fresh cycles of its discretisation at 120 points off its grid (|U| up to 2, chi_N from 0
+to above the cutoff, both signs): the thrust's error is at most 4.9e-4 (2.6e-4 of |F|; 1.1e-4
+at |U| < 0.9), at most 0.36 of the estimate (0.72 with a factor 1, 0.41 from the change at the
+point alone) and a median 1/21 of it; the period within 1.9e-4 (relative), the angle 1.8e-4 rad
+(benchmarks/bench_table_flow.py, results in benchmarks/results/bench_table_flow.md section 4;
+asserted in tests/test_table_flow.py).
 """
 from __future__ import annotations
 
@@ -368,8 +368,8 @@ class FlowGrid:
 
     def _scalars(self, names, a, up, uq, nu: int = 0, lower: bool = False) -> tuple[dict, np.ndarray]:
         """Scalars, the thrust's norm and angle from its interpolated components (interpolating
-        the angle itself across the flows errs by up to 1 rad where a stream cancels part of the
-        thrust: measured at U spacing 1); off the branch only the thrust (the steady state's force)
+        the angle itself across the flows would err by up to 1 rad at U spacing 1, where a stream
+        cancels part of the thrust); off the branch only the thrust (the steady state's force)
         is defined, the rest NaN."""
         need = [n for n in names if n not in _DERIVED]
         if set(names) & set(_DERIVED):

@@ -8,9 +8,7 @@ each field's cutoff, and a table over the background flow in ``(U_par, U_perp)``
 (:mod:`single_cilium.flowtable`). Built by :func:`single_cilium.table.build_table`; the front door
 for both is :mod:`single_cilium.table`.
 
-Over 500 lines: one class, whose every lookup (``at``, ``scalar``, ``cycles``, ``rest``, the
-angle's range and inverse, the interpolation error) serves the three kinds of table through one
-signature; the interpolation across chi_E and across the flow are in their own modules.
+One concept: one class, whose every lookup serves the three kinds of table through one signature.
 """
 from __future__ import annotations
 
@@ -53,7 +51,7 @@ class ThrustTable:
     :meth:`chi_N_for_angle` (required there; a one-field table accepts only its own chi_E).
     At a field value of the grid this is that field's table exactly; between grid values the
     field's table is interpolated at fixed fractions of its flutter cutoff (how, and its
-    measured error, in :mod:`single_cilium.fieldtable`).
+    error, in :mod:`single_cilium.fieldtable`).
 
     A table over the background flow (dims ``U_par, U_perp, chi_N``, from
     ``build_table(chi_E, eta, chi_N, U_par=..., U_perp=...)``) serves any flow in its grid's

@@ -53,20 +53,17 @@ Methods
     fewer, for the error estimate) starts from the same ``(y0, T)`` and uses the coarser
     monodromy as a chord Jacobian: period maps without sensitivities, about 3x cheaper.
 
-    Why (the profile of the previous method at (200, 1, 16*2pi)): 130 period maps per cycle,
-    because GMRES needs 15-30 finite-difference products per Newton step (a cluster of
-    multipliers near ``exp(-T)`` from the kappa relaxation), each map 64 steps of Python-level
-    simplified Newton at about 1.2 ms a step (the time went to the interpreter: LAPACK calls on
-    40 x 40 matrices, small-array numpy overhead). The exact Jacobian removes the GMRES
-    products (a cycle now takes 10-15 maps) and the compiled steps cost 0.2 ms (0.5 ms with
-    sensitivities) at degree 8. Why not orthogonal collocation (AUTO, MatCont): the state is
-    small, so the dense ``N x N`` monodromy is cheap (a period costs 64 small factorisations
-    either way); the stiff steps keep Radau's L-stability and the step solver already tested
-    against the integrator; the orbit Newton has ``N + 1`` unknowns instead of
-    ``3 n_phase N``; and refining ``n_phase`` reuses ``(y0, T)`` unchanged. Shooting's
-    weakness, an unstable orbit amplifying errors over a period, does not arise: these cycles
-    are stable and the stiff modes are contracted to ~0 by the L-stable steps.
-``"newton-krylov"`` (:class:`KrylovShooting`, the previous method, kept as a cross-check)
+    Why the exact monodromy: with finite-difference monodromy products, GMRES needs 15-30
+    products per Newton step (the kappa relaxation puts a cluster of multipliers near
+    ``exp(-T)``); the exact Jacobian needs none. Why not orthogonal collocation (AUTO,
+    MatCont): the state is small, so the dense ``N x N`` monodromy is cheap (a period costs
+    ``n_phase`` small factorisations either way); the stiff steps keep Radau's L-stability and
+    the step solver tested against the integrator; the orbit Newton has ``N + 1`` unknowns
+    instead of ``3 n_phase N``; and refining ``n_phase`` reuses ``(y0, T)`` unchanged.
+    Shooting's weakness, an unstable orbit amplifying errors over a period, does not arise:
+    these cycles are stable and the stiff modes are contracted to ~0 by the L-stable steps.
+    Costs against ``"newton-krylov"``: ``benchmarks/results/bench_cycles.md``.
+``"newton-krylov"`` (:class:`KrylovShooting`, a cross-check of ``"shooting"``)
     The same period map (:meth:`single_cilium.radau.Radau.fixed`, simplified Newton in Python);
     Newton-Krylov (GMRES on finite-difference monodromy products); Floquet multipliers by
     Arnoldi on the deflated monodromy.
@@ -314,7 +311,7 @@ class ExactShooting(OrbitSolver):
 
 
 class KrylovShooting(OrbitSolver):
-    """Newton-Krylov shooting on the Python Radau period map (the previous default)."""
+    """Newton-Krylov shooting on the Python Radau period map (a cross-check of :class:`ExactShooting`)."""
 
     name = "newton-krylov"
 

@@ -67,7 +67,7 @@ class CiliumParams:
         object.__setattr__(self, "background", (finite("background U1", U1) + 0.0, finite("background U2", U2) + 0.0))
 
     def __repr__(self) -> str:
-        # the background is shown only when there is one (messages in still fluid stay as they were)
+        # the background is shown only when there is one (still-fluid messages do not mention it)
         U = f", background={self.background!r}" if self.has_background else ""
         return f"CiliumParams(chi_E={self.chi_E!r}, eta={self.eta!r}, chi_N={self.chi_N!r}{U})"
 

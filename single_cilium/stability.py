@@ -35,9 +35,8 @@ for ``chi_E < 0`` (the published claim; reproduced in the tests) but changes not
 ``chi_E > 0``, where ``theta = 0`` is the stable fixed point and the equilibrium depends
 smoothly on ``chi_N``.
 
-Why one module of about 600 lines: the spectrum, the regime, the flutter cutoff, the flutter
-boundary (continuation of the cutoff over chi_E) and the stability map are one linearisation
-(the same pencil and leading-eigenvalue code) asked four ways.
+One concept: the spectrum, the regime, the flutter cutoff, the flutter boundary and the
+stability map are one linearisation (the same pencil) asked four ways.
 """
 from __future__ import annotations
 
@@ -169,7 +168,7 @@ class Stability:
         :class:`ResolutionWarning` is issued and the message says what to refine) or
         ``"unchecked"`` (``check=False``: no error estimate); ``message`` is one line.
     converged : bool
-        Derived: ``status != "inaccurate"`` (True also when unchecked, as before).
+        Derived: ``status != "inaccurate"`` (True also when unchecked).
     """
 
     params: CiliumParams

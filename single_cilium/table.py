@@ -21,16 +21,14 @@ for), so an interrupted build resumes where it stopped; rows of a build with any
 grid or settings are refused, never merged, and rows outside the requested grid are ignored.
 
 With a grid of chi_E (``build_table([180, 200, 220], eta, chi_N)``) each worker walks its chunk
-of chi_N for every field in turn, continued in chi_N; a neighbouring field's cycle at the same
-chi_N was measured to be a worse start than the field's own Hopf mode, so there is no
-continuation across fields. With a grid of flows (``build_table(200, 1, chi_N, U_par=...,
-U_perp=...)``) each worker walks its chunk for every flow in turn, the flows in a snake order
-through the grid (each the neighbour of the last), and a flow's first cycle of the chunk (or the
-first after a gap in its branch) starts from the neighbouring flow's cycle at the same chi_N
-instead of the Hopf mode: measured at chi_E = 200, eta = 1, chi_N = 100, flow spacing 1, degree
-8, 64 steps, it takes 5-6 Newton steps (all solves of the row) against 7-10 from the Hopf mode
-(0.25-0.30 s against 0.26-0.51 s), while the parabola in chi_N (spacing 10) takes 4-6; so
-continuation in chi_N carries the rest.
+of chi_N for every field in turn, continued in chi_N, each field's first cycle from its own Hopf
+mode (there is no continuation across fields: a neighbouring field's cycle is a worse start).
+With a grid of flows (``build_table(200, 1, chi_N, U_par=..., U_perp=...)``) each worker walks
+its chunk for every flow in turn, the flows in a snake order through the grid (each the
+neighbour of the last), and a flow's first cycle of the chunk (or the first after a gap in its
+branch) starts from the neighbouring flow's cycle at the same chi_N instead of the Hopf mode;
+continuation in chi_N carries the rest. The costs of these starts are in
+``benchmarks/results/bench_table_flow.md``.
 """
 from __future__ import annotations
 
@@ -72,11 +70,8 @@ def _chunk(args):
     continuation in chi_N (the parabola through the last three cycles of the same column); the
     first cycle of each column's run starts from its Hopf mode (:func:`limit_cycle` without a
     seed), or, over a grid of flows, from the previous column's cycle at the same chi_N (the
-    columns come in a snake order: each a neighbour of the last). Continuation in chi_E does
-    not pay: the cycle of a neighbouring field at the same chi_N as seed (its deviation from its
-    own equilibrium carried onto this field's mesh) cost 1.3-1.4x the unseeded start for fields
-    2 to 10 apart and 1.4-4x for 20 apart (degree 8, 64 steps, chi_N = 0 and 100 at chi_E = 200;
-    0.36-0.40 s unseeded). Rows at a column's own cutoff and another flow's cutoff are left to
+    columns come in a snake order: each a neighbour of the last); there is no continuation in
+    chi_E (a neighbouring field's cycle is a worse start than the Hopf mode). Rows at a column's own cutoff and another flow's cutoff are left to
     the caller; coiled rows are only marked. Each row is written to ``parts`` if given. Runs
     with the thread budget in ``args`` (the pool's share of the cores per worker), or its Dask
     worker's share (:meth:`~cilia_runtime.threads.ThreadBudget.for_task`).

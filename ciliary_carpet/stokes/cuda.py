@@ -316,8 +316,7 @@ class Cuda(Backend):
         and ``threads / 32`` targets per block of the ranged kernel.
     targets_per_thread : int, default 2
         Targets each thread of the dense kernel sums into (1 to 8). The defaults are not tuned on
-        hardware (no GPU was available when this was written): benchmarks/bench_gpu.py measures
-        them.
+        hardware: ``benchmarks/bench_gpu.py --tune`` measures them.
 
     Raises
     ------

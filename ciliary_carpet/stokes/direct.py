@@ -37,9 +37,7 @@ new Green's function in :mod:`ciliary_carpet.stokes.kernel` needs nothing here. 
 pair function itself to the loops: numba keys a dispatcher argument by the object's identity, so
 its on-disk cache never hits (every process would compile again); an integer code keeps
 ``cache=True`` working. The closures are not cached themselves (they share one source, and
-numba would give them one cache slot): they are compiled into the cached loops. Measured against
-the three hand-written loops this replaces (bit-identical results): the same compile time (about
-2 s per loop, once) and the same speed.
+numba would give them one cache slot): they are compiled into the cached loops.
 
 numba's on-disk cache of :func:`_dense` and :func:`_ranged` is keyed by this file only, while
 the code they inline lives in :mod:`ciliary_carpet.stokes.kernel`: after an edit there, the
@@ -209,9 +207,8 @@ def _ranged(code, T, S, F, ptr, ranges, e2, scale, out):  # pragma: no cover - c
 def _dense32(code, T, S, F, e2, blk, scale, out):  # pragma: no cover - compiled
     """:func:`_dense` in fp32 (T, S, F, e2 float32; out float64): :func:`_source_sum32` over
     blocks of ``blk`` sources, added in fp64 (``blk`` an argument, not a constant: with a
-    compile-time bound on the trip count LLVM vectorises the blocks' loop less well; on the ranges
-    of a 30 x 30 carpet's carriers, blocks of 128, 0.76 ns per pair against 1.0 ns, and one fp32
-    sum per range 0.66 ns)."""
+    compile-time bound on the trip count LLVM vectorises the blocks' loop less well; timings in
+    benchmarks/results/bench_evaluation.md)."""
     sx = S[0]
     sy = S[1]
     sz = S[2]
@@ -341,8 +338,8 @@ class Direct(Backend):
     summed in fp32 blocks of :data:`~ciliary_carpet.stokes.precision.FP32_BLOCK` sources whose sums
     are added in fp64; bounded by :func:`~ciliary_carpet.stokes.precision.fp32_error_bound` (``block``
     :data:`~ciliary_carpet.stokes.precision.FP32_BLOCK`). fp32 runs 8 pairs to a 256-bit vector
-    instead of 4, and its square roots and divisions are cheaper: 2.4 times the pairs per second of
-    fp64 on long ranges (:data:`~ciliary_carpet.stokes.precision.FP32_BLOCK`)."""
+    instead of 4, and its square roots and divisions are cheaper (throughput:
+    benchmarks/results/bench_evaluation.md)."""
 
     precision: str = "fp64"
     ranged_sums = True

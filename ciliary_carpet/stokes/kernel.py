@@ -62,8 +62,7 @@ it touches to fp64 under numba's typing), and their one special function is the 
 compiled with :data:`FASTMATH`: reordered sums and fused multiply-adds, no approximate
 ``1/sqrt``, no assumption of finite values.
 
-This module is longer than ~500 lines because each Green's function is kept in one place: its
-pair formula, its independent numpy reference and its constants side by side.
+One concept over 500 lines: each Green's function's pair formula, numpy reference and constants together.
 """
 from __future__ import annotations
 

@@ -53,9 +53,7 @@ tests/test_stokeslet.py)."""
 FP32_BLOCK = 128
 """Sources summed in fp32 one after another by the CPU's fp32 sums before their block sum is added
 in fp64 (:class:`~ciliary_carpet.stokes.direct.Direct` ``"fp32"``): the ``n_i`` of the bound is at
-most this. Measured on 100 targets x 5400 sources, one thread (one range; ns per pair):
-fp64 1.28, fp32 in blocks of 32 0.65, of 64 0.52, of 128 0.46, one fp32 sum 0.39; fp32 pairs
-summed in fp64 1.0 (the conversions halve the vector width)."""
+most this. The cost per pair for each block size: benchmarks/results/bench_evaluation.md."""
 
 
 def origin(kernel: Kernel, targets: np.ndarray, sources: np.ndarray) -> np.ndarray:
