@@ -3,8 +3,8 @@
 :func:`limit_cycle` is the front door. It computes the periodic orbit of the Galerkin system of
 :mod:`single_cilium.filament` with an orbit method of :mod:`single_cilium.orbit` (by name:
 ``method="shooting"``, the default, single shooting with the exact monodromy of the compiled
-Radau IIA(5) period map; ``"newton-krylov"``, the previous Newton-Krylov shooting, kept as a
-cross-check), and does the rest once, against the orbit-solver contract:
+Radau IIA(5) period map; ``"newton-krylov"``, Newton-Krylov shooting on finite-difference
+monodromy products, a cross-check), and does the rest once, against the orbit-solver contract:
 
 * seeding: cycles at neighbouring chi_N (``seed``; with two or three, the secant or parabola
   predictor of a continuation along the branch); otherwise the leading (Hopf) eigenvector of
@@ -37,11 +37,9 @@ Results say how they ended in one way across :mod:`single_cilium`: ``status`` (`
 ``"unchecked"`` without error estimate) and a one-line ``message``; failures raise
 :class:`CycleError` with what to change.
 
-Why one module of about 700 lines: the limit cycle and the mean thrust at a point (chi_N, U) are
-one computation (``mean_thrust`` is ``limit_cycle`` or the steady state, reported alike), and
-the helpers (seeding from the Hopf eigenvector, prediction along a continuation, rephasing to
-the Poincare section, the observables' error estimates) serve only ``limit_cycle``; the orbit
-methods themselves live in :mod:`single_cilium.orbit`.
+One concept: the limit cycle and the mean thrust at a point (chi_N, U) (``mean_thrust`` is
+``limit_cycle`` or the steady state, reported alike); the orbit methods are in
+:mod:`single_cilium.orbit`.
 """
 from __future__ import annotations
 
@@ -501,6 +499,59 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
         When the orbit does not converge (the message says what to change), or, in a background
         flow, when the filament has no steady state in it to start from.
     """
+    mesh = _checked_mesh(params, mesh, degree, n_phase, tol, rtol, method, error_estimate)
+    theta_lim = _still_fluid_limit_angle(params)
+    used: list[OrbitSolver] = []
+
+    def Method(f: Filament, n_steps: int) -> OrbitSolver:
+        solver = METHODS[method](f, n_steps)
+        used.append(solver)
+        return solver
+
+    with single_threaded_blas():
+        st = _linear_stability(params, mesh)
+        if st.regime != "flutter":
+            return _without_flutter(params, mesh, st, theta_lim, method)
+        fil = Filament(params, mesh)
+        adaptive = n_phase is None
+        orbit, solver, n = _first_converged(Method, fil, st, seed, tol, params, n_phase)
+        orbit, solver, n, time_err, half, q_half = _phase_resolution(Method, fil, st, seed, tol, params, orbit,
+                                                                     solver, n, n_phase, rtol, error_estimate)
+        orbit = _start_at_phase_zero(solver, orbit, fil, tol)
+        T = orbit.period
+        result = _assemble(params, mesh, fil, orbit)
+        base = _quantities(T, result["thrust"])
+        mults, fl, triv = _floquet(solver, orbit, T, floquet)
+        errors: dict = {}
+        if error_estimate or adaptive:
+            errors = _error_estimates(Method, params, mesh, fil, orbit, base, time_err, half, q_half, tol,
+                                      error_estimate)
+    work = _total_work(used)
+    status, msg = _verdict(method, n, adaptive, mesh, orbit, errors, error_estimate, rtol)
+    return LimitCycle(params, mesh, True, T, result["data"], result["thrust"], theta_lim,
+                      result["tip_area"], mults, fl, triv, errors, work, status, msg, orbit.state0,
+                      method, n)
+
+
+# ------------------------------------------------------------------------------ the steps of limit_cycle
+def _checked_mesh(params: CiliumParams, mesh: Mesh | None, degree, n_phase, tol, rtol, method: str,
+                  error_estimate: bool) -> Mesh:
+    """Check the arguments of :func:`limit_cycle` and return the mesh it computes on.
+
+    Returns
+    -------
+    Mesh
+        ``mesh``, or ``Mesh.for_params(params, degree)`` when it is None.
+
+    Raises
+    ------
+    TypeError
+        ``params`` is not a :class:`CiliumParams`.
+    ValueError
+        ``method``, ``n_phase``, ``tol``, ``rtol`` or the degree out of range, a coiled
+        filament's mesh above :data:`MAX_NODES` nodes, or a cycle estimated above
+        :data:`MAX_CYCLE_SECONDS` (:func:`check_cycle_cost`).
+    """
     if not isinstance(params, CiliumParams):
         raise TypeError(f"params must be a CiliumParams, got {type(params).__name__}")
     if method not in METHODS:
@@ -517,138 +568,227 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
     else:
         check_degree(mesh.degree, error_estimate, "mesh degree")
     check_cycle_cost(mesh, N_PHASE_START if n_phase is None else int(n_phase))
+    return mesh
+
+
+def _still_fluid_limit_angle(params: CiliumParams) -> float:
+    """The limit angle of the equilibrium in fluid at rest (the background flow set to zero),
+    or NaN where there is none (:class:`~single_cilium.equilibrium.NoLimitAngleError`)."""
     try:
-        theta_lim = limit_angle(params.with_background((0.0, 0.0)))
+        return limit_angle(params.with_background((0.0, 0.0)))
     except NoLimitAngleError:
-        theta_lim = math.nan
-    used: list[OrbitSolver] = []
+        return math.nan
 
-    def Method(f: Filament, n_steps: int) -> OrbitSolver:
-        solver = METHODS[method](f, n_steps)
-        used.append(solver)
-        return solver
 
-    with single_threaded_blas():
+def _linear_stability(params: CiliumParams, mesh: Mesh):
+    """The two leading eigenvalues and modes of the equilibrium (:func:`single_cilium.stability`).
+
+    Raises
+    ------
+    CycleError
+        In a background flow, when the filament has no steady state in it (the continuation of
+        the steady state met a fold).
+    RuntimeError, ConvergenceError
+        Re-raised unchanged in fluid at rest.
+    """
+    try:
+        return stability(params, mesh=mesh, n_modes=2, check=False)
+    except RuntimeError as exc:  # in a stream: no steady state (the continuation met a fold)
+        if not params.has_background or isinstance(exc, ConvergenceError):
+            raise
+        raise CycleError(f"{params}: {exc}; no limit cycle about it can be sought", 0.0) from None
+
+
+def _without_flutter(params: CiliumParams, mesh: Mesh, st, theta_lim: float, method: str) -> LimitCycle:
+    """The result when the equilibrium does not flutter (``st.regime`` is not ``"flutter"``).
+
+    In fluid at rest the thrust is zero. In a background flow it is the force ``-int d ds`` of
+    the filament held at its steady state in the stream when that state is stable, and NaN when
+    it is unstable without oscillating.
+    """
+    if not params.has_background:
+        return LimitCycle(params, mesh, False, theta_lim=theta_lim, status="no oscillation",
+                          message=f"the equilibrium is {st.regime} (leading eigenvalue "
+                                  f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle, zero thrust",
+                          method=method)
+    # in a stream the filament at rest still exerts the stream's drag on the fluid
+    fil = Filament(params, mesh)
+    theta = fil.split(fil.equilibrium_state())[0]
+    if st.regime == "stable":
+        F = fil.clamp_force(fil.drag(theta, np.zeros_like(theta)))
+        what = f"thrust = the force of the steady state in the stream ({F[0]:.6g}, {F[1]:.6g})"
+    else:
+        F = np.full(2, math.nan)
+        what = "the steady state in the stream is unstable: no steady or periodic thrust (NaN)"
+    return LimitCycle(params, mesh, False, thrust=F, theta_lim=theta_lim, status="no oscillation",
+                      message=f"the equilibrium is {st.regime} (leading eigenvalue "
+                              f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle; {what}",
+                      method=method)
+
+
+def _first_converged(Method, fil: Filament, st, seed, tol: float, params: CiliumParams,
+                     n_phase: int | None) -> tuple[Orbit, OrbitSolver, int]:
+    """The first converged orbit, the solver that converged it and its steps per period.
+
+    With ``n_phase=None`` it starts at :data:`N_PHASE_START` steps and doubles them (up to
+    :data:`N_PHASE_MAX`) while an implicit step fails. With a given ``n_phase`` and no seed it
+    starts with ``n_phase / 2`` steps (when that is at least 16; the refinement to ``n_phase``
+    then gives the time error estimate), and goes straight to ``n_phase`` if a step fails there.
+
+    Raises
+    ------
+    CycleError
+        When no orbit converges; the message says what to change.
+    """
+    adaptive = n_phase is None
+    seeded = seed is not None and (isinstance(seed, LimitCycle) or len(seed) > 0)
+    if adaptive:
+        n = N_PHASE_START
+    else:
+        # without a seed, the orbit is found with half the steps (cheaper maps) and refined
+        # once, which also gives the time error estimate
+        n = int(n_phase) // 2 if (not seeded and int(n_phase) // 2 >= 16) else int(n_phase)
+    while True:
+        solver = Method(fil, n)
         try:
-            st = stability(params, mesh=mesh, n_modes=2, check=False)
-        except RuntimeError as exc:  # in a stream: no steady state (the continuation met a fold)
-            if not params.has_background or isinstance(exc, ConvergenceError):
-                raise
-            raise CycleError(f"{params}: {exc}; no limit cycle about it can be sought", 0.0) from None
-        if st.regime != "flutter":
-            if not params.has_background:
-                return LimitCycle(params, mesh, False, theta_lim=theta_lim, status="no oscillation",
-                                  message=f"the equilibrium is {st.regime} (leading eigenvalue "
-                                          f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle, zero thrust",
-                                  method=method)
-            # in a stream the filament at rest still exerts the stream's drag on the fluid
-            fil = Filament(params, mesh)
-            theta = fil.split(fil.equilibrium_state())[0]
-            if st.regime == "stable":
-                F = fil.clamp_force(fil.drag(theta, np.zeros_like(theta)))
-                what = f"thrust = the force of the steady state in the stream ({F[0]:.6g}, {F[1]:.6g})"
-            else:
-                F = np.full(2, math.nan)
-                what = "the steady state in the stream is unstable: no steady or periodic thrust (NaN)"
-            return LimitCycle(params, mesh, False, thrust=F, theta_lim=theta_lim, status="no oscillation",
-                              message=f"the equilibrium is {st.regime} (leading eigenvalue "
-                                      f"{st.alpha:.4g}{st.beta:+.4g}i): no limit cycle; {what}",
-                              method=method)
-        fil = Filament(params, mesh)
-        adaptive = n_phase is None
-        seeded = seed is not None and (isinstance(seed, LimitCycle) or len(seed) > 0)
-        if adaptive:
-            n = N_PHASE_START
-        else:
-            # without a seed, the orbit is found with half the steps (cheaper maps) and refined
-            # once, which also gives the time error estimate
-            n = int(n_phase) // 2 if (not seeded and int(n_phase) // 2 >= 16) else int(n_phase)
-        while True:
-            solver = Method(fil, n)
+            orbit = _first_orbit(solver, fil, st, seed, tol, params)
+            break
+        except OrbitError as exc:
+            if not adaptive and exc.step_failed and n < n_phase:
+                n = int(n_phase)  # the coarse start failed: straight to the steps asked for
+                continue
+            if not (adaptive and exc.step_failed and 2 * n <= N_PHASE_MAX):
+                if exc.step_failed:
+                    hint = (f"raise n_phase (e.g. to {2 * n})" if not adaptive else
+                            f"the implicit steps fail even at {n} steps per period: check the "
+                            "parameters or raise the degree")
+                else:
+                    hint = "give a seed from a neighbouring chi_N or raise the degree"
+                raise CycleError(f"{params}: {exc} (n_phase={n}); {hint}", exc.t) from None
+            logger.info("limit_cycle %s: %s at n_phase=%d; doubling", params, exc, n)
+            n *= 2
+    return orbit, solver, n
+
+
+def _phase_resolution(Method, fil: Filament, st, seed, tol: float, params: CiliumParams, orbit: Orbit,
+                      solver: OrbitSolver, n: int, n_phase: int | None, rtol: float, error_estimate: bool):
+    """Refine the steps per period, and the time part of the error estimate.
+
+    The orbit is re-converged with twice the steps from the same ``(y0, T)`` (the coarser
+    orbit's monodromy as the Newton Jacobian): with ``n_phase=None`` until the change of the
+    period, ``|Fbar|`` (relative) and the thrust angle (absolute), divided by ``_RICHARDSON``
+    (15), is at most ``rtol / 2`` or :data:`N_PHASE_MAX` is reached; with a given ``n_phase``
+    until it is reached. A refinement whose implicit step fails starts afresh at the doubled
+    steps. When no refinement gave the time error and ``error_estimate`` is true, the orbit is
+    re-converged with half the steps for it.
+
+    Returns
+    -------
+    orbit, solver, n
+        The finest orbit, its solver and its steps per period.
+    time_err : dict or None
+        The time error estimates of ``period``, ``thrust_norm``, ``thrust_angle``.
+    half, q_half
+        The orbit with ``n / 2`` steps and its (period, ``|Fbar|``, angle), or None.
+
+    Raises
+    ------
+    CycleError
+        A refinement that does not converge (other than by a failed step).
+    """
+    adaptive = n_phase is None
+    c = float(orbit.state0[fil.n - 2])
+    q = _quantities(orbit.period, _thrust(fil, orbit))
+    time_err = None
+    half, q_half = None, None  # the orbit with n / 2 steps, for the error estimates
+    # the phase resolution: re-converge at 2n from (y0, T) until the time estimate is below rtol / 2
+    while (2 * n <= N_PHASE_MAX) if adaptive else (n < n_phase):
+        finer = Method(fil, 2 * n)
+        try:
+            orb2 = finer.converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
+        except OrbitError as exc:
+            if not exc.step_failed:
+                raise CycleError(f"{params}: {exc} (refining to n_phase={2 * n})", exc.t) from None
+            logger.info("limit_cycle %s: refinement to n_phase=%d failed (%s)", params, 2 * n, exc)
+            n, solver, time_err, half = 2 * n, finer, None, None
             try:
                 orbit = _first_orbit(solver, fil, st, seed, tol, params)
-                break
-            except OrbitError as exc:
-                if not adaptive and exc.step_failed and n < n_phase:
-                    n = int(n_phase)  # the coarse start failed: straight to the steps asked for
-                    continue
-                if not (adaptive and exc.step_failed and 2 * n <= N_PHASE_MAX):
-                    if exc.step_failed:
-                        hint = (f"raise n_phase (e.g. to {2 * n})" if not adaptive else
-                                f"the implicit steps fail even at {n} steps per period: check the "
-                                "parameters or raise the degree")
-                    else:
-                        hint = "give a seed from a neighbouring chi_N or raise the degree"
-                    raise CycleError(f"{params}: {exc} (n_phase={n}); {hint}", exc.t) from None
-                logger.info("limit_cycle %s: %s at n_phase=%d; doubling", params, exc, n)
-                n *= 2
-        errors: dict = {}
-        c = float(orbit.state0[fil.n - 2])
-        q = _quantities(orbit.period, _thrust(fil, orbit))
-        time_err = None
-        half, q_half = None, None  # the orbit with n / 2 steps, for the error estimates
-        # the phase resolution: re-converge at 2n from (y0, T) until the time estimate is below rtol / 2
-        while (2 * n <= N_PHASE_MAX) if adaptive else (n < n_phase):
-            finer = Method(fil, 2 * n)
-            try:
-                orb2 = finer.converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
-            except OrbitError as exc:
-                if not exc.step_failed:
-                    raise CycleError(f"{params}: {exc} (refining to n_phase={2 * n})", exc.t) from None
-                logger.info("limit_cycle %s: refinement to n_phase=%d failed (%s)", params, 2 * n, exc)
-                n, solver, time_err, half = 2 * n, finer, None, None
-                try:
-                    orbit = _first_orbit(solver, fil, st, seed, tol, params)
-                except OrbitError as exc2:
-                    raise CycleError(f"{params}: {exc2} (n_phase={n})", exc2.t) from None
-                c = float(orbit.state0[fil.n - 2])
-                q = _quantities(orbit.period, _thrust(fil, orbit))
-                continue
-            q2 = _quantities(orb2.period, _thrust(fil, orb2))
-            time_err = {k: v / _RICHARDSON for k, v in _differences(q2, q).items()}
-            half, q_half = orbit, q
-            n, solver, orbit, q = 2 * n, finer, orb2, q2
-            if adaptive and max(time_err.values()) <= 0.5 * rtol:
-                break
-        if time_err is None and error_estimate:
-            half = Method(fil, n // 2).converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
-            q_half = _quantities(half.period, _thrust(fil, half))
-            time_err = {k: v / _RICHARDSON for k, v in _differences(q, q_half).items()}
-        # start at phase 0 (the same discrete orbit, sampled from there; re-converged only if
-        # the shifted start does not close to the Newton tolerance)
-        y0 = _rephase(solver, orbit)
-        shifted = solver.at_phase(y0, orbit)
-        if shifted.residual <= 100 * tol:
-            orbit = shifted
-        else:
-            orbit = solver.converge(y0, orbit.period, float(y0[fil.n - 2]), tol, jacobian=shifted)
-        T = orbit.period
-        result = _assemble(params, mesh, fil, orbit)
-        base = _quantities(T, result["thrust"])
-        mults = np.zeros(0, complex)
-        fl = triv = math.nan
-        if floquet:
-            mults = solver.multipliers(orbit)
-            triv = abs(mults[0] - 1.0)
-            fl = max(float(np.abs(mults[1])) if mults.size > 1 else 0.0, math.exp(-T))
-            mults = mults[:6]
-        if error_estimate or adaptive:
-            space_err = None
-            if error_estimate:
-                # degree - 2 against this degree, both with n / 2 steps when that orbit exists
-                # (time and space errors add to leading order; half the cost)
-                ref, q_ref = (half, q_half) if half is not None else (orbit, base)
-                m2 = Mesh(mesh.breaks, mesh.degree - 2)
-                fil2 = Filament(params, m2)
-                th, ka = fil.split(ref.state0)
-                y2 = fil2.join(mesh.interpolate(th, m2.nodes), mesh.interpolate(ka, m2.nodes))
-                o = Method(fil2, ref.n_steps).converge(y2, ref.period, float(y2[fil2.n - 2]), tol)
-                space_err = _differences(q_ref, _quantities(o.period, _thrust(fil2, o)))
-            for k in ("period", "thrust_norm", "thrust_angle"):
-                errors[k] = (time_err[k] if time_err else 0.0) + (space_err[k] if space_err else 0.0)
-            errors["time"] = max(time_err.values()) if time_err else math.nan
-            errors["space"] = max(space_err.values()) if space_err else math.nan
-    work = _total_work(used)
+            except OrbitError as exc2:
+                raise CycleError(f"{params}: {exc2} (n_phase={n})", exc2.t) from None
+            c = float(orbit.state0[fil.n - 2])
+            q = _quantities(orbit.period, _thrust(fil, orbit))
+            continue
+        q2 = _quantities(orb2.period, _thrust(fil, orb2))
+        time_err = {k: v / _RICHARDSON for k, v in _differences(q2, q).items()}
+        half, q_half = orbit, q
+        n, solver, orbit, q = 2 * n, finer, orb2, q2
+        if adaptive and max(time_err.values()) <= 0.5 * rtol:
+            break
+    if time_err is None and error_estimate:
+        half = Method(fil, n // 2).converge(orbit.state0, orbit.period, c, tol, jacobian=orbit)
+        q_half = _quantities(half.period, _thrust(fil, half))
+        time_err = {k: v / _RICHARDSON for k, v in _differences(q, q_half).items()}
+    return orbit, solver, n, time_err, half, q_half
+
+
+def _start_at_phase_zero(solver: OrbitSolver, orbit: Orbit, fil: Filament, tol: float) -> Orbit:
+    """The same discrete orbit sampled from phase 0 (:func:`_rephase`); re-converged from there
+    only if the shifted start does not close to ``100 * tol``."""
+    y0 = _rephase(solver, orbit)
+    shifted = solver.at_phase(y0, orbit)
+    if shifted.residual <= 100 * tol:
+        return shifted
+    return solver.converge(y0, orbit.period, float(y0[fil.n - 2]), tol, jacobian=shifted)
+
+
+def _floquet(solver: OrbitSolver, orbit: Orbit, T: float, wanted: bool) -> tuple[np.ndarray, float, float]:
+    """The Floquet multipliers (at most 6, the trivial one first), ``floquet`` (the largest
+    non-trivial modulus, at least ``exp(-T)``) and the trivial multiplier's distance from 1;
+    an empty array and NaNs when not ``wanted``."""
+    mults = np.zeros(0, complex)
+    fl = triv = math.nan
+    if wanted:
+        mults = solver.multipliers(orbit)
+        triv = abs(mults[0] - 1.0)
+        fl = max(float(np.abs(mults[1])) if mults.size > 1 else 0.0, math.exp(-T))
+        mults = mults[:6]
+    return mults, fl, triv
+
+
+def _error_estimates(Method, params: CiliumParams, mesh: Mesh, fil: Filament, orbit: Orbit, base, time_err,
+                     half, q_half, tol: float, error_estimate: bool) -> dict:
+    """The error estimates of a result: ``period``, ``thrust_norm`` (relative) and
+    ``thrust_angle`` (absolute, radians), each the time part plus the space part, and the parts
+    ``time`` and ``space`` (the largest of the three; NaN when not computed).
+
+    The space part is the change when the degree is lowered by 2, both with ``n / 2`` steps when
+    that orbit (``half``) exists, else with the result's steps; it is computed only when
+    ``error_estimate`` is true.
+    """
+    errors: dict = {}
+    space_err = None
+    if error_estimate:
+        # degree - 2 against this degree, both with n / 2 steps when that orbit exists
+        # (time and space errors add to leading order; half the cost)
+        ref, q_ref = (half, q_half) if half is not None else (orbit, base)
+        m2 = Mesh(mesh.breaks, mesh.degree - 2)
+        fil2 = Filament(params, m2)
+        th, ka = fil.split(ref.state0)
+        y2 = fil2.join(mesh.interpolate(th, m2.nodes), mesh.interpolate(ka, m2.nodes))
+        o = Method(fil2, ref.n_steps).converge(y2, ref.period, float(y2[fil2.n - 2]), tol)
+        space_err = _differences(q_ref, _quantities(o.period, _thrust(fil2, o)))
+    for k in ("period", "thrust_norm", "thrust_angle"):
+        errors[k] = (time_err[k] if time_err else 0.0) + (space_err[k] if space_err else 0.0)
+    errors["time"] = max(time_err.values()) if time_err else math.nan
+    errors["space"] = max(space_err.values()) if space_err else math.nan
+    return errors
+
+
+def _verdict(method: str, n: int, adaptive: bool, mesh: Mesh, orbit: Orbit, errors: dict, error_estimate: bool,
+             rtol: float) -> tuple[str, str]:
+    """The ``status`` and one-line ``message`` of a converged cycle: ``"unchecked"`` without
+    error estimates, ``"inaccurate"`` (with what to raise) when an estimate exceeds ``rtol``,
+    else ``"success"``."""
     chose = f"n_phase={n} (chosen)" if adaptive else f"n_phase={n}"
     msg = f"converged ({method}, {chose}, degree {mesh.degree}): shooting residual {orbit.residual:.1e}"
     status = "success"
@@ -663,9 +803,7 @@ def limit_cycle(params: CiliumParams, *, mesh: Mesh | None = None, degree: int =
             fix = ("raise n_phase" if errors["time"] >= errors.get("space", 0.0) or math.isnan(errors["space"])
                    else "raise the degree")
             msg += f"; above rtol={rtol:g}: {fix}"
-    return LimitCycle(params, mesh, True, T, result["data"], result["thrust"], theta_lim,
-                      result["tip_area"], mults, fl, triv, errors, work, status, msg, orbit.state0,
-                      method, n)
+    return status, msg
 
 
 @dataclass(frozen=True)
