@@ -96,3 +96,14 @@ def test_no_page_or_docstring_cites_internal_history():
             found += [f"{p.relative_to(ROOT)}:{n}" for n, line in enumerate(p.read_text().splitlines(), 1)
                       if history.search(line)]
     assert found == [], "history belongs in benchmarks/results and git, not in what users read: " + ", ".join(found)
+
+
+def test_the_benchmark_index_names_every_script_and_only_results_files_that_exist():
+    readme = (ROOT / "benchmarks" / "README.md").read_text()
+    scripts = sorted(p.stem for p in (ROOT / "benchmarks").glob("bench_*.py"))
+    missing = [s for s in scripts if f"\n## {s}:" not in readme]
+    assert missing == [], f"benchmarks/README.md has no entry for {missing}"
+    cited = set(re.findall(r"benchmarks/results/(bench_\w+\.md)", readme)) | set(re.findall(r"`(bench_\w+\.md)`", readme))
+    absent = sorted(f for f in cited if not (ROOT / "benchmarks" / "results" / f).is_file() and f != "bench_gpu.md")
+    assert absent == [], f"benchmarks/README.md cites results files that do not exist: {absent}"
+    assert not re.search(r"\b(stop|issue) \d+\b", readme), "the index holds current results; history goes to the results files"
