@@ -47,7 +47,7 @@ from single_cilium.table import ThrustTable  # noqa: E402
 from ciliary_carpet.carpet import layout  # noqa: E402
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean  # noqa: E402
 from ciliary_carpet.carpet.coupling import couple, coupling_estimate  # noqa: E402
-from ciliary_carpet.design.inverse import design  # noqa: E402
+from ciliary_carpet.scenes.assembly import design  # noqa: E402
 from ciliary_carpet.scenes.scene import load_scene  # noqa: E402
 
 OUT: list[str] = []
@@ -170,7 +170,7 @@ def peak_gb():  # this process's peak resident memory: VmHWM (ru_maxrss keeps th
         if line.startswith("VmHWM:"):
             return int(line.split()[1]) / 1e6
 from ciliary_carpet.scenes.scene import load_scene
-from ciliary_carpet.design.inverse import design
+from ciliary_carpet.scenes.assembly import design
 sc = load_scene("designs/uniform_deflection.toml")
 sc = replace(sc, carpet=replace(sc.carpet, shape=({n}, {n}), coupling="{coupling}"))
 t0 = time.perf_counter()

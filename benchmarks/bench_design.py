@@ -74,7 +74,7 @@ from ciliary_carpet.carpet.cycles import cycle_moments
 from ciliary_carpet.design import DesignModel, design_layout
 from ciliary_carpet.render import render
 from ciliary_carpet.scenes.scene import load_scene
-from ciliary_carpet.design.target import Frame, control_points
+from ciliary_carpet.design import Frame, control_points
 from single_cilium.table import ThrustTable
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -70,7 +70,7 @@ def _median_time(fn, repeats: int) -> float:
 def measure(n: int, points: list[int], repeats: int) -> list[str]:
     import bench_large
     from ciliary_carpet.carpet.carpet import Instant
-    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.scenes.scene import load_scene
 
     with tempfile.TemporaryDirectory() as tmp:

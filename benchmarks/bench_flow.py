@@ -451,7 +451,7 @@ def bench_longtime(quick: bool, emit) -> dict:
     seeds them, for the render's automatic duration."""
     import warnings
 
-    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow
     from ciliary_carpet.transport.pathlines import pathlines
     from ciliary_carpet.output.plan import FieldGrid, pathline_duration, seed_points

@@ -123,7 +123,7 @@ def _vtp_end_points(path: Path) -> np.ndarray:
 def _design(scene_path: Path):
     """The designed carpet, the plan and the spacing of a scene file."""
     from ciliary_carpet.cli import _scene
-    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.output.plan import RenderPlan
     from ciliary_carpet.output.resources import check_resources
 
@@ -232,7 +232,7 @@ def fields(stride: int) -> str:
     from ciliary_carpet.carpet.cycles import ResolvedSources
     from ciliary_carpet.carpet.traversal import dense_sum
     from ciliary_carpet.cli import _scene
-    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.output.plan import RenderPlan
     from ciliary_carpet.output.resources import check_resources
     from ciliary_carpet.stokes import FMM, Stokeslet

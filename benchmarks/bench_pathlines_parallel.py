@@ -86,7 +86,7 @@ def _scene_path(key: str, folder: Path) -> Path:
 
 def _prepared(scene_path: Path):
     """The scene's plan and designed carpet, as a render makes them."""
-    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.output.plan import RenderPlan
     from ciliary_carpet.output.resources import check_resources
     from ciliary_carpet.scenes.scene import load_scene

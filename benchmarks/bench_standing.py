@@ -42,7 +42,7 @@ from ciliary_carpet.carpet import layout  # noqa: E402
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean  # noqa: E402
 from ciliary_carpet.design.surface import HEIGHT, SurfaceModel, design_surface, surface_response  # noqa: E402
 from ciliary_carpet.design.surface_target import surface_directions  # noqa: E402
-from ciliary_carpet.design.target import Frame, control_points  # noqa: E402
+from ciliary_carpet.design import Frame, control_points  # noqa: E402
 
 OUT: list[str] = []
 

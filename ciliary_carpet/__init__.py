@@ -7,14 +7,15 @@ subpackage, itself a layer with one noun per module.
 
 Scenes (:mod:`ciliary_carpet.scenes`)
     load_scene, scene_from_dict, Scene, SceneError: a scene file read and checked;
-    assemble, load_table: the objects it describes (the one route from a scene to objects).
+    assemble, load_table, carpet_for: the objects it describes (the one route from a scene to
+    objects); design: its carpet designed for its target.
 Carpets (:mod:`ciliary_carpet.carpet`)
     Carpet (``carpet.evaluate(points, when=Instant(t) | CycleMean(), tol)`` -> FlowSample),
     Instant, CycleMean, FlowSample, layout (lattices of base points and phases).
 Flow sums (:mod:`ciliary_carpet.stokes`)
     stokeslet_velocity, Wall, backend_named: sums of point forces, by evaluator.
 Design (:mod:`ciliary_carpet.design`)
-    design (a scene's carpet for its target), design_layout, Design, DesignError, reachability,
+    design_layout (a carpet's curvatures for control points), Design, DesignError, reachability,
     tolerance_study, Target, Frame, PATTERNS.
 Transport (:mod:`ciliary_carpet.transport`)
     pathlines, ftle_field and the flows they follow (ResolvedFlow, MeanFlow; the registry FLOWS).
@@ -43,13 +44,12 @@ from ciliary_carpet.design import (  # noqa: E402
     DesignError,
     Frame,
     Target,
-    design,
     design_layout,
     reachability,
     tolerance_study,
 )
 from ciliary_carpet.render import RenderError, RenderResult, render  # noqa: E402
-from ciliary_carpet.scenes.assembly import assemble, load_table  # noqa: E402
+from ciliary_carpet.scenes.assembly import assemble, carpet_for, design, load_table  # noqa: E402
 from ciliary_carpet.scenes.scene import Scene, SceneError, load_scene, scene_from_dict  # noqa: E402
 from ciliary_carpet.stokes import Wall, backend_named, stokeslet_velocity  # noqa: E402
 from ciliary_carpet.transport.flow import FLOWS, MeanFlow, ResolvedFlow  # noqa: E402
@@ -57,10 +57,10 @@ from ciliary_carpet.transport.ftle import ftle_field  # noqa: E402
 from ciliary_carpet.transport.pathlines import pathlines  # noqa: E402
 
 __all__ = [
-    "load_scene", "scene_from_dict", "Scene", "SceneError", "assemble", "load_table",
+    "load_scene", "scene_from_dict", "Scene", "SceneError", "assemble", "load_table", "carpet_for", "design",
     "Carpet", "Instant", "CycleMean", "FlowSample", "layout",
     "stokeslet_velocity", "Wall", "backend_named",
-    "design", "design_layout", "Design", "DesignError", "reachability", "tolerance_study", "Target", "Frame",
+    "design_layout", "Design", "DesignError", "reachability", "tolerance_study", "Target", "Frame",
     "PATTERNS",
     "pathlines", "ftle_field", "ResolvedFlow", "MeanFlow", "FLOWS",
     "render", "RenderResult", "RenderError",

@@ -39,7 +39,8 @@ from single_cilium.table import TableError
 from cilia_runtime.threads import ThreadBudget, threads_in_use
 
 from ciliary_carpet.carpet.coupling import CouplingError
-from ciliary_carpet.design import DesignError, design
+from ciliary_carpet.design import DesignError
+from ciliary_carpet.scenes.assembly import design
 from ciliary_carpet.design.target import TargetError, UnreachableTargetError
 from ciliary_carpet.output.resources import available_memory, expected_memory, places_that_fit
 from ciliary_carpet.output.vtkfiles import OutputError

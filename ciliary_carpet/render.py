@@ -41,13 +41,12 @@ import numpy as np
 
 from cilia_runtime.progress import Progress
 
-from ciliary_carpet.design import design
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, OutputFolder, is_complete, owned_files
 from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY, RenderContext
 from ciliary_carpet.output.plan import RenderPlan
 from ciliary_carpet.output.resources import ResourceError, check_resources
-from ciliary_carpet.scenes.assembly import load_table
+from ciliary_carpet.scenes.assembly import carpet_for, design, load_table
 from ciliary_carpet.scenes.scene import Scene, as_scene
 from ciliary_carpet.stokes import Auto, backend_named
 from ciliary_carpet.transport.parallel import InProcess
@@ -99,7 +98,8 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         built = table_file is not None and not table_file.exists()
         load_table(scene, progress=progress)  # a [table.build] says what it computes, and shows its rows
         t_table = _time.perf_counter() - t0
-        d, carpet = design(scene)  # table (now cached), range check, target and carpet: assembly.assemble
+        # table (now cached), range check, target and carpet: scenes.assembly
+        d, carpet = design(scene) if scene.target.kind != "none" else (None, carpet_for(scene))
         clock = {"table": t_table, "design": _time.perf_counter() - t0 - t_table}
         plan = RenderPlan.decide(scene, carpet, designed=d is not None, estimate=estimate)  # errors before any output
         progress.note(plan.describe() + f" (design {clock['design']:.1f} s)")

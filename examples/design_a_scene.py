@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import ciliary_carpet as cc
-from ciliary_carpet.design.target import control_points
+from ciliary_carpet.design import control_points
 
 HERE = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
 DESIGNS = next(d / "designs" for d in (HERE, *HERE.parents) if (d / "designs").is_dir())  # the bundled scenes

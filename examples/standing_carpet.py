@@ -20,7 +20,7 @@ from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.design.surface import design_surface
 from ciliary_carpet.design.surface_target import surface_directions
-from ciliary_carpet.design.target import Frame, control_points
+from ciliary_carpet.design import Frame, control_points
 from single_cilium.table import ThrustTable
 
 table = ThrustTable.default()

@@ -12,13 +12,15 @@ from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.cycles import cycle_moments
 from ciliary_carpet.cli import main
-from ciliary_carpet.design.inverse import INSIDE_WEIGHT, design, design_layout
+from ciliary_carpet.design.inverse import INSIDE_WEIGHT, design_layout
 from ciliary_carpet.design.model import NEAR_RADIUS, DesignModel, NearField, angle_objective, floor_reference
 from ciliary_carpet.design.result import DesignError
 from ciliary_carpet.design.tolerance import tolerance_study
 from ciliary_carpet.scenes.scene import SceneError, load_scene
-from ciliary_carpet.scenes.assembly import assemble, frame_of
-from ciliary_carpet.design.target import Frame, TargetError, control_points
+from ciliary_carpet.scenes.assembly import assemble, design, frame_of
+from ciliary_carpet.design.control import control_points
+from ciliary_carpet.design.frame import Frame
+from ciliary_carpet.design.target import TargetError
 from single_cilium.table import ThrustTable
 
 DESIGNS = Path(__file__).resolve().parents[1] / "designs"

@@ -69,7 +69,7 @@ def test_chi_N_colours_of_one_value_are_not_degenerate():
 
 @pytest.fixture(scope="module")
 def designed():
-    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.scenes.scene import load_scene
 
     scene = load_scene(DESIGNS / "uniform_deflection.toml").reduced()

@@ -11,8 +11,9 @@ from vtk.util.numpy_support import vtk_to_numpy
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.cli import batch, main
-from ciliary_carpet.design import DesignError, design, design_layout
+from ciliary_carpet.design import DesignError, design_layout
 from ciliary_carpet.render import RenderError, render
+from ciliary_carpet.scenes.assembly import design
 from ciliary_carpet.scenes.scene import load_scene
 from ciliary_carpet.design.target import TargetError
 from single_cilium.table import ThrustTable

@@ -394,7 +394,9 @@ def resolved_now() -> dict:
     filled, target, frame, carpet, control points and target deflections), and the defaults of
     an empty scene, of each angle kind and of a Target made in code."""
     from ciliary_carpet.scenes.assembly import assemble
-    from ciliary_carpet.design.target import ANGLE_KINDS, Target, control_points
+    from ciliary_carpet.design.control import control_points
+    from ciliary_carpet.design.patterns import ANGLE_KINDS
+    from ciliary_carpet.design.target import Target
 
     out = {}
     for path in DESIGN_FILES:
@@ -466,8 +468,7 @@ def test_one_builder_from_scene_to_table_carpet_and_target(tmp_path):
     """assembly.assemble is the path from a scene to its table, carpet and target: design()
     (and through it render and the command line) builds its carpet there, and a chi_N outside
     the table is refused there, naming the key."""
-    from ciliary_carpet.scenes.assembly import assemble
-    from ciliary_carpet.design import design
+    from ciliary_carpet.scenes.assembly import assemble, design
 
     s = scene_from_dict({"carpet": {"shape": [3, 2], "chi_N": 40, "phases": "synchronous"},
                          "field": {"direction": 30}})

@@ -8,7 +8,7 @@ from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.design import surface as S
 from ciliary_carpet.design.surface_target import SURFACE_KINDS, surface_directions, surface_field
-from ciliary_carpet.design.target import Frame, TargetError, control_points
+from ciliary_carpet.design import Frame, TargetError, control_points
 from single_cilium.table import ThrustTable
 
 

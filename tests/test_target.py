@@ -9,15 +9,11 @@ import xarray as xr
 
 from ciliary_carpet.scenes.scene import load_scene, scene_from_dict
 from ciliary_carpet.scenes.assembly import frame_of, load_table, target_of
-from ciliary_carpet.design.target import (
-    DEFAULT_ANGLE_FRACTION,
-    Frame,
-    Target,
-    TargetError,
-    control_points,
-    reachable_check,
-    read_target_points,
-)
+from ciliary_carpet.scenes.target_spec import resolve_target
+from ciliary_carpet.design.control import control_points, reachable_check
+from ciliary_carpet.design.frame import Frame
+from ciliary_carpet.design.target import DEFAULT_ANGLE_FRACTION, Target, TargetError
+from ciliary_carpet.design.target_files import read_target_points
 
 DESIGNS = Path(__file__).resolve().parents[1] / "designs"
 A = math.radians(40)
@@ -115,7 +111,7 @@ def test_target_from_scene_defaults_and_kinds(tmp_path):
     assert np.isclose(t2.amplitude, DEFAULT_ANGLE_FRACTION * table.thrust_angle_range()[1])
     assert t2.width is None and t2.centre is None and t2.control == "cells"
     with pytest.raises(TargetError, match="angle_max"):
-        Target.from_spec(s2.target)
+        resolve_target(s2.target)
     none = target_of(scene_from_dict({}))
     with pytest.raises(TargetError):
         none.deflection([[0.0, 0.0]], frame())
@@ -267,14 +263,15 @@ def test_design_targets_are_reachable_and_patterns_right():
 
 
 def test_registry_drives_the_schema_and_the_readme():
-    """The kinds of [target] are target.PATTERNS and the keys each takes come from TargetSpec's
+    """The kinds of [target] are patterns.PATTERNS and the keys each takes come from TargetSpec's
     field metadata: KIND_KEYS covers exactly TargetSpec's keys, a key that does not apply to a
     kind is rejected naming the kinds it is for, and every angle pattern evaluates through its
     registry entry (designs/README.md against both: tests/test_scene.py)."""
     from dataclasses import fields
 
+    from ciliary_carpet.design.patterns import ANGLE_KINDS, KINDS, PATTERNS
     from ciliary_carpet.scenes.scene import SceneError, TargetSpec, scene_from_dict
-    from ciliary_carpet.design.target import ANGLE_KINDS, KIND_KEYS, KINDS, PATTERNS, applies_to
+    from ciliary_carpet.scenes.target_spec import KIND_KEYS, applies_to
 
     assert KINDS == tuple(p.name for p in PATTERNS) and set(KIND_KEYS) == set(KINDS)
     keys = {k for v in KIND_KEYS.values() for k in v}
@@ -306,7 +303,7 @@ def test_registry_drives_the_schema_and_the_readme():
 
 
 def test_sample_uncertainties_come_as_a_pair_of_numbers_at_least_zero(tmp_path):
-    from ciliary_carpet.design.target import read_target_samples
+    from ciliary_carpet.design.target_files import read_target_samples
 
     p = tmp_path / "c.csv"
     p.write_text("x,y,u,v,du,dv\n0,0,1,2,0.1,0.2\n1,0,1,2,0,0\n")

@@ -62,7 +62,8 @@ cilia of 144 off by more than 30 in chi_N (sign flips). After each solve a sweep
 Error bar. ``residual_error`` bounds |residual_rms - its value on the resolved flow| by the
 rms over the control points of the per-point bounds of the levels of detail (the residual of a
 point moves by at most b_k / s for velocity targets, arcsin(b_k / |u_k|) for angles). Given a
-``threshold`` (:func:`design` passes ``[target] residual``) the returned layout is checked once
+``threshold`` (:func:`~ciliary_carpet.design.target_design.design_target` passes the target's
+``residual``) the returned layout is checked once
 more at a tolerance picked so that the bar is at most half the threshold (the bound scales about
 like the tolerance; at worst the resolved sum, tol = 0); tested against tol = 0. The bound is
 rigorous but, above a wall, loose by orders of magnitude (its Taylor constants are worst cases
@@ -100,21 +101,20 @@ from scipy.optimize import minimize
 
 from single_cilium.table import ThrustTable
 
-from ciliary_carpet.scenes.assembly import assemble
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.coupling import DENSE_CILIA, CouplingResponse
 from ciliary_carpet.carpet.cycles import cycle_moments
+from ciliary_carpet.design.control import reachable_check
+from ciliary_carpet.design.errors import TargetError
 from ciliary_carpet.design.model import (GOOD_ENOUGH, NEAR_RADIUS, DesignModel, NearField, angle_objective,
                                          angle_terms, floor_reference, solver_threads, sweep)
-from ciliary_carpet.design.reachability import reachability
-from ciliary_carpet.design.result import Design, DesignError
-from ciliary_carpet.design.target import TargetError, control_points, reachable_check, spec_default
-from ciliary_carpet.design.tolerance import tolerance_study
+from ciliary_carpet.design.result import Design
+from ciliary_carpet.design.target import DEFAULT_SPEED_FLOOR
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["design", "design_layout", "carpet_with", "check_control_points", "INSIDE_SWEPT", "INSIDE_WEIGHT",
+__all__ = ["design_layout", "carpet_with", "check_control_points", "INSIDE_SWEPT", "INSIDE_WEIGHT",
            "INSIDE_ACCURACY", "GOOD_ENOUGH", "NEAR_CUTOFF_FRACTION"]
 
 NEAR_CUTOFF_FRACTION = 0.25
@@ -189,7 +189,7 @@ def _with_chi(carpet: Carpet, chi: np.ndarray) -> Carpet:
 
 # ------------------------------------------------------------------------------ design
 def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cilium_angles=None, clip: bool = False,
-                  tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = spec_default("speed_floor"),
+                  tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = DEFAULT_SPEED_FLOOR,
                   floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
                   outer: int = 2, ftol: float = 1e-6, maxiter: int = 500,
                   spacing: float | None = None, floor_radius: float | None = None,
@@ -554,159 +554,3 @@ def carpet_with(design: Design, carpet: Carpet) -> Carpet:
     if design.carpet is not None and np.array_equal(design.carpet.bases, carpet.bases):
         return design.carpet
     return _with_chi(carpet, design.chi_N)
-
-
-def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carpet]:
-    """Design the scene's carpet for its target: returns (Design, the designed Carpet), or
-    (None, the scene's carpet) when the scene has no target.
-
-    The target's control points and angles (or velocities) come from :mod:`ciliary_carpet.design.target`;
-    the per-cilium request is the pattern evaluated at each cilium's force centre. A design whose
-    rms residual exceeds ``[target] residual`` returns the closest flow the cilia can make, with
-    a warning naming the worst control points; with ``[target] strict = true`` it is a
-    DesignError (exit status 3 of the command line) and unreachable angle requests are a
-    TargetError instead of being clipped. ``scene``: a :class:`~ciliary_carpet.scenes.scene.Scene` or
-    the path of a scene file (else a TypeError)."""
-    from ciliary_carpet.scenes.scene import as_scene  # (the scene module imports the design's targets)
-
-    scene = as_scene(scene, "design()")
-    built = assemble(scene, table)
-    table, target, bases, frame = built.table, built.target, built.bases, built.frame
-    if target.kind == "none":
-        return None, built.carpet()
-    if scene.carpet.geometry == "standing":  # (the scene's key: a carpet of 10^4 cilia takes seconds to build)
-        return _design_standing(scene, built)
-    strict = target.strict
-    threshold = target.threshold()  # [target] residual, with sampled velocities' own noise
-    kw = dict(tol=scene.tolerance, speed_floor=target.speed_floor, smoothness=target.smoothness,
-              spacing=scene.carpet.spacing, robust_sigma=target.sigma if target.robust else 0.0,
-              threshold=threshold, inside_swept=target.inside_swept)
-    if target.is_angle:
-        # the local layout straight away (no carpet of straight cilia is built): the request at
-        # each cilium's force centre, the centre of the straight filament
-        mom = cycle_moments(table)
-        a = scene.field.direction_rad
-        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-        centres0 = bases + mom(np.zeros(1))["offset"] @ rot.T
-        want, bad = reachable_check(target.deflection(centres0, frame), table.thrust_angle_range(), not strict,
-                                    what="cilium", points=bases)
-        chi0 = np.asarray(table.chi_N_for_angle(want), dtype=float)
-        carpet = built.carpet(chi0)
-        X = control_points(bases, frame, target.control)
-        reach = reachability(carpet, X, frame, target=target)  # up front: what this carpet can make
-        if target.pattern.two_sided and target.amplitude > reach.pattern_max:
-            logger.info("design: the %s amplitude %.1f deg exceeds the estimated reachable %.1f deg of a two-sided "
-                        "pattern on this carpet", target.kind, math.degrees(target.amplitude),
-                        math.degrees(reach.pattern_max))
-        if reach.width_reachable is False:
-            logger.info("design: the %s width %.3g L is below the estimated narrowest %.3g L at %.1f deg on this "
-                        "carpet (estimated rms %.3g against %g)", target.kind, reach.width, reach.width_min,
-                        math.degrees(target.amplitude), reach.width_rms, target.residual)
-        d = design_layout(carpet, X, angles=target.deflection(X, frame), cilium_angles=want, clip=not strict,
-                          **kw)
-        d = _replace(d, reachability=reach.summary(),
-                     **({"clipped": tuple(np.nonzero(bad)[0].tolist())} if np.any(bad) else {}))
-    else:
-        carpet = built.carpet()
-        X, U = target.velocities()
-        d = design_layout(carpet, X, velocities=U, clip=not strict, sample_weights=target.sample_weights(), **kw)
-    verdict = _verdict_threshold(target)
-    if d.residual_rms > threshold:
-        unit = "rad" if d.kind == "angle" else "relative"
-        lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
-        est, hint = [], ("Lower the target angle, widen the pattern, or move the control points away from the cilia"
-                         if target.is_angle else _POINTS_HINT)
-        r = d.reachability
-        if target.pattern.two_sided and r is not None:
-            est.append(f"a two-sided pattern holds about {r['pattern_max_deg']:.1f} deg, asked "
-                       f"{math.degrees(target.amplitude):.1f} deg")
-        if r is not None and "width_min" in r:
-            wm = r["width_min"]
-            est.append(f"narrowest transition at {math.degrees(target.amplitude):.1f} deg: "
-                       + ("none up to 8 spacings" if wm is None else f"{wm:.3g} L") + f", asked {r['width']:.3g} L")
-            if wm is not None and r["width"] < wm:
-                hint = f"Widen the pattern to about {wm:.3g} L or more, lower the target angle, or move the control " \
-                       "points away from the cilia"
-        est_s = f" (estimated on this carpet: {'; '.join(est)})" if est else ""
-        msg = (f"{scene.source_name}: the cilia cannot make this target: rms residual {d.residual_rms:.3g} "
-               f"{unit} exceeds {verdict}{est_s}; worst control points {lst}. {hint}")
-        if strict:
-            raise DesignError(msg)
-        warnings.warn(msg + " (strict = false: returning the closest flow the cilia make)", UserWarning,
-                      stacklevel=2)
-        d = _replace(d, message=d.message + f"; target NOT met ({verdict}): the "
-                     f"closest flow the cilia make; worst control points {lst}")
-    else:
-        d = _replace(d, message=d.message + f"; target met ({verdict})")
-    d = _replace(d, threshold=threshold)
-    if target.sigma > 0:
-        d = _replace(d, tolerance=tolerance_study(d.carpet, d, target.sigma, target.samples).summary())
-    return d, d.carpet
-
-
-_POINTS_HINT = ("Lower the target speeds where the residual is largest, check that the samples are in the lab "
-                "frame and in L/tau (a scene's [units] convert them), set [target] residual to the samples' own "
-                "relative noise if that is larger, or use more cilia")
-"""What to change when a "points" target (sampled velocities, e.g. PIV) is not met."""
-
-
-def _verdict_threshold(target) -> str:
-    """The threshold a verdict is given against, in words: ``[target] residual``, and for sampled
-    velocities with uncertainties how it combines with their noise."""
-    n = target.noise()
-    if n == 0.0:
-        return f"[target] residual = {target.residual:g}"
-    return (f"threshold {target.threshold():.3g} = sqrt(residual^2 + noise^2): [target] residual = "
-            f"{target.residual:g} and the samples' own relative rms noise {n:.3g}")
-
-
-def _replace(d: Design, **kw) -> Design:
-    return replace(d, **kw)
-
-
-def _design_standing(scene, built) -> tuple[Design, Carpet]:
-    """:func:`design` for a standing carpet: (chi_N, psi) for its surface-flow target
-    (:func:`~ciliary_carpet.design.surface.design_surface`) on the plane z = ``[target] height``,
-    the control points the planar rule gives ("cilia": above each base), the same verdict."""
-    from ciliary_carpet.design.surface import design_surface
-
-    target, frame, bases = built.target, built.frame, built.bases
-    carpet = built.carpet()
-    threshold = target.threshold()  # [target] residual, with sampled velocities' own noise
-    verdict = _verdict_threshold(target)
-    kw = dict(height=target.height, tol=scene.tolerance, speed_floor=target.speed_floor,
-              smoothness=target.smoothness, threshold=threshold,
-              robust_sigma=target.sigma if target.robust else 0.0,
-              robust_sigma_psi=math.radians(target.sigma_psi) if target.robust else 0.0)
-    hint = ("Move the pattern's centres apart, raise target.height, or use more cilia" if target.is_surface
-            else _POINTS_HINT)
-    if target.is_surface:
-        X = bases.copy() if target.control == "cilia" else control_points(bases, frame, target.control)
-        A, keep = target.surface_directions(X, frame, bases)
-        if not np.all(keep):
-            logger.info("design: %d control points within half a spacing of the %s pattern's centres left out",
-                        int((~keep).sum()), target.kind)
-        X = X[keep]
-        check_control_points(carpet, X, scene.carpet.spacing)
-        d = design_surface(carpet, X, directions=A, **kw)
-    else:
-        X, U = target.velocities()
-        check_control_points(carpet, X, scene.carpet.spacing)
-        d = design_surface(carpet, X, velocities=U, strict=target.strict, **kw)
-    unit = "rad" if d.kind == "angle" else "relative"
-    if d.residual_rms > threshold:
-        lst = ", ".join(f"#{k} at ({x:.3g}, {y:.3g}): {r:.3g} {unit}" for k, x, y, r in d.worst())
-        msg = (f"{scene.source_name}: the cilia cannot make this surface flow: rms residual {d.residual_rms:.3g} "
-               f"{unit} exceeds {verdict}; worst control points {lst}. {hint}")
-        if target.strict:
-            raise DesignError(msg)
-        warnings.warn(msg + " (strict = false: returning the closest flow the cilia make)", UserWarning, stacklevel=3)
-        d = _replace(d, message=d.message + f"; target NOT met ({verdict}): the closest "
-                     f"flow the cilia make; worst control points {lst}")
-    else:
-        d = _replace(d, message=d.message + f"; target met ({verdict})")
-    d = _replace(d, threshold=threshold)
-    if target.sigma > 0 or target.sigma_psi > 0:
-        d = _replace(d, tolerance=tolerance_study(d.carpet, d, target.sigma, target.samples,
-                                                  sigma_psi=math.radians(target.sigma_psi)).summary())
-    return d, d.carpet

@@ -10,9 +10,11 @@ import numpy as np
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.design.model import DesignModel, solver_threads
 from ciliary_carpet.design.result import Design
-from ciliary_carpet.design.target import spec_default
 
-__all__ = ["ToleranceStudy", "tolerance_study"]
+__all__ = ["ToleranceStudy", "tolerance_study", "DEFAULT_SAMPLES"]
+
+DEFAULT_SAMPLES = 64
+"""How many samples a tolerance study draws unless told (``[target] samples``)."""
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,7 @@ class ToleranceStudy:
         return out
 
 
-def tolerance_study(carpet: Carpet, d: Design, sigma: float, samples: int = spec_default("samples"),
+def tolerance_study(carpet: Carpet, d: Design, sigma: float, samples: int = DEFAULT_SAMPLES,
                     seed: int = 0, sigma_psi: float = 0.0) -> ToleranceStudy:
     """The expected residual of design ``d`` on ``carpet`` (its designed carpet) and its spread
     under a relative chi_N error ``sigma`` (see :class:`ToleranceStudy`) and, for a standing

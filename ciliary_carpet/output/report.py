@@ -13,7 +13,7 @@ import math
 
 from ciliary_carpet.design.inverse import NEAR_CUTOFF_FRACTION
 from ciliary_carpet.output.plan import ANIMATION_STEPS, DOMAIN_MARGIN
-from ciliary_carpet.design.target import PATTERNS
+from ciliary_carpet.design.patterns import PATTERNS
 
 __all__ = ["markdown"]
 

@@ -1,13 +1,15 @@
-"""The objects a scene describes: its thrust table, base points, target frame, target and carpet.
+"""The objects a scene describes: its thrust table, base points, target frame, target and carpet,
+and the carpet designed for its target.
 
-This module is the one route from a :class:`~ciliary_carpet.scenes.scene.Scene` (the file format, which
-builds nothing) to objects: :func:`assemble` builds them all, :func:`load_table`,
-:func:`frame_of` and :func:`target_of` one each. The design
-(:func:`ciliary_carpet.design.inverse.design`), and through it the render and the command line, build
-what they need here. The table is the scene's (:func:`load_table`: the shipped one, a file, or
-one computed first with ``[table.build]``; cached) and is checked against ``carpet.chi_N``; the target is resolved against the table (its default angle) and the
-carpet's frame; the carpet is built on demand with the curvatures asked for (the design's
-starting layout, or the scene's own ``carpet.chi_N``).
+This module is the one route from a :class:`~ciliary_carpet.scenes.scene.Scene` (the file format,
+which builds nothing) to objects: :func:`assemble` builds them all, :func:`load_table`,
+:func:`frame_of`, :func:`target_of` and :func:`carpet_for` one each, and :func:`design` designs
+the carpet for the scene's target (the design layer, :mod:`ciliary_carpet.design`, works on the
+objects alone). The render and the command line build what they need here. The table is the
+scene's (:func:`load_table`: the shipped one, a file, or one computed first with
+``[table.build]``; cached) and is checked against ``carpet.chi_N``; the target is resolved against
+the table (its default angle) and the carpet's frame; the carpet is built on demand with the
+curvatures asked for (the design's starting layout, or the scene's own ``carpet.chi_N``).
 """
 from __future__ import annotations
 
@@ -27,18 +29,23 @@ from single_cilium.radau import ConvergenceError
 
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.carpet.coupling import CouplingError
-from ciliary_carpet.design.result import DesignError
+from ciliary_carpet.design.result import Design, DesignError
 from ciliary_carpet.scenes.paths import check_derived, inside, table_parts
 from ciliary_carpet.scenes.schema import SceneError
 from ciliary_carpet.stokes import backend_named
-from ciliary_carpet.design.target import ANGLE_KINDS, Frame, Target
+from ciliary_carpet.design.frame import Frame
+from ciliary_carpet.design.patterns import ANGLE_KINDS
+from ciliary_carpet.design.target import Target
+from ciliary_carpet.design.target_design import design_standing_target, design_target
+from ciliary_carpet.scenes.target_spec import resolve_target
 
 if TYPE_CHECKING:
     from ciliary_carpet.scenes.scene import Scene
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Assembly", "assemble", "check_table_range", "load_table", "frame_of", "target_of", "TableBuildError"]
+__all__ = ["Assembly", "assemble", "carpet_for", "design", "check_table_range", "load_table", "frame_of", "target_of",
+           "TableBuildError"]
 
 
 class TableBuildError(DesignError):
@@ -183,7 +190,7 @@ def _announce(progress: Progress | None, p: Path, f, rows: int, degree: int, wha
 
 
 def frame_of(scene: "Scene", bases=None) -> Frame:
-    """The target :class:`~ciliary_carpet.design.target.Frame` of ``scene``'s carpet (``bases``
+    """The target :class:`~ciliary_carpet.design.frame.Frame` of ``scene``'s carpet (``bases``
     default: ``scene.carpet.bases()``)."""
     b = scene.carpet.bases() if bases is None else bases
     return Frame.from_bases(b, scene.carpet.spacing, scene.field.direction_rad)
@@ -196,7 +203,7 @@ def target_of(scene: "Scene", table: ThrustTable | None = None) -> Target:
     if scene.target.kind in ANGLE_KINDS and scene.target.angle is None:
         table = table if table is not None else load_table(scene)
         angle_max = table.thrust_angle_range()[1]
-    return Target.from_spec(scene.target, scene.base_dir, angle_max)
+    return resolve_target(scene.target, scene.base_dir, angle_max)
 
 
 def check_table_range(scene: "Scene", table: ThrustTable) -> None:
@@ -208,12 +215,33 @@ def check_table_range(scene: "Scene", table: ThrustTable) -> None:
                          f"[{lo:g}, {hi:g}] (by mirror symmetry also negative; the top is the flutter cutoff)")
 
 
+def _carpet(scene: "Scene", table: ThrustTable, bases: np.ndarray, chi_N=None) -> Carpet:
+    """The carpet of ``scene`` on ``bases`` with curvatures ``chi_N`` (default ``carpet.chi_N``);
+    see :meth:`Assembly.carpet`."""
+    s = scene
+    # a standing carpet: its geometry and the azimuths (the scene's degrees, the carpet's radians)
+    standing = {} if s.carpet.geometry == "planar" else dict(
+        geometry=s.carpet.geometry, azimuth=np.radians(s.carpet.azimuths(bases.shape[0])))
+    c = Carpet(bases, s.carpet.chi_N if chi_N is None else chi_N, table,
+               s.carpet.initial_phases(bases), direction=s.field.direction_rad, wall=s.carpet.wall,
+               scales=None if s.units is None else s.units.scales(), blob=s.carpet.blob,
+               backend=backend_named(s.backend), viscosity=s.carpet.viscosity, coupling=s.carpet.coupling,
+               **standing)
+    if c.coupled is not None and not c.coupled.converged:  # nothing is drawn from a flow not solved
+        h = ", ".join(f"{r:.2g}" for r in c.coupled.history)
+        raise CouplingError(f"{s.source_name}: the coupled carpet was not solved: {c.coupled.message} "
+                            f"(residual after each Newton step: {h}); nothing was rendered from it. "
+                            f'[carpet] coupling = "none" renders the uncoupled model instead (its summary '
+                            f"estimates how far that is from the coupled one)")
+    return c
+
+
 @dataclass(frozen=True, eq=False)
 class Assembly:
     """What :func:`assemble` builds from ``scene``.
 
     table : the scene's thrust table; bases : (N, 2) base points; frame : the
-    target's :class:`~ciliary_carpet.design.target.Frame` of those bases; target : the resolved
+    target's :class:`~ciliary_carpet.design.frame.Frame` of those bases; target : the resolved
     :class:`~ciliary_carpet.design.target.Target` (kind "none" without a target).
     """
 
@@ -230,22 +258,22 @@ class Assembly:
         carpet's azimuths, ``carpet.azimuth`` in degrees, converted to radians). A coupled carpet whose
         solve did not converge raises :class:`~ciliary_carpet.carpet.coupling.CouplingError` (exit 3 on
         the command line) with its residual history."""
-        s = self.scene
-        # a standing carpet: its geometry and the azimuths (the scene's degrees, the carpet's radians)
-        standing = {} if s.carpet.geometry == "planar" else dict(
-            geometry=s.carpet.geometry, azimuth=np.radians(s.carpet.azimuths(self.bases.shape[0])))
-        c = Carpet(self.bases, s.carpet.chi_N if chi_N is None else chi_N, self.table,
-                   s.carpet.initial_phases(self.bases), direction=s.field.direction_rad, wall=s.carpet.wall,
-                   scales=None if s.units is None else s.units.scales(), blob=s.carpet.blob,
-                   backend=backend_named(s.backend), viscosity=s.carpet.viscosity, coupling=s.carpet.coupling,
-                   **standing)
-        if c.coupled is not None and not c.coupled.converged:  # nothing is drawn from a flow not solved
-            h = ", ".join(f"{r:.2g}" for r in c.coupled.history)
-            raise CouplingError(f"{s.source_name}: the coupled carpet was not solved: {c.coupled.message} "
-                                f"(residual after each Newton step: {h}); nothing was rendered from it. "
-                                f'[carpet] coupling = "none" renders the uncoupled model instead (its summary '
-                                f"estimates how far that is from the coupled one)")
-        return c
+        return _carpet(self.scene, self.table, self.bases, chi_N)
+
+
+def _checked_table(scene: "Scene", table: ThrustTable | None) -> ThrustTable:
+    """``table`` (default: :func:`load_table`) checked against ``scene``: ``carpet.chi_N`` in its
+    range, and over the background flow for a coupled carpet (else a SceneError)."""
+    table = table if table is not None else load_table(scene)
+    check_table_range(scene, table)
+    (p0, p1), (q0, q1) = table.U_range
+    if scene.carpet.coupling == "mean" and p0 == p1 and q0 == q1:
+        raise SceneError(f'{scene.source_name}: carpet.coupling = "mean" (the default: each cilium beats in the flow '
+                         f"the others make) needs a thrust table over the background flow, but table.file "
+                         f"'{scene.table.file}' is for still fluid: name a new table file with a [table.build] "
+                         f"section (it is built over the shipped flow grid, U in [-1.5, 1.5] L/tau, about 5 "
+                         f"minutes on 2 cores), or set [carpet] coupling = \"none\" for the uncoupled model")
+    return table
 
 
 def assemble(scene: "Scene", table: ThrustTable | None = None) -> Assembly:
@@ -257,14 +285,43 @@ def assemble(scene: "Scene", table: ThrustTable | None = None) -> Assembly:
     from ciliary_carpet.scenes.scene import as_scene
 
     scene = as_scene(scene, "assemble()")
-    table = table if table is not None else load_table(scene)
-    check_table_range(scene, table)
-    (p0, p1), (q0, q1) = table.U_range
-    if scene.carpet.coupling == "mean" and p0 == p1 and q0 == q1:
-        raise SceneError(f'{scene.source_name}: carpet.coupling = "mean" (the default: each cilium beats in the flow '
-                         f"the others make) needs a thrust table over the background flow, but table.file "
-                         f"'{scene.table.file}' is for still fluid: name a new table file with a [table.build] "
-                         f"section (it is built over the shipped flow grid, U in [-1.5, 1.5] L/tau, about 5 "
-                         f"minutes on 2 cores), or set [carpet] coupling = \"none\" for the uncoupled model")
+    table = _checked_table(scene, table)
     bases = scene.carpet.bases()
     return Assembly(scene, table, bases, frame_of(scene, bases), target_of(scene, table))
+
+
+def carpet_for(scene: "Scene", table: ThrustTable | None = None) -> Carpet:
+    """The carpet ``scene``'s layout describes, with its own ``carpet.chi_N``, with or without a
+    target (the target is not resolved, nothing is designed): :meth:`Assembly.carpet` of the
+    scene, with the same checks of the table (``table`` default: :func:`load_table`)."""
+    from ciliary_carpet.scenes.scene import as_scene
+
+    scene = as_scene(scene, "carpet_for()")
+    table = _checked_table(scene, table)
+    return _carpet(scene, table, scene.carpet.bases())
+
+
+def design(scene, table: ThrustTable | None = None) -> tuple[Design | None, Carpet]:
+    """Design the scene's carpet for its target: returns (Design, the designed Carpet), or
+    (None, the scene's carpet, :func:`carpet_for`) when the scene has no target.
+
+    The objects come from :func:`assemble`; the design is
+    :func:`~ciliary_carpet.design.target_design.design_target` (a planar carpet) or
+    :func:`~ciliary_carpet.design.target_design.design_standing_target` (a standing one), whose
+    docstrings give the verdict: a design whose rms residual exceeds ``[target] residual`` returns
+    the closest flow the cilia can make, with a warning naming the worst control points; with
+    ``[target] strict = true`` it is a DesignError (exit status 3 of the command line) and
+    unreachable angle requests are a TargetError instead of being clipped. ``scene``: a
+    :class:`~ciliary_carpet.scenes.scene.Scene` or the path of a scene file (else a TypeError)."""
+    from ciliary_carpet.scenes.scene import as_scene
+
+    scene = as_scene(scene, "design()")
+    if scene.target.kind == "none":
+        return None, carpet_for(scene, table)
+    built = assemble(scene, table)
+    if scene.carpet.geometry == "standing":  # (the scene's key: a carpet of 10^4 cilia takes seconds to build)
+        return design_standing_target(built.target, built.bases, built.frame, built.carpet(),
+                                      spacing=scene.carpet.spacing, tol=scene.tolerance, source=scene.source_name)
+    return design_target(built.target, built.table, built.bases, built.frame, built.carpet,
+                         direction=scene.field.direction_rad, spacing=scene.carpet.spacing, tol=scene.tolerance,
+                         source=scene.source_name)

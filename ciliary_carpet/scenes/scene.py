@@ -2,8 +2,9 @@
 
 :func:`load_scene` reads a scene file (``tomllib``) into a frozen, validated :class:`Scene`.
 Every key has one home: a field of its section class below, whose metadata holds its default,
-accepted values and meaning (:mod:`ciliary_carpet.scenes.schema`; the ``[target]`` section and the
-registry of target kinds are in :mod:`ciliary_carpet.design.target`). The section docstrings and the
+accepted values and meaning (:mod:`ciliary_carpet.scenes.schema`; the ``[target]`` section is
+:mod:`ciliary_carpet.scenes.target_spec`, the registry of target kinds
+:mod:`ciliary_carpet.design.patterns`). The section docstrings and the
 key reference of ``designs/README.md`` (:func:`reference`, checked by the tests) are made from
 them. Anything the file gets wrong is a :class:`SceneError` whose message names the file and the
 dotted key: unknown keys at any level (with the known ones and a close match), wrong types, NaN
@@ -25,10 +26,11 @@ Sections (all optional): top level (name, description, tolerance, backend), ``[f
 (+ ``[table.build]``), ``[carpet]``, ``[target]``, ``[output]``, ``[units]``.
 
 Values that depend on the thrust table or on the carpet's geometry (the default target angle,
-width and centre) are stored as ``None`` here and resolved by :mod:`ciliary_carpet.design.target`; the
-objects a scene describes (table, carpet, target) are built by :mod:`ciliary_carpet.scenes.assembly`, the
-only route from a scene to objects (this module is the file format: it reads and checks, and builds
-nothing).
+width and centre) are stored as ``None`` here and resolved with the objects (the target
+:class:`~ciliary_carpet.design.target.Target` against the table and its frame); the objects a
+scene describes (table, carpet, target) are built by :mod:`ciliary_carpet.scenes.assembly`, the
+only route from a scene to objects (this module is the file format: it reads and checks, and
+builds nothing).
 """
 from __future__ import annotations
 
@@ -53,10 +55,8 @@ from ciliary_carpet.scenes.paths import check_name, check_scene_paths
 from ciliary_carpet.transport.flow import AUTO_RESOLVED_BEATS, FLOWS, MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
 from ciliary_carpet.stokes import BACKENDS
-from ciliary_carpet.design.target import KINDS, SURFACE_KINDS, TargetSpec, kinds_table
-
-STANDING_TARGETS = SURFACE_KINDS + ("points",)
-"""The target kinds of a standing carpet: the surface flows and velocities from a file."""
+from ciliary_carpet.design.patterns import KINDS, STANDING_KINDS, SURFACE_KINDS, kinds_table
+from ciliary_carpet.scenes.target_spec import TargetSpec
 
 logger = logging.getLogger(__name__)
 
@@ -495,10 +495,10 @@ class Scene:
                                  f"field is along +z, normal to the substrate; turn the cilia with carpet.azimuth "
                                  f"(got field.direction = {self.field.direction:g})")
             t = self.target
-            if t.kind != "none" and t.kind not in STANDING_TARGETS:
+            if t.kind != "none" and t.kind not in STANDING_KINDS:
                 raise SceneError(f"{src}: target.kind = \"{t.kind}\" is a planar carpet's deflection pattern; a "
                                  f"standing carpet's target is a surface flow: target.kind = "
-                                 f"{', '.join(repr(k) for k in STANDING_TARGETS)}")
+                                 f"{', '.join(repr(k) for k in STANDING_KINDS)}")
             # the plane the fields and seeds use is the target's, when there is one
             h = (t.height if t.kind != "none" else 1.5) if o.height is None else o.height
             o = replace(o, seeds="grid" if o.seeds is None else o.seeds, height=h)
