@@ -3,6 +3,7 @@ import os
 import pickle
 import stat
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -351,6 +352,16 @@ def test_failed_pvd_write_leaves_target(tmp_path, monkeypatch):
         write_pvd(target, [(0.0, f)])
     assert target.read_text() == "old"
     assert _leftovers(tmp_path) == []
+
+
+def test_no_private_names_of_pyvista_or_vtk():
+    """The writers use VTK's and pyvista's public API only (no attribute starting with '_')."""
+    import ast
+
+    tree = ast.parse(Path(vtkfiles.__file__).read_text())
+    private = sorted({n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)
+                      and n.attr.startswith("_") and not n.attr.startswith("__")})
+    assert private == []
 
 
 def test_vtk_writer_failure_is_an_error(tmp_path, tracers, monkeypatch):

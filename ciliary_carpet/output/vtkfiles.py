@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 import pyvista as pv
+from vtkmodules.vtkIOXML import vtkXMLImageDataWriter, vtkXMLPolyDataWriter, vtkXMLWriterBase
 
 from single_cilium.checks import finite
 from cilia_runtime.files import OutputFileError, write_bytes
@@ -217,17 +218,20 @@ def _atomic_write(path: Path, make: Callable[[], bytes]) -> Path:
     return path
 
 
-COMPRESSION = "lz4"
+COMPRESSION = vtkXMLWriterBase.LZ4
 """The compressor of the VTK XML files: VTK's LZ4 (VTK >= 8.1; Debian's ParaView 5.11 opens every
 file of a render, tests/test_paraview.py). Measured on a 30 x 30 carpet's cilia frame (58 500 points,
 the data then base64-encoded), 19 ms and 3.2 MB against zlib's 67 ms and 2.6 MB (uncompressed 23 ms,
 5.0 MB)."""
 
 
+_XML_WRITERS = {".vtp": vtkXMLPolyDataWriter, ".vti": vtkXMLImageDataWriter}
+"""VTK's XML writer of each file extension the writers make (PolyData, ImageData)."""
+
+
 def _mesh_bytes(mesh: pv.DataObject, path: Path) -> bytes:
-    """The VTK XML file of ``mesh`` (binary, :data:`COMPRESSION`, the appended data raw: the
-    bytes VTK's writer puts in a file of that name), made in memory; the writer is picked from
-    ``path``'s extension. VTK's errors (which pyvista's save only logs) raise
+    """The VTK XML file of ``mesh`` (binary, :data:`COMPRESSION`, the appended data raw), made in
+    memory by VTK's XML writer of ``path``'s extension (:data:`_XML_WRITERS`). VTK's errors raise
     ``pv.VTKExecutionError``.
 
     Raw, not base64-encoded (what ``mesh.save(path, binary=True)`` writes): a frame of 10^4 cilia
@@ -235,17 +239,16 @@ def _mesh_bytes(mesh: pv.DataObject, path: Path) -> bytes:
     Debian's ParaView reads both, tests/test_paraview.py). VTK's Python wrapping returns the
     string as ``bytes`` when it is not valid UTF-8, else as ``str``, whose UTF-8 encoding is the
     same bytes."""
-    if hasattr(mesh, "_store_metadata"):  # as pyvista's save does (complex and bit arrays as field data)
-        mesh._store_metadata()
-    writer = mesh._WRITERS[path.suffix.lower()](path, mesh)
-    writer._apply_kwargs_safely(texture=None, data_format="binary", compression=COMPRESSION)
-    vtk_writer = writer.writer
-    vtk_writer.SetDataModeToAppended()  # one raw block after the XML (inline binary data is base64)
-    vtk_writer.EncodeAppendedDataOff()
-    vtk_writer.WriteToOutputStringOn()
+    writer = _XML_WRITERS[path.suffix.lower()]()
+    writer.SetFileName(str(path))
+    writer.SetInputData(mesh)
+    writer.SetCompressorType(COMPRESSION)
+    writer.SetDataModeToAppended()  # one raw block after the XML (inline binary data is base64)
+    writer.EncodeAppendedDataOff()
+    writer.WriteToOutputStringOn()
     with pv.VtkErrorCatcher(raise_errors=True, send_to_logging=False):
-        writer.write()
-    out = vtk_writer.GetOutputString()
+        writer.Write()
+    out = writer.GetOutputString()
     return out if isinstance(out, bytes) else out.encode("utf-8", "surrogateescape")
 
 
