@@ -83,10 +83,14 @@ better.)
 
 Layout. The design model is :mod:`ciliary_carpet.design.model`, the result
 :mod:`ciliary_carpet.design.result`, what a carpet can make :mod:`ciliary_carpet.design.reachability`,
-the fabrication tolerance :mod:`ciliary_carpet.design.tolerance`. This module holds the solve and
-the scene's door (:func:`design`); it is above 500 lines because :func:`design_layout` is one
-solve of about 350 lines whose nested functions share its state (targets, weights, floors, the
-pass's model and counters).
+the fabrication tolerance :mod:`ciliary_carpet.design.tolerance`, the design for a resolved target
+and its verdict :mod:`ciliary_carpet.design.target_design`. This module holds the solve,
+:func:`design_layout`, in named steps: the settings checked (:func:`_checked_settings`), the
+control points inside swept regions weighed (:func:`_weigh_control_points`), the problem and its
+objective (:class:`_Objective`), the local layout (:func:`_local_layout`), the passes
+(:func:`_passes`, each :func:`_solve_pass`), the final check (:func:`_final_check`) and the result
+(:func:`_result`). It is above 500 lines because the objective's parts and the steps that share
+them are read together.
 """
 from __future__ import annotations
 
@@ -228,7 +232,26 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     Returns the best layout by the objective on the full model's flow among the local layout
     and the passes (:attr:`Design.returned`); ``carpet_with(design, carpet)`` is its carpet."""
     clock = _time.perf_counter()
-    t: ThrustTable = carpet.table
+    X = _checked_settings(control, angles, velocities, speed_floor, floor_weight, regularization, smoothness,
+                          robust_sigma, robust_samples, inside_swept, threshold)
+    X, angles, velocities, w_pts, inside_info, done = _weigh_control_points(carpet, X, spacing, inside_swept,
+                                                                            sample_weights, angles, velocities)
+    check_tol = max(tol, 3e-2) if check_tol is None else float(check_tol)
+    ob = _Objective(carpet, X, w_pts, angles, velocities, cilium_angles, clip, check_tol=check_tol,
+                    speed_floor=speed_floor, floor_weight=floor_weight, regularization=regularization,
+                    smoothness=smoothness, spacing=spacing, floor_radius=floor_radius, robust_sigma=float(robust_sigma),
+                    robust_samples=robust_samples, robust_seed=robust_seed, near_radius=near_radius)
+    best = _local_layout(ob)
+    rms_loc, J_loc = best["rms"], best["J"]
+    best, res = _passes(ob, best, outer=outer, ftol=ftol, maxiter=maxiter, sweeps=sweeps, threshold=threshold)
+    chi, u, resid, rms, r_err = _final_check(ob, best, threshold, check_tol)
+    return _result(ob, best, res, chi, u, resid, rms, r_err, rms_loc, J_loc, inside_info, done, threshold, clock)
+
+
+def _checked_settings(control, angles, velocities, speed_floor, floor_weight, regularization, smoothness,
+                      robust_sigma, robust_samples, inside_swept, threshold) -> np.ndarray:
+    """The control points (P, 2) of :func:`design_layout`, its settings checked: a TargetError for
+    control points that are not finite (P, 2) points, a ValueError naming any setting out of range."""
     X = np.asarray(control, dtype=float)
     if X.ndim != 2 or X.shape[1] != 2 or X.shape[0] < 1:
         raise TargetError(f"control points must have shape (P, 2), got {X.shape}")
@@ -252,8 +275,15 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
         raise ValueError(f"inside_swept must be one of {', '.join(INSIDE_SWEPT)}, got {inside_swept!r}")
     if threshold is not None and not (math.isfinite(float(threshold)) and float(threshold) > 0):
         raise ValueError(f"threshold must be a finite number > 0, got {threshold!r}")
-    # control points inside a swept region: used (the regularised mean flow is bounded and
-    # resolved there, see NearField), down-weighted or dropped as asked
+    return X
+
+
+def _weigh_control_points(carpet: Carpet, X: np.ndarray, spacing, inside_swept: str, sample_weights, angles,
+                          velocities) -> tuple:
+    """The control points inside a swept region used (the regularised mean flow is bounded and
+    resolved there, see NearField), down-weighted or dropped as ``inside_swept`` asks, and the
+    points' weights (``sample_weights`` scaled to mean 1, times the swept-region weights): returns
+    (X, angles, velocities, weights, the summary's ``inside_swept`` record, what was done in words)."""
     inside = check_control_points(carpet, X, spacing)
     w_pts = np.ones(X.shape[0])
     if sample_weights is not None:
@@ -269,7 +299,7 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
                     X.shape[0], done)
     if inside.size and inside_swept == "drop" and inside.size == X.shape[0]:
         warnings.warn("every control point lies inside a cilium's swept region: dropping them would leave none, so "
-                      "they are used (inside_swept = \"drop\" taken as \"use\")", UserWarning, stacklevel=2)
+                      "they are used (inside_swept = \"drop\" taken as \"use\")", UserWarning, stacklevel=3)
         inside_swept = "use"
         inside_info["action"], inside_info["weight"] = "use (all inside: none to drop)", 1.0
         done = "used (all inside: none to drop)"
@@ -286,196 +316,254 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
         X, w_pts = X[keep], w_pts[keep]
     elif inside.size and inside_swept == "downweight":
         w_pts[inside] *= INSIDE_WEIGHT
-    wsum = float(np.sum(w_pts))
-    uniform_w = bool(np.all(w_pts == 1.0))
-    check_tol = max(tol, 3e-2) if check_tol is None else float(check_tol)
-    rot = carpet.rotation
-    d0 = rot @ np.array([0.0, -1.0])  # the straight filaments' flow direction, lab frame
-    base_angle = math.atan2(d0[1], d0[0])
-    mom = cycle_moments(t)
-    b1 = mom.cutoff
-    lo_a, hi_a = t.thrust_angle_range()
-    clipped: list[int] = []
-    P, N = X.shape[0], carpet.n
-    if angles is not None:
-        A = np.broadcast_to(np.asarray(angles, dtype=float), (P,)).copy()
-        if not np.all(np.isfinite(A)):
-            raise TargetError("target angles contain NaN or inf")
-        kind = "angle"
-        target = _unit(base_angle + A)
-        from scipy.spatial import cKDTree
+    return X, angles, velocities, w_pts, inside_info, done
 
-        want = A[cKDTree(X).query(carpet.centres)[1]] if cilium_angles is None else \
-            np.broadcast_to(np.asarray(cilium_angles, dtype=float), (N,)).copy()
-        want, bad = reachable_check(want, (lo_a, hi_a), clip, what="cilium", points=carpet.bases)
-        clipped = np.nonzero(bad)[0].tolist()
-        chi0 = np.asarray(t.chi_N_for_angle(want), dtype=float)
-    else:
-        U = np.asarray(velocities, dtype=float)
-        if U.shape != X.shape:
-            raise TargetError(f"velocities must have shape {X.shape}, got {U.shape}")
-        if not np.all(np.isfinite(U)):
-            raise TargetError("target velocities contain NaN or inf")
-        kind = "velocity"
-        target = U
-        chi0 = np.clip(carpet.chi_N, -b1, b1)
-    scaleU = float(np.sum(w_pts[:, None] * target ** 2)) if kind == "velocity" else 1.0
-    if kind == "velocity" and scaleU == 0:
-        raise TargetError("target velocities are all zero")
-    edges = layout.neighbours(carpet.bases) if smoothness > 0 else np.zeros((0, 2), np.int64)
-    counters = {"iterations": 0, "evaluations": 0, "checks": 0, "seconds_carpets": 0.0, "seconds_checks": 0.0,
-                "seconds_model": 0.0, "sweeps": 0, "swept_cilia": 0}
 
-    def residual(u):
-        if kind == "angle":
+class _Objective:
+    """The design problem of one :func:`design_layout` call: the targets at the control points
+    (``kind`` "angle": unit directions; "velocity": velocities), the local layout ``chi0``, the
+    floor's reference speeds, the regularisers' neighbours, the robust objective's samples, the
+    near field, and the work counters; its methods are the residual, the full-model check, the
+    data term and the objective J (module docstring)."""
+
+    def __init__(self, carpet: Carpet, X: np.ndarray, w_pts: np.ndarray, angles, velocities, cilium_angles,
+                 clip: bool, *, check_tol: float, speed_floor: float, floor_weight: float, regularization: float,
+                 smoothness: float, spacing, floor_radius, robust_sigma: float, robust_samples: int,
+                 robust_seed: int, near_radius: float):
+        t: ThrustTable = carpet.table
+        self.carpet, self.X, self.w_pts, self.check_tol = carpet, X, w_pts, check_tol
+        self.speed_floor, self.floor_weight = speed_floor, floor_weight
+        self.regularization, self.smoothness, self.rs = regularization, smoothness, robust_sigma
+        self.wsum = float(np.sum(w_pts))
+        self.uniform_w = bool(np.all(w_pts == 1.0))
+        rot = carpet.rotation
+        d0 = rot @ np.array([0.0, -1.0])  # the straight filaments' flow direction, lab frame
+        base_angle = math.atan2(d0[1], d0[0])
+        self.mom = mom = cycle_moments(t)
+        self.b1 = b1 = mom.cutoff
+        lo_a, hi_a = t.thrust_angle_range()
+        self.clipped: list[int] = []
+        self.P, self.N = P, N = X.shape[0], carpet.n
+        if angles is not None:
+            A = np.broadcast_to(np.asarray(angles, dtype=float), (P,)).copy()
+            if not np.all(np.isfinite(A)):
+                raise TargetError("target angles contain NaN or inf")
+            self.kind = "angle"
+            self.target = _unit(base_angle + A)
+            from scipy.spatial import cKDTree
+
+            want = A[cKDTree(X).query(carpet.centres)[1]] if cilium_angles is None else \
+                np.broadcast_to(np.asarray(cilium_angles, dtype=float), (N,)).copy()
+            want, bad = reachable_check(want, (lo_a, hi_a), clip, what="cilium", points=carpet.bases)
+            self.clipped = np.nonzero(bad)[0].tolist()
+            self.chi0 = np.asarray(t.chi_N_for_angle(want), dtype=float)
+        else:
+            U = np.asarray(velocities, dtype=float)
+            if U.shape != X.shape:
+                raise TargetError(f"velocities must have shape {X.shape}, got {U.shape}")
+            if not np.all(np.isfinite(U)):
+                raise TargetError("target velocities contain NaN or inf")
+            self.kind = "velocity"
+            self.target = U
+            self.chi0 = np.clip(carpet.chi_N, -b1, b1)
+        self.scaleU = float(np.sum(w_pts[:, None] * self.target ** 2)) if self.kind == "velocity" else 1.0
+        if self.kind == "velocity" and self.scaleU == 0:
+            raise TargetError("target velocities are all zero")
+        self.edges = edges = layout.neighbours(carpet.bases) if smoothness > 0 else np.zeros((0, 2), np.int64)
+        self.counters = {"iterations": 0, "evaluations": 0, "checks": 0, "seconds_carpets": 0.0,
+                         "seconds_checks": 0.0, "seconds_model": 0.0, "sweeps": 0, "swept_cilia": 0}
+        # the reference speed of the floor: what the straight carpet makes at each control point
+        self.sref = floor_reference(carpet, X, floor_radius, spacing, moments=mom)
+        self.c_pts = w_pts / self.wsum
+        self.floor_pts = speed_floor * self.sref
+        self.nbrs = [[] for _ in range(N)]
+        for e0, e1 in edges:
+            self.nbrs[e0].append(e1)
+            self.nbrs[e1].append(e0)
+        # the fabrication-tolerance samples of the robust objective: chi_j (1 + sigma eps_sj)
+        rs = robust_sigma
+        self.mult = (1.0 + rs * np.random.default_rng(robust_seed).standard_normal((int(robust_samples), N))) \
+            if rs > 0 else np.ones((1, N))
+        # the exact mean flows of the cilia near the control points, tabulated in chi (NearField)
+        self.near = near = NearField(carpet, X, near_radius, moments=mom) if near_radius > 0 else None
+        self.counters["seconds_near"] = near.seconds if near is not None else 0.0
+        self.counters["near_pairs"] = int(near.k.size) if near is not None else 0
+
+    def residual(self, u):
+        """(P,) the residual at each control point of the flow ``u`` (P, 2): the angle error [rad],
+        or |u - U| over the rms target speed."""
+        target = self.target
+        if self.kind == "angle":
             return np.abs(np.angle((u[:, 0] + 1j * u[:, 1]) * np.conj(target[:, 0] + 1j * target[:, 1])))
-        return np.linalg.norm(u - target, axis=1) / math.sqrt(scaleU / wsum)
+        return np.linalg.norm(u - target, axis=1) / math.sqrt(self.scaleU / self.wsum)
 
-    def wrms(r) -> float:
+    def wrms(self, r) -> float:
         """The (weighted) rms over the control points: sqrt(sum w_k r_k^2 / sum w_k)."""
-        return float(np.sqrt(np.sum(w_pts * np.asarray(r) ** 2) / wsum))
+        return float(np.sqrt(np.sum(self.w_pts * np.asarray(r) ** 2) / self.wsum))
 
-    def check(chi, ctol=None, c=None):
+    def check(self, chi, ctol=None, c=None):
+        """(carpet, flow (P, 2), error bound (P,)): the full model's mean flow at the control points
+        for curvatures ``chi`` (or the carpet ``c``), at the tolerance ``ctol`` (default the checks')."""
+        counters = self.counters
         counters["checks"] += 1
         t0 = _time.perf_counter()
-        c = _with_chi(carpet, chi) if c is None else c
+        c = _with_chi(self.carpet, chi) if c is None else c
         t1 = _time.perf_counter()
-        s = c.evaluate(X, CycleMean(), tol=check_tol if ctol is None else ctol)
+        s = c.evaluate(self.X, CycleMean(), tol=self.check_tol if ctol is None else ctol)
         counters["seconds_carpets"] += t1 - t0
         counters["seconds_checks"] += _time.perf_counter() - t1
         return c, s.velocity[:, :2], s.error_bound
 
-    # the reference speed of the floor: what the straight carpet makes at each control point
-    zero = np.zeros(N)
-    sref = floor_reference(carpet, X, floor_radius, spacing, moments=mom)
-
-    def data(u):
+    def data(self, u):
         """The data term of J and dJ/du at the flow ``u`` (P, 2)."""
-        if kind == "angle":
-            return angle_objective(u, target, speed_floor * sref, floor_weight, None if uniform_w else w_pts)
+        target, w_pts, scaleU = self.target, self.w_pts, self.scaleU
+        if self.kind == "angle":
+            return angle_objective(u, target, self.speed_floor * self.sref, self.floor_weight,
+                                   None if self.uniform_w else w_pts)
         r = u - target
         return 0.5 * float(np.sum(w_pts[:, None] * r ** 2)) / scaleU, w_pts[:, None] * r / scaleU
 
-    c_pts = w_pts / wsum
-    floor_pts = speed_floor * sref
-
-    def terms(u_sub, ks):
+    def terms(self, u_sub, ks):
         """The data term's per-point terms (their sum over every point is data(u)[0])."""
-        if kind == "angle":
-            return angle_terms(u_sub, target[ks], floor_pts[ks], floor_weight, c_pts[ks])
-        return 0.5 * w_pts[ks] * np.sum((u_sub - target[ks]) ** 2, axis=-1) / scaleU
+        if self.kind == "angle":
+            return angle_terms(u_sub, self.target[ks], self.floor_pts[ks], self.floor_weight, self.c_pts[ks])
+        return 0.5 * self.w_pts[ks] * np.sum((u_sub - self.target[ks]) ** 2, axis=-1) / self.scaleU
 
-    nbrs = [[] for _ in range(N)]
-    for e0, e1 in edges:
-        nbrs[e0].append(e1)
-        nbrs[e1].append(e0)
-
-    def penalty(j, vals, chi):
+    def penalty(self, j, vals, chi):
         """The change of the regularisers when chi_j takes the values ``vals`` (others as in chi)."""
-        out = regularization * (((vals - chi0[j]) / b1) ** 2 - ((chi[j] - chi0[j]) / b1) ** 2) / N
-        for i in nbrs[j]:
-            out = out + smoothness * (((vals - chi[i]) / b1) ** 2 - ((chi[j] - chi[i]) / b1) ** 2) / len(edges)
+        chi0, b1, N, edges = self.chi0, self.b1, self.N, self.edges
+        out = self.regularization * (((vals - chi0[j]) / b1) ** 2 - ((chi[j] - chi0[j]) / b1) ** 2) / N
+        for i in self.nbrs[j]:
+            out = out + self.smoothness * (((vals - chi[i]) / b1) ** 2 - ((chi[j] - chi[i]) / b1) ** 2) / len(edges)
         return out
 
-    # the fabrication-tolerance samples of the robust objective: chi_j (1 + sigma eps_sj)
-    mult = (1.0 + rs * np.random.default_rng(robust_seed).standard_normal((int(robust_samples), N))) if rs > 0 \
-        else np.ones((1, N))
-
-    def expected(dmodel, shift_u, c, grad: bool):
+    def expected(self, dmodel, shift_u, c, grad: bool):
         """The data term averaged over the samples (the nominal one without robust_sigma) of
         the flow dmodel.velocity(chi (1 + sigma eps)) + shift_u, and its chi gradient."""
-        J, g = 0.0, np.zeros(N)
+        mult = self.mult
+        J, g = 0.0, np.zeros(self.N)
         for m in mult:
             cm = c * m
-            Jm, gu = data(dmodel.velocity(cm) + shift_u)
+            Jm, gu = self.data(dmodel.velocity(cm) + shift_u)
             J += Jm / mult.shape[0]
             if grad:
                 g += dmodel.gradient(cm, gu) * m / mult.shape[0]
         return J, g
 
-    def score(u, chi, c_full=None):
+    def score(self, u, chi, c_full=None):
         """The design objective measured on the full model's flow ``u`` (what "best" means); the
         robust one: the sample average with the defect frozen at ``chi``."""
-        if rs > 0:
-            dmc = DesignModel(carpet if c_full is None else c_full, X, chi, moments=mom, near=near)
-            with solver_threads(3 * N * P):
-                J = expected(dmc, u - dmc.velocity(chi), chi, False)[0]
+        chi0, b1, N, edges = self.chi0, self.b1, self.N, self.edges
+        if self.rs > 0:
+            dmc = DesignModel(self.carpet if c_full is None else c_full, self.X, chi, moments=self.mom, near=self.near)
+            with solver_threads(3 * N * self.P):
+                J = self.expected(dmc, u - dmc.velocity(chi), chi, False)[0]
         else:
-            J = data(u)[0]
-        return J + regularization * float(np.sum(((chi - chi0) / b1) ** 2)) / N + (
-            smoothness * float(np.sum(((chi[edges[:, 0]] - chi[edges[:, 1]]) / b1) ** 2)) / len(edges)
+            J = self.data(u)[0]
+        return J + self.regularization * float(np.sum(((chi - chi0) / b1) ** 2)) / N + (
+            self.smoothness * float(np.sum(((chi[edges[:, 0]] - chi[edges[:, 1]]) / b1) ** 2)) / len(edges)
             if edges.size else 0.0)
 
-    # the exact mean flows of the cilia near the control points, tabulated in chi (NearField)
-    near = NearField(carpet, X, near_radius, moments=mom) if near_radius > 0 else None
-    counters["seconds_near"] = near.seconds if near is not None else 0.0
-    counters["near_pairs"] = int(near.k.size) if near is not None else 0
+    def error_bar(self, bound, u):
+        """A bound on |rms residual - its value on the resolved flow| from the levels of detail's
+        per-point bounds b_k >= |u_k - u_k(resolved)|: the residual of point k moves by at most
+        e_k = b_k / s (velocity targets, s the rms target speed) or arcsin(b_k / |u_k|) (angle
+        targets; pi where b_k >= |u_k|), and an rms by at most the rms of the e_k (triangle
+        inequality)."""
+        if self.kind == "angle":
+            nrm = np.linalg.norm(u, axis=1)
+            e = np.where(bound < nrm, np.arcsin(np.minimum(bound / np.maximum(nrm, 1e-300), 1.0)), math.pi)
+        else:
+            e = bound / math.sqrt(self.scaleU / self.wsum)
+        return self.wrms(e)
 
-    # the local layout: the first iterate, measured with the full model
-    c_loc, u_loc, e_loc = check(chi0)
-    r_loc = residual(u_loc)
-    rms_loc = wrms(r_loc)
-    J_loc = score(u_loc, chi0, c_loc)
-    best = {"rms": rms_loc, "J": J_loc, "chi": chi0.copy(), "u": u_loc, "resid": r_loc,
+
+def _local_layout(ob: _Objective) -> dict:
+    """The local layout, the first iterate, measured with the full model: the first "best"
+    (rms residual, objective J, curvatures, flow, residuals, label, carpet, solver result, bound)."""
+    c_loc, u_loc, e_loc = ob.check(ob.chi0)
+    r_loc = ob.residual(u_loc)
+    rms_loc = ob.wrms(r_loc)
+    J_loc = ob.score(u_loc, ob.chi0, c_loc)
+    return {"rms": rms_loc, "J": J_loc, "chi": ob.chi0.copy(), "u": u_loc, "resid": r_loc,
             "label": "local", "carpet": c_loc, "res": None, "bound": e_loc}
 
-    u_prev, c_prev, chi = u_loc, c_loc, chi0.copy()
+
+def _solve_pass(ob: _Objective, p: int, chi: np.ndarray, u_prev: np.ndarray, c_prev: Carpet, *, ftol: float,
+                maxiter: int, sweeps: int) -> tuple:
+    """Pass ``p``: the design model at ``chi`` corrected by the full model's defect there
+    (``u_prev`` on ``c_prev``), minimised by L-BFGS-B in x = chi / chi_c, then swept out of
+    local minima (:func:`~ciliary_carpet.design.model.sweep`) while that lowers the model's
+    objective; returns (the solver's result, the objective's scale J at the pass's start)."""
+    carpet, X, b1, N, P, counters = ob.carpet, ob.X, ob.b1, ob.N, ob.P, ob.counters
+    chi0, edges, regularization, smoothness, near = ob.chi0, ob.edges, ob.regularization, ob.smoothness, ob.near
+    # a coupled carpet: the model's forces answer through the flow (the response at this pass's
+    # coupled state), so its gradient includes the coupling
+    response = CouplingResponse(c_prev) if c_prev.coupled is not None and c_prev.n <= DENSE_CILIA else None
+    dm = DesignModel(carpet, X, chi, moments=ob.mom, near=near, response=response)
+    shift = u_prev - dm.velocity(chi)  # defect: full model minus design model at this pass's start
+
+    J_scale = 1.0
+
+    def fun(x):
+        counters["evaluations"] += 1
+        c = x * b1
+        J, g = ob.expected(dm, shift, c, True)
+        dc = (c - chi0) / b1
+        J += regularization * float(np.sum(dc ** 2)) / N
+        g = g + 2.0 * regularization * dc / (b1 * N)
+        if edges.size:
+            de = (c[edges[:, 0]] - c[edges[:, 1]]) / b1
+            J += smoothness * float(np.sum(de ** 2)) / len(edges)
+            ge = 2.0 * smoothness * de / (b1 * len(edges))
+            g = g + np.bincount(edges[:, 0], ge, N) - np.bincount(edges[:, 1], ge, N)
+        return J / J_scale, g * (b1 / J_scale)
+
+    t_model = _time.perf_counter()
+    with solver_threads(3 * N * P):
+        # J in units of its value at the pass's start: ftol is then relative to it
+        J_scale = max(fun(chi / b1)[0], 1e-300)
+        res = minimize(fun, chi / b1, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * N,
+                       options={"gtol": 1e-10, "ftol": ftol, "maxiter": maxiter})
+        counters["iterations"] += int(res.nit)
+        # out of a local minimum: a sweep over the cilia (each to the best curvature of the
+        # grid, both signs), then L-BFGS-B again, while that lowers the model's objective
+        for _ in range(int(sweeps) if (near is not None and ob.rs == 0) else 0):
+            chi_k = np.clip(res.x * b1, -b1, b1)
+            chi_s, moved = sweep(dm, near, chi_k, dm.velocity(chi_k) + shift, ob.terms, ob.penalty)
+            counters["sweeps"] += 1
+            if moved == 0 or not fun(chi_s / b1)[0] < float(res.fun) * (1.0 - 1e-6):
+                break
+            counters["swept_cilia"] += moved
+            res2 = minimize(fun, chi_s / b1, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * N,
+                            options={"gtol": 1e-10, "ftol": ftol, "maxiter": maxiter})
+            counters["iterations"] += int(res2.nit)
+            logger.info("design pass %d: sweep moved %d cilia; model objective %.4g -> %.4g of its start", p,
+                        moved, float(res.fun), float(res2.fun))
+            if not res2.fun < res.fun:
+                break
+            res = res2
+    counters["seconds_model"] += _time.perf_counter() - t_model
+    return res, J_scale
+
+
+def _passes(ob: _Objective, best: dict, *, outer: int, ftol: float, maxiter: int, sweeps: int, threshold) -> tuple:
+    """At most ``outer`` passes (:func:`_solve_pass`), each measured with the full model and kept
+    when its objective J on the full model's flow beats the best so far; stopped once the design
+    model agrees with the full model within 5%, a pass gained under 2%, or (given a
+    ``threshold``) the rms residual is below GOOD_ENOUGH of it. Returns (the best, the last
+    solver result)."""
+    u_prev, c_prev, chi = best["u"], best["carpet"], ob.chi0.copy()
     res = None
     for p in range(1, max(1, outer) + 1):
-        # a coupled carpet: the model's forces answer through the flow (the response at this pass's
-        # coupled state), so its gradient includes the coupling
-        response = CouplingResponse(c_prev) if c_prev.coupled is not None and c_prev.n <= DENSE_CILIA else None
-        dm = DesignModel(carpet, X, chi, moments=mom, near=near, response=response)
-        shift = u_prev - dm.velocity(chi)  # defect: full model minus design model at this pass's start
-
-        J_scale = 1.0
-
-        def fun(x):
-            counters["evaluations"] += 1
-            c = x * b1
-            J, g = expected(dm, shift, c, True)
-            dc = (c - chi0) / b1
-            J += regularization * float(np.sum(dc ** 2)) / N
-            g = g + 2.0 * regularization * dc / (b1 * N)
-            if edges.size:
-                de = (c[edges[:, 0]] - c[edges[:, 1]]) / b1
-                J += smoothness * float(np.sum(de ** 2)) / len(edges)
-                ge = 2.0 * smoothness * de / (b1 * len(edges))
-                g = g + np.bincount(edges[:, 0], ge, N) - np.bincount(edges[:, 1], ge, N)
-            return J / J_scale, g * (b1 / J_scale)
-
-        t_model = _time.perf_counter()
-        with solver_threads(3 * N * P):
-            # J in units of its value at the pass's start: ftol is then relative to it
-            J_scale = max(fun(chi / b1)[0], 1e-300)
-            res = minimize(fun, chi / b1, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * N,
-                           options={"gtol": 1e-10, "ftol": ftol, "maxiter": maxiter})
-            counters["iterations"] += int(res.nit)
-            # out of a local minimum: a sweep over the cilia (each to the best curvature of the
-            # grid, both signs), then L-BFGS-B again, while that lowers the model's objective
-            for _ in range(int(sweeps) if (near is not None and rs == 0) else 0):
-                chi_k = np.clip(res.x * b1, -b1, b1)
-                chi_s, moved = sweep(dm, near, chi_k, dm.velocity(chi_k) + shift, terms, penalty)
-                counters["sweeps"] += 1
-                if moved == 0 or not fun(chi_s / b1)[0] < float(res.fun) * (1.0 - 1e-6):
-                    break
-                counters["swept_cilia"] += moved
-                res2 = minimize(fun, chi_s / b1, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * N,
-                                options={"gtol": 1e-10, "ftol": ftol, "maxiter": maxiter})
-                counters["iterations"] += int(res2.nit)
-                logger.info("design pass %d: sweep moved %d cilia; model objective %.4g -> %.4g of its start", p,
-                            moved, float(res.fun), float(res2.fun))
-                if not res2.fun < res.fun:
-                    break
-                res = res2
-        counters["seconds_model"] += _time.perf_counter() - t_model
-        chi = np.clip(res.x * b1, -b1, b1)
-        c_full, u_full, e_full = check(chi)
-        resid = residual(u_full)
-        rms = wrms(resid)
+        res, J_scale = _solve_pass(ob, p, chi, u_prev, c_prev, ftol=ftol, maxiter=maxiter, sweeps=sweeps)
+        chi = np.clip(res.x * ob.b1, -ob.b1, ob.b1)
+        c_full, u_full, e_full = ob.check(chi)
+        resid = ob.residual(u_full)
+        rms = ob.wrms(resid)
         logger.info("design pass %d: full-model rms residual %.4g (model objective %.4g of its start), "
                     "%d iterations", p, rms, float(res.fun), res.nit)
-        J_full = score(u_full, chi, c_full)
+        J_full = ob.score(u_full, chi, c_full)
         J_model = float(res.fun) * J_scale
         logger.info("design pass %d: objective %.4g on the full model, %.4g on the design model", p, J_full, J_model)
         gain = (best["J"] - J_full) / max(best["J"], 1e-300)
@@ -492,24 +580,16 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
             logger.info("design pass %d: rms residual %.3g is below %g of the threshold %g: no further pass", p,
                         best["rms"], GOOD_ENOUGH, float(threshold))
             break
+    return best, res
+
+
+def _final_check(ob: _Objective, best: dict, threshold, check_tol: float) -> tuple:
+    """The returned layout's (chi, flow, residuals, rms residual, error bar): with a
+    ``threshold``, checked once more at a tolerance picked so that the error bar is at most half
+    of it (the bound scales about like the tolerance; the resolved sum, tol = 0, has none). The
+    tolerance used is the counters' ``final_tol``."""
     chi, u, resid, rms = best["chi"], best["u"], best["resid"], best["rms"]
-
-    def error_bar(bound, u):
-        """A bound on |rms residual - its value on the resolved flow| from the levels of detail's
-        per-point bounds b_k >= |u_k - u_k(resolved)|: the residual of point k moves by at most
-        e_k = b_k / s (velocity targets, s the rms target speed) or arcsin(b_k / |u_k|) (angle
-        targets; pi where b_k >= |u_k|), and an rms by at most the rms of the e_k (triangle
-        inequality)."""
-        if kind == "angle":
-            nrm = np.linalg.norm(u, axis=1)
-            e = np.where(bound < nrm, np.arcsin(np.minimum(bound / np.maximum(nrm, 1e-300), 1.0)), math.pi)
-        else:
-            e = bound / math.sqrt(scaleU / wsum)
-        return wrms(e)
-
-    r_err = error_bar(best["bound"], u)
-    # one final check of the returned layout at a tolerance picked for the bar: at most half the
-    # threshold (the bound scales about like the tolerance; the resolved sum, tol = 0, has none)
+    r_err = ob.error_bar(best["bound"], u)
     tol_final = check_tol
     if threshold is not None:
         goal = 0.5 * float(threshold)
@@ -517,36 +597,45 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
             if r_err <= goal:
                 break
             tol_final = 0.0 if attempt == 3 else tol_final * max(0.02, min(0.5, 0.5 * goal / max(r_err, 1e-300)))
-            _, u, bound = check(chi, tol_final, best["carpet"])
-            resid = residual(u)
-            rms = wrms(resid)
-            r_err = error_bar(bound, u)
+            _, u, bound = ob.check(chi, tol_final, best["carpet"])
+            resid = ob.residual(u)
+            rms = ob.wrms(resid)
+            r_err = ob.error_bar(bound, u)
             logger.info("design: final check at tol %.3g: rms residual %.4g +- %.2g", tol_final, rms, r_err)
-    counters["final_tol"] = tol_final
+    ob.counters["final_tol"] = tol_final
+    return chi, u, resid, rms, r_err
+
+
+def _result(ob: _Objective, best: dict, res, chi, u, resid, rms: float, r_err: float, rms_loc: float, J_loc: float,
+            inside_info: dict, done: str, threshold, clock: float) -> Design:
+    """The :class:`~ciliary_carpet.design.result.Design` of the returned layout, with its summary
+    line (the residual and its bar, the local layout's, which layout was returned, the cilia
+    near the flutter cutoff, how the solver ended) and the work counters."""
+    kind, mom, counters = ob.kind, ob.mom, ob.counters
     thrust = mom.thrust_norm(chi)
     near_cut = tuple(np.nonzero(thrust < NEAR_CUTOFF_FRACTION * mom.thrust0)[0].tolist())
-    ratio = np.sum(u * target, axis=1) / sref if kind == "angle" else None
+    ratio = np.sum(u * ob.target, axis=1) / ob.sref if kind == "angle" else None
     last = best["res"] if best["res"] is not None else res
     status = "success" if (last is not None and last.success) else "inaccurate"
     unit = " rad" if kind == "angle" else " (relative)"
-    robust = (f"designed for the expected objective under a relative chi_N error {rs:g} "
-              f"({mult.shape[0]} samples); ") if rs > 0 else ""
+    robust = (f"designed for the expected objective under a relative chi_N error {ob.rs:g} "
+              f"({ob.mult.shape[0]} samples); ") if ob.rs > 0 else ""
     ins = ""
     if inside_info["count"]:
         ins = f"{inside_info['count']} control point(s) inside a cilium's swept region {done}; "
-    message = (f"{kind} target at {P} control points: {ins}{robust}rms residual {rms:.3g}{unit} (+- {r_err:.2g}), "
+    message = (f"{kind} target at {ob.P} control points: {ins}{robust}rms residual {rms:.3g}{unit} (+- {r_err:.2g}), "
                f"worst "
                f"{float(resid.max()):.3g}; local layout {rms_loc:.3g}; returned the {best['label']} layout; "
-               f"{len(near_cut)} of {N} cilia near the flutter cutoff; L-BFGS-B "
+               f"{len(near_cut)} of {ob.N} cilia near the flutter cutoff; L-BFGS-B "
                f"{'converged' if status == 'success' else 'stopped: ' + str(getattr(last, 'message', ''))}")
     logger.info("design: %s", message)
     counters["seconds"] = _time.perf_counter() - clock
-    return Design(chi_N=chi, control=X, target=target, achieved=u, residual=resid, residual_rms=rms, kind=kind,
+    return Design(chi_N=chi, control=ob.X, target=ob.target, achieved=u, residual=resid, residual_rms=rms, kind=kind,
                   residual_error=r_err, speed_ratio=ratio, local_rms=rms_loc, objective=best["J"],
                   local_objective=J_loc, returned=best["label"],
-                  near_cutoff=near_cut, clipped=tuple(clipped), status=status, message=message, work=counters,
+                  near_cutoff=near_cut, clipped=tuple(ob.clipped), status=status, message=message, work=counters,
                   carpet=best["carpet"], threshold=None if threshold is None else float(threshold),
-                  inside_swept=inside_info, weights=None if uniform_w else w_pts)
+                  inside_swept=inside_info, weights=None if ob.uniform_w else ob.w_pts)
 
 
 def carpet_with(design: Design, carpet: Carpet) -> Carpet:
