@@ -7,7 +7,7 @@ tolerance), one numba thread, three ways in the same run:
 
 * **moments**: the carriers' forces as before the fused pass (what ``Carpet.evaluate`` still does
   for its reported bound): the moments from their interpolant, the carriers with the bound's
-  terms, then stacked (``Carpet._sum(..., bound=True)``);
+  terms, then stacked (``FlowSums.sum(..., bound=True)``);
 * **fused**: ``Carpet.velocity`` at an instant not prepared (``InstantCarriers``: one compiled
   pass from the moments' interpolant, its harmonics cut at ``Carriers.harmonics(tol)``, to the
   stacked forces; where the far cilia are dipoles, the quadrupoles made only for the cilia read);
@@ -86,7 +86,7 @@ def measure(n: int, points: list[int], repeats: int) -> list[str]:
 
         def moments():
             t0[0] += h
-            return c._sum(x, Instant(t0[0]), TOL, bound=True)[0].velocity
+            return c.sums.sum(x, Instant(t0[0]), TOL, bound=True)[0].velocity
 
         def fused():
             t0[0] += h
@@ -102,7 +102,7 @@ def measure(n: int, points: list[int], repeats: int) -> list[str]:
         t_f = _median_time(fused, repeats)
         t_p = _median_time(prepared, max(3, repeats // 5)) / STAGES.size
         t = 12.345
-        ref = c._sum(x, Instant(t), TOL, bound=True)[0].velocity
+        ref = c.sums.sum(x, Instant(t), TOL, bound=True)[0].velocity
         scale = float(np.abs(ref).max())
         d_f = float(np.abs(c.velocity(x, Instant(t), TOL) - ref).max()) / scale
         c.prepare([t], TOL)
@@ -116,10 +116,10 @@ def measure(n: int, points: list[int], repeats: int) -> list[str]:
 def pathline_split(n: int, fraction: float) -> list[str]:
     """The render's path-line call on the N x N carpet over ``fraction`` of its duration, one
     thread: its seconds and evaluations, and their split (module docstring); then the same for its
-    error estimate's reference run (:func:`~ciliary_carpet.output.outputs.error_reference`: 8 of the
-    tracers, flow tol, rtol and atol tighter by :data:`~ciliary_carpet.output.outputs.REFERENCE_TIGHTER`)."""
+    error estimate's reference run (:func:`~ciliary_carpet.transport.accuracy.error_reference`: 8 of the
+    tracers, flow tol, rtol and atol tighter by :data:`~ciliary_carpet.transport.accuracy.REFERENCE_TIGHTER`)."""
     import bench_large
-    from ciliary_carpet.output.outputs import (
+    from ciliary_carpet.transport.accuracy import (
         PATHLINE_ATOL,
         PATHLINE_RTOL,
         PATHLINE_TOL,

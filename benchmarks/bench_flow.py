@@ -321,13 +321,13 @@ def bench_levels(quick: bool, emit) -> dict:
                         # the plan takes when classifying a cilium is made prohibitive)
                         price = carpet_module._CLASSIFY
                         carpet_module._CLASSIFY = 1e12
-                        c._plans.clear()
+                        c.sums.plans.clear()
                         try:
                             ev(tol)  # the plan is made once per tolerance (not timed, as for the levels)
                             t_q = min(t_q, best_time(lambda: ev(tol), repeat=1)[1])
                         finally:
                             carpet_module._CLASSIFY = price
-                            c._plans.clear()
+                            c.sums.plans.clear()
                             ev(tol)
                     err = np.linalg.norm(s.velocity - ref, axis=1)
                     rel = float(np.max(err / np.linalg.norm(ref, axis=1)))

@@ -152,7 +152,7 @@ def _fine(c, seeds, duration: float, spacing: float, cache: Path | None, n: int)
 
 def decompose(n: int, cache: Path | None) -> str:
     """Where the end-point error of the estimate's tracers comes from (module docstring)."""
-    from ciliary_carpet.output.outputs import error_tracers
+    from ciliary_carpet.transport.accuracy import error_tracers
     from ciliary_carpet.transport.flow import ResolvedFlow
     from ciliary_carpet.transport.pathlines import pathlines
     from numba import set_num_threads
@@ -185,7 +185,7 @@ def decompose(n: int, cache: Path | None) -> str:
 def reference_error(scene_path: Path, out: Path, cache: Path | None, n: int) -> tuple[float, float, float]:
     """The rendered end points of the estimate's tracers against the check run (module docstring):
     max and median distance [L] and the seconds it took."""
-    from ciliary_carpet.output.outputs import error_tracers
+    from ciliary_carpet.transport.accuracy import error_tracers
 
     c, plan, sp = _design(scene_path)
     idx = error_tracers(plan.seeds.shape[0])
@@ -221,7 +221,7 @@ def renders(sizes, threads: int, reference: bool, cache: Path | None) -> str:
 
 def _stage(sec: dict, k: str) -> str:
     """A stage's seconds, or those it took beside the path lines (``(b)``: the summary's
-    computations that ran in the path lines' pool, ``outputs.summary_tasks``)."""
+    computations that ran in the path lines' pool, ``ciliary_carpet.output.summary.summary_tasks``)."""
     b = sec.get(f"{k}_beside_pathlines")
     return f"{b:.1f} (b)" if b is not None else f"{sec.get(k, float('nan')):.1f}"
 
@@ -229,7 +229,7 @@ def _stage(sec: dict, k: str) -> str:
 def fields(stride: int) -> str:
     """The 400 x 400 mean field and 10 snapshots of a 30 x 30 carpet: toolkit, resolved sum, FMM."""
     from ciliary_carpet.carpet.carpet import CycleMean, Instant
-    from ciliary_carpet.carpet.cycles import ResolvedSources
+    from ciliary_carpet.carpet.blocks import ResolvedSources
     from ciliary_carpet.carpet.traversal import dense_sum
     from ciliary_carpet.cli import _scene
     from ciliary_carpet.scenes.assembly import design

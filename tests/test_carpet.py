@@ -395,13 +395,13 @@ def test_far_groups_meet_the_bound(table):
     n = 22 * 22
     c = Carpet(layout.square(22, 22, 2.0), rng.uniform(40, 100, n), table, layout.random_phases(n, 12))
     tol = 1e-3
-    key, plan = c._plan(Instant(0.0), tol)
+    key, plan = c.sums.plan(Instant(0.0), tol)
     g = plan.groups
     assert plan.far == 1 and g is not None and np.isfinite(g.R2).sum() > 50
     assert np.diff(g.start)[np.isfinite(g.R2)].min() >= 3  # (GROUP_MIN: fewer would not pay)
     # the groups' carriers at an instant: the moments of their cilia's dipole carriers
     t = 0.61
-    inst = c._instants(c.cycles.phase_at(np.array([t])), key, plan)
+    inst = c.sums.instants(c.cycles.phase_at(np.array([t])), key, plan)
     out, n_p = inst.out[0], plan.order.size
     pos = plan.carriers_soa
     for k in np.flatnonzero(np.isfinite(g.R2))[:20]:
@@ -419,7 +419,7 @@ def test_far_groups_meet_the_bound(table):
     pts[:10, :2] = rng.uniform(-6, 2, (10, 2))
     walled = Carpet(layout.square(22, 22, 2.0), c.chi_N, table, c.cycles.phases, wall=0.5)
     for cc, tl in ((c, tol), (walled, 3e-3)):  # (with the wall, dipoles far at 3e-3; quadrupoles at 1e-3)
-        s, _, _ = cc._sum(cc._targets(pts), Instant(t), tl)
+        s, _, _ = cc.sums.sum(cc.targets(pts), Instant(t), tl)
         full = cc.evaluate(pts, Instant(t), tl)
         res = cc.velocity(pts, Instant(t), 0.0)
         R = np.linalg.norm(pts[:, None, :] - cc.cycles.centre3[None], axis=2)
@@ -430,10 +430,10 @@ def test_far_groups_meet_the_bound(table):
         assert off.max() <= 0.2 * tl * far_sum.max()  # the calibration the levels of detail keep
         np.testing.assert_array_equal(cc.velocity(pts, Instant(t), tl), s.velocity)
     # no groups where there is a reported bound, in the mean flow, or on a standing carpet
-    assert c._plan(CycleMean(), tol)[1].groups is None
+    assert c.sums.plan(CycleMean(), tol)[1].groups is None
     standing = Carpet(layout.square(22, 22, 2.0), rng.uniform(40, 100, n), table, layout.random_phases(n, 13),
                       wall=0.0, geometry="standing", azimuth=rng.uniform(0, 2 * math.pi, n))
-    assert standing._plan(Instant(0.0), tol)[1].groups is None
+    assert standing.sums.plan(Instant(0.0), tol)[1].groups is None
 
 
 def test_chunked_sums_match_one_sum(carpet, monkeypatch):
@@ -535,7 +535,7 @@ def test_stacked_carriers_in_the_order_of_their_positions(table):
 def test_filament_states_are_the_interpolant(table):
     """CycleData.state evaluates each cilium's trigonometric interpolant at its phase (one batched
     product): the same numbers, to rounding, as the interpolant written out term by term."""
-    from ciliary_carpet.carpet.cycles import _trig_basis
+    from ciliary_carpet.carpet.cycles import trig_basis
 
     c = Carpet(layout.square(2, 3, 2.0), np.linspace(-40, 40, 6), table, layout.random_phases(6, 2))
     cy = c.cycles
@@ -543,15 +543,17 @@ def test_filament_states_are_the_interpolant(table):
         pos, f, ph = cy.state(0.37, js)
         j = np.arange(6) if js is None else np.array(js)
         assert np.array_equal(ph, cy.phase_at(0.37)[j])
-        b = _trig_basis(ph, cy.harmonics)
+        b = trig_basis(ph, cy.harmonics)
         vals = np.einsum("jk,jksq->jsq", b, cy.coef[j].astype(float))
         np.testing.assert_allclose(pos, vals[..., :2] + cy.bases[j][:, None, :], rtol=0, atol=1e-13)
         np.testing.assert_allclose(f, vals[..., 2:], rtol=0, atol=1e-13 * np.abs(vals[..., 2:]).max())
 
 
 def test_fused_carriers_are_the_stacked_moments(table):
-    """Carriers.stacked_at (one compiled pass from the moments' interpolant, one time or several)
+    """instants.stacked_forces (one compiled pass from the moments' interpolant, one time or several)
     gives Carriers.stacked of Carriers.forces of the moments, to rounding, planar and standing."""
+    from ciliary_carpet.carpet.instants import stacked_forces
+
     rng = np.random.default_rng(5)
     planar = Carpet(layout.square(3, 4, 2.0), rng.uniform(-100, 100, 12), table, layout.random_phases(12, 3))
     standing = Carpet(layout.square(3, 4, 2.0), rng.uniform(0, 100, 12), table, layout.random_phases(12, 4),
@@ -560,29 +562,29 @@ def test_fused_carriers_are_the_stacked_moments(table):
         js = np.array([7, 0, 11, 3, 5])
         times = np.array([0.3, 1.7, 2.25])
         ph = np.stack([c.cycles.phase_at(t) for t in times])
-        many = c.carriers.stacked_at(ph, js)
+        many = stacked_forces(c.carriers, ph, js)
         assert many.shape == (3, 50, 3)
         for i, t in enumerate(times):
             F, D, T = c.cycles.moments_at(ph[i])
             want = c.carriers.stacked(F, c.carriers.forces(F, D, T), js)
-            one = c.carriers.stacked_at(ph[i], js)
+            one = stacked_forces(c.carriers, ph[i], js)
             np.testing.assert_allclose(one, want, rtol=0, atol=1e-13 * np.abs(want).max())
             np.testing.assert_array_equal(many[i], one)
 
 
 def test_carriers_pass_runs_over_lanes(table):
-    """The carriers' pass (_stacked_at) takes cilia LANES at a time: its sine and cosine of 2 pi x
+    """The carriers' pass (stacked_at) takes cilia LANES at a time: its sine and cosine of 2 pi x
     are numpy's within 1e-15 (quarter phases exact), a subset of cilia is written alone (the other
     cilia of its blocks untouched), and any count of cilia (none a multiple of LANES) gives the
     stacked moments."""
     from numba import njit
 
-    from ciliary_carpet.carpet import carriers
+    from ciliary_carpet.carpet import instants
 
     @njit
     def both(x):
         c, s = np.empty_like(x), np.empty_like(x)
-        carriers._sincos_2pi(x, c, s)
+        instants._sincos_2pi(x, c, s)
         return c, s
 
     x = np.concatenate([np.random.default_rng(2).random(100000), np.arange(8) / 8, [np.nextafter(1.0, 0.0)]])
@@ -594,16 +596,16 @@ def test_carriers_pass_runs_over_lanes(table):
     c = Carpet(layout.square(5, 3, 2.0), rng.uniform(-100, 100, 15), table, layout.random_phases(15, 8))
     js = np.arange(15)[::-1].copy()
     ph = np.stack([c.cycles.phase_at(t) for t in (0.2, 0.9)])
-    full = carriers.InstantCarriers(c.carriers, ph, js, eager=True).out
-    part = carriers.InstantCarriers(c.carriers, ph, js)  # monopoles and dipoles of all, no quadrupole
+    full = instants.InstantCarriers(c.carriers, ph, js, eager=True).out
+    part = instants.InstantCarriers(c.carriers, ph, js)  # monopoles and dipoles of all, no quadrupole
     part.out[:, :, 4 * 15:] = np.nan
-    part._make(np.array([3, 9]), carriers.QUADRUPOLES)  # their block: two cilia written
+    part._make(np.array([3, 9]), instants.QUADRUPOLES)  # their block: two cilia written
     q = part.out[:, :, 4 * 15:].reshape(2, 3, 15, 6)
     assert np.isnan(q[:, :, [0, 1, 2, 4, 5, 6, 7, 8, 10, 11, 12, 13, 14]]).all()
     np.testing.assert_array_equal(q[:, :, [3, 9]], full[:, :, 4 * 15:].reshape(2, 3, 15, 6)[:, :, [3, 9]])
     for n in (1, 7, 9, 15):
         sub = js[:n]
-        got = c.carriers.stacked_at(ph[1], sub)
+        got = instants.stacked_forces(c.carriers, ph[1], sub)
         F, D, T = c.cycles.moments_at(ph[1])
         want = c.carriers.stacked(F, c.carriers.forces(F, D, T), sub)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-13 * np.abs(want).max())
@@ -652,7 +654,7 @@ def test_prepared_instants_are_made_together(table, monkeypatch):
     those instants (an integrator's stages) make none of their own; where the far cilia are
     dipoles, the quadrupoles are made only for the cilia a sum reads them of, once for all
     the prepared instants, and the velocities are those of carriers made eagerly."""
-    from ciliary_carpet.carpet.carriers import InstantCarriers
+    from ciliary_carpet.carpet.instants import InstantCarriers
 
     c = Carpet(layout.square(4, 4, 2.0), np.linspace(-60, 60, 16), table, layout.random_phases(16, 6))
     calls = []
@@ -661,7 +663,7 @@ def test_prepared_instants_are_made_together(table, monkeypatch):
                         lambda self, sel, what: calls.append((self.ph.shape[0], sel.size, what)) or real(self, sel, what))
     pts = np.array([[1.0, 1.0, 0.5], [5.0, 3.0, -0.2]])
     times = 0.4 + np.array([0.2, 0.3, 0.8, 8 / 9, 1.0, 1.0]) * 0.05
-    key, plan = c._plan(Instant(0.0), 1e-3)
+    key, plan = c.sums.plan(Instant(0.0), 1e-3)
     object.__setattr__(plan, "far", 2)  # far cilia quadrupoles: every order made at once
     c.prepare(times, 1e-3)
     for t in times:
@@ -685,12 +687,12 @@ def test_prepared_instants_keep_their_blocks(table, monkeypatch):
     """The resolved blocks of prepared instants are made once per cilium for all of them together
     (one read of its coefficients) and kept until other instants are prepared; the velocities are
     those made block by block (bit-equal), also when the blocks would exceed their budget."""
-    from ciliary_carpet.carpet import cycles
+    from ciliary_carpet.carpet import blocks
 
     c = Carpet(layout.square(4, 4, 2.0), np.linspace(-60, 60, 16), table, layout.random_phases(16, 6))
     made = []
-    real = cycles._instant_blocks
-    monkeypatch.setattr(cycles, "_instant_blocks",
+    real = blocks._instant_blocks
+    monkeypatch.setattr(blocks, "_instant_blocks",
                         lambda coef, basis, *a: made.append(basis.shape[:2]) or real(coef, basis, *a))
     rng = np.random.default_rng(3)
     pts = np.column_stack([rng.uniform(0, 6, 8), rng.uniform(0, 6, 8), rng.uniform(-0.5, 0.5, 8)])
@@ -700,7 +702,7 @@ def test_prepared_instants_keep_their_blocks(table, monkeypatch):
     c.prepare(times, 1e-4)
     kept = [c.velocity(pts, Instant(t), 1e-4) for t in times]
     np.testing.assert_array_equal(kept, plain)
-    ib = c._instant_blocks
+    ib = c.sums.instant_blocks
     assert made and all(P == 5 for _, P in made)  # every distinct instant at once
     assert sum(m for m, _ in made) == ib.count  # each cilium made once
     resolved = c.evaluate(pts, Instant(times[0]), 1e-4).pairs["resolved"]
@@ -746,21 +748,21 @@ def test_kept_mean_blocks_give_the_same_flow(table, monkeypatch):
     carpet that keeps none; a pickled carpet leaves its kept blocks behind."""
     import pickle
 
-    from ciliary_carpet.carpet import cycles
+    from ciliary_carpet.carpet import blocks
 
     rng = np.random.default_rng(8)
     chi, ph = rng.uniform(-90, 90, 16), layout.random_phases(16, 9)
     c = Carpet(layout.square(4, 4, 2.0), chi, table, ph)
     block_bytes = 48 * c.cycles.n_phase * c.cycles.n_s
     small = Carpet(layout.square(4, 4, 2.0), chi, table, ph)
-    object.__setattr__(small, "_mean_blocks", cycles.MeanBlocks(small.cycles, budget=3 * block_bytes))
+    small.sums.mean_blocks = blocks.MeanBlocks(small.cycles, budget=3 * block_bytes)
     none = Carpet(layout.square(4, 4, 2.0), chi, table, ph)
-    object.__setattr__(none, "_mean_blocks", None)
+    none.sums.mean_blocks = None
     a = np.array([[1.0, 1.0, 0.3], [2.5, 5.0, -0.2]])
     b = np.array([[5.0, 5.5, 0.1], [0.5, 3.0, 0.4], [6.5, 1.0, 0.0]])
     for x in (a, b, np.concatenate([a, b]), a):
         want = none.velocity(x, CycleMean(), 1e-3)
         for k in (c, small):
             np.testing.assert_array_equal(k.velocity(x, CycleMean(), 1e-3), want)
-    assert c._mean_blocks.count > 3 and small._mean_blocks.count == 3
-    assert pickle.loads(pickle.dumps(c))._mean_blocks.count == 0
+    assert c.sums.mean_blocks.count > 3 and small.sums.mean_blocks.count == 3
+    assert pickle.loads(pickle.dumps(c)).sums.mean_blocks.count == 0

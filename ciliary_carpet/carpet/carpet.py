@@ -50,7 +50,7 @@ import logging
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import ClassVar, Union
+
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -58,30 +58,20 @@ from scipy.spatial import cKDTree
 from single_cilium.checks import finite, positive
 from single_cilium.table import TableError, ThrustTable
 
-from ciliary_carpet.carpet.carriers import Bounds, CarrierForces, Carriers, InstantCarriers
+from ciliary_carpet.carpet.carriers import Carriers
 from ciliary_carpet.carpet.coupling import COUPLINGS, couple
-from ciliary_carpet.carpet.cycles import CycleData, InstantBlocks, MeanBlocks, ResolvedSources
-from ciliary_carpet.carpet.geometry import GEOMETRIES, Embedding
-from ciliary_carpet.carpet.geometry import standing as standing_embedding
-from ciliary_carpet.carpet.traversal import Plan, Summed, dense_sum, flow_sum, make_plan
-from ciliary_carpet.stokes import Auto, Backend, Direct, Kernel, Wall, in_fp32, make_kernel, stokeslet_velocity_ranges
+from ciliary_carpet.carpet.cycles import CycleData
+from ciliary_carpet.carpet.geometry import GEOMETRIES, Embedding, Geometry
+from ciliary_carpet.carpet.sums import CycleMean, FlowSample, FlowSums, Instant, When
+from ciliary_carpet.stokes import Backend, Kernel, Wall, make_kernel
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["Carpet", "Scales", "FlowSample", "Instant", "CycleMean", "When", "BLOB", "sbt_viscosity"]
+__all__ = ["Carpet", "Scales", "BLOB", "sbt_viscosity", "CycleMean", "FlowSample", "Instant", "When"]
 
-_AUTO = Auto()
-_FP32 = Direct("fp32")  # what in_fp32 gives where the sums may run in fp32
-"""The evaluator of a carpet made without ``backend``."""
-_PLANS = 32
-"""Plans (one per kind of flow and tolerance) a carpet keeps before it forgets them all."""
-_INSTANTS = 8
-"""Instants whose carrier forces a carpet keeps (:meth:`Carpet.prepare`)."""
 BLOB = 0.02
 """Default blob size eps of the regularised Stokeslets, in units of L: the filament radius of a
 slender filament of aspect ratio L / (2 a) = 25 (scene key ``[carpet] blob``)."""
-_OWN_CHUNK = 512
-"""Cilia whose own cycle-averaged lines are summed at once in :meth:`Carpet.others_mean_flow`."""
 
 
 def _frozen(a: np.ndarray | None) -> np.ndarray | None:
@@ -124,93 +114,6 @@ class Scales:
     @property
     def velocity(self) -> float:
         return self.length_m / self.time_s
-
-
-@dataclass(frozen=True)
-class FlowSample:
-    """Velocities at points with their error bound and the fidelity used.
-
-    velocity (M, 3) in L / tau (the model's units: lengths in cilium lengths L, times in the
-    filament's relaxation time tau), lab frame (x, y in the carpet's plane for a planar carpet,
-    z up from the substrate for a standing one); error_bound (M,) in L / tau: the rigorous bound
-    of the levels of detail on ``|velocity - resolved sum|`` at each point (zero where every pair
-    was resolved); pairs: number of (cilium, point) pairs
-    evaluated at each level (``point`` or ``mean``, and ``resolved``); tol: the tolerance asked
-    for; work: counters of the work done: ``sources``, the (point, source) interactions summed
-    (the cost: each is one kernel evaluation), ``ranges``, the source ranges of the sparse sum
-    (per point the runs of carriers and one block per resolved pair), and ``orders``, the cheap
-    pairs per order (``monopole``, ``dipole``, ``quadrupole``)."""
-
-    velocity: np.ndarray
-    error_bound: np.ndarray
-    pairs: dict
-    tol: float
-    work: dict = field(default_factory=dict)
-
-    @property
-    def fidelity(self) -> dict:
-        """Fraction of the pairs evaluated at each level."""
-        n = sum(self.pairs.values())
-        return {k: (v / n if n else 0.0) for k, v in self.pairs.items()}
-
-
-@dataclass(frozen=True)
-class Instant:
-    """The flow at time ``t`` (units of tau): cilium j at its phase phi_j(t), resolved at its line
-    distribution there, its carriers holding its moments at that phase, their orders chosen by
-    bounds that hold at every phase (:attr:`Carriers.over_cycle
-    <ciliary_carpet.carpet.carriers.Carriers.over_cycle>`). Its cheap pairs count as level
-    ``point``; the far cilia's order is chosen by cost."""
-
-    t: float
-    level: ClassVar[str] = "point"
-    far: ClassVar[int | None] = None
-
-    def __post_init__(self) -> None:
-        try:
-            t = float(self.t)
-        except (TypeError, ValueError):
-            raise ValueError(f"Instant.t must be a finite number, got {self.t!r}") from None
-        if not math.isfinite(t):
-            raise ValueError(f"Instant.t must be a finite number, got {self.t!r}")
-        object.__setattr__(self, "t", t)
-
-    def phases(self, cycles: CycleData) -> np.ndarray:
-        """(N,) the cilia's phases at t (their resolved sources are taken there)."""
-        return cycles.phase_at(self.t)
-
-    def moments(self, cycles: CycleData, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """F, D, T of every cilium at ``phases`` (:meth:`phases`)."""
-        return cycles.moments_at(phases)
-
-    def bounds(self, carriers: Carriers) -> Bounds:
-        return carriers.over_cycle
-
-
-@dataclass(frozen=True)
-class CycleMean:
-    """The cycle-mean (steady, time-averaged) flow: each cilium's flow averaged over its own cycle,
-    resolved as the average over the table's phase samples, its carriers holding its cycle-mean
-    moments (:attr:`Carriers.of_mean <ciliary_carpet.carpet.carriers.Carriers.of_mean>`). Its cheap
-    pairs count as level ``mean``; the far cilia stay quadrupoles (:mod:`~.traversal`)."""
-
-    level: ClassVar[str] = "mean"
-    far: ClassVar[int | None] = 2
-
-    def phases(self, cycles: CycleData) -> None:
-        """None: every phase sample, weighted 1 / n_phase."""
-        return None
-
-    def moments(self, cycles: CycleData, phases: None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The cycle means of F, D, T."""
-        return cycles.F_mean, cycles.D_mean, cycles.T_mean
-
-    def bounds(self, carriers: Carriers) -> Bounds:
-        return carriers.of_mean
-
-
-When = Union[Instant, CycleMean]
-"""What :meth:`Carpet.evaluate` evaluates: the flow at an :class:`Instant` or the :class:`CycleMean`."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -291,10 +194,7 @@ class Carpet:
     azimuth: np.ndarray | None = None
     cycles: CycleData = field(default=None, init=False, repr=False)
     carriers: Carriers = field(default=None, init=False, repr=False)
-    _plans: dict = field(default=None, init=False, repr=False)
-    _forces: dict = field(default=None, init=False, repr=False)
-    _mean_blocks: MeanBlocks = field(default=None, init=False, repr=False)
-    _instant_blocks: InstantBlocks = field(default=None, init=False, repr=False)
+    sums: FlowSums = field(default=None, init=False, repr=False)
     mu: float = field(default=None, init=False)
     mu_source: str = field(default=None, init=False)
     coupled: object = field(default=None, init=False, repr=False)
@@ -322,24 +222,8 @@ class Carpet:
             object.__setattr__(self, "viscosity", positive("viscosity", self.viscosity))
         if self.geometry not in GEOMETRIES:
             raise ValueError(f"geometry must be one of {', '.join(GEOMETRIES)}, got {self.geometry!r}")
-        standing = self.geometry == "standing"
-        psi = None
-        if standing:
-            psi = np.zeros(n) if self.azimuth is None else np.broadcast_to(
-                np.asarray(self.azimuth, dtype=float), (n,)).copy() if np.ndim(self.azimuth) == 0 \
-                else np.array(self.azimuth, dtype=float)
-            if psi.shape != (n,) or not np.all(np.isfinite(psi)):
-                raise ValueError(f"azimuth must be {n} finite angles (radians), got shape {psi.shape}")
-            if self.direction != 0.0:
-                raise ValueError("a standing carpet's field is along +z, normal to its substrate: turn its cilia "
-                                 f"with azimuth, not direction (got direction = {self.direction!r})")
-            psi = np.mod(psi, 2.0 * math.pi)
-        elif self.azimuth is not None:
-            raise ValueError("azimuth is for standing carpets (geometry = 'standing'); a planar carpet's field "
-                             "direction turns it")
-        if self.wall is not None and not (math.isfinite(self.wall) and (self.wall >= 0 if standing else self.wall > 0)):
-            raise ValueError(f"wall must be a {'distance >= 0 below the clamps' if standing else 'positive distance'} "
-                             f"below the plane (or None), got {self.wall!r}")
+        where = self.placement
+        psi = where.azimuths(self.azimuth, self.direction, n)
         if self.blob is not None:
             try:
                 e = float(self.blob)
@@ -353,9 +237,7 @@ class Carpet:
                     raise ValueError(f"blob = {e:g} is larger than half the smallest spacing of the base points "
                                      f"({gap:g} L): the blobs of neighbouring filaments would overlap")
             object.__setattr__(self, "blob", e)
-        if not standing and self.wall is not None and self.wall < 2.0 * self.filament_radius:
-            raise ValueError(f"wall must be at least a filament diameter, 2 blob = {2.0 * self.filament_radius:g} L, "
-                             f"below the plane of a planar carpet (its filaments must not cut it), got {self.wall!r}")
+        where.check_wall(self.wall, self.filament_radius)
         if self.coupling not in COUPLINGS:
             raise ValueError(f"coupling must be one of {', '.join(COUPLINGS)}, got {self.coupling!r}")
         u = None
@@ -365,8 +247,7 @@ class Carpet:
                 raise ValueError(f"background (the coupled solve's first guess) must be {n} finite flows, shape "
                                  f"({n}, 2), got shape {start.shape}")
             res = couple(self._first_guess(start))  # (its bases checked there; no reference kept here)
-            for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "_plans", "_forces",
-                      "_mean_blocks", "_instant_blocks", "bases", "chi_N",
+            for k in ("background", "mu", "mu_source", "blob", "cycles", "carriers", "sums", "bases", "chi_N",
                       "phases", "direction", "azimuth"):
                 object.__setattr__(self, k, getattr(res.carpet, k))
             object.__setattr__(self, "coupled", res)
@@ -374,8 +255,8 @@ class Carpet:
         if self.background is not None:
             u = np.array(self.background, dtype=float)
             if u.shape != (n, 2) or not np.all(np.isfinite(u)):
-                where = "in each cilium's beat plane (along e_psi, e_z)" if standing else "in the plane"
-                raise ValueError(f"background must be {n} finite flows {where}, shape ({n}, 2), got shape {u.shape}")
+                frame = "in each cilium's beat plane (along e_psi, e_z)" if psi is not None else "in the plane"
+                raise ValueError(f"background must be {n} finite flows {frame}, shape ({n}, 2), got shape {u.shape}")
         object.__setattr__(self, "background", _frozen(u))
         object.__setattr__(self, "bases", _frozen(b))
         object.__setattr__(self, "chi_N", _frozen(c))
@@ -384,39 +265,21 @@ class Carpet:
         object.__setattr__(self, "mu", sbt_viscosity(self.table.eta, self.filament_radius) if self.viscosity is None
                            else float(self.viscosity))
         object.__setattr__(self, "azimuth", _frozen(psi))
-        if standing:  # each cilium's 2D frame is its beat plane, clamp at the origin
-            cycles = CycleData(self.table, self.chi_N, np.zeros((n, 2)), self.phases, np.eye(2), u,
-                               embedding=standing_embedding(b, psi))
-            self._check_above_substrate(cycles)
-        else:
-            cycles = CycleData(self.table, self.chi_N, self.bases, self.phases, self.rotation, u)
+        fb, rot, emb = where.frames(self.bases, psi, self.rotation)
+        cycles = CycleData(self.table, self.chi_N, fb, self.phases, rot, u, **({} if emb is None else {"embedding": emb}))
+        where.check_cycles(cycles, self.chi_N)
         object.__setattr__(self, "cycles", cycles)
         object.__setattr__(self, "carriers", Carriers(cycles, self.kernel))
-        object.__setattr__(self, "_plans", {})
-        object.__setattr__(self, "_forces", {})
-        object.__setattr__(self, "_mean_blocks", MeanBlocks(cycles))
-        object.__setattr__(self, "_instant_blocks", InstantBlocks(cycles))
+        object.__setattr__(self, "sums", FlowSums(cycles, self.carriers, self.kernel, self.backend, self.mu))
         self._check_spacing()
 
     def __getstate__(self) -> dict:
-        """A pickled carpet (sent to a worker process) leaves its kept plans, carriers and mean
-        blocks behind: they are remade where needed, and the blocks can take hundreds of MB."""
+        """A pickled carpet (sent to a worker process) leaves what its sums kept behind (plans,
+        carrier forces, blocks that can take hundreds of MB): they are remade where needed."""
         state = dict(self.__dict__)
         if self.cycles is not None:
-            state.update(_plans={}, _forces={}, _mean_blocks=MeanBlocks(self.cycles),
-                         _instant_blocks=InstantBlocks(self.cycles))
+            state["sums"] = FlowSums(self.cycles, self.carriers, self.kernel, self.backend, self.mu)
         return state
-
-    def _check_above_substrate(self, cycles: CycleData) -> None:
-        """A standing cilium must stay above its substrate (its 2D frame's y is the height)."""
-        low = np.concatenate([np.min(cycles.samples(np.arange(lo, min(lo + 256, self.n)))[0][..., 1], axis=(1, 2))
-                              for lo in range(0, self.n, 256)])
-        bad = np.nonzero(low < -1e-6)[0]
-        if bad.size:
-            j = int(bad[np.argmin(low[bad])])
-            raise ValueError(f"standing cilium {j} (chi_N = {self.chi_N[j]:g}) dips {-low[j]:.3g} L below its "
-                             "substrate during its beat: choose a smaller |chi_N| for it (a planar carpet has no "
-                             "substrate)")
 
     @property
     def reach(self) -> np.ndarray:
@@ -424,9 +287,7 @@ class Carpet:
         for a planar carpet, horizontally for a standing one): its swept region's radius plus its
         centre's distance from the base (horizontal), at most the filament length 1."""
         c = self.cycles
-        if self.geometry == "standing":  # the horizontal reach: along the beat plane's e_psi (the frame's x)
-            return np.minimum(np.abs(c.centre[:, 0] - c.bases[:, 0]) + c.radius, 1.0)
-        return np.minimum(np.linalg.norm(c.centre - c.bases, axis=1) + c.radius, 1.0)
+        return self.placement.reach(c.centre, c.bases, c.radius)
 
     def _check_spacing(self) -> None:
         """ValueError when a base point lies within the reach of another cilium's beat
@@ -449,6 +310,12 @@ class Carpet:
                              f"these cilia; the filament length 1 L is always enough)")
 
     # ------------------------------------------------------------------ geometry and state
+    @property
+    def placement(self) -> Geometry:
+        """The carpet's geometry as an object (:data:`~ciliary_carpet.carpet.geometry.GEOMETRIES`
+        of :attr:`geometry`): what differs between planar and standing carpets."""
+        return GEOMETRIES[self.geometry]
+
     @property
     def n(self) -> int:
         """Number of cilia."""
@@ -528,13 +395,7 @@ class Carpet:
         """(M,) distance of ``points`` (M, 2) or (M, 3) from the nearest filament at time ``t``
         (to the sampled centre lines, the table's s grid; in-plane for a planar carpet, in
         space for a standing one)."""
-        if self.geometry == "standing":
-            p = self._targets(points)
-            pos = self.state_in_space(t)[0]
-            return cKDTree(pos.reshape(-1, 3)).query(p)[0]
-        p = np.asarray(points, dtype=float)[:, :2]
-        pos, _, _ = self.state(t)
-        return cKDTree(pos.reshape(-1, 2)).query(p)[0]
+        return self.placement.filament_distance(self, points, t)
 
     def phase_at(self, t: float) -> np.ndarray:
         """(N,) phase of every cilium at time t, in [0, 1)."""
@@ -581,17 +442,7 @@ class Carpet:
         carpet's far-field flow; 0: everything resolved), with the rigorous bound of the result
         (module docstring; :mod:`~ciliary_carpet.carpet.carriers`). Returns a :class:`FlowSample`
         (velocities and bounds in L / tau)."""
-        x = self._targets(points)
-        tol = self._tol(tol)
-        s, plan, car = self._sum(x, when, tol, bound=True)
-        bound = np.zeros(x.shape[0])
-        if plan is not None and plan.order.size:
-            bound = self.carriers.error_bound(x, plan.thresholds, when.bounds(self.carriers), car, self.mu)
-        o = s.orders
-        return FlowSample(velocity=s.velocity, error_bound=bound, pairs={when.level: int(o.sum()),
-                                                                           "resolved": int(s.resolved)},
-                          tol=tol, work=dict(sources=int(s.sources), ranges=int(s.ranges),
-                                             orders=dict(monopole=int(o[0]), dipole=int(o[1]), quadrupole=int(o[2]))))
+        return self.sums.evaluate(self.targets(points), when, self._tol(tol))
 
     def velocity(self, points, when: When, tol: float = 1e-3, precision: str = "fp64") -> np.ndarray:
         """(M, 3) the velocity of :meth:`evaluate` without its error bound (which costs a pass over
@@ -602,7 +453,7 @@ class Carpet:
         inside the levels of detail's ``tol``); the resolved near field stays in fp64."""
         if precision not in ("fp64", "fp32"):
             raise ValueError(f"precision must be 'fp64' or 'fp32', got {precision!r}")
-        return self._sum(self._targets(points), when, self._tol(tol), precision=precision)[0].velocity
+        return self.sums.sum(self.targets(points), when, self._tol(tol), precision=precision)[0].velocity
 
     def _first_guess(self, start: np.ndarray | None) -> "Carpet":
         """The uncoupled carpet in the flows ``start`` (the coupled solve's first guess), or in
@@ -623,85 +474,7 @@ class Carpet:
         in each beat plane above the substrate for a standing one. The background flow a coupled
         cilium feels is its in-frame part (:mod:`~ciliary_carpet.carpet.coupling`)."""
         js = np.arange(self.n) if js is None else np.asarray(js, dtype=np.int64).ravel()
-        cen = np.ascontiguousarray(self.cycles.centre3[js])
-        u = self.velocity(cen, CycleMean(), tol)
-        # each centre minus its own cilium's resolved mean line: the blocks the resolved mean
-        # flow sums (ResolvedSources, made in one compiled pass or copied where kept)
-        own = ResolvedSources(self.cycles, None, self._mean_blocks)
-        blk = own.block
-        for lo in range(0, js.size, _OWN_CHUNK):
-            jc = js[lo:lo + _OWN_CHUNK]
-            src, frc = np.empty((jc.size * blk, 3)), np.empty((jc.size * blk, 3))
-            own.fill(jc, src, frc)
-            i = np.arange(jc.size, dtype=np.int64)
-            u[lo:lo + jc.size] -= stokeslet_velocity_ranges(cen[lo:lo + jc.size], src, frc,
-                                                            np.arange(jc.size + 1, dtype=np.int64),
-                                                            np.stack([i * blk, (i + 1) * blk], axis=1), self.mu,
-                                                            kernel=self.kernel, backend=self.backend)
-        return u
-
-    def _sum(self, x: np.ndarray, when: When, tol: float, bound: bool = False, precision: str = "fp64"
-             ) -> tuple[Summed, Plan | None, CarrierForces | None]:
-        """The sum at targets ``x`` (M, 3), its plan and the carriers' forces with the terms of
-        the reported bound (``bound``; None for tol = 0 or without ``bound``), the carriers in
-        ``precision`` (:meth:`velocity`)."""
-        if tol > 0 and not bound and isinstance(when, Instant):  # the phases of the cilia resolved only
-            ph, sources = None, ResolvedSources(self.cycles, None, t=when.t, prepared=self._instant_blocks)
-        else:
-            ph = when.phases(self.cycles)
-            sources = ResolvedSources(self.cycles, ph, self._mean_blocks)
-        evaluator = self.backend if self.backend is not None else _AUTO
-        precision = self._precision(precision, evaluator)
-        if tol == 0:  # the resolved sum itself: every source of every cilium that makes a flow
-            js = np.nonzero(when.bounds(self.carriers).S > 0)[0]
-            return dense_sum(x, js, sources, self.kernel, self.backend, self.mu), None, None
-        key, plan = self._plan(when, tol)
-        car = None
-        if bound:  # the moments' carriers with the terms of the reported bound
-            F, D, T = when.moments(self.cycles, ph)
-            car = self.carriers.forces(F, D, T)
-            forces = self.carriers.stacked(F, car, plan.order)
-        else:
-            forces = self._carrier_forces(when, key, plan, precision)
-        s = flow_sum(x, plan, forces, sources, self.n, self.kernel, evaluator, self.mu,
-                     grouped=not bound and isinstance(when, Instant), precision=precision)  # (the instants' carriers hold the groups')
-        return s, plan, car
-
-    def _precision(self, precision: str, evaluator: Backend) -> str:
-        """The precision the far carriers' sums run in: ``"fp32"`` where it is asked for and the
-        sums run on the CPU (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`), else ``"fp64"``."""
-        if precision == "fp32" and in_fp32(evaluator) == _FP32:
-            return "fp32"
-        return "fp64"
-
-    def _carrier_forces(self, when: When, key: tuple, plan: Plan, precision: str = "fp64"):
-        """The stacked carrier forces of ``plan`` for ``when``, kept: the cycle-mean's (an array)
-        for as long as the plan (its moments do not change), an instant's for its time until other
-        instants are prepared (:meth:`prepare`; a Runge-Kutta step evaluates the flow twice at its
-        end time). At an instant one compiled pass from the first :meth:`Carriers.harmonics
-        <ciliary_carpet.carpet.carriers.Carriers.harmonics>` of the moments' interpolant, the
-        quadrupoles made when a sum reads them unless the far cilia are quadrupoles
-        (:class:`~ciliary_carpet.carpet.carriers.InstantCarriers`), in ``precision``'s type (fp32
-        for the CPU's fp32 sums: no conversion per sum)."""
-        k = key + ((when.t, precision) if isinstance(when, Instant) else ())
-        f = self._forces.get(k)
-        if f is None:
-            if isinstance(when, Instant):
-                f = self._instants(self.cycles.phase_at(when.t), key, plan, precision=precision).at(0)
-                self._drop_instants(_INSTANTS - 1)
-            else:
-                F, D, T = when.moments(self.cycles, when.phases(self.cycles))
-                f = self.carriers.stacked(F, self.carriers.forces(F, D, T), plan.order)
-            self._forces[k] = f
-        return f
-
-    def _instants(self, ph: np.ndarray, key: tuple, plan: Plan, spare: np.ndarray | None = None,
-                  precision: str = "fp64") -> InstantCarriers:
-        """The carriers of ``plan``'s cilia at the phases ``ph`` ((N,) or (T, N)) of instants (into
-        ``spare``, a buffer of instants dropped, when it fits), their forces in ``precision``'s type."""
-        return InstantCarriers(self.carriers, ph, plan.order, self.carriers.harmonics(key[1]), eager=plan.far == 2,
-                               out=spare, groups=None if plan.groups is None else (plan.groups, plan.carriers_soa),
-                               dtype=np.float32 if precision == "fp32" else np.float64)
+        return self.sums.others_mean_flow(js, self._tol(tol))
 
     def prepare(self, times, tol: float = 1e-3, precision: str = "fp64") -> None:
         """Say that the flow will be evaluated at the instants ``times`` (a few) with ``tol``
@@ -710,57 +483,29 @@ class Carpet:
         2.6 times one on 30 x 30 cilia, 3.5 times on 100 x 100, where the quadrupoles are made
         later, at tol 1e-4); the resolved sources of a cilium near the points are made the first
         time an evaluation at one of these instants needs them, for all of them at once, and kept
-        (:class:`~ciliary_carpet.carpet.cycles.InstantBlocks`: reading a cilium's coefficients is
+        (:class:`~ciliary_carpet.carpet.blocks.InstantBlocks`: reading a cilium's coefficients is
         most of what making its sources costs). The instants kept before are dropped and their
         buffers reused. Optional: an evaluation at an instant not prepared makes its own; the
         velocities are the same to the bit either way. ``precision``: that of the evaluations
         (:meth:`velocity`)."""
         tol = self._tol(tol)
-        precision = self._precision(precision, self.backend if self.backend is not None else _AUTO)
         if tol == 0:
             return
         ts = np.unique(np.asarray(times, dtype=float).ravel())
         if not np.all(np.isfinite(ts)):
             raise ValueError("prepare: times must be finite")
-        key, plan = self._plan(Instant(0.0), tol)
-        kept = [f.group.out for q, f in self._forces.items() if len(q) == 4 and q[:2] == key and q[3] == precision]
-        self._drop_instants(0)
-        todo = ts[:_INSTANTS]
-        ph = self.cycles.phase_at(todo)
-        group = self._instants(ph, key, plan, spare=kept[0] if kept else None, precision=precision)
-        for i, t in enumerate(todo):
-            self._forces[key + (float(t), precision)] = group.at(i)
-        self._instant_blocks.reset(todo)
+        self.sums.prepare(ts, tol, precision)
 
-    def _plan(self, when: When, tol: float) -> tuple[tuple, Plan]:
-        """The key and the :class:`~.traversal.Plan` of evaluations of ``when`` at ``tol`` (made once)."""
-        key = (when.level, tol)
-        if key not in self._plans:
-            if len(self._plans) > _PLANS:
-                self._plans.clear()
-                self._forces.clear()
-            self._plans[key] = make_plan(when.bounds(self.carriers).thresholds(tol), self.carriers, when.far,
-                                         tol=tol if isinstance(when, Instant) else None)
-        return key, self._plans[key]
-
-    def _drop_instants(self, keep: int) -> None:
-        """Forget the instants' carrier forces when more than ``keep`` are kept."""
-        inst = [q for q in self._forces if len(q) == 4]
-        if len(inst) > keep:
-            for q in inst:
-                del self._forces[q]
-
-    def _targets(self, points) -> np.ndarray:
+    def targets(self, points) -> np.ndarray:
+        """(M, 3) the points ``points`` (M, 2) or (M, 3) [L] checked (finite, above the wall) and
+        placed in space (:meth:`Geometry.targets <ciliary_carpet.carpet.geometry.Geometry.targets>`):
+        where :meth:`evaluate` and :meth:`velocity` take the flow."""
         p = np.asarray(points, dtype=float)
         if p.ndim != 2 or p.shape[1] not in (2, 3):
             raise ValueError(f"points must have shape (M, 2) or (M, 3), got {p.shape}")
         if not np.all(np.isfinite(p)):
             raise ValueError("points contain NaN or inf")
-        if p.shape[1] == 2:
-            if self.geometry == "standing":
-                raise ValueError("a standing carpet's flow is three-dimensional: give points (M, 3) (heights above "
-                                 "its substrate z = 0)")
-            p = np.concatenate([p, np.zeros((p.shape[0], 1))], axis=1)
+        p = self.placement.targets(p)
         if self.wall is not None and np.any(p[:, 2] < -self.wall):
             raise ValueError(f"points lie below the wall at z = {-self.wall:g}")
         return np.ascontiguousarray(p)

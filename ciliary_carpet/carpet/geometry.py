@@ -19,19 +19,24 @@ for a planar carpet (its cycles are rotated by the field direction and placed at
 it; axes the identity, origin 0) and the beat plane itself for a standing one (clamp at the
 origin; origin = (b_j, 0), axes = [e_psi, e_z]). The levels of detail (:mod:`.carriers`) work in
 each cilium's 2D frame and place their carriers through the same map.
+
+:class:`Geometry` is the rest of what differs between the two, as one object per geometry
+(:data:`GEOMETRIES`, by name): the azimuths a carpet takes, where its wall may lie, the map of its
+cilia's frames, the reach of a beat, the points its flow is asked at, the distance from its
+filaments. A new geometry (cilia on a curved surface, say) is one subclass implementing these
+methods and an entry in :data:`GEOMETRIES`; a :class:`~ciliary_carpet.carpet.carpet.Carpet` asks
+its geometry and never tests its name.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-__all__ = ["Embedding", "GEOMETRIES", "planar", "standing"]
-
-GEOMETRIES = ("planar", "standing")
-"""The carpet geometries (:class:`~ciliary_carpet.carpet.carpet.Carpet` ``geometry``, scene key
-``[carpet] geometry``)."""
+__all__ = ["Embedding", "GEOMETRIES", "Geometry", "Planar", "Standing", "planar", "standing"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,3 +112,140 @@ def standing(bases: np.ndarray, psi: np.ndarray) -> Embedding:
 def wrap(psi) -> np.ndarray:
     """Azimuths wrapped into [0, 2 pi)."""
     return np.mod(np.asarray(psi, dtype=float), 2.0 * math.pi)
+
+
+class Geometry:
+    """Where a carpet's cilia beat: the methods a :class:`~ciliary_carpet.carpet.carpet.Carpet`
+    asks of its geometry (module docstring). A subclass sets :attr:`name` and implements each
+    method; arrays are per cilium (N,) or per point (M, 3), lengths in L, angles in radians."""
+
+    name: ClassVar[str]
+
+    def azimuths(self, azimuth, direction: float, n: int) -> np.ndarray | None:
+        """The carpet's ``azimuth`` checked and normalised for its ``n`` cilia under a field of
+        ``direction`` (None where the geometry takes none); ValueError naming what is wrong."""
+        raise NotImplementedError
+
+    def check_wall(self, wall: float | None, filament_radius: float) -> None:
+        """ValueError when ``wall`` (the distance of a no-slip plane below the clamps, or None)
+        cannot be this geometry's wall for filaments of radius ``filament_radius``."""
+        raise NotImplementedError
+
+    def frames(self, bases: np.ndarray, azimuth: np.ndarray | None, rotation: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, Embedding | None]:
+        """Where each cilium's cycle is placed in its 2D frame and how the frame lies in space:
+        (bases in the frame (N, 2), rotation of the field frame into it (2, 2), the
+        :class:`Embedding`, None for the plane z = 0)."""
+        raise NotImplementedError
+
+    def check_cycles(self, cycles, chi_N: np.ndarray) -> None:
+        """ValueError when a cilium's beat leaves the fluid (its cycle data ``cycles``, a
+        :class:`~ciliary_carpet.carpet.cycles.CycleData`, and curvatures ``chi_N`` (N,))."""
+
+    def reach(self, centre: np.ndarray, bases: np.ndarray, radius: np.ndarray) -> np.ndarray:
+        """(N,) how far each cilium's beat reaches from its base (at most the length 1), from its
+        force centre ``centre`` (N, 2) and swept radius ``radius`` (N,) in its frame."""
+        raise NotImplementedError
+
+    def targets(self, p: np.ndarray) -> np.ndarray:
+        """(M, 3) the points ``p`` (M, 2) or (M, 3) (finite) the flow is asked at, in space."""
+        raise NotImplementedError
+
+    def filament_distance(self, carpet, points: np.ndarray, t: float) -> np.ndarray:
+        """(M,) the distance of ``points`` from the nearest sampled filament point of ``carpet``
+        at time ``t``."""
+        raise NotImplementedError
+
+
+class Planar(Geometry):
+    """Every filament in the plane z = 0, the field in it along ``direction``; a wall parallel below
+    at a distance of at least a filament diameter."""
+
+    name = "planar"
+
+    def azimuths(self, azimuth, direction: float, n: int) -> None:
+        if azimuth is not None:
+            raise ValueError("azimuth is for standing carpets (geometry = 'standing'); a planar carpet's field "
+                             "direction turns it")
+        return None
+
+    def check_wall(self, wall: float | None, filament_radius: float) -> None:
+        if wall is not None and not (math.isfinite(wall) and wall > 0):
+            raise ValueError(f"wall must be a positive distance below the plane (or None), got {wall!r}")
+        if wall is not None and wall < 2.0 * filament_radius:
+            raise ValueError(f"wall must be at least a filament diameter, 2 blob = {2.0 * filament_radius:g} L, "
+                             f"below the plane of a planar carpet (its filaments must not cut it), got {wall!r}")
+
+    def frames(self, bases, azimuth, rotation):
+        return bases, rotation, None
+
+    def reach(self, centre, bases, radius):
+        return np.minimum(np.linalg.norm(centre - bases, axis=1) + radius, 1.0)
+
+    def targets(self, p):
+        if p.shape[1] == 2:
+            p = np.concatenate([p, np.zeros((p.shape[0], 1))], axis=1)
+        return p
+
+    def filament_distance(self, carpet, points, t):
+        p = np.asarray(points, dtype=float)[:, :2]
+        pos, _, _ = carpet.state(t)
+        return cKDTree(pos.reshape(-1, 2)).query(p)[0]
+
+
+class Standing(Geometry):
+    """Cilium j clamped at b_j on the substrate z = 0, the field along +z, its beat plane turned
+    about the normal by its azimuth psi_j; the wall (the substrate itself at 0, or a plane below
+    the clamps) at a distance >= 0, or none."""
+
+    name = "standing"
+
+    def azimuths(self, azimuth, direction: float, n: int) -> np.ndarray:
+        psi = np.zeros(n) if azimuth is None else np.broadcast_to(
+            np.asarray(azimuth, dtype=float), (n,)).copy() if np.ndim(azimuth) == 0 \
+            else np.array(azimuth, dtype=float)
+        if psi.shape != (n,) or not np.all(np.isfinite(psi)):
+            raise ValueError(f"azimuth must be {n} finite angles (radians), got shape {psi.shape}")
+        if direction != 0.0:
+            raise ValueError("a standing carpet's field is along +z, normal to its substrate: turn its cilia "
+                             f"with azimuth, not direction (got direction = {direction!r})")
+        return np.mod(psi, 2.0 * math.pi)
+
+    def check_wall(self, wall: float | None, filament_radius: float) -> None:
+        if wall is not None and not (math.isfinite(wall) and wall >= 0):
+            raise ValueError(f"wall must be a distance >= 0 below the clamps below the plane (or None), got {wall!r}")
+
+    def frames(self, bases, azimuth, rotation):
+        n = bases.shape[0]
+        return np.zeros((n, 2)), np.eye(2), standing(bases, azimuth)  # each frame its beat plane, clamp at 0
+
+    def check_cycles(self, cycles, chi_N):
+        """A standing cilium stays above its substrate (its frame's second axis is the height)."""
+        n = cycles.n
+        low = np.concatenate([np.min(cycles.samples(np.arange(lo, min(lo + 256, n)))[0][..., 1], axis=(1, 2))
+                              for lo in range(0, n, 256)])
+        bad = np.nonzero(low < -1e-6)[0]
+        if bad.size:
+            j = int(bad[np.argmin(low[bad])])
+            raise ValueError(f"standing cilium {j} (chi_N = {chi_N[j]:g}) dips {-low[j]:.3g} L below its "
+                             "substrate during its beat: choose a smaller |chi_N| for it (a planar carpet has no "
+                             "substrate)")
+
+    def reach(self, centre, bases, radius):
+        return np.minimum(np.abs(centre[:, 0] - bases[:, 0]) + radius, 1.0)  # horizontal: along e_psi
+
+    def targets(self, p):
+        if p.shape[1] == 2:
+            raise ValueError("a standing carpet's flow is three-dimensional: give points (M, 3) (heights above "
+                             "its substrate z = 0)")
+        return p
+
+    def filament_distance(self, carpet, points, t):
+        p = carpet.targets(points)
+        pos = carpet.state_in_space(t)[0]
+        return cKDTree(pos.reshape(-1, 3)).query(p)[0]
+
+
+GEOMETRIES: dict[str, Geometry] = {g.name: g for g in (Planar(), Standing())}
+"""The carpet geometries by name (:class:`~ciliary_carpet.carpet.carpet.Carpet` ``geometry``,
+scene key ``[carpet] geometry``)."""

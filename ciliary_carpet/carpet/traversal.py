@@ -1,9 +1,9 @@
 """The ranged sums of an evaluation: which carriers or sources each target sums, and the sums.
 
-Given the thresholds R1, R2, R3 of every cilium (:meth:`~.carriers.Bounds.thresholds`), each
+Given the thresholds R1, R2, R3 of every cilium (:meth:`~.bounds.Bounds.thresholds`), each
 target x (M, 3) sums cilium j at the cheapest order its distance |x - c_j| reaches: its monopole
 carrier (R >= R1), its three dipole carriers (R >= R2), its six quadrupole carriers (R >= R3), or
-its resolved line sources (closer; :class:`~.cycles.ResolvedSources`). All of it is two sparse
+its resolved line sources (closer; :class:`~.blocks.ResolvedSources`). All of it is two sparse
 "ranged" sums of the evaluator (:meth:`Backend.ranged <ciliary_carpet.stokes.backend.Backend.ranged>`):
 one over the carriers of every cilium (monopoles, then dipoles, then quadrupoles, cilia sorted
 by grid cell: :meth:`~.carriers.Carriers.positions`), read where they lie, one over the
@@ -40,8 +40,9 @@ from functools import cached_property
 import numpy as np
 from numba import njit, prange
 
-from ciliary_carpet.carpet.carriers import Carriers, smallest_root
-from ciliary_carpet.carpet.cycles import ResolvedSources
+from ciliary_carpet.carpet.blocks import ResolvedSources
+from ciliary_carpet.carpet.bounds import smallest_root
+from ciliary_carpet.carpet.carriers import Carriers
 from ciliary_carpet.stokes import Direct, Kernel, fp32_sources, in_fp32, ranged_evaluator, ranged_fp32
 from ciliary_carpet.stokes import stokeslet_velocity
 
@@ -356,7 +357,7 @@ def _used(res_j, n):  # pragma: no cover - compiled
 @njit(cache=True)
 def _kept_ranges(res_j, slot, blk):  # pragma: no cover - compiled
     """The source range of each resolved pair q in blocks kept at rows slot[j] blk ... of cilium
-    j = res_j[q] (:class:`~.cycles.InstantBlocks`)."""
+    j = res_j[q] (:class:`~.blocks.InstantBlocks`)."""
     out = np.empty((res_j.shape[0], 2), np.int64)
     for q in range(res_j.shape[0]):
         out[q, 0] = slot[res_j[q]] * blk
@@ -677,7 +678,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
              kernel: Kernel, evaluator, mu: float, grouped: bool = False, precision: str = "fp64") -> Summed:
     """Per target (M, 3) the ranged sums (module docstring): every cilium of the ``n`` at the
     order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 3) (in the
-    order of ``plan.carriers``; or an :class:`~.carriers.InstantForces`, whose quadrupoles the
+    order of ``plan.carriers``; or an :class:`~.instants.InstantForces`, whose quadrupoles the
     ranges read are made first), or its resolved ``sources``; ``evaluator`` runs the sums. With
     ``grouped`` (and a plan with :class:`FarGroups`) the far cilia go by groups, the forces then
     holding the groups' carriers after the cilia's (10 n_p + 6 G rows). The sources are laid
