@@ -1,5 +1,5 @@
 """What the batch's fault isolation costs: a fresh worker process per scene (the default of
-``ciliary_carpet.cli.batch``: a dead worker fails only its own scene) against the obvious
+``ciliary_carpet.batch.batch``: a dead worker fails only its own scene) against the obvious
 alternative, one shared process pool (``ProcessPoolExecutor``: one dead worker breaks the pool
 and every scene still queued), on the same small scenes; plus the cost of the up-front checks
 (``check_resources``) against a render.
@@ -146,7 +146,7 @@ def dask_runs(scenes: list[str], repeat: int, out: str | None) -> None:
     """The scenes as a batch on local Dask clusters of several shapes, alternating (``--dask``)."""
     import distributed
 
-    from ciliary_carpet.cli import batch
+    from ciliary_carpet.batch import batch
     from cilia_runtime.threads import cores
 
     c = cores()
@@ -203,7 +203,7 @@ def main() -> None:
         bundled(a.bundled or list(BUNDLED), a.serial, a.out, a.limit)
         return
 
-    from ciliary_carpet.cli import batch
+    from ciliary_carpet.batch import batch
     from ciliary_carpet.render import check_resources, render
     from ciliary_carpet.scenes.scene import load_scene
 

@@ -12,7 +12,7 @@ alternating, ``--repeat`` times each way:
 * ``1 core``: in this process, one numba and one BLAS thread (``--threads 1``);
 * ``2 threads, in process``: in this process, two numba threads (how a ``--threads 2`` render ran
   before the process pool);
-* ``2 cores, pool``: :func:`~ciliary_carpet.transport.parallel.pool_for_threads` ``(2)``: this
+* ``2 cores, pool``: :func:`~cilia_runtime.pool.pool_for_threads` ``(2)``: this
   process and one worker process (what ``--threads 2`` does now);
 * ``2 cores, pool, no cores lent``: the same with ``lend_idle=False`` (one numba thread in each
   process throughout).
@@ -104,15 +104,14 @@ def _stage(plan, carpet, d, how: str) -> tuple[float, dict, float]:
     size). A pool of two places runs them beside the path lines, inside the stage; in one place a
     render makes them with its summary, after the stage: here they are run and timed after it."""
     from ciliary_carpet.output.outputs import PathLinesOutput, RenderContext, summary_tasks
-    from ciliary_carpet.transport.parallel import InProcess, pool_for_threads
+    from cilia_runtime.pool import InProcess, ProcessPool, pool_for_threads
     from cilia_runtime.threads import ThreadBudget
-
-    from ciliary_carpet.transport.parallel import ProcessPool
+    from ciliary_carpet.batch import PRELOAD
 
     threads = 1 if how == "1" else 2
-    pool = InProcess() if how == "2-threads" else pool_for_threads(threads)
+    pool = InProcess() if how == "2-threads" else pool_for_threads(threads, PRELOAD)
     if how == "2-pool-nolend":
-        pool = ProcessPool(1, parent_works=True, lend_idle=False)
+        pool = ProcessPool(1, parent_works=True, lend_idle=False, preload=PRELOAD)
     pool.warm()  # as a render does before its design: the fork server's start is not the stage's
     with tempfile.TemporaryDirectory() as tmp, ThreadBudget(1, threads, 1).applied():
         ctx = RenderContext(plan, carpet, d, Path(tmp), Path(tmp), {}, {}, time.perf_counter(), pool=pool)

@@ -7,6 +7,7 @@ full disk prints pages of tracebacks and may crash the process.)
 """
 from __future__ import annotations
 
+import contextlib
 import errno as _errno
 import json
 import math
@@ -105,13 +106,17 @@ def write_netcdf(ds: xr.Dataset, path) -> Path:
     here the in-memory buffer, which the scheduler does not know: every render of a batch on a
     cluster of worker processes failed ("RuntimeError: Semaphore or Lock `<_io.BytesIO ...>` not
     known"). Nothing else writes that buffer, so the write takes a lock of this process (dask's
-    synchronous scheduler while it runs)."""
-    import dask
+    synchronous scheduler while it runs; without dask, xarray takes a lock of this process anyway)."""
+    try:
+        import dask
 
+        synchronous = dask.config.set(scheduler="synchronous")
+    except ImportError:  # dask is an optional extra
+        synchronous = contextlib.nullcontext()
     path = Path(path)
     if path.is_dir():
         raise OutputFileError(path, "it is a folder")
-    with dask.config.set(scheduler="synchronous"):
+    with synchronous:
         data = ds.to_netcdf(engine="h5netcdf")
     return write_bytes(path, data)
 

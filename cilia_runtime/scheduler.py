@@ -6,6 +6,9 @@ request line that never comes, and the client for a handshake that never comes. 
 first asks the address who it is, under a deadline, and only then creates the client. A
 scheduler without workers accepts work and holds it for ever: :func:`connect` with ``workers``
 warns and waits for them under the same deadline.
+
+Dask is an optional extra (``pip install 'cilia-flow[dask]'``): without it, a scheduler address
+is a :class:`SchedulerError` that names the extra.
 """
 from __future__ import annotations
 
@@ -14,17 +17,30 @@ import logging
 import math
 import os
 
-__all__ = ["SchedulerError", "connect", "DEFAULT_TIMEOUT", "TIMEOUT_ENV"]
+__all__ = ["SchedulerError", "connect", "DEFAULT_TIMEOUT", "TIMEOUT_ENV", "EXTRA"]
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_TIMEOUT = 20.0
 """Seconds to wait for a scheduler to answer (override: ``timeout=``, or :data:`TIMEOUT_ENV`)."""
 TIMEOUT_ENV = "CILIA_SCHEDULER_TIMEOUT"
+EXTRA = "pip install 'cilia-flow[dask]'"
+"""The install command of the optional extra that brings dask and distributed."""
 
 
 class SchedulerError(OSError):
-    """A scheduler address that does not lead to a Dask scheduler in time; the message names it."""
+    """A scheduler address that does not lead to a Dask scheduler in time, or Dask not installed;
+    the message names the address or the extra."""
+
+
+def _distributed():
+    """The ``distributed`` package; :class:`SchedulerError` naming :data:`EXTRA` when it is not installed."""
+    try:
+        import distributed
+        import distributed.comm
+    except ImportError as exc:
+        raise SchedulerError(f"a Dask scheduler needs the packages dask and distributed ({exc}): {EXTRA}") from None
+    return distributed
 
 
 def timeout_from(value: float | None) -> float:
@@ -45,9 +61,7 @@ def timeout_from(value: float | None) -> float:
 
 
 async def _identity(address: str, timeout: float) -> dict:
-    from distributed.comm import connect as comm_connect
-
-    comm = await comm_connect(address, timeout=timeout)
+    comm = await _distributed().comm.connect(address, timeout=timeout)
     try:
         await comm.write({"op": "identity"})
         return await comm.read()
@@ -94,12 +108,11 @@ def connect(address: str, timeout: float | None = None, *, workers: int = 0):
     With ``workers`` >= 1, the scheduler must also have that many workers, or get them within
     ``timeout`` seconds: a warning says so when it has fewer (work sent to a scheduler without
     workers waits for ever), and a :class:`SchedulerError` ends the wait (the client closed)."""
-    from distributed import Client
-
+    distributed = _distributed()
     t = timeout_from(timeout)
     ident = probe(address, t)
     logger.info("connecting to the Dask scheduler at %s", address)
-    client = Client(address, timeout=t)
+    client = distributed.Client(address, timeout=t)
     if workers < 1:
         return client
     have = len(ident.get("workers") or {})

@@ -25,9 +25,13 @@ A process forked from one with these handlers (a ``fork`` pool worker) must not 
 its parent stops it with SIGTERM and expects it to die at once, even inside native code. The
 handlers are therefore reset to the defaults in a forked child (:func:`os.register_at_fork`),
 and a handler that still runs in another process acts as the default would.
+
+:func:`signals_held` holds SIGINT, SIGTERM and SIGHUP back around a critical section (an output
+folder's swap): they take effect, as they would have, once it ends.
 """
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import threading
@@ -35,7 +39,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 __all__ = ["Terminated", "TERMINATING", "terminate_as_interrupt", "exit_status", "describe", "native_call",
-           "interrupt_of"]
+           "interrupt_of", "signals_held"]
+
+logger = logging.getLogger(__name__)
 
 TERMINATING: tuple[signal.Signals, ...] = tuple(
     s for s in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s is not None)
@@ -190,3 +196,44 @@ def terminate_as_interrupt(signals: tuple = TERMINATING) -> Iterator[None]:
                 signal.signal(s, h if h is not None else signal.SIG_DFL)
             except (OSError, ValueError, TypeError):
                 pass
+
+
+_HELD = tuple(s for s in (getattr(signal, n, None) for n in ("SIGINT", "SIGTERM", "SIGHUP")) if s is not None)
+
+
+@contextmanager
+def signals_held() -> Iterator[None]:
+    """Hold SIGINT, SIGTERM and SIGHUP back within the block: they take effect when it ends.
+
+    In the main thread, the block's own handlers note the signals (any thread of the process may
+    receive them -- numba's and BLAS's threads do -- but Python runs handlers in the main thread
+    only), and on leaving, the previous handlers are restored and each noted signal is raised
+    again: Ctrl-C's KeyboardInterrupt, :func:`terminate_as_interrupt`'s :class:`Terminated`, or
+    the default action (death by SIGTERM) then happens with the block's work whole. Elsewhere the
+    signals are blocked in this thread (:func:`signal.pthread_sigmask`; where there is none,
+    nothing is held)."""
+    if threading.current_thread() is not threading.main_thread():
+        if not hasattr(signal, "pthread_sigmask"):
+            yield
+            return
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+        try:
+            yield
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        return
+    noted: list[int] = []
+    saved = {}
+    for s in _HELD:
+        h = signal.getsignal(s)
+        if h is not None:  # None: a handler not installed from Python; it cannot be restored, so left alone
+            saved[s] = h
+            signal.signal(s, lambda signum, frame: noted.append(signum))
+    try:
+        yield
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+        for signum in dict.fromkeys(noted):
+            logger.info("signal %d held back until the block had ended", signum)
+            signal.raise_signal(signum)

@@ -49,7 +49,7 @@ from ciliary_carpet.output.resources import ResourceError, check_resources
 from ciliary_carpet.scenes.assembly import carpet_for, design, load_table
 from ciliary_carpet.scenes.scene import Scene, as_scene
 from ciliary_carpet.stokes import Auto, backend_named
-from ciliary_carpet.transport.parallel import InProcess
+from cilia_runtime.pool import InProcess
 
 logger = logging.getLogger(__name__)
 

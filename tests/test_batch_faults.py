@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-import ciliary_carpet.cli as cli
-from ciliary_carpet.cli import batch
+import ciliary_carpet.batch as batch_module
+from ciliary_carpet.batch import batch
 from ciliary_carpet.cli import main as carpet_main
 from ciliary_carpet.output.folder import MANIFEST, is_complete
 from ciliary_carpet.render import RenderError
@@ -46,11 +46,11 @@ def _batch(scenes, out, **kw) -> list:
 
 
 def _in_process(tasks, jobs, on_done, grace=2.5, on_start=None):
-    """cli._run_local's stand-in: the tasks one after another in this process."""
+    """batch._run_local's stand-in: the tasks one after another in this process."""
     for t in tasks:
         if on_start is not None:
             on_start(t)
-        on_done(cli._render_one(*t))
+        on_done(batch_module._render_one(*t))
 
 
 # ------------------------------------------------------------------------------ 1: up to date = same contents
@@ -207,9 +207,19 @@ def test_a_scheduler_without_workers_is_said_and_the_wait_is_bounded(tmp_path, c
     assert "has 0 worker" in caplog.text
 
 
+def test_a_scheduler_without_dask_names_the_extra(tmp_path, capsys, monkeypatch):
+    """Dask is an optional extra: without it, --scheduler is one line naming the extra, exit 2."""
+    for name in ("distributed", "distributed.comm"):
+        monkeypatch.setitem(sys.modules, name, None)  # import fails as if not installed
+    p = _scene(tmp_path, TINY)
+    code = carpet_main(["batch", str(p), "-o", str(tmp_path / "out"), "--scheduler", "tcp://127.0.0.1:1"])
+    err = capsys.readouterr().err
+    assert code == 2 and "pip install 'cilia-flow[dask]'" in err and "Traceback" not in err, err
+
+
 # ------------------------------------------------------------------------------ 7: verdicts, index, Ctrl-C
 def test_a_batch_prints_each_verdict_and_writes_its_index(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(cli, "_run_local", _in_process)
+    monkeypatch.setattr(batch_module, "_run_local", _in_process)
     a = _scene(tmp_path / "a", POINTS, "a.toml", csv=CSV)
     b = _scene(tmp_path / "b", TINY, "b.toml")
     out = tmp_path / "out"
@@ -226,11 +236,11 @@ def test_a_batch_prints_each_verdict_and_writes_its_index(tmp_path, capsys, monk
 def test_an_interrupted_batch_says_what_finished_and_what_did_not(tmp_path, capsys, monkeypatch):
     def one_then_ctrl_c(tasks, jobs, on_done, grace=2.5, on_start=None):
         on_start(tasks[0])
-        on_done(cli._render_one(*tasks[0]))
+        on_done(batch_module._render_one(*tasks[0]))
         on_start(tasks[1])
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "_run_local", one_then_ctrl_c)
+    monkeypatch.setattr(batch_module, "_run_local", one_then_ctrl_c)
     scenes = [_scene(tmp_path, TINY, f"{n}.toml") for n in "abc"]
     out = tmp_path / "out"
     assert carpet_main(["batch", *map(str, scenes), "-o", str(out)]) == 130
@@ -241,7 +251,7 @@ def test_an_interrupted_batch_says_what_finished_and_what_did_not(tmp_path, caps
 
 
 def test_a_batch_index_never_replaces_a_file_it_did_not_write(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(cli, "_run_local", _in_process)
+    monkeypatch.setattr(batch_module, "_run_local", _in_process)
     out = tmp_path / "out"
     out.mkdir()
     (out / "batch.md").write_text("my notes")
@@ -266,7 +276,7 @@ def task(folder):
 """
 RUN = """
 import sys
-from ciliary_carpet.cli import _run_local
+from ciliary_carpet.batch import _run_local
 from cilia_runtime.signals import terminate_as_interrupt
 import stubborn
 with terminate_as_interrupt():

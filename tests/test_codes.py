@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from ciliary_carpet.cli import batch
+from ciliary_carpet.batch import batch
 from ciliary_carpet.cli import main as carpet_main
 
 ROOT = Path(__file__).resolve().parent.parent

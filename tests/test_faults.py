@@ -16,8 +16,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import ciliary_carpet.batch as carpet_batch
 import ciliary_carpet.cli as carpet_cli
-from ciliary_carpet.cli import batch
+from ciliary_carpet.batch import batch
 from ciliary_carpet.cli import main as carpet_main
 from ciliary_carpet.render import MANIFEST, ResourceError, check_resources, render
 from ciliary_carpet.scenes.scene import SceneError, load_scene, scene_from_dict
@@ -86,7 +87,7 @@ def test_1_batch_keeps_a_users_file_without_overwrite(tmp_path):
 
 
 # ------------------------------------------------------------------------------ 3: a dead worker
-_REAL_RENDER_ONE = carpet_cli._render_one
+_REAL_RENDER_ONE = carpet_batch._render_one
 
 
 def _kill_victim(scene_path, *args):
@@ -100,7 +101,7 @@ def test_3_batch_survives_a_killed_worker(tmp_path, monkeypatch):
     a = _scene(tmp_path, TINY, "a.toml")
     victim = _scene(tmp_path, TINY, "victim.toml")
     c = _scene(tmp_path, TINY, "c.toml")
-    monkeypatch.setattr(carpet_cli, "_render_one", _kill_victim)
+    monkeypatch.setattr(carpet_batch, "_render_one", _kill_victim)
     recs = batch([a, victim, c], tmp_path / "out", jobs=2, progress=False)
     assert [r["status"] for r in recs] == ["done", "failed", "done"]
     assert "died (killed by SIGKILL" in recs[1]["message"] and "victim.toml" in recs[1]["message"]
@@ -409,7 +410,7 @@ def test_9_periods_1e12_refused_not_a_misleading_success(tmp_path, capsys):
 
 
 def test_9_non_finite_summary_is_not_a_success(tmp_path, monkeypatch):
-    import ciliary_carpet.output.outputs as R
+    import ciliary_carpet.output.summary as R
 
     monkeypatch.setattr(R, "non_finite", lambda s: {"mean_field.max_speed": "+inf"})
     p = _scene(tmp_path, TINY)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from ciliary_carpet.cli import batch
+from ciliary_carpet.batch import batch
 from ciliary_carpet.cli import main as carpet_main
 from ciliary_carpet.render import MANIFEST, RenderError, is_complete, owned_files, render
 from ciliary_carpet.scenes.scene import SceneError, load_scene
@@ -162,7 +162,7 @@ def test_outputs_on_another_filesystem(tmp_path, tmpfs, capsys, monkeypatch):
     assert carpet_main(["render", str(p), "-o", str(link)]) == 0, capsys.readouterr().err
     _whole(link, 3)
     # a failure never deletes the previous render's files
-    import ciliary_carpet.output.outputs as R
+    import ciliary_carpet.output.summary as R
 
     before = _tree(link)
     monkeypatch.setattr(R, "non_finite", lambda s: {"mean_field.max_speed": "+inf"})
@@ -176,7 +176,7 @@ def test_outputs_on_another_filesystem(tmp_path, tmpfs, capsys, monkeypatch):
 # ------------------------------------------------------------------------------ 4: one render per folder
 @pytest.mark.parametrize("existing", [False, True])
 def test_a_second_render_of_the_same_folder_is_refused_at_once(tmp_path, monkeypatch, existing):
-    import ciliary_carpet.output.outputs as R
+    import ciliary_carpet.output.fields as R
 
     p = _scene(tmp_path, TINY)
     out = tmp_path / "o"

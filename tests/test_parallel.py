@@ -1,5 +1,5 @@
 """Path lines in independent chunks, in this process or a pool of worker processes (issue 23:
-ciliary_carpet.transport.parallel): the same numbers wherever the chunks run, the workers' thread
+cilia_runtime.pool): the same numbers wherever the chunks run, the workers' thread
 budget, clear errors for a failing chunk or a dead worker, no worker left after an interrupt."""
 import os
 import time
@@ -10,7 +10,7 @@ import pytest
 
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.transport.flow import Flow, ResolvedFlow
-from ciliary_carpet.transport.parallel import InProcess, ProcessPool, Task, WorkerDied, pool_for_threads
+from cilia_runtime.pool import InProcess, ProcessPool, Task, WorkerDied, pool_for_threads
 from ciliary_carpet.transport.pathlines import chunks, join_pathlines, pathline_tasks, pathlines
 from single_cilium.table import ThrustTable
 from cilia_runtime.threads import threads_in_use
@@ -54,7 +54,7 @@ def _sleep(s):
 
 def _lent_threads(timeout):
     """Poll the place's share of the cores (as path lines do between evaluations)."""
-    from ciliary_carpet.transport.parallel import adjust_threads
+    from cilia_runtime.pool import adjust_threads
 
     end = time.monotonic() + timeout
     while time.monotonic() < end:
@@ -178,7 +178,7 @@ def test_this_process_takes_the_biggest_task_before_any_worker(monkeypatch):
     biggest task cannot be pickled, so a worker given it would fail the run."""
     import threading
 
-    from ciliary_carpet.transport import parallel
+    from cilia_runtime import pool as parallel
 
     real = parallel._PoolRun.take
     main = threading.main_thread()
@@ -224,7 +224,7 @@ def test_lent_threads_are_kept_only_while_they_pay(monkeypatch):
     """The governor of a place's lent cores: one thread measured first, then the lent threads;
     given back when they evaluate slower (a busy machine), tried again later, kept when faster,
     and given back at once when the budget shrinks."""
-    from ciliary_carpet.transport import parallel
+    from cilia_runtime import pool as parallel
 
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("one numba thread here")

@@ -6,7 +6,7 @@ import numba
 import pytest
 
 import cilia_runtime.threads as threads_mod
-from ciliary_carpet.cli import batch
+from ciliary_carpet.batch import batch
 from cilia_runtime.threads import ThreadBudget
 
 TINY = ('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 3\nperiods = 0.5\nfield_shape = [6, 6]\nsnapshots = 0\n'

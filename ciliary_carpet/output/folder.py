@@ -39,7 +39,7 @@ names, the new names; written atomically and fsynced), then moves the old render
 the aside folder (``summary.json`` and the manifest first, so the folder reads as incomplete),
 moves the new files in (``summary.json`` and the manifest last), removes the journal, and
 deletes the aside folder. SIGINT, SIGTERM and SIGHUP are held back from the journal's writing to
-the aside folder's removal (:func:`_signals_held`: in the main thread, handlers that note them
+the aside folder's removal (:func:`~cilia_runtime.signals.signals_held`: in the main thread, handlers that note them
 and raise them again afterwards -- blocking them with :func:`signal.pthread_sigmask` in one
 thread is not enough, since numba's and BLAS's threads receive them too; in other threads the
 mask), so that Ctrl-C, ``kill`` or a closed terminal take effect only once the swap is whole. A
@@ -78,20 +78,19 @@ import logging
 import os
 import re
 import shutil
-import signal
 import socket
 import stat
 import tempfile
-import threading
-from collections.abc import Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 from cilia_runtime.files import strict_json, usual_mode
+from cilia_runtime.signals import signals_held
 
 from ciliary_carpet.output import RenderError
-from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY
+from ciliary_carpet.output.contract import SUMMARY
+from ciliary_carpet.output.outputs import OUTPUTS
 
 logger = logging.getLogger(__name__)
 
@@ -111,7 +110,6 @@ _OUTPUT_NAME = re.compile("(" + "|".join(f for o in OUTPUTS.values() for f in o.
 _HIDDEN = re.compile(r"\.ciliary-carpet\.(lock|journal|(stage|aside)-[A-Za-z0-9_]+|(journal|manifest)\.[A-Za-z0-9_]+"
                      r"\.part)\Z|\.ciliary-carpet\.manifest\.[A-Za-z0-9_]+\.part\Z")
 _STAGE_TAIL = re.compile(r"(\d+)\.[A-Za-z0-9_]+\.partial\Z")
-_SIGNALS = tuple(s for s in (getattr(signal, n, None) for n in ("SIGINT", "SIGTERM", "SIGHUP")) if s is not None)
 
 
 def _package_version() -> str:
@@ -410,44 +408,6 @@ def _sync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-@contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT, SIGTERM and SIGHUP back within the block: they take effect when it ends.
-
-    In the main thread, the block's own handlers note the signals (any thread of the process may
-    receive them -- numba's and BLAS's threads do -- but Python runs handlers in the main thread
-    only), and on leaving, the previous handlers are restored and each noted signal is raised
-    again: Ctrl-C's KeyboardInterrupt, the command line's Terminated, or the default action
-    (death by SIGTERM) then happens with the swap whole. Elsewhere the signals are blocked in
-    this thread (:func:`signal.pthread_sigmask`), and the journal covers a signal that another
-    thread receives."""
-    if threading.current_thread() is not threading.main_thread():
-        if not hasattr(signal, "pthread_sigmask"):
-            yield
-            return
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
-        try:
-            yield
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, old)
-        return
-    noted: list[int] = []
-    saved = {}
-    for s in _SIGNALS:
-        h = signal.getsignal(s)
-        if h is not None:  # None: a handler not installed from Python; it cannot be restored, so left alone
-            saved[s] = h
-            signal.signal(s, lambda signum, frame: noted.append(signum))
-    try:
-        yield
-    finally:
-        for s, h in saved.items():
-            signal.signal(s, h)
-        for signum in dict.fromkeys(noted):
-            logger.info("signal %d held back until the output folder was whole", signum)
-            signal.raise_signal(signum)
-
-
 # ------------------------------------------------------------------------------ the lock
 class _Lock:
     """An exclusive flock on ``path`` (created if needed, never through a symbolic link),
@@ -606,8 +566,7 @@ class OutputFolder:
         settings).
     within : Path, optional
         A folder the output folder must resolve below (a batch's output root, for a folder
-        named from the scene's ``name``), unless outside paths are allowed
-        (:data:`~ciliary_carpet.scenes.paths.ALLOW_ENV`).
+        named from the scene's ``name``); None (a caller that allows outside paths): anywhere.
 
     Use it as a context manager: entering checks the folder, takes its lock, completes an
     interrupted swap and removes leftovers of killed renders (RenderError when the folder must be
@@ -693,9 +652,7 @@ class OutputFolder:
             raise RenderError(f"cannot write '{self.path}': {exc.strerror or exc}") from None
 
     def _check_within(self) -> None:
-        from ciliary_carpet.scenes.paths import ALLOW_ENV
-
-        if self.within is None or os.environ.get(ALLOW_ENV, "") == "1":
+        if self.within is None:
             return
         root = Path(os.path.realpath(self.within))
         real = Path(os.path.realpath(self.path))
@@ -709,7 +666,7 @@ class OutputFolder:
         if j is None:
             return
         if (self.path / j["stage"]).is_dir():
-            with _signals_held():
+            with signals_held():
                 _roll_forward(self.path, j)
         else:
             os.unlink(self.path / JOURNAL)
@@ -795,7 +752,7 @@ class OutputFolder:
         try:
             if self.fresh:
                 os.chmod(stage, usual_mode(executable=True))
-                with _signals_held():
+                with signals_held():
                     try:
                         os.rename(stage, self.path)
                     except OSError as exc:
@@ -817,7 +774,7 @@ class OutputFolder:
             self._aside = Path(tempfile.mkdtemp(prefix=_ASIDE_IN, dir=self.path))
             j = {"stage": stage.name, "aside": self._aside.name, "old": sorted(owned & existing),
                  "new": sorted(new)}
-            with _signals_held():
+            with signals_held():
                 _write_json(self.path / JOURNAL, j, sync=True)
                 self._journaled = True
                 _roll_forward(self.path, j)

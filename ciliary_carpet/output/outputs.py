@@ -102,7 +102,7 @@ from ciliary_carpet.output.report import markdown
 from ciliary_carpet.output.vtkfiles import write_cilia, write_field, write_points, write_pvd
 from ciliary_carpet.transport.ftle import ftle_field
 from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow, SteadyMeanFlow
-from ciliary_carpet.transport.parallel import InProcess
+from cilia_runtime.pool import InProcess
 from ciliary_carpet.transport.pathlines import CHUNK_SIZE, UNDERFLOW, PathLines, join_pathlines, pathline_tasks
 
 logger = logging.getLogger(__name__)
@@ -560,7 +560,7 @@ def pathline_error(carpet: Carpet, seeds: np.ndarray, duration: float, pl, model
     task, idx, what = error_reference(carpet, seeds, duration, pl.rtol, pl.atol, model, flow, tol, spacing,
                                       domain=domain)
     if pool is None:
-        from ciliary_carpet.transport.parallel import InProcess
+        from cilia_runtime.pool import InProcess
 
         pool = InProcess()
     ref = pool.run([task], shared=[carpet])[0].value
@@ -679,7 +679,7 @@ def summary_tasks(ctx: RenderContext, pool_only: bool = True) -> list:
     the path lines' main run; the numbers are the same wherever they run (one BLAS thread in a
     worker; the sums give the same numbers on any numba thread count). ``pool_only``: none unless
     the render's pool has worker processes (in this process they run where the summary is made)."""
-    from ciliary_carpet.transport.parallel import Task
+    from cilia_runtime.pool import Task
 
     if pool_only and getattr(ctx.pool, "workers", 1) < 2:
         return []

@@ -50,7 +50,7 @@ import numpy as np
 from cilia_runtime.progress import Progress
 
 from ciliary_carpet.transport.flow import Flow
-from ciliary_carpet.transport.parallel import adjust_threads
+from cilia_runtime.pool import adjust_threads
 
 if TYPE_CHECKING:
     from ciliary_carpet.carpet.carpet import Carpet
@@ -487,7 +487,7 @@ def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e
                                samples_per_period=samples_per_period, domain=domain, h0=h0, max_step=max_step,
                                max_steps=max_steps)
         if pool is None:
-            from ciliary_carpet.transport.parallel import InProcess
+            from cilia_runtime.pool import InProcess
 
             pool = InProcess()
         clock = _time.perf_counter()
@@ -602,7 +602,7 @@ def pathline_tasks(flow: Flow, seeds, t_span, *, chunk_size: int | None = CHUNK_
     before any work: each ``pathlines(flow, seeds[chunk], t_span, ...)`` over the tracers of
     one of :func:`chunks`, all in the domain of the whole run (the default: from all seeds);
     join their results with :func:`join_pathlines`. ``label`` names them in errors."""
-    from ciliary_carpet.transport.parallel import Task
+    from cilia_runtime.pool import Task
 
     x0, (t0, t1), _, _, dom = _prepare(flow, seeds, t_span, rtol, atol, samples_per_period, domain, max_step)
     parts = chunks(x0.shape[0], chunk_size)

@@ -1,50 +1,51 @@
-"""Where independent pieces of work run: in this process, or in a pool of worker processes.
+"""Where independent pieces of work run: in this process, or in worker processes.
 
-A path-line run's tracers are independent of each other, and a render's end-point error estimate
-(its reference run) is independent of its path lines; but one flow evaluation costs a fixed
-per-time overhead (the carpet's state at that time, numba parallel regions too short for threads
-to help) plus a cost per point, so threads barely speed them up. Processes do: the
-work is cut into :class:`Task` s (e.g. chunks of tracers,
-:func:`~ciliary_carpet.transport.pathlines.pathline_tasks`) and handed to a small strategy object
-that says where they run:
+Work is cut into :class:`Task` s (a function of the caller's module, a label, a cost) and handed to
+a small strategy object that says where they run:
 
-* :class:`InProcess`: one after another in this process, with the numba threads it has (what a
-  render with ``--threads 1``, and every batch worker with one thread, does).
+* :class:`InProcess`: one after another in this process, with the numba threads it has.
 * :class:`ProcessPool`: ``processes`` worker processes, and this process as one more worker while
   they start (``parent_works``). Workers start from a fork server (never by forking this
-  process: a process that has run the OpenMP-parallel kernels cannot fork safely), each with
-  one numba thread and one BLAS thread (:class:`~cilia_runtime.threads.ThreadBudget`: workers x
-  numba x BLAS threads never exceed the cores the caller gives). The biggest tasks go first
-  (:attr:`Task.cost`). Large objects named in ``shared`` (a carpet) are pickled once and sent
-  once to each worker, however many tasks use them. Workers write no files. ``warm()`` starts
-  the fork server ahead, while the caller has other work (a render, while it designs). A
-  dispatcher thread starts and feeds the workers while this process works on its own task: the
-  package's compiled functions that write into arrays they are given let go of the interpreter
-  (numba's ``nogil``; those that return arrays, short ones, keep it: tests/test_parallel.py), so
-  that thread is not kept waiting for it (beside a 30 x 30 render's path lines a worker reached
-  its first task 0.64-0.75 s after the run's start, 0.5 s of it ``start_after``, against
-  1.35-1.44 s before).
+  process: a process that has run the OpenMP-parallel kernels cannot fork safely), which imports
+  the modules named in ``preload`` once, each worker with one numba thread and one BLAS thread
+  (:class:`~cilia_runtime.threads.ThreadBudget`: workers x numba x BLAS threads never exceed the
+  cores the caller gives). The biggest tasks go first (:attr:`Task.cost`). Large objects named
+  in ``shared`` are pickled once and sent once to each worker, however many tasks use them.
+  ``warm()`` starts the fork server ahead, while the caller has other work. A dispatcher thread
+  starts and feeds the workers while this process works on its own task: compiled functions that
+  let go of the interpreter (numba's ``nogil``) do not keep that thread waiting.
+* :class:`ProcessPool` with ``isolated``: each task in a fresh process of its own, which exits
+  after it (and may start processes of its own); a task that raises, or a worker that dies
+  (killed, out of memory), fails that task only, and the others go on. A batch of renders runs
+  so: one scene's crash or memory cannot touch another's.
 
-With ``lend_idle`` (the default), the cores of places left without a task go to the places still
-running one, as numba threads, while they pay (:class:`_Share`): on two cores a render's path lines
-and their error estimate's reference run side by side, and the one that ends first lends its core
-to the other.
+With ``lend_idle`` (the default of a shared pool), the cores of places left without a task go to
+the places still running one, as numba threads, while they pay (:class:`_Share`, consulted by
+long tasks through :func:`adjust_threads`).
 
 Both give the same numbers for the same tasks: a task runs the same code with one BLAS thread
-wherever it runs, and the flow's kernels give the same numbers on any numba thread count (each
-target's sum is one thread's; checked by tests/test_parallel.py), so a render's numbers do not
-depend on ``--threads`` (:func:`pool_for_threads` picks the strategy of a thread count).
+wherever it runs; kernels whose numbers do not depend on the numba thread count give the same
+numbers on any place (:func:`pool_for_threads` picks the strategy of a thread count).
+
+Progress: ``run(..., progress=)`` reports the tasks finished (:class:`~cilia_runtime.progress.Progress`)
+as each ends.
 
 Failures: a task that raises is re-raised in the caller, its message prefixed with the task's
 label (e.g. ``"path lines: chunk 2 of 4 (tracers 50-74)"``), the worker's traceback chained; a
-worker that dies (killed, out of memory) is a :class:`WorkerDied` naming the task it ran. Either
-stops the pool at once (no hang). Ctrl-C, or SIGTERM / SIGHUP under the command line
-(:func:`~cilia_runtime.signals.terminate_as_interrupt`), reaches the caller as a
-KeyboardInterrupt: the workers are stopped (SIGTERM, then SIGKILL after a grace period) before it
-propagates, and the pool is closed on every path.
+worker that dies is a :class:`WorkerDied` naming the task it ran and how the process ended
+(:func:`exit_reason`). Either stops a shared pool at once (no hang). Ctrl-C, or SIGTERM / SIGHUP
+under :func:`~cilia_runtime.signals.terminate_as_interrupt`, reaches the caller as a
+KeyboardInterrupt: the workers, and every process each started, are stopped (:func:`stop`) before
+it propagates, and the pool is closed on every path.
+
+The machinery is this module's rather than :mod:`concurrent.futures`': a process pool executor
+fails every pending task when one worker dies (no isolation), cannot say which task a dead
+worker ran nor how it ended, has no way to stop its workers at once (only to wait for their
+tasks), and no place for this process to work beside its workers or for the lent cores.
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import logging
 import os
@@ -57,13 +58,13 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 from cilia_runtime.progress import Progress
-from cilia_runtime.signals import interrupt_of
+from cilia_runtime.signals import Terminated, interrupt_of, terminate_as_interrupt
 from cilia_runtime.threads import ThreadBudget
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["Task", "TaskResult", "InProcess", "ProcessPool", "WorkerDied", "pool_for_threads", "worker_context",
-           "exit_reason"]
+           "exit_reason", "stop", "adjust_threads"]
 
 _PLACE = threading.local()  # .state: this thread's _Share while a pool task runs here
 
@@ -119,8 +120,8 @@ class _Share:
 
 
 def adjust_threads(points: int = 1) -> None:
-    """Called before each flow evaluation of ``points`` points by long tasks
-    (:func:`~ciliary_carpet.transport.pathlines.pathlines`): in a pool task with ``lend_idle``,
+    """Called by long tasks between steps of ``points`` points each (a path line's flow
+    evaluations): in a pool task with ``lend_idle``,
     take this place's share of the pool's idle cores while it pays (:class:`_Share`); elsewhere
     it does nothing."""
     st = getattr(_PLACE, "state", None)
@@ -130,7 +131,6 @@ def adjust_threads(points: int = 1) -> None:
 
 def _placed(arr, k: int):
     """Context: pool tasks run in this thread take place ``k``'s share of ``arr``."""
-    import contextlib
 
     @contextlib.contextmanager
     def cm():
@@ -145,10 +145,6 @@ def _placed(arr, k: int):
             numba.set_num_threads(before)
 
     return cm()
-
-
-PRELOAD = ["ciliary_carpet.render"]
-"""Modules the fork server imports once, before it forks any worker (the same as the batch's)."""
 
 
 @dataclass(frozen=True)
@@ -175,7 +171,21 @@ class TaskResult:
 
 
 class WorkerDied(RuntimeError):
-    """A worker process died (killed, out of memory) while it ran a task."""
+    """A worker process died (killed, out of memory) while it ran a task.
+
+    Parameters
+    ----------
+    label : str
+        The task it ran.
+    reason : str
+        How the process ended (:func:`exit_reason`)."""
+
+    def __init__(self, label: str, reason: str) -> None:
+        super().__init__(f"{label}: the worker process running it died ({reason})")
+        self.label, self.reason = label, reason
+
+    def __reduce__(self):
+        return (type(self), (self.label, self.reason))
 
 
 def _call(task: Task, where: str) -> TaskResult:
@@ -255,14 +265,16 @@ def _order(tasks: Sequence[Task]) -> list[int]:
     return sorted(range(len(tasks)), key=lambda i: (-float(tasks[i].cost), i))
 
 
-def worker_context():
-    """The multiprocessing context of worker processes: a fork server (preloading
-    :data:`PRELOAD`), or spawn where there is none; never fork."""
+def worker_context(preload: Sequence[str] = ()):
+    """The multiprocessing context of worker processes: a fork server, or spawn where there is
+    none; never fork. ``preload``: modules the fork server imports once, before it forks any
+    worker (it takes those of the first call that starts it: one fork server per process)."""
     import multiprocessing as mp
 
     if "forkserver" in mp.get_all_start_methods():
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(PRELOAD)
+        if preload:
+            ctx.set_forkserver_preload(list(preload))
         return ctx
     return mp.get_context("spawn")
 
@@ -293,12 +305,13 @@ def _dumps(obj, keys: dict[int, int]) -> bytes:
     return buf.getvalue()
 
 
-def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) -> None:
+def _serve(conn, budget: ThreadBudget | None, name: str, allow=None, place: int = 0) -> None:
     """A worker process: shared objects and tasks from ``conn``, results back, until told to stop
     (None) or the parent goes away (its end of ``conn`` closes: between tasks the worker reads
     EOF, during a task a watcher thread sees it and exits at once, so that a parent killed with
     SIGKILL leaves no worker computing on). Ctrl-C (which reaches the whole process group) ends
-    it quietly: the parent reports the interruption."""
+    it quietly: the parent reports the interruption. ``budget`` (None: the threads it has) is
+    applied around every task; ``allow``, ``place``: its share of the pool's cores (:class:`_Share`)."""
     blobs: dict[int, bytes] = {}
     objects: dict[int, Any] = {}
 
@@ -323,10 +336,10 @@ def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) ->
                 os._exit(1)
 
     threading.Thread(target=orphaned, name="orphan-watch", daemon=True).start()
-    from cilia_runtime.signals import terminate_as_interrupt
-
+    threads = budget.applied() if budget is not None else contextlib.nullcontext()
+    place_cm = _placed(allow, place) if allow is not None else contextlib.nullcontext()
     try:  # SIGTERM (the parent stopping it) ends it like Ctrl-C: cleanly, its finalizers run
-        with terminate_as_interrupt(), budget.applied(), (_placed(allow, place) if allow is not None else _nothing()):
+        with terminate_as_interrupt(), threads, place_cm:
             while True:
                 try:
                     msg = conn.recv()
@@ -365,12 +378,6 @@ def _serve(conn, budget: ThreadBudget, name: str, allow=None, place: int = 0) ->
         conn.close()
 
 
-def _nothing():
-    import contextlib
-
-    return contextlib.nullcontext()
-
-
 class _RemoteTraceback(Exception):
     def __init__(self, tb: str) -> None:
         super().__init__(tb)
@@ -380,9 +387,10 @@ class _RemoteTraceback(Exception):
         return self.tb
 
 
+
 def exit_reason(code: int | None) -> str:
     """How a worker process ended, from its exit code: "killed by SIGKILL, e.g. out of memory" or
-    "exit status N" (the batch's and the pool's messages)."""
+    "exit status N"."""
     if code is not None and code < 0:
         try:
             name = signal.Signals(-code).name
@@ -392,46 +400,134 @@ def exit_reason(code: int | None) -> str:
     return f"exit status {code}"
 
 
+def _started(pid: int) -> str | None:
+    """When process ``pid`` started (``/proc/PID/stat``, clock ticks since boot), None if it is gone:
+    with the pid, it names one process (a pid may be reused once its process has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def _descendants(pid: int) -> list[tuple[int, str | None]]:
+    """The processes ``pid`` started, and theirs, recursively (Linux: ``/proc/PID/task/*/children``;
+    elsewhere none), parents before children, as (pid, :func:`_started`)."""
+    found: list[int] = []
+    todo = [pid]
+    while todo:
+        p = todo.pop(0)
+        try:
+            tasks = os.listdir(f"/proc/{p}/task")
+        except OSError:
+            continue
+        for t in tasks:
+            try:
+                with open(f"/proc/{p}/task/{t}/children") as fh:
+                    kids = [int(k) for k in fh.read().split()]
+            except (OSError, ValueError):
+                continue
+            for k in kids:
+                if k not in found:
+                    found.append(k)
+                    todo.append(k)
+    return [(k, _started(k)) for k in found]
+
+
+def stop(procs, grace: float, told: bool = False) -> None:
+    """Stop the worker processes ``procs`` and every process each started: those ``told`` (Ctrl-C
+    reached them too) get ``grace`` seconds to finish their cleanup first; then the ones still
+    alive get SIGTERM (a worker ends on it like on Ctrl-C, its ``finally`` clauses run) and
+    ``grace`` seconds more; then every process left in their trees is killed (SIGKILL) and the
+    workers reaped."""
+    procs = [p for p in procs if p.is_alive()]
+    if not procs:
+        return
+    tree = {p.pid: _descendants(p.pid) for p in procs}  # before a worker ends: its orphans are found no more
+    for sig in ((None, signal.SIGTERM) if told else (signal.SIGTERM,)):
+        alive = [p for p in procs if p.is_alive()]
+        if not alive:
+            break
+        for p in alive:
+            tree[p.pid] = list(dict.fromkeys(tree[p.pid] + _descendants(p.pid)))
+            if sig is not None:
+                try:
+                    os.kill(p.pid, sig)
+                except ProcessLookupError:
+                    pass
+        end = _time.monotonic() + grace
+        for p in alive:
+            p.join(max(0.0, end - _time.monotonic()))
+    for p in procs:
+        if p.is_alive():
+            tree[p.pid] = list(dict.fromkeys(tree[p.pid] + _descendants(p.pid)))
+            try:
+                os.kill(p.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        for pid, started in tree[p.pid][::-1]:
+            if started is not None and _started(pid) == started:  # the same process, still there
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except (ProcessLookupError, PermissionError):
+                    pass
+        p.join(5.0)
+
+
 class ProcessPool:
     """Tasks in ``processes`` worker processes (and this one, with ``parent_works``).
 
     Parameters
     ----------
     processes : int >= 1
-        Worker processes, started from a fork server for each :meth:`run` and stopped at its end.
+        Worker processes at once, started from a fork server for each :meth:`run` and stopped
+        at its end.
     parent_works : bool
         This process runs tasks too while the workers start and after: it is warm (imports,
         compiled kernels) where a worker needs seconds first.
     lend_idle : bool
         The cores of idle places (a worker with no task left, or this process when it has
         finished its own) go to the places still running a task, as numba threads
-        (:func:`adjust_threads`, between flow evaluations): the last, longest task of a run
-        does not run on one core while the others wait. Off: one numba thread in each place.
+        (:func:`adjust_threads`): the last, longest task of a run does not run on one core while
+        the others wait. Off: one numba thread in each place.
     start_after : float
         With ``parent_works``: seconds to wait before starting workers (none start if this
         process has taken every task by then: a short run is not slowed by starting a pool).
     grace : float
-        Seconds stopped workers get to exit after SIGTERM before SIGKILL.
+        Seconds stopped workers get to exit after SIGTERM before SIGKILL (:func:`stop`).
+    isolated : bool
+        Each task in a fresh worker process that ends after it, with the threads it has (the task
+        sets its own), not daemonic (it may start processes); a task that raises or a worker that
+        dies fails that task only (:meth:`run`). Needs ``parent_works`` and ``lend_idle`` off.
+    preload : sequence of str
+        Modules the fork server imports before it forks a worker (:func:`worker_context`).
 
-    The thread budget: ``workers = processes + parent_works`` places, one BLAS thread each, one
-    numba thread each while all are busy; the numba threads of all places together never exceed
-    ``workers`` (:func:`pool_for_threads` sizes the pool from the cores a caller may use). A
-    task's numbers do not depend on where it runs or on its numba threads as long as the flow's
-    kernels give the same numbers on any thread count (checked by tests/test_parallel.py)."""
+    The thread budget of a shared pool: ``workers = processes + parent_works`` places, one BLAS
+    thread each, one numba thread each while all are busy; the numba threads of all places
+    together never exceed ``workers`` (:func:`pool_for_threads` sizes the pool from the cores a
+    caller may use)."""
 
     def __init__(self, processes: int, *, parent_works: bool = True, lend_idle: bool = True,
-                 start_after: float = 0.5, grace: float = 2.0) -> None:
+                 start_after: float = 0.5, grace: float = 2.0, isolated: bool = False,
+                 preload: Sequence[str] = ()) -> None:
         if not (isinstance(processes, int) and processes >= 1):
             raise ValueError(f"ProcessPool: processes must be an integer >= 1, got {processes!r}")
+        if isolated and (parent_works or lend_idle):
+            raise ValueError("ProcessPool: an isolated pool runs every task in a worker of its own "
+                             "(parent_works and lend_idle off)")
         self.processes = processes
         self.parent_works = bool(parent_works)
         self.lend_idle = bool(lend_idle)
         self.start_after = float(start_after)
         self.grace = float(grace)
+        self.isolated = bool(isolated)
+        self.preload = tuple(preload)
         self.startup: dict[str, float] = {}  # by worker: seconds from a run's start to its first task
         self.pids: list[int] = []  # the last run's worker processes
 
     def __repr__(self) -> str:
+        if self.isolated:
+            return f"ProcessPool({self.processes}, isolated=True)"
         return f"ProcessPool({self.processes}, parent_works={self.parent_works}, lend_idle={self.lend_idle})"
 
     @property
@@ -440,33 +536,38 @@ class ProcessPool:
         return self.processes + int(self.parent_works)
 
     def warm(self) -> None:
-        """Start the fork server the workers are forked from (it imports :data:`PRELOAD`), so that
-        it is ready when :meth:`run` needs workers: a caller with other work first (a render's
-        design) calls it then. The workers' start-up falls from about 1.9 s to 0.7 s on 2 cores
-        (30 x 30 render); without it the first :meth:`run` starts the server."""
-        if worker_context().get_start_method() == "forkserver":
+        """Start the fork server the workers are forked from (it imports ``preload``), so that
+        it is ready when :meth:`run` needs workers: a caller with other work first calls it then;
+        without it the first :meth:`run` starts the server."""
+        if worker_context(self.preload).get_start_method() == "forkserver":
             from multiprocessing import forkserver
 
             forkserver.ensure_running()
 
     @property
-    def budget(self) -> ThreadBudget:
+    def budget(self) -> ThreadBudget | None:
         """One numba and one BLAS thread in each place (more numba threads while others idle,
-        with ``lend_idle``)."""
-        return ThreadBudget(workers=self.workers, numba=1, blas=1)
+        with ``lend_idle``); None when ``isolated`` (each task sets its own)."""
+        return None if self.isolated else ThreadBudget(workers=self.workers, numba=1, blas=1)
 
-    def run(self, tasks: Sequence[Task], *, shared: Sequence = (), progress: Progress | None = None
-            ) -> list[TaskResult]:
+    def run(self, tasks: Sequence[Task], *, shared: Sequence = (), progress: Progress | None = None,
+            desc: str = "tasks", on_start: Callable[[int], None] | None = None,
+            on_done: Callable[[int, Any], None] | None = None) -> list:
         """Run ``tasks`` (biggest first) and return their results in the order of ``tasks``.
 
-        ``shared``: objects that tasks' arguments refer to (e.g. a carpet), pickled once and
-        sent once to each worker. A task that raises, or a worker that dies, stops the others
-        and raises here (module docstring); so does a KeyboardInterrupt."""
+        ``shared``: objects that tasks' arguments refer to, pickled once and sent once to each
+        worker. ``progress`` counts the tasks finished (``desc`` names them). ``on_start(i)`` is
+        called as task ``i`` starts, ``on_done(i, outcome)`` as it ends (in the pool's dispatcher
+        thread for a worker's tasks). A shared pool: a task that raises, or a worker that dies,
+        stops the others and raises here, the outcome is a :class:`TaskResult`. ``isolated``: the
+        outcome of such a task is the exception (:class:`WorkerDied`, or the task's, relabelled),
+        in place of its result, and the others go on. A KeyboardInterrupt stops the workers and
+        propagates (module docstring)."""
         tasks = list(tasks)
         progress = progress if progress is not None else Progress()
         self.startup, self.pids = {}, []
-        run = _PoolRun(self, tasks, shared, progress)
-        progress.start(len(tasks), "tasks")
+        run = _PoolRun(self, tasks, shared, progress, on_start, on_done)
+        progress.start(len(tasks), desc)
         try:
             return run.go()
         finally:
@@ -478,8 +579,10 @@ class _PoolRun:
     works on tasks itself (with ``parent_works``). Places: 0 this process (if it works), then the
     workers; ``allow[place]`` its numba threads now."""
 
-    def __init__(self, pool: ProcessPool, tasks: list[Task], shared: Sequence, progress: Progress) -> None:
+    def __init__(self, pool: ProcessPool, tasks: list[Task], shared: Sequence, progress: Progress,
+                 on_start=None, on_done=None) -> None:
         self.pool, self.tasks, self.shared, self.progress = pool, tasks, list(shared), progress
+        self.on_start, self.on_done = on_start, on_done
         self.queue = _order(tasks)
         self.results: list = [None] * len(tasks)
         self.lock = threading.Lock()
@@ -489,9 +592,10 @@ class _PoolRun:
         self.procs: list = []
         self.done = 0
         self.t0 = _time.perf_counter()
-        self.ctx = worker_context()
-        self.allow = self.ctx.Array("i", [1] * pool.workers, lock=False)
+        self.ctx = worker_context(pool.preload)
+        self.allow = self.ctx.Array("i", [1] * pool.workers, lock=False) if pool.lend_idle else None
         self.busy: set[int] = set()
+        self.started = 0  # workers started
 
     def take(self) -> int | None:
         with self.lock:
@@ -503,20 +607,34 @@ class _PoolRun:
         """Mark ``place`` busy or idle and share the idle places' cores among the busy ones."""
         with self.lock:
             (self.busy.add if busy else self.busy.discard)(place)
+            if self.allow is None:
+                return
             n = self.pool.workers
             running = sorted(self.busy)
-            spare = n - len(running) if self.pool.lend_idle and not self.queue else 0
+            spare = n - len(running) if not self.queue else 0
             for p in range(n):
                 self.allow[p] = 1
             for r, p in enumerate(running):
                 self.allow[p] = 1 + spare // len(running) + (1 if r < spare % len(running) else 0)
 
-    def finished(self, i: int, res: TaskResult) -> None:
+    def finished(self, i: int, res) -> None:
+        """Task ``i`` ended with ``res`` (a TaskResult, or an isolated task's exception)."""
         with self.lock:
             self.results[i] = res
             self.done += 1
             n = self.done
+        if self.on_done is not None:
+            self.on_done(i, res)
         self.progress.update(n)
+
+    def failed(self, i: int, exc: BaseException) -> bool:
+        """Task ``i`` failed with ``exc``: its outcome in an isolated pool (True: go on), else the
+        run's failure (False: stop)."""
+        if self.pool.isolated:
+            self.finished(i, exc)
+            return True
+        self.fail(exc)
+        return False
 
     def fail(self, exc: BaseException) -> None:
         with self.lock:
@@ -525,7 +643,7 @@ class _PoolRun:
         self.abort.set()
         self.idle.set()
 
-    def go(self) -> list[TaskResult]:
+    def go(self) -> list:
         budget = self.pool.budget
         # this process takes the biggest task before the dispatcher can hand it to a worker (with
         # start_after 0 the dispatcher's thread could take it first)
@@ -538,12 +656,15 @@ class _PoolRun:
         dispatcher.start()
         try:
             if self.pool.parent_works:
-                with budget.applied(), _placed(self.allow, 0):
+                with budget.applied(), (_placed(self.allow, 0) if self.allow is not None
+                                        else contextlib.nullcontext()):
                     while (i := first if first is not None else self.take()) is not None:
                         first = None
                         self.set_busy(0, True)
                         if not self.queue:
                             self.idle.set()
+                        if self.on_start is not None:
+                            self.on_start(i)
                         try:
                             res = _call(self.tasks[i], "parent")
                         except Exception as exc:
@@ -557,9 +678,10 @@ class _PoolRun:
             self.idle.set()
             while dispatcher.is_alive():
                 dispatcher.join(0.1)
-        except BaseException:  # Ctrl-C, SIGTERM: stop the workers before it propagates
+        except BaseException as exc:  # Ctrl-C, SIGTERM: stop the workers before it propagates
             self.abort.set()
-            self.stop_all()
+            # Ctrl-C in a terminal reaches the workers too; SIGTERM or SIGHUP reached this process only
+            self.stop_all(told=isinstance(exc, KeyboardInterrupt) and not isinstance(exc, Terminated))
             while dispatcher.is_alive():
                 dispatcher.join(0.1)
             raise
@@ -570,30 +692,52 @@ class _PoolRun:
             raise RuntimeError(f"tasks not run: {', '.join(missing)}")
         return self.results
 
-    def stop_all(self) -> None:
-        """SIGTERM the workers still alive, SIGKILL them after the grace period, reap them."""
+    def stop_all(self, told: bool = False) -> None:
+        """Stop the workers still alive, and what they started (:func:`stop`)."""
         with self.lock:
             procs = list(self.procs)
-        alive = [p for p in procs if p.is_alive()]
-        for p in alive:
-            try:
-                os.kill(p.pid, signal.SIGTERM)
-            except (ProcessLookupError, TypeError):
-                pass
-        end = _time.monotonic() + self.pool.grace
-        for p in alive:
-            p.join(max(0.0, end - _time.monotonic()))
-        for p in alive:
-            if p.is_alive():
-                try:
-                    os.kill(p.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                p.join(5.0)
+        stop(procs, self.pool.grace, told=told)
 
-    def dispatch(self, budget: ThreadBudget) -> None:
+    def start_worker(self, keys: dict, blobs: list, conns: dict, running: dict, places: dict,
+                     budget: ThreadBudget | None, place: int) -> None:
+        """Start a worker in ``place``, send it the shared objects and its first task."""
+        self.started += 1
+        name = f"worker {self.started}"
+        here, there = self.ctx.Pipe(duplex=True)
+        proc = self.ctx.Process(target=_serve, args=(there, budget, name, self.allow, place),
+                                name=f"pool {name}", daemon=not self.pool.isolated)
+        proc.start()
+        there.close()
+        with self.lock:
+            self.procs.append(proc)
+            self.pool.pids.append(proc.pid)
+        conns[proc], places[proc] = here, (name, place)
+        try:
+            for k, blob in enumerate(blobs):
+                here.send(("shared", k))
+                here.send_bytes(blob)
+        except (BrokenPipeError, OSError):
+            pass  # died at once: seen below
+        self.feed(proc, here, running, keys, place)
+        if self.pool.isolated and proc not in running:  # its task could not be sent (failed): the next
+            self.retire(proc, conns)
+            if not self.abort.is_set() and self.queue:
+                self.start_worker(keys, blobs, conns, running, places, budget, place)
+
+    def retire(self, proc, conns: dict) -> None:
+        """Tell an idle worker to end, and reap it."""
+        conn = conns.pop(proc)
+        try:
+            conn.send(None)
+        except (BrokenPipeError, OSError):
+            pass
+        proc.join(self.pool.grace)
+        conn.close()
+
+    def dispatch(self, budget: ThreadBudget | None) -> None:
         """The dispatcher thread: start the workers, send each the shared objects, then a task
-        whenever it is idle; collect results; stop the workers at the end (or on a failure)."""
+        whenever it is idle (an isolated pool: a fresh worker for each task); collect results;
+        stop the workers at the end (or on a failure)."""
         from multiprocessing.connection import wait as wait_any
 
         conns: dict = {}  # proc -> parent's end of its pipe
@@ -607,27 +751,12 @@ class _PoolRun:
             keys = {id(obj): k for k, obj in enumerate(self.shared)}
             blobs = [pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL) for obj in self.shared]
             first = int(self.pool.parent_works)
-            for w in range(1, self.pool.processes + 1):
+            for w in range(self.pool.processes):
                 if self.abort.is_set() or not self.queue:
                     break
-                name, place = f"worker {w}", first + w - 1
-                here, there = self.ctx.Pipe(duplex=True)
-                proc = self.ctx.Process(target=_serve, args=(there, budget, name, self.allow, place),
-                                        name=f"ciliary-carpet {name}", daemon=True)
-                proc.start()
-                there.close()
-                with self.lock:
-                    self.procs.append(proc)
-                    self.pool.pids.append(proc.pid)
-                conns[proc], places[proc] = here, (name, place)
-                try:
-                    for k, blob in enumerate(blobs):
-                        here.send(("shared", k))
-                        here.send_bytes(blob)
-                except (BrokenPipeError, OSError):
-                    pass  # died at once: seen below
-                self.feed(proc, here, running, keys, place)
-            del blobs  # every worker has its copy (a large carpet's pickle is hundreds of MB)
+                self.start_worker(keys, blobs, conns, running, places, budget, first + w)
+            if not self.pool.isolated:
+                del blobs  # every worker has its copy (a large object's pickle may be hundreds of MB)
             while running:
                 ready = wait_any([conns[p] for p in running] + [p.sentinel for p in running], timeout=0.1)
                 if self.abort.is_set():
@@ -641,25 +770,31 @@ class _PoolRun:
                         msg = conn.recv() if conn.poll() else None
                     except (EOFError, OSError):
                         msg = None
-                    if msg is None:
-                        proc.join(1.0)
-                        self.fail(WorkerDied(f"{self.tasks[i].label}: the worker process running it died "
-                                             f"({exit_reason(proc.exitcode)})"))
-                        return
-                    kind, j, body = msg
                     del running[proc]
                     self.set_busy(place, False)
-                    if kind == "ok":
-                        # a worker's start-up: from the run's start to its first result, less the task
-                        self.pool.startup.setdefault(name, _time.perf_counter() - self.t0 - body.seconds)
-                        self.finished(j, body)
+                    if msg is None:
+                        proc.join(1.0)
+                        conns.pop(proc).close()
+                        if not self.failed(i, WorkerDied(self.tasks[i].label, exit_reason(proc.exitcode))):
+                            return
                     else:
-                        exc, tb = body
-                        new = _relabel(exc, self.tasks[j].label)
-                        new.__cause__ = _RemoteTraceback(tb)
-                        self.fail(new)
-                        return
-                    self.feed(proc, conn, running, keys, place)
+                        kind, j, body = msg
+                        if kind == "ok":
+                            # a worker's start-up: from the run's start to its first result, less the task
+                            self.pool.startup.setdefault(name, _time.perf_counter() - self.t0 - body.seconds)
+                            self.finished(j, body)
+                        else:
+                            exc, tb = body
+                            new = _relabel(exc, self.tasks[j].label)
+                            new.__cause__ = _RemoteTraceback(tb)
+                            if not self.failed(j, new):
+                                return
+                        if not self.pool.isolated:
+                            self.feed(proc, conn, running, keys, place)
+                            continue
+                        self.retire(proc, conns)
+                    if self.pool.isolated and not self.abort.is_set() and self.queue:
+                        self.start_worker(keys, blobs, conns, running, places, budget, place)
         except BaseException as exc:  # noqa: BLE001 -- the main thread raises it
             self.fail(exc)
         finally:
@@ -685,7 +820,7 @@ class _PoolRun:
         try:
             payload = _dumps(self.tasks[i], keys)
         except Exception as exc:  # noqa: BLE001 -- an argument that cannot be pickled
-            self.fail(_relabel(exc, self.tasks[i].label))
+            self.failed(i, _relabel(exc, self.tasks[i].label))
             return
         self.set_busy(place, True)
         try:
@@ -694,16 +829,19 @@ class _PoolRun:
         except (BrokenPipeError, OSError):
             pass  # it died: its sentinel says so
         running[proc] = i
+        if self.on_start is not None:
+            self.on_start(i)
 
 
-def pool_for_threads(threads: int) -> InProcess | ProcessPool:
+def pool_for_threads(threads: int, preload: Sequence[str] = ()) -> InProcess | ProcessPool:
     """The strategy for a caller that may use ``threads`` cores: :class:`InProcess` (one numba and
     one BLAS thread) for one, or in a daemonic process (which cannot start processes); else a
     :class:`ProcessPool` of ``threads - 1`` workers and this process (one numba and one BLAS
-    thread each, idle places' cores lent to the busy ones: ``threads`` threads in all)."""
+    thread each, idle places' cores lent to the busy ones: ``threads`` threads in all), its fork
+    server preloading ``preload``."""
     import multiprocessing as mp
 
     threads = int(threads)
     if threads <= 1 or mp.current_process().daemon:  # (a daemonic process, e.g. a Dask worker's, has no children)
         return InProcess(ThreadBudget(workers=1, numba=1, blas=1))
-    return ProcessPool(threads - 1, parent_works=True)
+    return ProcessPool(threads - 1, parent_works=True, preload=preload)
