@@ -273,7 +273,7 @@ def bench_levels(quick: bool, emit) -> dict:
                 spent["kernel"] += time.perf_counter() - t0
         return wrapper
 
-    import ciliary_carpet.carpet.traversal as carpet_module
+    import ciliary_carpet.carpet.plan as carpet_module
     from ciliary_carpet.carpet.carpet import CycleMean, Instant
     from ciliary_carpet.stokes import Direct as _Direct
 

@@ -353,16 +353,17 @@ def test_orders_per_pair_match_brute_force(carpet, monkeypatch, classify):
     threshold its distance reaches (3-D distance from the force centre in the plane; the far
     cilia at the plan's far order), for each choice of the far order (forced by the price of a
     classification), points above/below the plane, beside the grid and far away."""
+    import ciliary_carpet.carpet.plan as cp
     import ciliary_carpet.carpet.traversal as cm
 
-    monkeypatch.setattr(cm, "_CLASSIFY", classify)
+    monkeypatch.setattr(cp, "_CLASSIFY", classify)
     rng = np.random.default_rng(7)
     x = np.column_stack([rng.uniform(-8, 28, 500), rng.uniform(-8, 28, 500), rng.uniform(-2, 2, 500)])
     x = np.vstack([x, [[1e6, -3e5, 0.0], [9.0, 9.0, 0.0]]])
     m = x.shape[0]
     fars = set()
     for tol in (1e-2, 1e-3):
-        plan = cm.make_plan(carpet.carriers.over_cycle.thresholds(tol), carpet.carriers)
+        plan = cp.make_plan(carpet.carriers.over_cycle.thresholds(tol), carpet.carriers)
         fars.add(plan.far)
         ptr, ranges, rptr, res_j, res_r, counts, uptr = cm._lists(x, *plan.traverse, *plan.groups_args(False),
                                                                   cm._MAX_ROWS)

@@ -43,7 +43,7 @@ that sum at 80 points over and beside it (three instants; 0.10-0.17 at tol 1e-3,
 the rigorous bound holding (neighbouring cilia's first moments are alike, so the monopoles'
 missed dipole terms do not cancel).
 
-Groups of far cilia (:class:`~ciliary_carpet.carpet.traversal.FarGroups`). On a planar carpet
+Groups of far cilia (:class:`~ciliary_carpet.carpet.plan.FarGroups`). On a planar carpet
 whose far cilia are dipoles (large carpets), the flow at an instant also sums groups of about
 four neighbouring far cilia at six quadrupole carriers of their own, about the group's centre C
 (its radius a: every carrier of its cilia within a of C), where a target is far enough. The
@@ -149,7 +149,7 @@ def smallest_root(f, lo: np.ndarray, hi: np.ndarray, live) -> np.ndarray:
     zero beyond; decreasing in the sense that matters): ``hi`` doubled while f(hi) > 0 where
     ``live(hi)`` (at most 200 times), then 60 bisections keeping f(hi) <= 0. The distances of the
     levels of detail (:meth:`Bounds.thresholds`) and of the groups of far cilia
-    (:func:`~.traversal._far_groups`)."""
+    (:func:`~.plan._far_groups`)."""
     for _ in range(200):
         grow = (f(hi) > 0) & live(hi)
         if not np.any(grow):

@@ -41,7 +41,7 @@ once per carpet:
   in phase and its moments about the force centres;
 * :mod:`~ciliary_carpet.carpet.carriers` (:attr:`Carpet.carriers`): the carriers of the cheap
   orders and their rigorous bounds (the bound, the calibration ``LOD_SLACK`` and what was measured);
-* :mod:`~ciliary_carpet.carpet.traversal`: the cost model, the grid and the ranged sums of each
+* :mod:`~ciliary_carpet.carpet.plan` and :mod:`~ciliary_carpet.carpet.traversal`: the cost model, the grid and the ranged sums of each
   evaluation.
 """
 from __future__ import annotations

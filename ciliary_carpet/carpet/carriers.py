@@ -262,7 +262,7 @@ class Carriers:
     def dipole_force_max(self) -> np.ndarray:
         """(N, 3) the largest force of each dipole carrier over the cycle's phase samples, times
         :data:`PHASE_MARGIN` (the phases between them): what bounds a group of far cilia
-        (:class:`~.traversal.FarGroups`)."""
+        (:class:`~.plan.FarGroups`)."""
         c = self.cycles
         n, n_p = c.n, c.n_phase
         f3 = dipole_forces(c.F.reshape(-1, 2), c.D.reshape(-1, 2, 2), np.repeat(self.delta, n_p))

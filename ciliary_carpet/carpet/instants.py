@@ -8,7 +8,7 @@ integrator asks for a few instants at a time (the stages of a step): :class:`Ins
 makes them together from one read of the coefficients (:func:`stacked_at`, lanes of
 :data:`LANES` cilia as vectors, :class:`MomentRows`), the monopoles and dipoles at once and the
 quadrupoles when a sum reads them, and the quadrupole carriers of groups of far cilia
-(:class:`~ciliary_carpet.carpet.traversal.FarGroups`; their bound in
+(:class:`~ciliary_carpet.carpet.plan.FarGroups`; their bound in
 :mod:`~ciliary_carpet.carpet.bounds`). The numbers are those of
 :meth:`Carriers.forces <ciliary_carpet.carpet.carriers.Carriers.forces>` and
 :meth:`Carriers.stacked <ciliary_carpet.carpet.carriers.Carriers.stacked>` to rounding.
@@ -180,7 +180,7 @@ def stacked_at(coef, ph, delta, inv3, inv6, axes, js, blocks, want, kc, what, ou
 @njit(cache=True, nogil=True, parallel=True, fastmath={"contract", "nsz", "arcp"})
 def _group_forces(out, n, pos, start, centre, delta, inv6):  # pragma: no cover - compiled
     """Rows 10 n + 6 g + m of out (T, 3, 10 n + 6 G): the six quadrupole carriers of group g of
-    far cilia (:class:`~.traversal.FarGroups`: the sorted cilia start[g] ... start[g + 1], its
+    far cilia (:class:`~.plan.FarGroups`: the sorted cilia start[g] ... start[g + 1], its
     centre (G, 3) and scale ``delta`` (G,)) at each instant, in the plane, reproducing F, D and T
     about the centre of its cilia's dipole carriers (rows n + 3 q + m, at ``pos`` (3, 10 n)):
     the forces f = inv6 (F, D_x / delta, D_y / delta, T_xx / delta^2, T_xy / delta^2,
@@ -323,7 +323,7 @@ class InstantCarriers:
     the quadrupoles too when ``eager``, else on demand (:meth:`complete`: the cilia whose
     quadrupoles an evaluation reads, made for the T instants together). A carpet whose far cilia
     are dipoles (100 x 100: 10^4 cilia, about a quarter of them near a tracer) reads 6 of the 12
-    rows for most of them. ``groups`` (a plan's :class:`~.traversal.FarGroups` and its carriers'
+    rows for most of them. ``groups`` (a plan's :class:`~.plan.FarGroups` and its carriers'
     positions (3, 10 n)): the groups' six carriers each, after the cilia's (rows 10 n + 6 g ...),
     made with the monopoles and dipoles (:func:`_group_forces`). ``dtype``: the forces' type
     (float32 for sums in fp32: computed in fp64, rounded as they are stored). ``rows``: the

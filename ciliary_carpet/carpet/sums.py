@@ -10,7 +10,7 @@ evaluates the model's flow at points,
 at an :class:`Instant` or over the :class:`CycleMean`, each (cilium, point) pair at the cheapest
 level of detail whose bound meets the tolerance, and keeps what makes the next call cheaper:
 
-* the plans (:class:`~ciliary_carpet.carpet.traversal.Plan`, one per kind of flow and tolerance:
+* the plans (:class:`~ciliary_carpet.carpet.plan.Plan`, one per kind of flow and tolerance:
   each cilium's order and distances);
 * the carriers' forces (the cycle mean's for as long as its plan, a few instants' at a time,
   :meth:`FlowSums.prepare`);
@@ -33,7 +33,8 @@ from ciliary_carpet.carpet.bounds import Bounds
 from ciliary_carpet.carpet.carriers import CarrierForces, Carriers
 from ciliary_carpet.carpet.cycles import CycleData
 from ciliary_carpet.carpet.instants import InstantCarriers, MomentRows, moment_rows
-from ciliary_carpet.carpet.traversal import Plan, Summed, dense_sum, flow_sum, make_plan
+from ciliary_carpet.carpet.plan import Plan, make_plan
+from ciliary_carpet.carpet.traversal import Summed, dense_sum, flow_sum
 from ciliary_carpet.stokes import Auto, Backend, Direct, Kernel, in_fp32, stokeslet_velocity_ranges
 
 __all__ = ["FlowSums", "FlowSample", "Instant", "CycleMean", "When"]
@@ -117,7 +118,7 @@ class CycleMean:
     """The cycle-mean (steady, time-averaged) flow: each cilium's flow averaged over its own cycle,
     resolved as the average over the table's phase samples, its carriers holding its cycle-mean
     moments (:attr:`Carriers.of_mean <ciliary_carpet.carpet.carriers.Carriers.of_mean>`). Its cheap
-    pairs count as level ``mean``; the far cilia stay quadrupoles (:mod:`~.traversal`)."""
+    pairs count as level ``mean``; the far cilia stay quadrupoles (:mod:`~.plan`)."""
 
     level: ClassVar[str] = "mean"
     far: ClassVar[int | None] = 2
@@ -235,7 +236,7 @@ class FlowSums:
         return "fp64"
 
     def plan(self, when: When, tol: float) -> tuple[tuple, Plan]:
-        """The key and the :class:`~.traversal.Plan` of evaluations of ``when`` at ``tol`` (made once)."""
+        """The key and the :class:`~.plan.Plan` of evaluations of ``when`` at ``tol`` (made once)."""
         key = (when.level, tol)
         if key not in self.plans:
             if len(self.plans) > _PLANS:
