@@ -1,12 +1,12 @@
 """One render's path-line stage on 1 and 2 cores (issue 23: "at least 1.7x faster on 2 cores").
 
 The path-line stage of a render is its path lines and their end-point error estimate (the
-reference run of :func:`~ciliary_carpet.output.outputs.pathline_error`); summary.json
+reference run of :func:`~ciliary_carpet.transport.accuracy.pathline_error`); summary.json
 ``seconds["pathlines"] + seconds["pathline_error"]``. Scenes: ``designs/focusing.toml`` (10 x 10,
 bundled) and the bundled uniform_deflection scene scaled to 30 x 30 (``bench_large.scaled_scene``).
 
 Stage (default): each scene designed once in this process, then the render's own stage
-(:class:`~ciliary_carpet.output.outputs.PathLinesOutput` ``.write`` into a scratch folder) run,
+(:class:`~ciliary_carpet.output.tracers.PathLinesOutput` ``.write`` into a scratch folder) run,
 alternating, ``--repeat`` times each way:
 
 * ``1 core``: in this process, one numba and one BLAS thread (``--threads 1``);
@@ -18,7 +18,7 @@ alternating, ``--repeat`` times each way:
   process throughout).
 
 Same work: on a pool of two places the stage also runs the summary's own computations (what the
-model leaves out, the coupling's size: :func:`~ciliary_carpet.output.outputs.summary_tasks`)
+model leaves out, the coupling's size: :func:`~ciliary_carpet.output.summary.summary_tasks`)
 beside the path lines, where one place makes them with its summary, after the stage. Each table
 also gives the stage plus those computations where they ran after it (timed here after the stage;
 from summary.json ``omissions`` + ``coupling`` for renders), so that both sides of that ratio do
@@ -100,10 +100,12 @@ def _prepared(scene_path: Path):
 def _stage(plan, carpet, d, how: str) -> tuple[float, dict, float]:
     """One run of the render's path-line stage ``how`` ("1", "2-threads", "2-pool"): seconds, summary,
     and the seconds of the same work as a render's: the stage and the summary's own computations
-    (:func:`~ciliary_carpet.output.outputs.summary_tasks`: what the model leaves out, the coupling's
+    (:func:`~ciliary_carpet.output.summary.summary_tasks`: what the model leaves out, the coupling's
     size). A pool of two places runs them beside the path lines, inside the stage; in one place a
     render makes them with its summary, after the stage: here they are run and timed after it."""
-    from ciliary_carpet.output.outputs import PathLinesOutput, RenderContext, summary_tasks
+    from ciliary_carpet.output.contract import RenderContext
+    from ciliary_carpet.output.summary import summary_tasks
+    from ciliary_carpet.output.tracers import PathLinesOutput
     from cilia_runtime.pool import InProcess, ProcessPool, pool_for_threads
     from cilia_runtime.threads import ThreadBudget
     from ciliary_carpet.batch import PRELOAD
@@ -136,7 +138,7 @@ def stage_table(keys, repeat: int, folder: Path, modes=MODES) -> list[str]:
              "average (1, 5, 15 min) before it and the cores the whole machine kept busy during it (this "
              "benchmark's own: 1 for a 1-core run, up to 2 for a pool; more means other jobs ran beside it).", "",
              "On a pool of two places the stage also runs the summary's own computations (what the model "
-             "leaves out, the coupling's size: `outputs.summary_tasks`) beside the path lines; in one place a "
+             "leaves out, the coupling's size: `summary.summary_tasks`) beside the path lines; in one place a "
              "render makes them with its summary. *Same work*: the stage plus those computations where they "
              "ran after it (timed here after the stage), so that both sides of a ratio do the same work.", "",
              "| scene | tracers | 1 core | 2 threads, in process (before) | 2 cores, pool (now) | "
@@ -212,7 +214,7 @@ def chunk_table(sizes, folder: Path) -> list[str]:
     import numba
     from threadpoolctl import threadpool_limits
 
-    from ciliary_carpet.output.outputs import PATHLINE_ATOL, PATHLINE_RTOL, PATHLINE_TOL
+    from ciliary_carpet.transport.accuracy import PATHLINE_ATOL, PATHLINE_RTOL, PATHLINE_TOL
     from ciliary_carpet.transport.flow import ResolvedFlow
     from ciliary_carpet.transport.pathlines import pathlines
 

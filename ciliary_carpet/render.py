@@ -43,7 +43,8 @@ from cilia_runtime.progress import Progress
 
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, OutputFolder, is_complete, owned_files
-from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY, RenderContext
+from ciliary_carpet.output.contract import SUMMARY, RenderContext
+from ciliary_carpet.output.outputs import OUTPUTS
 from ciliary_carpet.output.plan import RenderPlan
 from ciliary_carpet.output.resources import ResourceError, check_resources
 from ciliary_carpet.scenes.assembly import carpet_for, design, load_table

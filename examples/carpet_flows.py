@@ -19,6 +19,7 @@ import numpy as np
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean, Instant
+from ciliary_carpet.output.tracers import ftle_to_vti, pathlines_to_vtp
 from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow
 from ciliary_carpet.transport.ftle import ftle_field
 from ciliary_carpet.transport.pathlines import pathlines
@@ -58,5 +59,5 @@ if __name__ == "__main__":
     OUT.mkdir(parents=True, exist_ok=True)
     print(f"mean speed up to {speed_mean:.3g} L/tau (error bound {bound_mean:.1e}); mixing number "
           f"{mixing_number:.3g}")
-    resolved.write(OUT / "pathlines.vtp")                         # polylines for ParaView
-    ftle.write(OUT / "ftle.vti")
+    pathlines_to_vtp(resolved, OUT / "pathlines.vtp")             # polylines for ParaView
+    ftle_to_vti(ftle, OUT / "ftle.vti")

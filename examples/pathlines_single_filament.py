@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
+from ciliary_carpet.output.tracers import pathlines_to_vtp
 from ciliary_carpet.output.vtkfiles import grid_points, write_field
 from ciliary_carpet.transport.flow import ResolvedFlow
 from ciliary_carpet.transport.pathlines import pathlines
@@ -50,7 +51,7 @@ for name, carpet in scenes.items():
     seeds = np.column_stack([np.linspace(-1.5, 1.5, n_seeds), np.full(n_seeds, 1.4)])
     T = float(carpet.periods[0])
     paths[name] = pathlines(ResolvedFlow(carpet, 1e-4), seeds, (0.0, periods * T), rtol=1e-6, atol=1e-6)
-    paths[name].write(OUT / f"{name}_pathlines.vtp")
+    pathlines_to_vtp(paths[name], OUT / f"{name}_pathlines.vtp")
     um = carpet.velocity(grid, CycleMean())
     fields[name] = um
     write_field(OUT / f"{name}_mean_field.vti", origin, spacing, shape,

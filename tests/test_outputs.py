@@ -12,7 +12,8 @@ import ciliary_carpet
 import ciliary_carpet.output.plan as plan_module
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.folder import MANIFEST, owned_files
-from ciliary_carpet.output.outputs import OUTPUTS, Output
+from ciliary_carpet.output.contract import Output
+from ciliary_carpet.output.outputs import OUTPUTS
 from ciliary_carpet.render import render
 from ciliary_carpet.scenes.scene import load_scene
 
@@ -59,8 +60,9 @@ def test_every_file_comes_from_one_registered_output(tmp_path, monkeypatch):
 def test_an_unregistered_file_is_not_placed(tmp_path, monkeypatch):
     """A file no output names would be the user's for ever after: the render fails, nothing is placed."""
     import ciliary_carpet.output.outputs as outputs
+    from ciliary_carpet.output.views import ParaViewOutput
 
-    class Stray(outputs.ParaViewOutput):
+    class Stray(ParaViewOutput):
         def write(self, ctx):
             super().write(ctx)
             (ctx.stage / "stray.txt").write_text("x")
@@ -81,20 +83,20 @@ def test_frames_written_by_the_render_threads(tmp_path, monkeypatch):
     import threading
     import xml.etree.ElementTree as ET
 
-    import ciliary_carpet.output.outputs as outputs
+    import ciliary_carpet.output.fields as fields
     from ciliary_carpet.output.vtkfiles import OutputError
 
     p = tmp_path / "s.toml"
     p.write_text('[carpet]\nshape = [2, 2]\n[output]\nn_seeds = 2\nperiods = 1.0\nfield_shape = [6, 6]\n'
                  'snapshots = 0\nframes = 6\npreview = false\nftle = false\npathlines = false\n')
-    real, seen = outputs.write_cilia, set()
+    real, seen = fields.write_cilia, set()
 
     def spy(path, *a, **k):
         seen.add(threading.get_ident())
         return real(path, *a, **k)
 
-    monkeypatch.setattr(outputs, "write_cilia", spy)
-    monkeypatch.setattr(outputs, "threads_in_use", lambda: {"numba": 2, "blas": 1, "workers": 1})
+    monkeypatch.setattr(fields, "write_cilia", spy)
+    monkeypatch.setattr(fields, "threads_in_use", lambda: {"numba": 2, "blas": 1, "workers": 1})
     res = render(load_scene(p), tmp_path / "out")
     pvd = ET.parse(tmp_path / "out" / "cilia.pvd").getroot()
     files = [d.get("file") for d in pvd.iter("DataSet")]
@@ -108,7 +110,7 @@ def test_frames_written_by_the_render_threads(tmp_path, monkeypatch):
             raise OutputError(path, "no space left on device")
         return real(path, *a, **k)
 
-    monkeypatch.setattr(outputs, "write_cilia", broken)
+    monkeypatch.setattr(fields, "write_cilia", broken)
     with pytest.raises(OutputError, match="cilia_003.vtp.*no space left"):
         render(load_scene(p), tmp_path / "out2")
     assert not (tmp_path / "out2").exists()

@@ -256,9 +256,11 @@ def seeds_3d(s):
 
 
 def test_write_pathlines_and_particles(one, tmp_path):
+    from ciliary_carpet.output.tracers import particles_to_pvd, pathlines_to_vtp
+
     P = float(one.periods[0])
     pl = pathlines(Oscillating(one, P), np.array([[5.0, 0.0], [6.0, 1.0]]), (0.0, 2 * P))
-    f = pl.write(tmp_path / "p.vtp")
+    f = pathlines_to_vtp(pl, tmp_path / "p.vtp")
     r = vtk.vtkXMLPolyDataReader()
     r.SetFileName(str(f))
     r.Update()
@@ -268,7 +270,7 @@ def test_write_pathlines_and_particles(one, tmp_path):
     assert it[0] == 0 and it.max() == pytest.approx(2 * P)
     names = out.GetFieldData().GetAbstractArray("TerminationReasonNames")
     assert [names.GetValue(i) for i in range(names.GetNumberOfValues())] == list(REASONS)
-    pvd = pl.write_particles(tmp_path / "particles.pvd", max_frames=10)
+    pvd = particles_to_pvd(pl, tmp_path / "particles.pvd", max_frames=10)
     files = sorted(tmp_path.glob("particles_*.vtp"))
     assert 5 <= len(files) <= 10 and pvd.exists()
     rd = vtk.vtkXMLPolyDataReader()
@@ -364,7 +366,7 @@ def test_render_error_estimate_of_the_long_time_model(table):
     """For the long-time model the render's estimate is its error against the time-resolved flow:
     positive (the models differ), below the distance travelled, and named as the model's error."""
     from ciliary_carpet.transport.flow import MeanFlow
-    from ciliary_carpet.output.outputs import pathline_error
+    from ciliary_carpet.transport.accuracy import pathline_error
 
     c = Carpet(np.array([[0.0, 0.0], [2.0, 0.0]]), [4.0, -4.0], table, phases=[0.3, 0.8])
     T = float(np.nanmin(c.periods))
@@ -381,7 +383,7 @@ def test_render_error_estimate_is_the_distance_to_a_tighter_run(table):
     """For the time-resolved flow the estimate is the end-point distance of the sampled tracers
     (error_tracers: evenly spread, at most ERROR_SAMPLE) to the same integration with the flow
     tolerance / 3 and rtol, atol / 10 (REFERENCE_TIGHTER), recomputed here by hand."""
-    from ciliary_carpet.output.outputs import ERROR_SAMPLE, REFERENCE_TIGHTER, error_tracers, pathline_error
+    from ciliary_carpet.transport.accuracy import ERROR_SAMPLE, REFERENCE_TIGHTER, error_tracers, pathline_error
     from ciliary_carpet.transport.flow import ResolvedFlow
 
     assert list(error_tracers(3)) == [0, 1, 2] and list(error_tracers(100)) == [0, 14, 28, 42, 57, 71, 85, 99]

@@ -124,7 +124,7 @@ def test_output_folder_is_kept_and_atomic(tmp_path, monkeypatch):
     assert main(["render", str(p), "-o", str(out)]) == 2
     assert (out / "summary.json").read_text() == before
     # an interrupted re-render leaves the old folder and no staging folder
-    import ciliary_carpet.output.outputs as R
+    import ciliary_carpet.output.fields as R
 
     def boom(*a, **k):
         raise KeyboardInterrupt

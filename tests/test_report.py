@@ -87,7 +87,7 @@ def test_auto_path_lines_follow_the_mean_flow_over_thousands_of_beats_and_say_so
 
 
 def test_a_long_run_animates_in_a_bounded_number_of_steps_on_the_right_clock():
-    from ciliary_carpet.output.outputs import _looped
+    from ciliary_carpet.output.fields import _looped
     from ciliary_carpet.output.plan import ANIMATION_STEPS
 
     files = [f"f{k}" for k in range(40)]

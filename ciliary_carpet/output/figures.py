@@ -188,7 +188,7 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
     lines (coloured by time, their end points in black) and the cilia at t = 0 with their bases
     (coloured by chi_N); a colour bar for each colour. In the model's units (L, tau).
 
-    ``mean_field`` is the render's :class:`~ciliary_carpet.output.outputs.MeanField`, ``pl`` its
+    ``mean_field`` is the render's :class:`~ciliary_carpet.output.contract.MeanField`, ``pl`` its
     path lines and ``d`` its design, each None when the render has none."""
     import matplotlib
 
@@ -235,7 +235,7 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
     positions at the table's phase samples, a band along its beat plane) coloured by chi_N, with
     its base. A colour bar for each colour. In the model's units (L, tau).
 
-    ``mean_field`` is the render's :class:`~ciliary_carpet.output.outputs.MeanField` on the
+    ``mean_field`` is the render's :class:`~ciliary_carpet.output.contract.MeanField` on the
     target plane and ``pl`` its path lines (3D), each None when the render has none."""
     import matplotlib
 

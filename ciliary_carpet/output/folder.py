@@ -89,7 +89,8 @@ from cilia_runtime.files import strict_json, usual_mode
 from cilia_runtime.signals import signals_held
 
 from ciliary_carpet.output import RenderError
-from ciliary_carpet.output.outputs import OUTPUTS, SUMMARY
+from ciliary_carpet.output.contract import SUMMARY
+from ciliary_carpet.output.outputs import OUTPUTS
 
 logger = logging.getLogger(__name__)
 

@@ -1,1 +1,1 @@
-"""Transport in a carpet's flow: path lines of massless tracers and mixing (FTLE)."""
+"""Transport in a carpet's flow: path lines of massless tracers, their accuracy, and mixing (FTLE)."""

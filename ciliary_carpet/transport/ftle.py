@@ -26,7 +26,6 @@ import logging
 import math
 import time as _time
 from dataclasses import dataclass, field
-from pathlib import Path
 import numpy as np
 
 from ciliary_carpet.transport.flow import Flow
@@ -61,16 +60,6 @@ class FTLEField:
     def shape(self) -> tuple[int, int]:
         """(nx, ny)."""
         return (self.ftle.shape[1], self.ftle.shape[0])
-
-    def write(self, path, scales=None) -> Path:
-        """Write as a ``.vti`` (point data "FTLE", in 1/s with ``scales``)."""
-        from ciliary_carpet.output.vtkfiles import write_field
-
-        L, T = (scales.length_m, scales.time_s) if scales is not None else (1.0, 1.0)
-        nx, ny = self.shape
-        return write_field(path, (self.origin[0] * L, self.origin[1] * L, self.height * L),
-                           (self.spacing[0] * L, self.spacing[1] * L, 1.0), (nx, ny, 1),
-                           {"FTLE": self.ftle.ravel() / T})
 
 
 def ftle_field(flow: Flow, box, shape, duration: float, *, rtol: float = 1e-6, atol: float = 1e-6,

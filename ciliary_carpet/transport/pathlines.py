@@ -42,7 +42,6 @@ import logging
 import math
 import time as _time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -130,20 +129,6 @@ class PathLines:
         """Number of tracers per termination reason."""
         return {REASONS[k]: int(np.sum(self.reason == k)) for k in range(len(REASONS))}
 
-    def write(self, path, scales=None, max_points: int | None = None) -> Path:
-        """Write as a .vtp (one polyline per tracer; point data time, IntegrationTime, velocity,
-        speed; cell data SeedIds, TerminationReason with its names in field data), in SI units
-        when ``scales`` (a Scales) is given; with ``max_points``, at most that many points of each
-        tracer (:meth:`thinned`)."""
-        from ciliary_carpet.output.vtkfiles import write_pathlines
-
-        L, T = (scales.length_m, scales.time_s) if scales is not None else (1.0, 1.0)
-        keep = self.thinned(max_points)
-        return write_pathlines(path, [p[k] * L for p, k in zip(self.points, keep)],
-                               [t[k] * T for t, k in zip(self.times, keep)],
-                               [v[k] * (L / T) for v, k in zip(self.velocities, keep)], self.seed_ids, self.reason,
-                               REASONS)
-
     def thinned(self, max_points: int | None) -> list:
         """Per tracer, the indices of its samples a file of at most ``max_points`` points per line
         keeps: every k-th, the last one always (all of them when ``max_points`` is None or 0, or
@@ -157,33 +142,6 @@ class PathLines:
                 step = int(math.ceil((n - 1) / (max_points - 1))) if max_points > 1 else n
                 out.append(np.unique(np.append(np.arange(0, n, step), n - 1)))
         return out
-
-    def write_particles(self, path, scales=None, max_frames: int = 200) -> Path:
-        """Write the tracers' positions over time as ParaView's ParticlePath gives them: a
-        ``.pvd`` at ``path`` over point sets ``<stem>_NNNNN.vtp`` beside it (point data SeedIds,
-        velocity, speed), at most ``max_frames`` of the dense output times (evenly strided). The
-        frames sit in the same folder (no subfolder), like the other time series of a render, so
-        that a render's manifest lists every file it wrote."""
-        from ciliary_carpet.output.vtkfiles import write_points, write_pvd
-
-        path = Path(path)
-        folder = path.parent
-        L, T = (scales.length_m, scales.time_s) if scales is not None else (1.0, 1.0)
-        grid = self.times[int(np.argmax([t.size for t in self.times]))]
-        stride = max(1, int(math.ceil(grid.size / max(1, int(max_frames)))))
-        entries = []
-        for j in range(0, grid.size, stride):
-            t = grid[j]
-            alive = [k for k, tk in enumerate(self.times) if j < tk.size and tk[j] == t]
-            if not alive:
-                continue
-            p = np.array([self.points[k][j] for k in alive]) * L
-            v = np.array([self.velocities[k][j] for k in alive]) * (L / T)
-            f = write_points(folder / f"{path.stem}_{j:05d}.vtp", p,
-                             {"SeedIds": self.seed_ids[alive].astype(np.int32), "velocity": v,
-                              "speed": np.linalg.norm(v, axis=1)})
-            entries.append((float(t) * T, f))
-        return write_pvd(path, entries)
 
 
 def _domain(domain, carpet: "Carpet", seeds: np.ndarray) -> np.ndarray:
@@ -571,14 +529,14 @@ def chunks(n_tracers: int, chunk_size: int | None) -> list[np.ndarray]:
 
 
 CHUNK_SIZE = 200
-"""Tracers per chunk of a render's path lines (:func:`chunks`; ``ciliary_carpet.output.outputs``).
+"""Tracers per chunk of a render's path lines (:func:`chunks`; ``ciliary_carpet.output.tracers``).
 Each chunk pays the per-time overhead of its own steps (and its tracers lose the substeps they
 shared): measured on the 30 x 30 uniform_deflection carpet (the render's 100 tracers over 23.5 time
 units, flow tol 1e-4, one thread, benchmarks/results/bench_pathlines_parallel.md) the work is
 39.5 s in one chunk, 49.4 s (x 1.25) in chunks of 50 and 65.0 s (x 1.65) in chunks of 25: about
 10 s per chunk plus 0.3 s per tracer there. A render's 100 tracers therefore run as one chunk,
 beside the error estimate's reference run on another core
-(:func:`~ciliary_carpet.output.outputs.pathline_error`); more than 200 are split into chunks of
+(:func:`~ciliary_carpet.transport.accuracy.pathline_error`); more than 200 are split into chunks of
 100 to 200, which cost about 10-15 % more work than one run of all (by that estimate) and run on
 as many cores as the render has."""
 PER_POINT_COST = 1 / 50
