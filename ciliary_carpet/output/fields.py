@@ -21,37 +21,29 @@ __all__ = ["MeanFieldOutput", "SnapshotsOutput", "FramesOutput"]
 
 
 def _vorticity(u: np.ndarray, spacing, shape) -> np.ndarray:
-    """(n, 3) vorticity (0, 0, dv/dx - du/dy) of an in-plane field on the (nx, ny, 1) grid
-    (second-order differences; the plane's own derivatives only)."""
-    nx, ny = shape[0], shape[1]
-    U = u[:, 0].reshape(ny, nx)
-    W = u[:, 1].reshape(ny, nx)
+    """(n, 3) vorticity of a field on a grid of ``shape`` (nx, ny, nz), from the grid's own
+    derivatives (second-order differences): (0, du/dz - dw/dx, 0) on a vertical x-z section
+    (nx, 1, nz), else (0, 0, dv/dx - du/dy) on an in-plane (nx, ny, 1) grid."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    if ny == 1 and nz > 1:
+        U, W = u[:, 0].reshape(nz, nx), u[:, 2].reshape(nz, nx)
+        axis, curl = 1, np.gradient(U, spacing[2], axis=0) - np.gradient(W, spacing[0], axis=1)
+    else:
+        U, V = u[:, 0].reshape(ny, nx), u[:, 1].reshape(ny, nx)
+        axis, curl = 2, np.gradient(V, spacing[0], axis=1) - np.gradient(U, spacing[1], axis=0)
     w = np.zeros((u.shape[0], 3))
-    w[:, 2] = (np.gradient(W, spacing[0], axis=1) - np.gradient(U, spacing[1], axis=0)).ravel()
-    return w
-
-
-def _vorticity_section(u: np.ndarray, spacing, shape) -> np.ndarray:
-    """(n, 3) vorticity (0, du/dz - dw/dx, 0) of a field on a vertical x-z section, the
-    (nx, 1, nz) grid (second-order differences; the section's own derivatives only)."""
-    nx, nz = shape[0], shape[2]
-    U = u[:, 0].reshape(nz, nx)
-    W = u[:, 2].reshape(nz, nx)
-    w = np.zeros((u.shape[0], 3))
-    w[:, 1] = (np.gradient(U, spacing[2], axis=0) - np.gradient(W, spacing[0], axis=1)).ravel()
+    w[:, axis] = curl.ravel()
     return w
 
 
 def _write_flow(path: Path, grid: FieldGrid, sample, plan: RenderPlan, time: float | None = None) -> Path:
-    """A field file of a flow ``sample`` on ``grid``: velocity, speed, vorticity, error bound
-    (a vertical section, shape (nx, 1, nz): its y vorticity)."""
+    """A field file of a flow ``sample`` on ``grid``: velocity, speed, vorticity (:func:`_vorticity`),
+    error bound."""
     L, T, V = plan.units
     u = sample.velocity
-    vort = _vorticity_section(u, grid.spacing, grid.shape) if grid.shape[1] == 1 and grid.shape[2] > 1 \
-        else _vorticity(u, grid.spacing, grid.shape)
     return write_field(path, np.asarray(grid.origin) * L, np.asarray(grid.spacing) * L, grid.shape,
                        {"velocity": u * V, "speed": np.linalg.norm(u, axis=1) * V,
-                        "vorticity": vort / T,
+                        "vorticity": _vorticity(u, grid.spacing, grid.shape) / T,
                         "error_bound": sample.error_bound * V}, time=time)
 
 
