@@ -32,7 +32,7 @@ Seeds closer than one blob size to a filament at the start time are refused (:cl
 Chunks: ``pathlines(..., chunk_size=n, pool=...)`` integrates the tracers in independent chunks of
 about ``n`` (:func:`chunks`: consecutive seeds, the membership fixed by the number of seeds and
 ``n`` alone), each its own integration with its own steps (:func:`pathline_tasks`), joined in seed
-order (:func:`join_pathlines`); ``pool`` (:mod:`~ciliary_carpet.transport.parallel`) says where
+order (:func:`join_pathlines`); ``pool`` (:mod:`~cilia_runtime.pool`) says where
 they run, in this process or in worker processes, with the same numbers. Each chunk pays the
 per-time overhead of its own flow evaluations (:data:`CHUNK_SIZE` for what that costs).
 """
@@ -244,7 +244,7 @@ class _Run:
 
     def velocity(self, x: np.ndarray, t: float) -> np.ndarray:
         self.n_eval += 1
-        adjust_threads(x.shape[0])  # in a process pool: idle places' cores while they pay (transport.parallel)
+        adjust_threads(x.shape[0])  # in a process pool: idle places' cores while they pay (cilia_runtime.pool)
         u = self.flow.velocity(x, t)
         if not np.all(np.isfinite(u)):
             raise FloatingPointError(f"path lines: non-finite velocity at t = {t:.6g}")
@@ -427,7 +427,7 @@ def pathlines(flow: Flow, seeds, t_span, *, rtol: float = 1e-6, atol: float = 1e
         integration with its own steps, joined into one result (:func:`join_pathlines`); default
         all together (one chunk). ``max_steps`` then holds per chunk.
     pool : InProcess or ProcessPool, optional
-        Where the chunks run (:mod:`~ciliary_carpet.transport.parallel`); default in this
+        Where the chunks run (:mod:`~cilia_runtime.pool`); default in this
         process, one after another. The numbers are the same wherever they run.
 
     Returns
@@ -542,7 +542,7 @@ as many cores as the render has."""
 PER_POINT_COST = 1 / 50
 """A flow evaluation's cost per point relative to its per-time overhead (measured on the 30 x 30
 uniform_deflection carpet at flow tol 1e-4, one thread: about 0.85 ms per time plus 15-20 us per
-point): sets :attr:`Task.cost <ciliary_carpet.transport.parallel.Task.cost>`, which orders tasks."""
+point): sets :attr:`Task.cost <cilia_runtime.pool.Task.cost>`, which orders tasks."""
 
 
 def task_cost(n_tracers: int, rtol: float, atol: float, duration: float) -> float:
@@ -556,7 +556,7 @@ def pathline_tasks(flow: Flow, seeds, t_span, *, chunk_size: int | None = CHUNK_
                    rtol: float = 1e-6, atol: float = 1e-6, samples_per_period: int = 16, domain=None,
                    h0: float | None = None, max_step: float | None = None, max_steps: int = 1_000_000) -> list:
     """The chunks of a path-line run (the arguments of :func:`pathlines`) as
-    :class:`~ciliary_carpet.transport.parallel.Task` s, checked as :func:`pathlines` checks them
+    :class:`~cilia_runtime.pool.Task` s, checked as :func:`pathlines` checks them
     before any work: each ``pathlines(flow, seeds[chunk], t_span, ...)`` over the tracers of
     one of :func:`chunks`, all in the domain of the whole run (the default: from all seeds);
     join their results with :func:`join_pathlines`. ``label`` names them in errors."""
