@@ -166,7 +166,8 @@ class PathLinesOutput(Output):
 class FtleOutput(Output):
     """``ftle.vti``: the FTLE over the carpet in the long-time flow, for a quarter of the path-line
     duration; the mixing number in the summary. A standing carpet's: over its footprint in the
-    target plane z = h, 2D tracers in that plane's in-plane mean flow (:meth:`RenderContext.mean_flow`)."""
+    target plane z = h, 2D tracers in that plane's in-plane mean flow
+    (:meth:`RenderContext.mean_flow <ciliary_carpet.output.contract.RenderContext.mean_flow>`)."""
 
     name = "ftle"
     files = (r"ftle\.vti",)

@@ -69,12 +69,13 @@ def pathline_error(carpet: "Carpet", seeds: np.ndarray, duration: float, pl, mod
     """End-point error estimate of rendered path lines ``pl`` in ``flow``: :data:`ERROR_SAMPLE` of
     its tracers (:func:`error_tracers`) integrated again, against a more accurate run.
 
-    For the time-resolved flow (``flow`` a :class:`ResolvedFlow`) the reference is the same
-    integration with every tolerance tightened (:data:`REFERENCE_TIGHTER`: the flow tolerance
-    ``flow.tol`` / 3, ``pl.rtol`` and ``pl.atol`` / 10): the estimate covers the integration and
-    the levels of detail. For the long-time model (``model == "mean"``, ``flow`` its
-    :class:`MeanFlow`) the reference is the time-resolved flow at the scene's tolerance ``tol``
-    in the same domain (the flow's box): the estimate is the model's error. Returns max and
+    For the time-resolved flow (``flow`` a :class:`~ciliary_carpet.transport.flow.ResolvedFlow`)
+    the reference is the same integration with every tolerance tightened
+    (:data:`REFERENCE_TIGHTER`: the flow tolerance ``flow.tol`` / 3, ``pl.rtol`` and ``pl.atol`` /
+    10): the estimate covers the integration and the levels of detail. For the long-time model
+    (``model == "mean"``, ``flow`` its :class:`~ciliary_carpet.transport.flow.MeanFlow`) the
+    reference is the time-resolved flow at the scene's tolerance ``tol`` in the same domain (the
+    flow's box): the estimate is the model's error. Returns max and
     median of the end-point distances [L], the tracers used and the reference in words.
     ``domain`` (6,), where given (a standing carpet's, from the substrate up), bounds the time-resolved
     reference too. The reference run is one task (:func:`error_reference`), in this process
