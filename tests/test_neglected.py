@@ -1,4 +1,4 @@
-"""What the carpet model leaves out, sized (ciliary_carpet/carpet/omissions.py; issues 26 and 27)."""
+"""What the carpet model leaves out, sized (ciliary_carpet/carpet/omissions/; issues 26 and 27)."""
 import json
 import math
 from pathlib import Path
