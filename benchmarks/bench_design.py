@@ -70,7 +70,7 @@ from bench_flow import cpu_model  # one CPU probe for every benchmark
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
-from ciliary_carpet.carpet.cycles import cycle_moments
+from ciliary_carpet.design.moments import cycle_moments
 from ciliary_carpet.design import DesignModel, design_layout
 from ciliary_carpet.render import render
 from ciliary_carpet.scenes.scene import load_scene

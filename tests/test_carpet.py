@@ -492,7 +492,7 @@ def test_cycle_moments_are_the_carpets(table):
     samples the cycle means, centre offsets and radii the carpet's CycleData computes for cilia at
     those curvatures; and dipole_forces reproduces F and D for any triangle of carriers."""
     from ciliary_carpet.carpet.carriers import dipole_forces, triangle
-    from ciliary_carpet.carpet.cycles import CycleMoments
+    from ciliary_carpet.design.moments import CycleMoments
 
     m = CycleMoments(table, n=9)
     chi = np.linspace(0.0, table.flutter_range[1], 9)

@@ -10,7 +10,7 @@ import pytest
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
-from ciliary_carpet.carpet.cycles import cycle_moments
+from ciliary_carpet.design.moments import cycle_moments
 from ciliary_carpet.cli import main
 from ciliary_carpet.design.inverse import INSIDE_WEIGHT, design_layout
 from ciliary_carpet.design.model import NEAR_RADIUS, DesignModel, NearField, angle_objective, floor_reference

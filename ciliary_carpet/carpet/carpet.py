@@ -479,9 +479,7 @@ class Carpet:
     def prepare(self, times, tol: float = 1e-3, precision: str = "fp64") -> None:
         """Say that the flow will be evaluated at the instants ``times`` (a few) with ``tol``
         (:meth:`velocity`): their carriers' forces are made together, in one read of the moments'
-        coefficients instead of one per instant (an integrator's stages; the five of a step cost
-        2.6 times one on 30 x 30 cilia, 3.5 times on 100 x 100, where the quadrupoles are made
-        later, at tol 1e-4); the resolved sources of a cilium near the points are made the first
+        coefficients for all of them (an integrator's stages); the resolved sources of a cilium near the points are made the first
         time an evaluation at one of these instants needs them, for all of them at once, and kept
         (:class:`~ciliary_carpet.carpet.blocks.InstantBlocks`: reading a cilium's coefficients is
         most of what making its sources costs). The instants kept before are dropped and their

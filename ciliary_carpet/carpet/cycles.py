@@ -22,7 +22,7 @@ cilia of a carpet, built once:
 
 Still cilia (chi_N off the flutter branch) stand in their equilibrium shape with no force.
 
-:class:`CycleMoments` is the same moment code (:func:`_sample_moments`) as smooth functions of
+:class:`CycleMoments` is the same moment code (:func:`sample_moments`) as smooth functions of
 chi_N: the cycle means of F and D, the centre offset and the radius of one cilium in the field
 frame, interpolated by cubic splines in chi_N (the design model's, :mod:`ciliary_carpet.design.model`).
 """
@@ -32,7 +32,6 @@ import math
 
 import numpy as np
 from numba import njit, prange
-from scipy.interpolate import CubicSpline
 from scipy.spatial import ConvexHull
 
 from single_cilium.equilibrium import equilibrium_shape
@@ -41,7 +40,7 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.geometry import Embedding, planar
 
-__all__ = ["CycleData", "CycleMoments", "cycle_moments", "harmonic_sum", "phase_basis", "simpson", "trig_basis"]
+__all__ = ["CycleData", "harmonic_sum", "phase_basis", "sample_moments", "simpson", "trig_basis"]
 
 _CHUNK = 128
 """Cilia whose table cycles are read and reduced at once (the full cycle data of a large carpet
@@ -189,7 +188,7 @@ def _rotated(x, y, fx, fy, rot, j, v):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _sample_moments(x, y, fx, fy, rot, bases, w, centre, radius, F, D, T, Q, Q2):  # pragma: no cover - compiled
+def sample_moments(x, y, fx, fy, rot, bases, w, centre, radius, F, D, T, Q, Q2):  # pragma: no cover - compiled
     """Per cilium j (parallel over j) the moments of its cycle samples x, y, fx, fy (n, n_p, n_s),
     rotated by ``rot`` into the lab frame: centre[j] (2,) the centroid of the swept samples plus
     bases[j], radius[j] the largest distance of a sample from it, and per phase sample p, with
@@ -341,7 +340,7 @@ def _interpolant(x, y, fx, fy, rot, w, cos_p, sin_p, mk, cos_m, sin_m, coef, mom
 def harmonic_sum(cj, b, v):  # pragma: no cover - compiled
     """v[p] (P, R) = sum_k b[p, k] cj[k] of a cilium's coefficients cj (2K-1, R) (float32, summed
     in float64) at the P basis rows b (P, 2K-1): two harmonics and two rows per pass over R (each
-    coefficient read feeds four products; one at a time the loop waits on memory, 1.5 times slower)."""
+    coefficient read feeds four products)."""
     nk = cj.shape[0]
     R = cj.shape[1]
     P = b.shape[0]
@@ -466,7 +465,7 @@ class CycleData:
                 cyc["x"][i], cyc["y"][i] = x[None], y[None]
             xyf = (cyc["x"], cyc["y"], cyc["fx"], cyc["fy"], rotation)
             _interpolant(*xyf, w, *trig, coef[sl], mom_coef[sl])
-            _sample_moments(*xyf, bases[sl], w, centre[sl], radius[sl], F[sl], D[sl], T[sl], Q[sl], Q2[sl])
+            sample_moments(*xyf, bases[sl], w, centre[sl], radius[sl], F[sl], D[sl], T[sl], Q[sl], Q2[sl])
         period = np.full(n, np.nan)
         if np.any(fl):
             period[fl] = table.scalar("period", chi_N[fl], **{k: v[fl] for k, v in flow.items()})
@@ -498,7 +497,7 @@ class CycleData:
     def phase_at(self, t, js=None) -> np.ndarray:
         """(N,) phase of every cilium (or of cilia ``js``) at time t, in [0, 1); (T, N) at T times
         ``t`` (T,). ``x - floor(x)`` is ``np.mod(x, 1)`` to the bit (both exact up to one rounding of
-        the same number), ten times faster."""
+        the same number)."""
         t = np.asarray(t, dtype=float)
         p, r = (self.phases, self.rate) if js is None else (self.phases[js], self.rate[js])
         x = p + t[..., None] * r if t.ndim else p + float(t) * r
@@ -558,78 +557,3 @@ class CycleData:
             d = np.linalg.norm(p - self.centre[j], axis=1)
             return d <= self.radius[j] + margin
         return np.all(p @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
-
-
-class CycleMoments:
-    """Cycle-mean moments of one cilium as smooth functions of its signed chi_N (field frame).
-
-    ``F`` (2,): the mean force on the fluid, ``D`` (2, 2): its first moment about the force
-    centre (D_ab = <int (r - c)_a f_b ds>), ``offset`` (2,): the force centre relative to the
-    base, ``radius``: the largest distance of a swept sample from the centre -- exactly the
-    quantities :class:`CycleData` computes per cilium (the same code, :func:`_sample_moments`:
-    centroid of the samples, composite Simpson over s, mean over the phase samples). They are
-    sampled at ``n`` values of |chi_N| on the flutter branch [0, chi_c] and extended to negative
-    chi_N by the mirror symmetry (x -> -x: F_x, D_xy, D_yx, offset_x odd, the rest even), then
-    interpolated by cubic splines (``nu`` = 1 gives the chi_N derivative). Outside the branch a
-    cilium is still: zero force.
-
-    Interpolation error: the spline through 2n - 1 samples, checked against the table at the
-    midpoints in the tests (below 1e-6 relative to |Fbar(0)| for n = 257)."""
-
-    def __init__(self, table: ThrustTable, n: int = 257):
-        b0, b1 = table.flutter_range
-        self.cutoff = float(b1)
-        a = np.linspace(0.0, b1, int(n))
-        F = np.empty((a.size, 2))
-        D = np.empty((a.size, 2, 2))
-        off = np.empty((a.size, 2))
-        rad = np.empty(a.size)
-        w = simpson(table.ds.sizes["s"])
-        n_p = table.ds.sizes["phase"]
-        for lo in range(0, a.size, 64):
-            sl = slice(lo, lo + 64)
-            cyc = table.cycles(a[sl])
-            k = cyc["x"].shape[0]
-            x, y = (np.where(np.isfinite(cyc[q]), cyc[q], 0.0) for q in ("x", "y"))
-            Fp, Dp, Tp = np.empty((k, n_p, 2)), np.empty((k, n_p, 2, 2)), np.empty((k, n_p, 2, 2, 2))
-            Qp, Q2p = np.empty((k, n_p)), np.empty((k, n_p))
-            _sample_moments(x, y, cyc["fx"], cyc["fy"], np.eye(2), np.zeros((k, 2)), w, off[sl], rad[sl], Fp, Dp, Tp,
-                            Qp, Q2p)
-            F[sl] = Fp.mean(axis=1)
-            D[sl] = Dp.mean(axis=1)
-        # mirror: sign of each component under chi -> -chi
-        vals = np.column_stack([F, D.reshape(-1, 4), off, rad])
-        odd = np.array([1, 0, 0, 1, 1, 0, 1, 0, 0], bool)  # Fx Fy Dxx Dxy Dyx Dyy ox oy r
-        neg = np.where(odd, -1.0, 1.0) * vals[:0:-1]
-        self._spline = CubicSpline(np.concatenate([-a[:0:-1], a]), np.vstack([neg, vals]), axis=0)
-        self.thrust0 = float(np.hypot(*F[0]))
-
-    def __call__(self, chi, nu: int = 0) -> dict:
-        """``F`` (N, 2), ``D`` (N, 2, 2), ``offset`` (N, 2), ``radius`` (N,) at ``chi`` (N,)
-        in the field frame (their ``nu``-th chi_N derivatives for nu > 0; zero off the branch)."""
-        c = np.asarray(chi, dtype=float)
-        on = np.abs(c) <= self.cutoff
-        v = self._spline(np.clip(c, -self.cutoff, self.cutoff), nu) if nu else self._spline(
-            np.clip(c, -self.cutoff, self.cutoff))
-        v = np.where(on[:, None], v, 0.0)
-        if nu == 0:  # a still filament: its base, no force
-            v[~on, 8] = 0.0
-        return {"F": v[:, :2], "D": v[:, 2:6].reshape(-1, 2, 2), "offset": v[:, 6:8], "radius": v[:, 8]}
-
-    def thrust_norm(self, chi) -> np.ndarray:
-        """|Fbar| at ``chi`` (N,)."""
-        return np.hypot(*self(np.atleast_1d(chi))["F"].T)
-
-
-_MOMENTS: dict = {}
-
-
-def cycle_moments(table: ThrustTable) -> CycleMoments:
-    """The :class:`CycleMoments` of ``table`` in still fluid (cached per table object; a table over
-    the background flow gives its flow U = 0: the design model's cilia beat in still fluid)."""
-    table = table.in_still_fluid()
-    key = id(table)
-    m = _MOMENTS.get(key)
-    if m is None or m[0] is not table:
-        _MOMENTS[key] = m = (table, CycleMoments(table))
-    return m[1]

@@ -29,10 +29,8 @@ __all__ = ["InstantCarriers", "InstantForces", "LANES", "MomentRows", "moment_ro
 
 LANES = 32
 """Cilia side by side in :func:`stacked_at` (a block, one parallel task): every loop over them is
-a vector loop (:class:`MomentRows` holds their coefficients lane by lane). Eight were too few for
-the compiler to vectorise the loops (each runs with a check that its arrays do not overlap);
-measured on a step's five instants, one thread: 10^4 cilia 5.6 ms with 8, 4.1 ms with 32, 4.0 ms
-with 64; 900 cilia 0.71, 0.55 and 0.57 ms (a lazily made quadrupole costs its whole block)."""
+a vector loop (:class:`MomentRows` holds their coefficients lane by lane; a lazily made quadrupole
+costs its whole block). The choice of 32 is measured in benchmarks/results/bench_evaluation.md."""
 _TWO_PI = 2.0 * math.pi
 _SIN = (-1.0 / 6, 1.0 / 120, -1.0 / 5040, 1.0 / 362880, -1.0 / 39916800, 1.0 / 6227020800, -1.0 / 1307674368000)
 _COS = (-0.5, 1.0 / 24, -1.0 / 720, 1.0 / 40320, -1.0 / 3628800, 1.0 / 479001600, -1.0 / 87178291200,

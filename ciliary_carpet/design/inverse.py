@@ -108,7 +108,7 @@ from single_cilium.table import ThrustTable
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.carpet.coupling import DENSE_CILIA, CouplingResponse
-from ciliary_carpet.carpet.cycles import cycle_moments
+from ciliary_carpet.design.moments import cycle_moments
 from ciliary_carpet.design.control import reachable_check
 from ciliary_carpet.design.errors import TargetError
 from ciliary_carpet.design.model import (GOOD_ENOUGH, NEAR_RADIUS, DesignModel, NearField, angle_objective,

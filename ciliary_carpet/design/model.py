@@ -15,7 +15,7 @@ cycle-mean force Fbar(chi_j) and its first moment Dbar(chi_j) about the force ce
 
 with Blake's tensor for G when the carpet has a wall. Fbar, Dbar, the centre offset and the
 swept radius are functions of chi_N alone (in the field frame);
-:class:`~ciliary_carpet.carpet.cycles.CycleMoments` samples them once from the table's cycle
+:class:`~ciliary_carpet.design.moments.CycleMoments` samples them once from the table's cycle
 data (the carpet's own moment code) and interpolates
 them with cubic splines, whose chi_N derivatives give the exact gradient. The geometry (c_j,
 delta_j) is frozen during one inner solve and refreshed between passes.
@@ -66,7 +66,7 @@ from scipy.interpolate import CubicSpline
 
 from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.carpet.carriers import DESIGN_DIPOLE, dipole_forces
-from ciliary_carpet.carpet.cycles import CycleMoments, cycle_moments
+from ciliary_carpet.design.moments import CycleMoments, cycle_moments
 from ciliary_carpet.stokes import Treecode, Wall, make_kernel, stokeslet_velocity, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)

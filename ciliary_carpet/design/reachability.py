@@ -12,7 +12,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ciliary_carpet.carpet.carpet import Carpet
-from ciliary_carpet.carpet.cycles import CycleMoments, cycle_moments
+from ciliary_carpet.design.moments import CycleMoments, cycle_moments
 from ciliary_carpet.stokes import stokeslet_velocity
 from ciliary_carpet.design.model import DesignModel, angle_objective, carrier_forces, floor_reference, solver_threads
 from ciliary_carpet.design.target import Frame, Target

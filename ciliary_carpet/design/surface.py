@@ -68,7 +68,7 @@ from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
-from ciliary_carpet.carpet.cycles import cycle_moments
+from ciliary_carpet.design.moments import cycle_moments
 from ciliary_carpet.design.model import GOOD_ENOUGH
 from ciliary_carpet.design.result import Design
 from ciliary_carpet.design.errors import TargetError
@@ -377,36 +377,121 @@ class SurfaceModel:
         return np.einsum("pa,pa->p", u, directions)
 
 
-
-
 def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, directions=None, velocities=None,
                    tol: float = 1e-3, check_tol: float | None = None, speed_floor: float = 0.3,
                    floor_weight: float = 1.0, regularization: float = 1e-3, smoothness: float = 0.0,
                    outer: int = 3, maxiter: int = 400, ftol: float = 1e-5, threshold: float | None = None,
                    robust_sigma: float = 0.0, robust_sigma_psi: float = 0.0, robust_samples: int = 16,
                    robust_seed: int = 12345, strict: bool = True) -> Design:
-    """Choose (chi_N, psi) for the cilia of the standing ``carpet`` (its bases, phases, table,
-    wall are kept) so that its mean flow on the plane z = ``height`` at ``control`` (P, 2) runs
-    along ``directions`` (P,) [rad, anticlockwise from +x] or equals ``velocities`` (P, 2).
+    """Choose (chi_N, psi) per cilium so that a standing carpet's surface flow meets a target.
 
-    Each cilium starts pumping along the direction asked at the control point nearest its base, at
-    chi_hi (:func:`pumping_curvature`): the *local* layout (velocity targets: along U there). See
-    the module docstring for the model, the objective (``speed_floor`` sigma, ``floor_weight``,
-    ``regularization``, ``smoothness``) and the passes (at most ``outer``, each at most ``maxiter``
-    L-BFGS-B iterations, stopped when an iteration lowers J by less than ``ftol`` times its value
-    at the pass's start; checks at ``check_tol``, default max(tol, 1e-2)); ``threshold``: the
-    acceptance threshold of the rms residual, whose half the final check's error bar is made to
-    meet. ``robust_sigma`` > 0 or ``robust_sigma_psi`` > 0 [rad]: design for the expected objective
-    under fabrication errors chi_j (1 + sigma eps_j), psi_j + sigma_psi eps'_j instead of the nominal
-    one: the flow terms averaged over ``robust_samples`` fixed samples (seed ``robust_seed``), each
-    the design model plus the pass's defect, the regularisers at the nominal layout; the passes'
-    layouts are then compared by that expected J (the full model's defect at each). Target
-    velocities faster than 1.5 times what the cilia around them make pumping along them are a
-    TargetError with ``strict`` (the default); without it a warning lists them and the design
-    returns the closest flow the cilia make (its residual says how far). Returns a
-    :class:`~ciliary_carpet.design.result.Design` with ``azimuth`` (N,) and ``height``; its
-    ``carpet`` is the designed standing carpet."""
+    The cilia of ``carpet`` keep their bases, phases, table and wall; the design chooses their
+    curvatures and azimuths so that the mean flow on the plane z = ``height`` at ``control`` runs
+    along ``directions`` or equals ``velocities``. Each cilium starts pumping along the direction
+    asked at the control point nearest its base, at chi_hi (:func:`pumping_curvature`): the
+    *local* layout (velocity targets: along U there). The module docstring gives the model and the
+    objective.
+
+    Parameters
+    ----------
+    carpet : Carpet
+        A standing carpet (``geometry = "standing"``).
+    control : array_like, shape (P, 2)
+        The control points on the plane z = ``height``.
+    height : float
+        Height of the surface-flow plane above the substrate [L], > 0.
+    directions : array_like, shape (P,), optional
+        Target directions [rad, anticlockwise from +x] (angle targets).
+    velocities : array_like, shape (P, 2), optional
+        Target velocities [L/tau] (velocity targets); exactly one of ``directions`` and
+        ``velocities`` is given.
+    tol : float
+        Accuracy asked of the design; the checks default to max(tol, 1e-2).
+    check_tol : float, optional
+        Tolerance of the full-model checks after the passes.
+    speed_floor, floor_weight, regularization, smoothness : float
+        The objective's sigma, w, lambda and mu (module docstring), each >= 0.
+    outer : int
+        Most passes of defect correction.
+    maxiter : int
+        Most L-BFGS-B iterations per pass.
+    ftol : float
+        A pass stops when an iteration lowers J by less than ``ftol`` times its value at the pass's
+        start.
+    threshold : float, optional
+        Acceptance threshold of the rms residual: a pass stops once the model's rms residual is
+        :data:`~ciliary_carpet.design.model.GOOD_ENOUGH` of it, and the final check's error bar
+        is made at most half of it.
+    robust_sigma, robust_sigma_psi : float
+        Relative curvature error sigma and azimuth error sigma_psi [rad] of fabrication. Either
+        > 0: the design minimises the expected objective under errors chi_j (1 + sigma eps_j),
+        psi_j + sigma_psi eps'_j instead of the nominal one -- the flow terms averaged over
+        ``robust_samples`` fixed samples (seed ``robust_seed``), each the design model plus the
+        pass's defect, the regularisers at the nominal layout -- and compares the passes' layouts
+        by that expected J (the full model's defect at each).
+    robust_samples : int
+        Fabrication samples of the robust objective, >= 1.
+    robust_seed : int
+        Seed of those samples.
+    strict : bool
+        Target velocities faster than 1.5 times what the cilia around them make pumping along
+        them are a TargetError; without ``strict`` a warning lists them and the design returns the
+        closest flow the cilia make (its residual says how far).
+
+    Returns
+    -------
+    Design
+        With ``azimuth`` (N,) and ``height``; its ``carpet`` is the designed standing carpet.
+
+    Raises
+    ------
+    ValueError
+        A planar carpet, or a setting out of its range.
+    TargetError
+        Control points or targets that are not finite or not of their shapes; too fast velocities
+        with ``strict``.
+    """
     clock = _time.perf_counter()
+    X, kind, aim = _checked_inputs(carpet, control, height, directions, velocities, speed_floor=speed_floor,
+                                   floor_weight=floor_weight, regularization=regularization, smoothness=smoothness,
+                                   threshold=threshold, robust_sigma=robust_sigma, robust_sigma_psi=robust_sigma_psi,
+                                   robust_samples=robust_samples)
+    check_tol = max(tol, 1e-2) if check_tol is None else float(check_tol)
+    eps = _fabrication_samples(carpet.n, robust_sigma, robust_sigma_psi, robust_samples, robust_seed)
+    problem = _SurfaceProblem(carpet, X, height, kind, aim, eps, strict=strict, speed_floor=speed_floor,
+                              floor_weight=floor_weight, regularization=regularization, smoothness=smoothness)
+    local = _local_layout(problem, check_tol)
+    best, status, msg = _passes(problem, local, check_tol=check_tol, outer=outer, maxiter=maxiter, ftol=ftol,
+                                threshold=threshold)
+    sample, err, final_tol = _final_check(problem, best, threshold, check_tol)
+    return _result(problem, best, local, sample, err, final_tol, threshold, status, msg, clock)
+
+
+def _checked_inputs(carpet: Carpet, control, height, directions, velocities, *, speed_floor, floor_weight,
+                    regularization, smoothness, threshold, robust_sigma, robust_sigma_psi, robust_samples
+                    ) -> tuple[np.ndarray, str, np.ndarray]:
+    """Check :func:`design_surface`'s arguments and read its target.
+
+    Parameters
+    ----------
+    carpet, control, height, directions, velocities, speed_floor, floor_weight, regularization, \
+smoothness, threshold, robust_sigma, robust_sigma_psi, robust_samples
+        As :func:`design_surface`.
+
+    Returns
+    -------
+    X : numpy.ndarray, shape (P, 2)
+        The control points.
+    kind : {"angle", "velocity"}
+        The target's kind.
+    aim : numpy.ndarray
+        The target: directions (P,) [rad] or velocities (P, 2).
+
+    Raises
+    ------
+    ValueError, TargetError
+        As :func:`design_surface`.
+    """
     if carpet.geometry != "standing":
         raise ValueError("design_surface designs standing carpets (geometry = 'standing'); a planar carpet's "
                          "design is design_layout")
@@ -430,32 +515,166 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
     if robust and (isinstance(robust_samples, bool) or not isinstance(robust_samples, (int, np.integer))
                    or robust_samples < 1):
         raise ValueError(f"robust_samples must be an integer >= 1, got {robust_samples!r}")
-    check_tol = max(tol, 1e-2) if check_tol is None else float(check_tol)
-    P, N = X.shape[0], carpet.n
-    rs = np.random.default_rng(robust_seed)
-    eps = [(1.0 + float(robust_sigma) * rs.standard_normal(N), float(robust_sigma_psi) * rs.standard_normal(N))
-           for _ in range(int(robust_samples) if robust else 0)]
-    model = SurfaceModel(carpet, X, height)
-    chi_hi = model.resp.chi_hi
-    _, m_of = pumping_curvature(carpet.table)
-    g_max = float(m_of(chi_hi))
-    near = cKDTree(X).query(carpet.bases)[1]
     if directions is not None:
-        A = np.broadcast_to(np.asarray(directions, dtype=float), (P,)).copy()
+        A = np.broadcast_to(np.asarray(directions, dtype=float), (X.shape[0],)).copy()
         if not np.all(np.isfinite(A)):
             raise TargetError("target directions contain NaN or inf")
-        kind = "angle"
-        T = np.column_stack([np.cos(A), np.sin(A)])
-        s_ref = np.maximum(model.reference_speed(T), 1e-300)
-        psi0 = A[near]
-    else:
-        U = np.asarray(velocities, dtype=float)
-        if U.shape != X.shape or not np.all(np.isfinite(U)):
-            raise TargetError(f"velocities must be finite, shape {X.shape}, got {U.shape}")
-        kind = "velocity"
-        T = U
+        return X, "angle", A
+    U = np.asarray(velocities, dtype=float)
+    if U.shape != X.shape or not np.all(np.isfinite(U)):
+        raise TargetError(f"velocities must be finite, shape {X.shape}, got {U.shape}")
+    return X, "velocity", U
+
+
+def _fabrication_samples(n: int, sigma: float, sigma_psi: float, samples: int, seed: int
+                         ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The fixed fabrication errors of the robust objective.
+
+    Parameters
+    ----------
+    n : int
+        Cilia.
+    sigma, sigma_psi, samples, seed
+        :func:`design_surface`'s ``robust_sigma``, ``robust_sigma_psi``, ``robust_samples``,
+        ``robust_seed``.
+
+    Returns
+    -------
+    list of (numpy.ndarray, numpy.ndarray)
+        Per sample the curvature factors 1 + sigma eps_j and the azimuth offsets sigma_psi eps'_j
+        (n,) each; empty when both sigmas are 0 (the nominal design).
+    """
+    robust = float(sigma) > 0 or float(sigma_psi) > 0
+    rs = np.random.default_rng(seed)
+    return [(1.0 + float(sigma) * rs.standard_normal(n), float(sigma_psi) * rs.standard_normal(n))
+            for _ in range(int(samples) if robust else 0)]
+
+
+@dataclass(frozen=True, eq=False)
+class _Layout:
+    """A checked layout: its (chi, psi) (N,) each, J by which layouts are compared
+    (:meth:`_SurfaceProblem.judged`), its carpet and the full model's sample at the control
+    points, and which layout it is ("local" or "pass k")."""
+
+    J: float
+    chi: np.ndarray
+    psi: np.ndarray
+    carpet: Carpet
+    sample: object
+    returned: str
+
+
+class _SurfaceProblem:
+    """The design problem of :func:`design_surface`: the design model, the target, the objective
+    and the full-model checks of one design.
+
+    Parameters
+    ----------
+    carpet : Carpet
+        The standing carpet.
+    X : numpy.ndarray, shape (P, 2)
+        The control points.
+    height : float
+        Height of the surface-flow plane [L].
+    kind : {"angle", "velocity"}
+        The target's kind.
+    aim : numpy.ndarray
+        Target directions (P,) [rad] or velocities (P, 2).
+    eps : list
+        The fabrication samples (:func:`_fabrication_samples`); empty: the nominal objective.
+    strict : bool
+        Too fast target velocities are a TargetError (else a warning).
+    speed_floor, floor_weight, regularization, smoothness : float
+        The objective's weights (module docstring).
+
+    Attributes
+    ----------
+    model : SurfaceModel
+        The design model at the control points.
+    chi_hi : float
+        The pumping maximum, the largest curvature designed.
+    m_of : scipy.interpolate.CubicSpline
+        The force-layer moment m(chi).
+    g_max : float
+        m(chi_hi), the scale of the pumping vectors g_j.
+    T : numpy.ndarray, shape (P, 2)
+        Unit target directions (angle targets) or the target velocities.
+    s_ref : numpy.ndarray or None
+        The speed floor's reference speeds (P,) (angle targets).
+    U, u2 : numpy.ndarray, float or None
+        The target velocities and sum |U_k|^2 (velocity targets).
+    chi0, psi0 : numpy.ndarray
+        The local layout (N,) each.
+    work : dict
+        The design's work, counted as it goes (:class:`~ciliary_carpet.design.result.Design`).
+    """
+
+    def __init__(self, carpet: Carpet, X: np.ndarray, height: float, kind: str, aim: np.ndarray, eps: list, *,
+                 strict: bool, speed_floor: float, floor_weight: float, regularization: float, smoothness: float):
+        self.carpet, self.X, self.height, self.kind, self.eps = carpet, X, height, kind, eps
+        self.robust = bool(eps)
+        self.speed_floor, self.floor_weight = speed_floor, floor_weight
+        self.regularization, self.smoothness = regularization, smoothness
+        self.P, self.N = X.shape[0], carpet.n
+        self.model = SurfaceModel(carpet, X, height)
+        self.chi_hi = self.model.resp.chi_hi
+        _, self.m_of = pumping_curvature(carpet.table)
+        self.g_max = float(self.m_of(self.chi_hi))
+        near = cKDTree(X).query(carpet.bases)[1]
+        self.s_ref = self.U = self.u2 = None
+        if kind == "angle":
+            self.psi0 = self._angle_target(aim, near)
+        else:
+            self.psi0 = self._velocity_target(aim, near, strict)
+        self.chi0 = np.full(self.N, self.chi_hi)
+        self.g0 = np.column_stack([np.cos(self.psi0), np.sin(self.psi0)]) * float(self.m_of(self.chi_hi))
+        self.edges = layout.neighbours(carpet.bases)
+        self.work = {"iterations": 0, "evaluations": 0, "checks": 0, "pairs_near": self.model.pairs,
+                     "response_seconds": self.model.resp.seconds, "seconds_checks": 0.0}
+
+    # ---------------------------------------------------------------- the target
+    def _angle_target(self, A: np.ndarray, near: np.ndarray) -> np.ndarray:
+        """Set the unit directions ``T`` and the speed floor's reference ``s_ref``.
+
+        Parameters
+        ----------
+        A : numpy.ndarray, shape (P,)
+            Target directions [rad].
+        near : numpy.ndarray, shape (N,)
+            Per cilium the control point nearest its base.
+
+        Returns
+        -------
+        numpy.ndarray, shape (N,)
+            The local layout's azimuths: the direction at each cilium's nearest control point.
+        """
+        self.T = np.column_stack([np.cos(A), np.sin(A)])
+        self.s_ref = np.maximum(self.model.reference_speed(self.T), 1e-300)
+        return A[near]
+
+    def _velocity_target(self, U: np.ndarray, near: np.ndarray, strict: bool) -> np.ndarray:
+        """Set the target velocities ``U`` (= ``T``) and their scale ``u2``, having checked that the
+        cilia can pump them.
+
+        Parameters
+        ----------
+        U : numpy.ndarray, shape (P, 2)
+            Target velocities.
+        near : numpy.ndarray, shape (N,)
+            Per cilium the control point nearest its base.
+        strict : bool
+            Velocities faster than 1.5 times what the cilia around them make pumping along them
+            are a TargetError; else a UserWarning names them.
+
+        Returns
+        -------
+        numpy.ndarray, shape (N,)
+            The local layout's azimuths: along U at each cilium's nearest control point.
+        """
+        X = self.X
+        self.U = self.T = U
         th = np.arctan2(U[:, 1], U[:, 0])
-        top = model.reference_speed(np.column_stack([np.cos(th), np.sin(th)]))
+        top = self.model.reference_speed(np.column_stack([np.cos(th), np.sin(th)]))
         bad = np.nonzero(np.linalg.norm(U, axis=1) > 1.5 * np.maximum(top, 0.0))[0]
         if bad.size:
             lst = "; ".join(f"#{k} at ({X[k, 0]:.3g}, {X[k, 1]:.3g}) asks {np.linalg.norm(U[k]):.3g} L/tau, the cilia "
@@ -463,33 +682,84 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
             msg = f"{bad.size} target velocities are faster than the cilia can pump there: {lst}"
             if strict:
                 raise TargetError(msg + " (with [target] strict = false the design returns the closest flow)")
+            # stacklevel 4: the caller of design_surface (through __init__ and this method)
             warnings.warn(msg + "; designing for the closest flow the cilia make (strict = false)", UserWarning,
-                          stacklevel=2)
-        u2 = float(np.sum(U * U))
-        psi0 = th[near]
-    chi0 = np.full(N, chi_hi)
-    g0 = np.column_stack([np.cos(psi0), np.sin(psi0)]) * float(m_of(chi_hi))
-    edges = layout.neighbours(carpet.bases)
+                          stacklevel=4)
+        self.u2 = float(np.sum(U * U))
+        return th[near]
 
-    def g_of(chi, psi, nu=0):
-        m = m_of(chi, nu)
+    # ---------------------------------------------------------------- the objective
+    def g_of(self, chi: np.ndarray, psi: np.ndarray, nu: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """The pumping vectors g_j = m(chi_j) e_psi_j.
+
+        Parameters
+        ----------
+        chi, psi : numpy.ndarray, shape (N,)
+            The layout.
+        nu : int
+            Derivative order of m in chi.
+
+        Returns
+        -------
+        g : numpy.ndarray, shape (N, 2)
+            The vectors (of m's ``nu``-th derivative).
+        m : numpy.ndarray, shape (N,)
+            m(chi) (its ``nu``-th derivative).
+        """
+        m = self.m_of(chi, nu)
         return m[:, None] * np.column_stack([np.cos(psi), np.sin(psi)]), m
 
-    def objective(u, chi, psi, grad: bool):
-        """J and dJ/du (P, 3), dJ/dchi, dJ/dpsi (N,) from the regularisers."""
-        J, dJ = flow_objective(u, grad)
-        Jr, gc, gp = regularisers(chi, psi, grad)
+    def objective(self, u: np.ndarray, chi: np.ndarray, psi: np.ndarray, grad: bool):
+        """The objective J of the flow ``u`` at the layout (chi, psi).
+
+        Parameters
+        ----------
+        u : numpy.ndarray, shape (P, 3)
+            The surface flow at the control points.
+        chi, psi : numpy.ndarray, shape (N,)
+            The layout.
+        grad : bool
+            Whether the derivatives are wanted (else zero).
+
+        Returns
+        -------
+        J : float
+            The flow terms plus the regularisers.
+        dJ : numpy.ndarray, shape (P, 3)
+            dJ/du.
+        gc, gp : numpy.ndarray, shape (N,)
+            The regularisers' dJ/dchi and dJ/dpsi.
+        """
+        J, dJ = self.flow_objective(u, grad)
+        Jr, gc, gp = self.regularisers(chi, psi, grad)
         return J + Jr, dJ, gc, gp
 
-    def flow_objective(u, grad: bool):
-        """The flow terms of J and dJ/du (P, 3)."""
+    def flow_objective(self, u: np.ndarray, grad: bool) -> tuple[float, np.ndarray]:
+        """The flow terms of J (module docstring).
+
+        Parameters
+        ----------
+        u : numpy.ndarray, shape (P, 3)
+            The surface flow at the control points.
+        grad : bool
+            Whether dJ/du is wanted (angle targets; velocity targets always give it).
+
+        Returns
+        -------
+        J : float
+            The flow terms.
+        dJ : numpy.ndarray, shape (P, 3)
+            dJ/du (zero without ``grad`` for angle targets).
+        """
+        P, T = self.P, self.T
+        speed_floor, floor_weight = self.speed_floor, self.floor_weight
         uxy = u[:, :2]
-        if kind == "angle":
+        if self.kind == "angle":
             sp = np.linalg.norm(uxy, axis=1)
             spc = np.maximum(sp, 1e-300)
             cosang = np.einsum("pa,pa->p", uxy, T) / spc
             along = np.einsum("pa,pa->p", uxy, T)
-            gap = np.maximum(0.0, 1.0 - along / (speed_floor * s_ref)) if speed_floor > 0 else np.zeros(P)
+            gap = np.maximum(0.0, 1.0 - along / (speed_floor * self.s_ref)) if speed_floor > 0 else np.zeros(P)
             J = float(np.mean(1.0 - cosang) + 0.5 * floor_weight * np.mean(gap ** 2))
             dJ = np.zeros((P, 3))
             if grad:
@@ -497,27 +767,45 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
                 uh = uxy / spc[:, None]
                 dJ[:, :2] = -(T - cosang[:, None] * uh) / spc[:, None] / P
                 if speed_floor > 0:
-                    dJ[:, :2] += (-floor_weight * gap / (speed_floor * s_ref))[:, None] * T / P
+                    dJ[:, :2] += (-floor_weight * gap / (speed_floor * self.s_ref))[:, None] * T / P
         else:
-            d = uxy - U
-            J = float(0.5 * np.sum(d * d) / u2)
+            d = uxy - self.U
+            J = float(0.5 * np.sum(d * d) / self.u2)
             dJ = np.zeros((P, 3))
-            dJ[:, :2] = d / u2
+            dJ[:, :2] = d / self.u2
         return J, dJ
 
-    def regularisers(chi, psi, grad: bool):
-        """The regularisers' J, dJ/dchi, dJ/dpsi (N,)."""
+    def regularisers(self, chi: np.ndarray, psi: np.ndarray, grad: bool) -> tuple[float, np.ndarray, np.ndarray]:
+        """The regularisers of J: the pull to the local layout and the smoothness (module
+        docstring).
+
+        Parameters
+        ----------
+        chi, psi : numpy.ndarray, shape (N,)
+            The layout.
+        grad : bool
+            Whether the derivatives are wanted (else zero).
+
+        Returns
+        -------
+        J : float
+            The regularisers' terms.
+        gc, gp : numpy.ndarray, shape (N,)
+            Their dJ/dchi and dJ/dpsi.
+        """
+        N, g_max, edges = self.N, self.g_max, self.edges
+        regularization, smoothness = self.regularization, self.smoothness
         J = 0.0
-        g, m = g_of(chi, psi)
+        g, m = self.g_of(chi, psi)
         gc = np.zeros(N)
         gp = np.zeros(N)
         if regularization > 0:
-            dg = (g - g0) / g_max
+            dg = (g - self.g0) / g_max
             J += regularization / N * float(np.sum(dg * dg))
             if grad:
                 w = 2 * regularization / N * dg / g_max
-                gc += _pull_g(w, chi, psi)
-                gp += _pull_g_psi(w, g)
+                gc += self._pull_g(w, chi, psi)
+                gp += self._pull_g_psi(w, g)
         if smoothness > 0 and edges.size:
             de = (g[edges[:, 0]] - g[edges[:, 1]]) / g_max
             J += smoothness / edges.shape[0] * float(np.sum(de * de))
@@ -526,150 +814,375 @@ def design_surface(carpet: Carpet, control, *, height: float = HEIGHT, direction
                 w = np.zeros((N, 2))
                 np.add.at(w, edges[:, 0], we)
                 np.add.at(w, edges[:, 1], -we)
-                gc += _pull_g(w, chi, psi)
-                gp += _pull_g_psi(w, g)
+                gc += self._pull_g(w, chi, psi)
+                gp += self._pull_g_psi(w, g)
         return J, gc, gp
 
-    def expected(chi, psi, defect):
-        """The robust objective's flow terms: the mean over the samples of J of the design model
-        plus ``defect``, with the pullbacks' chain to the nominal (chi, psi)."""
-        J, g_c, g_p = 0.0, np.zeros(N), np.zeros(N)
+    def _pull_g(self, w: np.ndarray, chi: np.ndarray, psi: np.ndarray) -> np.ndarray:
+        """(N,) the chi derivative of sum_j w_j . g_j for weights ``w`` (N, 2) at (chi, psi)."""
+        dm = self.m_of(chi, 1)
+        return dm * (w[:, 0] * np.cos(psi) + w[:, 1] * np.sin(psi))
+
+    @staticmethod
+    def _pull_g_psi(w: np.ndarray, g: np.ndarray) -> np.ndarray:
+        """(N,) the psi derivative of sum_j w_j . g_j for weights ``w`` (N, 2) at the vectors ``g``."""
+        return -w[:, 0] * g[:, 1] + w[:, 1] * g[:, 0]
+
+    def expected(self, chi: np.ndarray, psi: np.ndarray, defect: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """The robust objective's flow terms.
+
+        Parameters
+        ----------
+        chi, psi : numpy.ndarray, shape (N,)
+            The nominal layout.
+        defect : numpy.ndarray, shape (P, 3)
+            The full model's flow less the design model's, added to each sample's flow.
+
+        Returns
+        -------
+        J : float
+            The mean over the fabrication samples of the flow terms of the design model plus
+            ``defect``.
+        g_c, g_p : numpy.ndarray, shape (N,)
+            Its derivatives in the nominal chi and psi.
+        """
+        eps, model = self.eps, self.model
+        J, g_c, g_p = 0.0, np.zeros(self.N), np.zeros(self.N)
         for f_c, d_p in eps:
             ch_k = np.clip(chi * f_c, 0.0, None)
             u_k, aux = model.flow(ch_k, psi + d_p)
-            J_k, dJ_k = flow_objective(u_k + defect, True)
+            J_k, dJ_k = self.flow_objective(u_k + defect, True)
             a_c, a_p = model.pullback(dJ_k, aux)
             J += J_k / len(eps)
             g_c += a_c * f_c * (chi * f_c >= 0) / len(eps)
             g_p += a_p / len(eps)
         return J, g_c, g_p
 
-    def judged(chi, psi, u_full):
-        """J by which layouts are compared: on the full model's flow, or (robust) the expected one
-        with the full model's defect at the layout."""
-        if not robust:
-            return objective(u_full, chi, psi, False)[0]
-        defect = u_full - model.flow(chi, psi)[0]
-        return expected(chi, psi, defect)[0] + regularisers(chi, psi, False)[0]
+    def judged(self, chi: np.ndarray, psi: np.ndarray, u_full: np.ndarray) -> float:
+        """J by which layouts are compared.
 
-    def _pull_g(w, chi, psi):
-        dm = m_of(chi, 1)
-        return dm * (w[:, 0] * np.cos(psi) + w[:, 1] * np.sin(psi))
+        Parameters
+        ----------
+        chi, psi : numpy.ndarray, shape (N,)
+            The layout.
+        u_full : numpy.ndarray, shape (P, 3)
+            The full model's flow at the control points for it.
 
-    def _pull_g_psi(w, g):
-        return -w[:, 0] * g[:, 1] + w[:, 1] * g[:, 0]
+        Returns
+        -------
+        float
+            J of the full model's flow; robust: the expected J with the full model's defect at the
+            layout.
+        """
+        if not self.robust:
+            return self.objective(u_full, chi, psi, False)[0]
+        defect = u_full - self.model.flow(chi, psi)[0]
+        return self.expected(chi, psi, defect)[0] + self.regularisers(chi, psi, False)[0]
 
-    def residuals(u):
+    # ---------------------------------------------------------------- residuals and checks
+    def residuals(self, u: np.ndarray) -> np.ndarray:
+        """(P,) per control point the angle [rad] between the flow ``u`` (P, 3) and the target
+        direction, or (velocity targets) |u - U| relative to the rms target speed."""
         uxy = u[:, :2]
-        if kind == "angle":
+        if self.kind == "angle":
             sp = np.maximum(np.linalg.norm(uxy, axis=1), 1e-300)
-            return np.arccos(np.clip(np.einsum("pa,pa->p", uxy, T) / sp, -1.0, 1.0))
-        return np.linalg.norm(uxy - U, axis=1) / math.sqrt(u2 / P)
+            return np.arccos(np.clip(np.einsum("pa,pa->p", uxy, self.T) / sp, -1.0, 1.0))
+        return np.linalg.norm(uxy - self.U, axis=1) / math.sqrt(self.u2 / self.P)
 
-    def full(chi, psi, tol_):
+    def rms(self, u: np.ndarray) -> float:
+        """The rms of :meth:`residuals` of the flow ``u`` (P, 3)."""
+        return float(np.sqrt(np.mean(self.residuals(u) ** 2)))
+
+    def error_bar(self, u: np.ndarray, bound: np.ndarray) -> float:
+        """The rms residual's error bar.
+
+        Parameters
+        ----------
+        u : numpy.ndarray, shape (P, 3)
+            The full model's flow.
+        bound : numpy.ndarray, shape (P,)
+            Its error bound per control point.
+
+        Returns
+        -------
+        float
+            The rms of arcsin(bound / |u|) (angle targets) or of the bound relative to the rms
+            target speed.
+        """
+        if self.kind == "angle":
+            sp = np.maximum(np.linalg.norm(u[:, :2], axis=1), 1e-300)
+            return float(np.sqrt(np.mean(np.arcsin(np.minimum(1.0, bound / sp)) ** 2)))
+        return float(np.sqrt(np.mean((bound / math.sqrt(self.u2 / self.P)) ** 2)))
+
+    def evaluate(self, carpet: Carpet, tol: float):
+        """The full model's cycle-mean flow of ``carpet`` at the control points at ``tol``, timed
+        into ``work["seconds_checks"]``."""
+        t0 = _time.perf_counter()
+        s = carpet.evaluate(self.model.X3, CycleMean(), tol)
+        self.work["seconds_checks"] += _time.perf_counter() - t0
+        return s
+
+    def check(self, chi: np.ndarray, psi: np.ndarray, tol: float):
+        """The layout's carpet and its full model's sample at the control points (one check,
+        counted in ``work["checks"]``).
+
+        Parameters
+        ----------
+        chi, psi : numpy.ndarray, shape (N,)
+            The layout.
+        tol : float
+            Tolerance of the evaluation.
+
+        Returns
+        -------
+        carpet : Carpet
+            The standing carpet of the layout.
+        sample
+            Its :meth:`Carpet.evaluate` of the :class:`CycleMean` at the control points.
+        """
         t0 = _time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            c = replace(carpet, chi_N=chi, azimuth=psi)
-        s = c.evaluate(model.X3, CycleMean(), tol_)
-        work["seconds_checks"] += _time.perf_counter() - t0
+            c = replace(self.carpet, chi_N=chi, azimuth=psi)
+        s = c.evaluate(self.model.X3, CycleMean(), tol)
+        self.work["seconds_checks"] += _time.perf_counter() - t0
+        self.work["checks"] += 1
         return c, s
 
-    def bar(u, bound):
-        if kind == "angle":
-            sp = np.maximum(np.linalg.norm(u[:, :2], axis=1), 1e-300)
-            return float(np.sqrt(np.mean(np.arcsin(np.minimum(1.0, bound / sp)) ** 2)))
-        return float(np.sqrt(np.mean((bound / math.sqrt(u2 / P)) ** 2)))
 
-    work = {"iterations": 0, "evaluations": 0, "checks": 0, "pairs_near": model.pairs,
-            "response_seconds": model.resp.seconds, "seconds_checks": 0.0}
-    chi, psi = chi0.copy(), psi0.copy()
-    c_full, s_full = full(chi, psi, check_tol)
-    work["checks"] += 1
-    J_full0 = judged(chi, psi, s_full.velocity)
-    local_rms = float(np.sqrt(np.mean(residuals(s_full.velocity) ** 2)))
-    best = {"J": J_full0, "chi": chi, "psi": psi, "carpet": c_full, "sample": s_full, "returned": "local"}
+class _PassObjective:
+    """One pass's objective for L-BFGS-B over z = (chi / chi_hi, psi): the design model plus the
+    pass's defect, scaled to J of order 1 (L-BFGS-B's first step and its ftol test depend on J's
+    scale).
+
+    Parameters
+    ----------
+    problem : _SurfaceProblem
+        The design problem.
+    defect : numpy.ndarray, shape (P, 3)
+        The full model's flow less the design model's at the pass's start.
+    scale : float
+        The factor of J.
+    threshold : float or None
+        :func:`design_surface`'s ``threshold``.
+    """
+
+    def __init__(self, problem: _SurfaceProblem, defect: np.ndarray, scale: float, threshold: float | None):
+        self.problem, self.defect, self.scale, self.threshold = problem, defect, scale, threshold
+        self.last_u = None
+
+    def __call__(self, z: np.ndarray) -> tuple[float, np.ndarray]:
+        """J times ``scale`` at z (2 N,) and its gradient (2 N,)."""
+        pb, N, chi_hi, defect, scale = self.problem, self.problem.N, self.problem.chi_hi, self.defect, self.scale
+        ch = np.clip(z[:N], 0.0, 1.0) * chi_hi
+        ps = z[N:]
+        if pb.robust:
+            J, a_c, a_p = pb.expected(ch, ps, defect)
+            Jr, gc, gp = pb.regularisers(ch, ps, True)
+            J += Jr
+        else:
+            u, aux = pb.model.flow(ch, ps)
+            u = u + defect
+            self.last_u = u
+            J, dJ, gc, gp = pb.objective(u, ch, ps, True)
+            a_c, a_p = pb.model.pullback(dJ, aux)
+        return J * scale, np.concatenate([(a_c + gc) * chi_hi, a_p + gp]) * scale
+
+    def good_enough(self, intermediate_result) -> None:
+        """L-BFGS-B's callback: raise StopIteration once the model's rms residual (nominal design)
+        is :data:`~ciliary_carpet.design.model.GOOD_ENOUGH` of the threshold (a full-model check
+        follows)."""
+        if self.threshold is not None and self.last_u is not None and \
+                np.sqrt(np.mean(self.problem.residuals(self.last_u) ** 2)) <= GOOD_ENOUGH * self.threshold:
+            raise StopIteration
+
+
+def _local_layout(problem: _SurfaceProblem, check_tol: float) -> _Layout:
+    """The local layout, checked on the full model.
+
+    Parameters
+    ----------
+    problem : _SurfaceProblem
+        The design problem.
+    check_tol : float
+        Tolerance of the check.
+
+    Returns
+    -------
+    _Layout
+        The local layout (``returned`` "local").
+    """
+    chi, psi = problem.chi0.copy(), problem.psi0.copy()
+    c_full, s_full = problem.check(chi, psi, check_tol)
+    J = problem.judged(chi, psi, s_full.velocity)
+    return _Layout(J=J, chi=chi, psi=psi, carpet=c_full, sample=s_full, returned="local")
+
+
+def _solve_pass(problem: _SurfaceProblem, chi: np.ndarray, psi: np.ndarray, u_full: np.ndarray, *, maxiter: int,
+                ftol: float, threshold: float | None):
+    """One L-BFGS-B solve of the design model plus the defect at the layout (chi, psi).
+
+    Parameters
+    ----------
+    problem : _SurfaceProblem
+        The design problem.
+    chi, psi : numpy.ndarray, shape (N,)
+        The pass's starting layout.
+    u_full : numpy.ndarray, shape (P, 3)
+        The full model's flow there.
+    maxiter, ftol, threshold
+        As :func:`design_surface`.
+
+    Returns
+    -------
+    res : scipy.optimize.OptimizeResult
+        L-BFGS-B's result over z = (chi / chi_hi, psi) (its ``fun`` scaled).
+    scale : float
+        The factor of J in ``res.fun``.
+    """
+    N, chi_hi = problem.N, problem.chi_hi
+    u_mod, _ = problem.model.flow(chi, psi)
+    defect = u_full - u_mod
+    scale = 1.0 / max(problem.judged(chi, psi, u_full), 1e-300)
+    fun = _PassObjective(problem, defect, scale, threshold)
+    z0 = np.concatenate([chi / chi_hi, psi])
+    res = minimize(fun, z0, jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * N + [(None, None)] * N,
+                   options={"maxiter": int(maxiter), "ftol": ftol, "gtol": 1e-10}, callback=fun.good_enough)
+    return res, scale
+
+
+def _passes(problem: _SurfaceProblem, local: _Layout, *, check_tol: float, outer: int, maxiter: int, ftol: float,
+            threshold: float | None) -> tuple[_Layout, str, str]:
+    """The passes of defect correction from the local layout.
+
+    Each pass solves the design model plus the full model's defect at the previous pass's layout
+    (:func:`_solve_pass`) and checks its layout on the full model. The passes stop when the model's
+    J and the full model's agree to 5 %, or a pass gains less than 2 % of the best J.
+
+    Parameters
+    ----------
+    problem : _SurfaceProblem
+        The design problem.
+    local : _Layout
+        The local layout (:func:`_local_layout`).
+    check_tol, outer, maxiter, ftol, threshold
+        As :func:`design_surface`.
+
+    Returns
+    -------
+    best : _Layout
+        The layout of least J (:meth:`_SurfaceProblem.judged`) among the local one and the passes'.
+    status : {"success", "inaccurate"}
+        "inaccurate" when an L-BFGS-B solve failed.
+    message : str
+        Why, or "".
+    """
+    N, chi_hi, work = problem.N, problem.chi_hi, problem.work
+    best = local
+    chi, psi, s_full = local.chi, local.psi, local.sample
     status, msg = "success", ""
     for k in range(int(outer)):
-        u_mod, _ = model.flow(chi, psi)
-        defect = s_full.velocity - u_mod
-        scale = 1.0 / max(judged(chi, psi, s_full.velocity), 1e-300)  # J of order 1: L-BFGS-B's
-        # first step and its ftol test are scale-dependent (a J of 3e-4 stopped 10^4 cilia after one iteration)
-
-        last = {}
-
-        def fun(z):
-            ch = np.clip(z[:N], 0.0, 1.0) * chi_hi
-            ps = z[N:]
-            if robust:
-                J, a_c, a_p = expected(ch, ps, defect)
-                Jr, gc, gp = regularisers(ch, ps, True)
-                J += Jr
-            else:
-                u, aux = model.flow(ch, ps)
-                u = u + defect
-                last["u"] = u
-                J, dJ, gc, gp = objective(u, ch, ps, True)
-                a_c, a_p = model.pullback(dJ, aux)
-            return J * scale, np.concatenate([(a_c + gc) * chi_hi, a_p + gp]) * scale
-
-        def good_enough(intermediate_result):
-            """Stop once the model's rms residual is GOOD_ENOUGH of the threshold (the design's job
-            is the threshold; a full-model check follows)."""
-            if threshold is not None and "u" in last and \
-                    np.sqrt(np.mean(residuals(last["u"]) ** 2)) <= GOOD_ENOUGH * threshold:
-                raise StopIteration
-
-        z0 = np.concatenate([chi / chi_hi, psi])
-        res = minimize(fun, z0, jac=True, method="L-BFGS-B", bounds=[(0.0, 1.0)] * N + [(None, None)] * N,
-                       options={"maxiter": int(maxiter), "ftol": ftol, "gtol": 1e-10}, callback=good_enough)
+        res, scale = _solve_pass(problem, chi, psi, s_full.velocity, maxiter=maxiter, ftol=ftol, threshold=threshold)
         work["iterations"] += int(res.nit)
         work["evaluations"] += int(res.nfev)
         if not res.success and res.status not in (0, 99):  # 99: stopped by good_enough
             status, msg = "inaccurate", f"L-BFGS-B stopped in pass {k + 1}: {res.message}"
         chi, psi = np.clip(res.x[:N], 0.0, 1.0) * chi_hi, np.mod(res.x[N:], 2 * math.pi)
-        c_full, s_full = full(chi, psi, check_tol)
-        work["checks"] += 1
-        Jf = judged(chi, psi, s_full.velocity)
+        c_full, s_full = problem.check(chi, psi, check_tol)
+        Jf = problem.judged(chi, psi, s_full.velocity)
         logger.info("surface design pass %d: J model %.4g, full %.4g, rms %.4g", k + 1, res.fun / scale, Jf,
-                    float(np.sqrt(np.mean(residuals(s_full.velocity) ** 2))))
-        gained = best["J"] - Jf
-        if Jf < best["J"]:
-            best = {"J": Jf, "chi": chi, "psi": psi, "carpet": c_full, "sample": s_full, "returned": f"pass {k + 1}"}
-        if abs(res.fun / scale - Jf) <= 0.05 * Jf or gained < 0.02 * best["J"]:
+                    problem.rms(s_full.velocity))
+        gained = best.J - Jf
+        if Jf < best.J:
+            best = _Layout(J=Jf, chi=chi, psi=psi, carpet=c_full, sample=s_full, returned=f"pass {k + 1}")
+        if abs(res.fun / scale - Jf) <= 0.05 * Jf or gained < 0.02 * best.J:
             break
-    c_best, s_best = best["carpet"], best["sample"]
-    err = bar(s_best.velocity, s_best.error_bound)
+    return best, status, msg
+
+
+def _final_check(problem: _SurfaceProblem, best: _Layout, threshold: float | None, check_tol: float):
+    """The best layout's flow with an error bar of at most half the threshold.
+
+    Given a threshold, the tolerance is divided by 10 until the error bar is at most half of it
+    (down to 1e-5); beyond, the flow is evaluated exactly (tol 0, error bar 0).
+
+    Parameters
+    ----------
+    problem : _SurfaceProblem
+        The design problem.
+    best : _Layout
+        The layout returned.
+    threshold : float or None
+        As :func:`design_surface`; None: the check at ``check_tol`` stands.
+    check_tol : float
+        Tolerance of the best layout's check.
+
+    Returns
+    -------
+    sample
+        The full model's sample at the control points.
+    err : float
+        Its rms residual's error bar (:meth:`_SurfaceProblem.error_bar`).
+    final_tol : float
+        Its tolerance.
+    """
+    c_best, s_best = best.carpet, best.sample
+    err = problem.error_bar(s_best.velocity, s_best.error_bound)
     final_tol = check_tol
     if threshold is not None:
         while err > 0.5 * threshold and final_tol > 1e-5:
             final_tol /= 10.0
-            t0 = _time.perf_counter()
-            s_best = c_best.evaluate(model.X3, CycleMean(), final_tol)
-            work["seconds_checks"] += _time.perf_counter() - t0
-            work["checks"] += 1
-            err = bar(s_best.velocity, s_best.error_bound)
+            s_best = problem.evaluate(c_best, final_tol)
+            problem.work["checks"] += 1
+            err = problem.error_bar(s_best.velocity, s_best.error_bound)
         if err > 0.5 * threshold:
             final_tol = 0.0
-            s_best = c_best.evaluate(model.X3, CycleMean(), 0.0)
+            s_best = c_best.evaluate(problem.model.X3, CycleMean(), 0.0)
             err = 0.0
-    r = residuals(s_best.velocity)
+    return s_best, err, final_tol
+
+
+def _result(problem: _SurfaceProblem, best: _Layout, local: _Layout, sample, err: float, final_tol: float,
+            threshold: float | None, status: str, msg: str, clock: float) -> Design:
+    """The :class:`~ciliary_carpet.design.result.Design` of the best layout.
+
+    Parameters
+    ----------
+    problem : _SurfaceProblem
+        The design problem.
+    best, local : _Layout
+        The layout returned and the local one.
+    sample
+        The best layout's final check (:func:`_final_check`), with its error bar ``err`` and
+        tolerance ``final_tol``.
+    threshold, status, msg
+        The threshold (:func:`design_surface`), the passes' status and message (:func:`_passes`).
+    clock : float
+        ``time.perf_counter()`` at the design's start.
+
+    Returns
+    -------
+    Design
+        The design, its ``carpet`` the best layout's.
+    """
+    kind, N, P, T, work = problem.kind, problem.N, problem.P, problem.T, problem.work
+    local_rms = problem.rms(local.sample.velocity)
+    r = problem.residuals(sample.velocity)
     rms = float(np.sqrt(np.mean(r ** 2)))
-    work.update(final_tol=final_tol, model_evaluations=model.evaluations, robust_samples=len(eps),
+    work.update(final_tol=final_tol, model_evaluations=problem.model.evaluations, robust_samples=len(problem.eps),
                 seconds=_time.perf_counter() - clock)
     speed = None
     if kind == "angle":
-        speed = np.einsum("pa,pa->p", s_best.velocity[:, :2], T) / s_ref
-    tgt = T if kind == "velocity" else T
-    msg = msg or (f"designed {N} standing cilia for {P} control points at z = {float(height):g} L: rms residual "
-                  f"{rms:.3g} {'rad' if kind == 'angle' else '(relative)'} +- {err:.2g} (local layout {local_rms:.3g}); "
-                  f"{work['iterations']} L-BFGS-B iterations, {work['checks']} full-model checks, "
+        speed = np.einsum("pa,pa->p", sample.velocity[:, :2], T) / problem.s_ref
+    msg = msg or (f"designed {N} standing cilia for {P} control points at z = {float(problem.height):g} L: rms "
+                  f"residual {rms:.3g} {'rad' if kind == 'angle' else '(relative)'} +- {err:.2g} (local layout "
+                  f"{local_rms:.3g}); {work['iterations']} L-BFGS-B iterations, {work['checks']} full-model checks, "
                   f"{work['seconds']:.1f} s")
-    m_best = m_of(best["chi"])
-    weak = np.nonzero(m_best < 0.25 * g_max)[0]
-    return Design(chi_N=best["chi"], control=X, target=tgt, achieved=s_best.velocity[:, :2], residual=r,
+    m_best = problem.m_of(best.chi)
+    weak = np.nonzero(m_best < 0.25 * problem.g_max)[0]
+    return Design(chi_N=best.chi, control=problem.X, target=T, achieved=sample.velocity[:, :2], residual=r,
                   residual_rms=rms, kind=kind, residual_error=err, speed_ratio=speed, local_rms=local_rms,
-                  objective=float(best["J"]), local_objective=float(J_full0), returned=best["returned"],
-                  near_cutoff=tuple(int(i) for i in weak), status=status, message=msg, work=work, carpet=c_best,
-                  threshold=None if threshold is None else float(threshold), azimuth=best["psi"],
-                  height=float(height))
+                  objective=float(best.J), local_objective=float(local.J), returned=best.returned,
+                  near_cutoff=tuple(int(i) for i in weak), status=status, message=msg, work=work, carpet=best.carpet,
+                  threshold=None if threshold is None else float(threshold), azimuth=best.psi,
+                  height=float(problem.height))

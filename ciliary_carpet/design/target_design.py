@@ -26,7 +26,7 @@ import numpy as np
 from single_cilium.table import ThrustTable
 
 from ciliary_carpet.carpet.carpet import Carpet
-from ciliary_carpet.carpet.cycles import cycle_moments
+from ciliary_carpet.design.moments import cycle_moments
 from ciliary_carpet.design.control import control_points, reachable_check
 from ciliary_carpet.design.frame import Frame
 from ciliary_carpet.design.inverse import check_control_points, design_layout
