@@ -26,11 +26,11 @@ uses the pair's exact resolved mean flow instead, tabulated in chi_N (:class:`Ne
 
     u_k(chi) = carriers(chi) + sum_{j near k} [v_kj(chi_j) - carriers_kj(chi_j)].
 
-Without it the carriers were 44 % rms off the full model at 300 scattered points over 144 cilia
+The carriers alone are 44 % rms off the full model at 300 scattered points over 144 cilia
 above a wall 0.5 L below (5 % in free space), almost all of it within a swept radius of a
-cilium, and the defect correction below, a constant shift, could not follow that as chi moved;
-with it 0.15 % (0.05 % free). This is what makes points inside swept regions usable
-(``inside_swept``) and designs above a wall reach their threshold.
+cilium, and the defect correction below, a constant shift, cannot follow that as chi moves;
+with the near field 0.15 % (0.05 % free). The near field is what makes points inside swept
+regions usable (``inside_swept``) and designs above a wall reach their threshold.
 
 
 Gradient. dJ/dchi_j = sum_m g(c_jm) . f_jm'(chi_j) with g(y) = sum_k G(x_k - y)^T dJ/du_k
@@ -83,14 +83,12 @@ SERIAL_PAIRS = 200_000
 GOOD_ENOUGH = 0.2
 """Given a threshold, :func:`design_layout` starts no further pass once the full-model rms
 residual is at most this fraction of it: the design's job is the threshold, and what a further
-pass gains is then below the error bar the design may state (half the threshold). Measured on
-900 cilia above a wall 0.5 L below (scattered points): a second pass took 10 of 14 s to go from
-0.0061 to 0.0042 against the threshold 0.05."""
+pass gains is then below the error bar the design may state (half the threshold)."""
 TREE_PAIRS = 3e7
 """The design model sums through a :class:`~ciliary_carpet.stokes.treecode.Treecode` (opening angle
 0.3: velocity error below 2e-4 relative, 1.5e-4 rad in angle; tests/test_treecode.py) from this
-many control-point x carrier pairs on (about 3,000 cilia); below it directly (measured on 2
-cores: equal cost at 1.8e7 pairs, the treecode 2x faster at 7e7 and 5-7x at 3e8)."""
+many control-point x carrier pairs on (about 3,000 cilia); below it directly (the direct sums
+cost less there)."""
 
 
 
@@ -98,7 +96,7 @@ cores: equal cost at 1.8e7 pairs, the treecode 2x faster at 7e7 and 5-7x at 3e8)
 def solver_threads(pairs: int):
     """One BLAS thread for L-BFGS-B (its vectors are tiny: threads cost more than they save,
     the more so on a loaded machine), and one numba thread for the kernel sums when a sum has
-    fewer than :data:`SERIAL_PAIRS` pairs (measured in benchmarks/bench_design.py)."""
+    fewer than :data:`SERIAL_PAIRS` pairs (benchmarks/bench_design.py)."""
     import numba
     from threadpoolctl import threadpool_limits
 
@@ -162,7 +160,7 @@ class NearField:
     in the sums for the far pairs only.
 
     Cost: n_distinct x n_chi x n_phase x n_s kernel evaluations once per design (4.9e8 for 900
-    cilia at 900 scattered points, spacing 2.5: 0.6-1.2 s on the shared 2-core machine).
+    cilia at 900 scattered points, spacing 2.5).
     Interpolation error of the spline against the resolved flow computed directly between the
     samples (tests/test_design.py): 1.6e-3 of the pairs' largest flow for |chi_N| <= 120, up to
     1.1e-2 within 20 of the cutoff, where the cycle changes fastest and the thrust vanishes; what

@@ -56,7 +56,7 @@ class Reachability:
 
     How: what limits a transition is the kernel's smoothing across the line. A cilium's mean
     flow decays like 1/r, so the flow at a control point one spacing from the line is pushed by
-    the column of cilia beside it *and*, the other way, by the columns across the line only two
+    the column of cilia next to it *and*, the other way, by the columns across the line only two
     or three times as far; the sharper the requested change of angle across the line, the more
     cross-stream force the columns nearest the line need, until they run out of turn (and, near
     the flutter cutoff, of thrust): the smoothing a lattice of spacing h cannot undo is what is
@@ -66,15 +66,12 @@ class Reachability:
     nearest the carpet's centre (within h/2 of it along the stream), with the design's own
     objective (:func:`~ciliary_carpet.design.model.angle_objective`: angle term and speed floor); L-BFGS-B on one variable per
     column. The Stokeslet sums are done once (a matrix of P_row x n_columns x 3 carriers: 6
-    kernel sums per column), so an iteration is two small matrix products (under a millisecond;
-    60-120 iterations a solve). The row's
+    kernel sums per column), so an iteration is two small matrix products (60-120 iterations a
+    solve). The row's
     rms residual estimates the design's rms; width_min is where it crosses the threshold, found
     by bisection on :data:`WIDTH_GRID` (the widest and narrowest widths, then halving: about 6
     solves with the target's own width) and linear interpolation between the two widths around
-    the crossing. Cost measured (benchmarks/results/bench_design.md table 4b, 2 cores shared with
-    other jobs, load average 6-11): 0.14-0.41 s on 100 cilia, 0.33-0.70 s on 240, 0.31-0.86 s on
-    1024, against 1.4-32 s for one full design (6-100x); 0.61 s on 10,000 cilia (100 columns;
-    load average 5, the carpet itself 136 s in the same run; not validated against a design).
+    the crossing. Its cost against a full design's: benchmarks/results/bench_design.md, table 4b.
 
     Why a strip and not the split layout's profile: the split layout's flow angle reaches 0.76
     of pattern_max only 3.7 L from the line on 100 cilia, 10.6 L on 1000, which would call widths
@@ -99,11 +96,11 @@ class Reachability:
     Not above a wall: there the designs miss for another reason (100 cilia, hexagonal, spacing 2,
     wall 0.5 L below the plane: a *uniform* 20 deg deflection 0.17 rad; focusing at 20 deg,
     widths 2 and 8 L, 0.16 and 0.09 rad, where the strip estimated 0.077 and 0.047), so a width
-    estimate would be optimistic; width_min is None. With the exact near field those
-    designs end the same (0.166, 0.157, 0.091 rad), now with the design model within 2 % of the
-    full model's objective: the miss is the target's -- above a wall each control point's flow
-    is dominated by the few cilia around it, whose near field does not point along their thrust
-    -- not the optimiser's (reachable targets above a wall are met: bench_design.py section 5)."""
+    estimate would be optimistic; width_min is None. Those designs miss with the design model
+    within 2 % of the full model's objective (its exact near field): the miss is the target's --
+    above a wall each control point's flow is dominated by the few cilia around it, whose near
+    field does not point along their thrust -- not the optimiser's (reachable targets above a
+    wall are met: bench_design.py section 5)."""
 
     angle_max: float
     angle_floor: float

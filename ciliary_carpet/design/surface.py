@@ -96,10 +96,9 @@ PIVOT_DELTA = 0.25
 RESPONSE_ERROR = 1.5e-2
 """Bound on the error of the interpolated response against the resolved single-cilium mean flow
 at random points (within :data:`REACH`) and curvatures, relative to the largest flow there
-(tested). Measured at h = 1.5 L: 8.1e-3 at the default :data:`STEP` 0.1 L, 2.1e-3 at 0.05 L
-(second order: the bilinear interpolation in space dominates; 65 curvatures instead of 33 change
-nothing). The design model's own error, which the defect correction carries: 0.3 % of the flow
-on a 6 x 6 carpet at random (chi, psi)."""
+(tests/test_surface_design.py). The bilinear interpolation in space dominates it: it falls as
+:data:`STEP` squared. The design model as a whole is within 1 % of the full model's flow on a
+6 x 6 carpet at random (chi, psi) (tested); what is left is in the defect correction."""
 _N_CHI = 49
 """Curvatures of the tabulated response, uniform over the flutter branch [0, cutoff] (the design
 uses [0, chi_hi]; the tolerance study's perturbed layouts may leave it)."""
