@@ -1,5 +1,5 @@
 """One BLAS thread for the solvers: the matrices here are small (tens to a few hundred rows),
-where a multithreaded BLAS is several times slower, and parallelism is process-level."""
+where a multithreaded BLAS is slower than one thread, and parallelism is process-level."""
 from __future__ import annotations
 
 from functools import lru_cache

@@ -3,11 +3,10 @@
 A container (``docker run --cpus 2 --memory 4g``, a Kubernetes pod) or a batch job (Slurm with
 ``--mem``) runs its processes in a control group that caps their CPU time and memory, while the
 machine's core count (``os.cpu_count``, the CPU affinity) and ``/proc/meminfo`` still show the
-whole host. Sized from the host, a render on a 64-core node with a quota of 2 CPUs ran numba's
-parallel regions on 64 threads (each parallel region's barrier waiting for descheduled threads), and a batch started as many
-workers as the host's memory holds, which the kernel then killed (SIGKILL, no message) when the
-group's memory ran out: a 30 x 30 render under a 1.2 GB limit, or the bundled focusing scene,
-which peaks at 0.62 GB, under a 0.56 GB limit.
+whole host. Sized from the host, a render would run numba's parallel regions on as many threads
+as the host has cores, not as the quota allows (each parallel region's barrier waiting for
+descheduled threads), and a batch would start as many workers as the host's memory holds,
+which the kernel kills (SIGKILL, no message) when the group's memory runs out.
 
 :func:`cpu_quota` and :func:`memory_headroom` read the limits of this process's group and of every
 group above it (the tightest counts), for both versions of the interface:
@@ -28,8 +27,8 @@ cgroup namespace the group is the mount's root. Where nothing can be read (not L
 mounted, files unreadable) there is no limit: both return None.
 
 dask's ``dask.system.cpu_count`` reads a v2 quota of the process's own group, and a v1 quota only
-at the root of a mount named ``cpu,cpuacct``; this machine's v1 mounts are ``cpu`` and ``cpuacct``
-apart, and a job's group is seldom a mount's root, so it sees neither there.
+at the root of a mount named ``cpu,cpuacct``; where the v1 mounts are ``cpu`` and ``cpuacct``
+apart, or a job's group is not a mount's root (the usual case), it does not see the v1 quota.
 """
 from __future__ import annotations
 

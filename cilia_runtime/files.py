@@ -103,10 +103,10 @@ def write_netcdf(ds: xr.Dataset, path) -> Path:
     :class:`OutputFileError` naming ``path`` ("no space left on device"), never a crash.
 
     On a Dask worker xarray guards a file it writes with a lock of the cluster named by the file,
-    here the in-memory buffer, which the scheduler does not know: every render of a batch on a
-    cluster of worker processes failed ("RuntimeError: Semaphore or Lock `<_io.BytesIO ...>` not
-    known"). Nothing else writes that buffer, so the write takes a lock of this process (dask's
-    synchronous scheduler while it runs; without dask, xarray takes a lock of this process anyway)."""
+    here the in-memory buffer, which the scheduler does not know, so that the write would fail
+    ("RuntimeError: Semaphore or Lock `<_io.BytesIO ...>` not known"). Nothing else writes that
+    buffer, so the write takes a lock of this process (dask's synchronous scheduler while it
+    runs; without dask, xarray takes a lock of this process anyway)."""
     try:
         import dask
 

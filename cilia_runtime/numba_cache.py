@@ -3,9 +3,9 @@
 The packages compile with ``cache=True``. numba keeps the cache in the ``__pycache__`` next to the
 source, else in the user's cache folder (``~/.cache/numba``), and raises at import time when
 neither can be written -- a read-only install (a container image, a shared software tree) run
-with an unwritable home: even ``--help`` failed. :func:`ensure_writable_cache` falls back to a
-temporary folder (``NUMBA_CACHE_DIR``) with one warning; the compiled functions are then cached
-for the run only.
+with an unwritable home, so that even ``--help`` would fail. :func:`ensure_writable_cache` falls
+back to a temporary folder (``NUMBA_CACHE_DIR``) with one warning; the compiled functions are
+then cached for the run only.
 
 A cache file that cannot be read back (an index ``*.nbi`` or a data file ``*.nbc`` cut short by a
 full disk or a killed process, or otherwise damaged) is a cache miss: the function is compiled

@@ -4,9 +4,9 @@ Work is cut into :class:`Task` s (a function of the caller's module, a label, a 
 a small strategy object that says where they run:
 
 * :class:`InProcess`: one after another in this process, with the numba threads it has.
-* :class:`ProcessPool`: ``processes`` worker processes, and this process as one more worker while
-  they start (``parent_works``). Workers start from a fork server (never by forking this
-  process: a process that has run the OpenMP-parallel kernels cannot fork safely), which imports
+* :class:`ProcessPool`: ``processes`` worker processes, and this process as one more worker
+  (``parent_works``), from before they start. Workers start from a fork server (never by forking
+  this process: a process that has run the OpenMP-parallel kernels cannot fork safely), which imports
   the modules named in ``preload`` once, each worker with one numba thread and one BLAS thread
   (:class:`~cilia_runtime.threads.ThreadBudget`: workers x numba x BLAS threads never exceed the
   cores the caller gives). The biggest tasks go first (:attr:`Task.cost`). Large objects named
@@ -19,13 +19,15 @@ a small strategy object that says where they run:
   (killed, out of memory), fails that task only, and the others go on. A batch of renders runs
   so: one scene's crash or memory cannot touch another's.
 
-With ``lend_idle`` (the default of a shared pool), the cores of places left without a task go to
-the places still running one, as numba threads, while they pay (:class:`_Share`, consulted by
-long tasks through :func:`adjust_threads`).
+Workers here are the worker processes and, with ``parent_works``, this process. With
+``lend_idle`` (the default of a shared pool), idle cores are shared: the cores of workers left
+without a task are given to the workers still running one, as extra numba threads, for as long
+as those threads make the task faster (:class:`_Share`, consulted by long tasks through
+:func:`adjust_threads`).
 
 Both give the same numbers for the same tasks: a task runs the same code with one BLAS thread
 wherever it runs; kernels whose numbers do not depend on the numba thread count give the same
-numbers on any place (:func:`pool_for_threads` picks the strategy of a thread count).
+numbers in any worker (:func:`pool_for_threads` picks the strategy of a thread count).
 
 Progress: ``run(..., progress=)`` reports the tasks finished (:class:`~cilia_runtime.progress.Progress`)
 as each ends.
@@ -41,7 +43,7 @@ it propagates, and the pool is closed on every path.
 The machinery is this module's rather than :mod:`concurrent.futures`': a process pool executor
 fails every pending task when one worker dies (no isolation), cannot say which task a dead
 worker ran nor how it ended, has no way to stop its workers at once (only to wait for their
-tasks), and no place for this process to work beside its workers or for the lent cores.
+tasks), and no way for this process to run tasks alongside its workers or to share idle cores.
 """
 from __future__ import annotations
 
@@ -69,21 +71,25 @@ __all__ = ["Task", "TaskResult", "InProcess", "ProcessPool", "WorkerDied", "pool
 _PLACE = threading.local()  # .state: this thread's _Share while a pool task runs here
 
 WINDOW_S = 0.3
-"""Seconds of flow evaluations over which a place measures its throughput (lent cores)."""
+"""Seconds of flow evaluations over which a worker measures its throughput (:class:`_Share`)."""
 GAIN = 1.1
-"""Lent numba threads are kept only while they evaluate this much faster than one thread."""
+"""Extra numba threads from idle workers are kept only while the worker evaluates at least this
+many times as fast with them as with one thread."""
 RETRY_S = 15.0
-"""Seconds before a place tries lent threads again that did not pay."""
+"""Seconds a worker waits before it tries again extra threads that did not make it faster."""
 
 
 class _Share:
-    """One place's share of a pool's cores (``arr[k]`` numba threads allowed now), and the
-    governor that takes lent threads only while they pay: threads parallel regions of 0.1 ms
-    wait at every barrier for a thread the system has descheduled, so on a machine that other
-    jobs keep busy two threads can run many times slower than one. The throughput
-    (work units per second, an evaluation of m points counting ``1 + m / 50``) is measured over
-    windows of :data:`WINDOW_S`; lent threads that do not beat one thread by :data:`GAIN` are given
-    back for :data:`RETRY_S`."""
+    """Worker ``k``'s share of a pool's cores, and the governor that decides how much of it to use.
+
+    ``arr[k]`` is the number of numba threads worker ``k`` may use now: one, plus the cores of
+    idle workers given to it (:meth:`_PoolRun.set_busy`). A lower allowance is obeyed at the next
+    :meth:`tick`. Extra threads are used only while they make the task faster: very short
+    parallel regions wait at every barrier for a thread the system has descheduled, so on a
+    machine that other jobs keep busy, two threads can be slower than one. The governor measures
+    the throughput (work units per second, an evaluation of m points counting ``1 + m / 50``) over
+    windows of :data:`WINDOW_S`, first with one thread; extra threads that are not :data:`GAIN`
+    times as fast as one thread are given up for :data:`RETRY_S` seconds, then tried again."""
 
     def __init__(self, arr, k: int, current: int) -> None:
         self.arr, self.k, self.current = arr, k, current
@@ -102,7 +108,7 @@ class _Share:
 
     def tick(self, points: int) -> None:
         allowed = int(self.arr[self.k])
-        if self.current > allowed:  # the budget first: give back at once
+        if self.current > allowed:  # the allowance dropped: obey it at once
             self._set(allowed)
             self.t0, self.units = _time.perf_counter(), 0.0
         self.units += 1.0 + points / 50.0
@@ -112,7 +118,7 @@ class _Share:
         n = self.current
         self.rate[n] = self.units / (now - self.t0)
         self.t0, self.units = now, 0.0
-        if n > 1 and self.rate[n] < GAIN * self.rate.get(1, 0.0):  # lent threads do not pay here now
+        if n > 1 and self.rate[n] < GAIN * self.rate.get(1, 0.0):  # extra threads below GAIN: one
             self._set(1)
             self.retry_at = now + RETRY_S
         elif allowed > n and now >= self.retry_at and 1 in self.rate:
@@ -121,16 +127,17 @@ class _Share:
 
 def adjust_threads(points: int = 1) -> None:
     """Called by long tasks between steps of ``points`` points each (a path line's flow
-    evaluations): in a pool task with ``lend_idle``,
-    take this place's share of the pool's idle cores while it pays (:class:`_Share`); elsewhere
-    it does nothing."""
+    evaluations): in a pool task with ``lend_idle``, set this worker's numba threads to its
+    allowance now -- its own core and its share of the idle workers' cores -- while the extra
+    threads make it faster (:class:`_Share`); elsewhere it does nothing."""
     st = getattr(_PLACE, "state", None)
     if st is not None:
         st.tick(points)
 
 
 def _placed(arr, k: int):
-    """Context: pool tasks run in this thread take place ``k``'s share of ``arr``."""
+    """Context: pool tasks run in this thread use worker ``k``'s allowance of numba threads in
+    ``arr`` (:class:`_Share`); the thread's numba thread count is restored after."""
 
     @contextlib.contextmanager
     def cm():
@@ -231,7 +238,7 @@ class InProcess:
 
     @property
     def workers(self) -> int:
-        """Places tasks run in at once (1)."""
+        """Tasks run at once: 1."""
         return 1
 
     def warm(self) -> None:
@@ -311,7 +318,8 @@ def _serve(conn, budget: ThreadBudget | None, name: str, allow=None, place: int 
     EOF, during a task a watcher thread sees it and exits at once, so that a parent killed with
     SIGKILL leaves no worker computing on). Ctrl-C (which reaches the whole process group) ends
     it quietly: the parent reports the interruption. ``budget`` (None: the threads it has) is
-    applied around every task; ``allow``, ``place``: its share of the pool's cores (:class:`_Share`)."""
+    applied around every task; ``allow``: the pool's numba-thread allowance of each worker,
+    ``place``: this worker's index in it (:class:`_Share`)."""
     blobs: dict[int, bytes] = {}
     objects: dict[int, Any] = {}
 
@@ -483,13 +491,14 @@ class ProcessPool:
         Worker processes at once, started from a fork server for each :meth:`run` and stopped
         at its end.
     parent_works : bool
-        This process runs tasks too while the workers start and after: it is warm (imports,
-        compiled kernels) where a worker needs seconds first.
+        This process runs tasks too, from before the workers start: it has the imports and
+        compiled kernels already, which a new worker must load first.
     lend_idle : bool
-        The cores of idle places (a worker with no task left, or this process when it has
-        finished its own) go to the places still running a task, as numba threads
-        (:func:`adjust_threads`): the last, longest task of a run does not run on one core while
-        the others wait. Off: one numba thread in each place.
+        Share idle cores: the cores of idle workers (a worker process with no task left, or this
+        process once it has finished its own) are given to the workers still running a task, as
+        extra numba threads, while those make the task faster (:func:`adjust_threads`): the
+        last, longest task of a run does not run on one core while the others wait. Off: one
+        numba thread in each worker.
     start_after : float
         With ``parent_works``: seconds to wait before starting workers (none start if this
         process has taken every task by then: a short run is not slowed by starting a pool).
@@ -502,10 +511,10 @@ class ProcessPool:
     preload : sequence of str
         Modules the fork server imports before it forks a worker (:func:`worker_context`).
 
-    The thread budget of a shared pool: ``workers = processes + parent_works`` places, one BLAS
-    thread each, one numba thread each while all are busy; the numba threads of all places
-    together never exceed ``workers`` (:func:`pool_for_threads` sizes the pool from the cores a
-    caller may use)."""
+    The thread budget of a shared pool: :attr:`workers` (``processes + parent_works``) run at
+    once, one BLAS thread each, one numba thread each while all are busy; the numba threads of
+    all workers together never exceed :attr:`workers` (:func:`pool_for_threads` sizes the pool
+    from the cores a caller may use)."""
 
     def __init__(self, processes: int, *, parent_works: bool = True, lend_idle: bool = True,
                  start_after: float = 0.5, grace: float = 2.0, isolated: bool = False,
@@ -532,7 +541,8 @@ class ProcessPool:
 
     @property
     def workers(self) -> int:
-        """Places tasks run in at once: the processes, and this one if it works."""
+        """Tasks run at once: the worker processes, and this process if it works
+        (``parent_works``)."""
         return self.processes + int(self.parent_works)
 
     def warm(self) -> None:
@@ -546,8 +556,8 @@ class ProcessPool:
 
     @property
     def budget(self) -> ThreadBudget | None:
-        """One numba and one BLAS thread in each place (more numba threads while others idle,
-        with ``lend_idle``); None when ``isolated`` (each task sets its own)."""
+        """One numba and one BLAS thread in each worker (more numba threads while other workers
+        are idle, with ``lend_idle``); None when ``isolated`` (each task sets its own)."""
         return None if self.isolated else ThreadBudget(workers=self.workers, numba=1, blas=1)
 
     def run(self, tasks: Sequence[Task], *, shared: Sequence = (), progress: Progress | None = None,
@@ -576,8 +586,9 @@ class ProcessPool:
 
 class _PoolRun:
     """One :meth:`ProcessPool.run`: a dispatcher thread feeds the workers while the main thread
-    works on tasks itself (with ``parent_works``). Places: 0 this process (if it works), then the
-    workers; ``allow[place]`` its numba threads now."""
+    works on tasks itself (with ``parent_works``). Workers are numbered from 0: this process
+    first (if it works), then the worker processes; ``allow[place]`` is worker ``place``'s
+    numba threads now."""
 
     def __init__(self, pool: ProcessPool, tasks: list[Task], shared: Sequence, progress: Progress,
                  on_start=None, on_done=None) -> None:
@@ -604,7 +615,8 @@ class _PoolRun:
             return self.queue.pop(0)
 
     def set_busy(self, place: int, busy: bool) -> None:
-        """Mark ``place`` busy or idle and share the idle places' cores among the busy ones."""
+        """Mark worker ``place`` busy or idle; once no task is left to hand out, share the idle
+        workers' cores among the busy ones (``allow``)."""
         with self.lock:
             (self.busy.add if busy else self.busy.discard)(place)
             if self.allow is None:
@@ -700,7 +712,8 @@ class _PoolRun:
 
     def start_worker(self, keys: dict, blobs: list, conns: dict, running: dict, places: dict,
                      budget: ThreadBudget | None, place: int) -> None:
-        """Start a worker in ``place``, send it the shared objects and its first task."""
+        """Start a worker process as worker ``place``, send it the shared objects and its first
+        task."""
         self.started += 1
         name = f"worker {self.started}"
         here, there = self.ctx.Pipe(duplex=True)
@@ -742,7 +755,7 @@ class _PoolRun:
 
         conns: dict = {}  # proc -> parent's end of its pipe
         running: dict = {}  # proc -> task index
-        places: dict = {}  # proc -> (name, place)
+        places: dict = {}  # proc -> (name, worker index)
         try:
             if self.pool.parent_works:  # short runs end in this process before a worker could start
                 self.idle.wait(self.pool.start_after)
@@ -815,7 +828,7 @@ class _PoolRun:
         """Send ``proc`` the next task, if any."""
         i = self.take()
         if i is None:
-            self.set_busy(place, False)  # the queue is empty: its core goes to the busy places
+            self.set_busy(place, False)  # the queue is empty: its core goes to the busy workers
             return
         try:
             payload = _dumps(self.tasks[i], keys)
@@ -836,9 +849,9 @@ class _PoolRun:
 def pool_for_threads(threads: int, preload: Sequence[str] = ()) -> InProcess | ProcessPool:
     """The strategy for a caller that may use ``threads`` cores: :class:`InProcess` (one numba and
     one BLAS thread) for one, or in a daemonic process (which cannot start processes); else a
-    :class:`ProcessPool` of ``threads - 1`` workers and this process (one numba and one BLAS
-    thread each, idle places' cores lent to the busy ones: ``threads`` threads in all), its fork
-    server preloading ``preload``."""
+    :class:`ProcessPool` of ``threads - 1`` worker processes and this process (one numba and one
+    BLAS thread each, idle workers' cores shared among the busy ones: ``threads`` threads in
+    all), its fork server preloading ``preload``."""
     import multiprocessing as mp
 
     threads = int(threads)

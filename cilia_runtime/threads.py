@@ -2,20 +2,18 @@
 
 numba's parallel regions use as many threads as the machine has cores by default, and so does
 the BLAS. Two batch workers on two cores then run four threads on two cores, and the path lines'
-tens of thousands of short parallel regions wait at every barrier for a descheduled thread: a
-default two-scene batch can run more than ten times slower than its renders one after
-another. A :class:`ThreadBudget` says how many workers run at once and how many numba and BLAS
-threads each may use, with ``workers x numba x blas <= cores``; :meth:`ThreadBudget.applied` sets
-it in the worker (``numba.set_num_threads``, which is per thread, and threadpoolctl's BLAS limit)
-before the work starts, and :func:`threads_in_use` reports it (the render's ``summary.json``
-``"threads"``).
+tens of thousands of short parallel regions wait at every barrier for a descheduled thread: the
+batch can take longer than its renders one after another. A :class:`ThreadBudget` says how many
+workers run at once and how many numba and BLAS threads each may use, with ``workers x numba x
+blas <= cores``; :meth:`ThreadBudget.applied` sets it in the worker (``numba.set_num_threads``,
+which is per thread, and threadpoolctl's BLAS limit) before the work starts, and
+:func:`threads_in_use` reports it (the render's ``summary.json`` ``"threads"``).
 
 Tasks in threads of one process (a Dask worker with several threads) run their compiled kernels
 side by side: the kernels let go of the interpreter (numba's ``nogil``). numba's ``workqueue``
 threading layer, which it takes where neither TBB nor OpenMP is installed, aborts the process
 when two threads start parallel regions at once; under it a budget applied in a thread holds a
-lock of the process, so that such tasks run one after another (as they did while the kernels held
-the interpreter; :func:`threadsafe_layer`).
+lock of the process, so that such tasks run one after another (:func:`threadsafe_layer`).
 """
 from __future__ import annotations
 
@@ -86,8 +84,8 @@ def _host_threads(worker) -> int:
 def cores() -> int:
     """The cores this process may run on: its CPU affinity where the system tells (else the
     machine's count), at most the whole CPUs of its control group's quota (a container's
-    ``--cpus``, rounded down, at least one: a thread more than the quota pays for waits at every
-    barrier; :func:`cilia_runtime.cgroup.cpu_quota`)."""
+    ``--cpus``, rounded down, at least one: a thread beyond the quota waits at every barrier;
+    :func:`cilia_runtime.cgroup.cpu_quota`)."""
     try:
         n = max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
@@ -142,10 +140,10 @@ class ThreadBudget:
 
         Workers: ``jobs`` if given, else as many as there are tasks and cores, and as fit the
         available memory: ``k`` workers whose task takes ``memory_per_task`` bytes (a number, or
-        a function of the task's numba threads, e.g. a render's places) within
-        ``memory_available``, when both are known. numba threads per worker: ``threads`` if
-        given, else the cores divided among the workers. BLAS: one thread (the matrices of a
-        render are small; processes pay better than threads, measured in
+        a function of the task's numba threads: a render runs its path lines in as many worker
+        processes) within ``memory_available``, when both are known. numba threads per worker:
+        ``threads`` if given, else the cores divided among the workers. BLAS: one thread (the
+        matrices of a render are small; more processes use the cores better than more threads:
         benchmarks/bench_batch.py). Given ``jobs`` and ``threads`` are taken as they are, even
         beyond the cores (with a warning).
         """
@@ -175,14 +173,12 @@ class ThreadBudget:
     def for_task(cls, n_cores: int | None = None) -> "ThreadBudget":
         """The budget of one task in the process running it: on a Dask worker, the cores divided
         among the threads of all the workers on its host (the scheduler's list: `dask worker
-        --nworkers N` starts N processes that share the machine, each of which took every core
-        for its numba threads before); elsewhere the cores.
+        --nworkers N` starts N processes that share the machine, and each would otherwise take
+        every core for its numba threads); elsewhere the cores.
 
-        Tasks in threads of one worker share its interpreter, and a render's path lines spend a
-        good part of their time in it: on 2 cores the bundled focusing and shear_layer scenes
-        took 50.6 s as a batch on one worker process of two threads, 26.9 s on two workers of
-        one thread each (45.3 s on two threads of the scheduler's own process, 57.4 s there
-        before the kernels let go of the interpreter). Such a worker is warned about, once."""
+        Tasks in threads of one worker share its interpreter, where a render's path lines spend a
+        good part of their time, so such tasks run slower than on as many workers of one thread
+        each (benchmarks/results/bench_batch_dask.md). Such a worker is warned about, once."""
         c = int(n_cores) if n_cores is not None else cores()
         k = here = 1
         try:
@@ -225,8 +221,8 @@ class ThreadBudget:
 
 def threads_in_use() -> dict:
     """``{"numba": n, "blas": m, "workers": k}``: the threads numba's parallel regions and the
-    BLAS use now in this thread (measured), and the workers of the budget applied here
-    (:meth:`ThreadBudget.applied`; 1 without one)."""
+    BLAS use now in this thread (as the libraries report them), and the workers of the budget
+    applied here (:meth:`ThreadBudget.applied`; 1 without one)."""
     import numba
     from threadpoolctl import threadpool_info
 

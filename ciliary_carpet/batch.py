@@ -222,9 +222,10 @@ def _run_local(tasks, jobs: int, on_done, grace: float = 2.5, on_start=None, fun
 
 
 def _memory_per_task(scenes, reduced: bool, backend: str | None):
-    """The memory a batch worker is expected to take, as a function of its render's places: the
-    largest :func:`~ciliary_carpet.output.resources.expected_memory` of the batch's scenes (None
-    if no scene can be read: each fails in its own task)."""
+    """The memory a batch worker is expected to take, as a function of the number of processes
+    its render runs the path lines in: the largest
+    :func:`~ciliary_carpet.output.resources.expected_memory` of the batch's scenes (None if no
+    scene can be read: each fails in its own task)."""
     loaded = []
     for p in scenes:
         try:

@@ -5,12 +5,13 @@
 target), decide the render once (:class:`~ciliary_carpet.output.plan.RenderPlan`: the field grid,
 the beat, the seeds, the path-line model and duration), write each wanted output of the registry
 (:data:`~ciliary_carpet.output.outputs.OUTPUTS`, whose docstring lists the files: VTK files for
-ParaView, pictures, the ParaView script, ``summary.json`` and ``summary.md``), and place the folder.
+ParaView, pictures, the ParaView script, ``summary.json`` and ``summary.md``), and move the
+finished folder into place.
 ``ciliary-carpet.manifest`` names the files written: what the toolkit wrote (JSON, with sizes and
 SHA-256).
 
 Output-folder safety (:mod:`ciliary_carpet.output.folder`, whose docstring states the guarantees).
-Everything is first written into a hidden staging folder on the output's own filesystem (beside
+Everything is first written into a hidden staging folder on the output's own filesystem (next to
 a new ``out_dir``, inside an existing one) and swapped in when complete, or removed on failure.
 A render holds a lock on ``out_dir`` (a second render of it is refused at once). A non-empty
 ``out_dir`` is kept unless ``overwrite=True``, and even then only the files the toolkit wrote and
@@ -136,7 +137,7 @@ def _header(plan: RenderPlan, carpet) -> dict:
             "n_cilia": carpet.n, "tolerance": scene.tolerance, "units": "SI" if plan.scales is not None else "L, tau",
             "T0": plan.T0 * T, "backend": (carpet.backend if carpet.backend is not None else Auto()).describe(),
             "beat": beat}
-    if carpet.geometry == "standing":  # (a planar summary is as it was: no geometry key)
+    if carpet.geometry == "standing":  # (a planar summary has no geometry key)
         psi = np.round(np.degrees(carpet.azimuth), 9)
         head["geometry"] = "standing"
         head["standing"] = {"wall_below_clamps": carpet.wall * plan.units[0] if carpet.wall is not None else None,

@@ -13,13 +13,13 @@ A scene file is input that may come from someone else, so the paths in it are co
   the environment variable ``CILIARY_CARPET_ALLOW_OUTSIDE_PATHS=1`` (read by the command line, so
   that batch workers inherit it).
 * Paths the toolkit *derives* obey the same rule, symbolic links resolved: the row folder
-  ``TABLE.parts`` that a table build writes beside ``table.file`` (and removes its own row files
+  ``TABLE.parts`` that a table build writes next to ``table.file`` (and removes its own row files
   from once the table is written) is checked when the scene is read and again just before the build
   (:func:`check_derived`; at build time the rule applies whenever ``table.file`` itself lies
   below the scene's folder, unless the environment variable lifts it). The output folder of a
   scene in a batch, ``OUTPUT/NAME``, must resolve below ``OUTPUT``
   (:class:`~ciliary_carpet.output.folder.OutputFolder`), and staging folders are created inside the
-  output folder or beside it, never through a symbolic link.
+  output folder or next to it, never through a symbolic link.
 
 Every violation is a :class:`~ciliary_carpet.scenes.schema.SceneError` (exit status 2) naming the scene
 file, the key and the value; nothing is read or written before the check.

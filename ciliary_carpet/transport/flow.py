@@ -40,11 +40,11 @@ Models
   <ciliary_carpet.carpet.carpet.Carpet.velocity>` at an ``Instant``). Its steps are capped at a
   sixteenth of the shortest beat period (:data:`STEPS_PER_BEAT`): the one-step error estimate
   does not see the error the beat's oscillation accumulates (a tracer passing a beating
-  filament meets a velocity spike shorter than a step). Measured over 200 beats of a 10 x 10
-  carpet (100 tracers crossing it, flow tol 1e-3, against rtol 1e-8;
-  benchmarks/results/bench_pathlines.md): the defaults (rtol 1e-6, cap T/16) end at most
-  7e-4 L off, median 1e-6 L; rtol 1e-4 with the cap 1.1e-3 L; a cap of T/24 1e-4 L. 1000 such
-  tracers over 200 beats take about 16-20 s on 2 cores.
+  filament meets a velocity spike shorter than a step). The end-point error over 200 beats of a
+  10 x 10 carpet (100 tracers crossing it, flow tol 1e-3, against rtol 1e-8;
+  ``benchmarks/bench_flow.py --sections pathlines``, benchmarks/results/bench_pathlines.md): with
+  the defaults (rtol 1e-6, cap T/16) at most 7e-4 L, median 1e-6 L; with rtol 1e-4 and the cap
+  1.1e-3 L; with a cap of T/24 1e-4 L.
 * :class:`MeanFlow` (``"mean"``): the long-time model, the steady time-averaged (Eulerian mean)
   flow (:meth:`Carpet.velocity <ciliary_carpet.carpet.carpet.Carpet.velocity>` of the
   ``CycleMean``) sampled once on a grid of the plane and interpolated by bicubic splines, valid
@@ -56,9 +56,8 @@ Models
   --sections longtime`` (benchmarks/results/bench_longtime.md, with the drift table): across the
   designed 10 x 10 uniform_deflection carpet (156 beats, the render's 100 seeds) at most 2.0 % of
   the distance travelled (median 0.6 %; vortex_turn's 100 seeds over its carpet: 1.6 %, median
-  0.3 %), at 1/29 of the cost with the 0.5 L grid built; 1000 tracers over 200 beats take 0.23 s
-  with the grid built once (0.08 s), the render's grid reused. It shows the routes of the flow,
-  not where a given tracer is at a given time.
+  0.3 %), at a small fraction of the cost of the time-resolved flow (the same file). It shows the
+  routes of the flow, not where a given tracer is at a given time.
 """
 from __future__ import annotations
 
@@ -88,10 +87,9 @@ MEAN_MODEL_ERROR = 0.05
 against time-resolved path lines: the largest over 20 of the render's tracers of the designed
 10 x 10 uniform_deflection carpet, measured with ``benchmarks/bench_flow.py --sections longtime``
 (benchmarks/results/bench_longtime.md): 0.030 (median 0.009) at the carpet's default viscosity
-(0.653, from its filaments), a margin of 1.7; it was 0.020 (vortex_turn 0.016), a margin of 2.5,
-at the former viscosity 1. The relative error grows like 1 / mu: the drift the model leaves out
-is quadratic in the flow, the travel linear. Renders take the model automatically only when the
-scene's tolerance is at least this."""
+(0.653, from its filaments), a margin of 1.7. The relative error grows like 1 / mu: the drift the
+model leaves out is quadratic in the flow, the travel linear. Renders take the model
+automatically only when the scene's tolerance is at least this."""
 _EVERYWHERE = (-math.inf, math.inf) * 3
 
 
@@ -139,7 +137,7 @@ class Flow(ABC):
 class ResolvedFlow(Flow):
     """The time-resolved flow of ``carpet`` at the levels-of-detail tolerance ``tol``, the far
     cilia's carriers summed in ``precision`` (``"fp64"``, or ``"fp32"``: single precision on the
-    CPU, 2-3 times the pairs per second; :meth:`Carpet.velocity
+    CPU, more pairs per second, benchmarks/results/bench_evaluation.md; :meth:`Carpet.velocity
     <ciliary_carpet.carpet.carpet.Carpet.velocity>`)."""
 
     name: ClassVar[str] = "resolved"
