@@ -213,10 +213,10 @@ def main(argv=None) -> int:
     r.add_argument("--reduced", action="store_true", help="a small version of the scene (quick look)")
     r.add_argument("--json", action="store_true", help="print a JSON summary (strict JSON)")
     r.add_argument("--threads", type=_positive_int, default=None,
-                   help="numba threads of the render, and places of its path lines (default: every core it may "
-                        "use -- its CPU affinity, a container's CPU quota -- with path-line places as memory "
-                        "allows; fewer when other jobs share the machine, where many threads wait for each other); "
-                        "summary.json says what it used")
+                   help="numba threads of the render, and processes its path lines run in (default: every core "
+                        "it may use -- its CPU affinity, a container's CPU quota -- with as many of those processes "
+                        "as memory allows; fewer when other jobs share the machine, where many threads wait for "
+                        "each other); summary.json says what it used")
     d = sub.add_parser("design", help="write only the designed layout (NetCDF)")
     d.add_argument("scene")
     d.add_argument("-o", "--output", required=True, help="layout file (.nc)")
