@@ -40,7 +40,8 @@ from single_cilium.table import ThrustTable  # noqa: E402
 
 from ciliary_carpet.carpet import layout  # noqa: E402
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean  # noqa: E402
-from ciliary_carpet.design.surface import HEIGHT, SurfaceModel, design_surface, surface_response  # noqa: E402
+from ciliary_carpet.design.surface import design_surface  # noqa: E402
+from ciliary_carpet.design.surface_model import HEIGHT, SurfaceModel, surface_response  # noqa: E402
 from ciliary_carpet.design.surface_target import surface_directions  # noqa: E402
 from ciliary_carpet.design import Frame, control_points  # noqa: E402
 

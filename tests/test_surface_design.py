@@ -1,4 +1,5 @@
 """The design of standing carpets for surface flows (ciliary_carpet.design.surface)."""
+import dataclasses
 import math
 
 import numpy as np
@@ -7,6 +8,7 @@ import pytest
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.design import surface as S
+from ciliary_carpet.design import surface_model as M
 from ciliary_carpet.design.surface_target import SURFACE_KINDS, surface_directions, surface_field
 from ciliary_carpet.design import Frame, TargetError, control_points
 from single_cilium.table import ThrustTable
@@ -24,8 +26,8 @@ def _carpet(table, n=6, spacing=2.0, seed=0):
 
 
 def test_pumping_curvature_is_the_largest_force_layer_moment(table):
-    chi_hi, m = S.pumping_curvature(table)
-    mom = S.cycle_moments(table)
+    chi_hi, m = M.pumping_curvature(table)
+    mom = M.cycle_moments(table)
     assert 0 < chi_hi < mom.cutoff
     grid = np.linspace(0, mom.cutoff, 1000)
     assert m(chi_hi) >= m(grid).max() * (1 - 1e-4)
@@ -41,7 +43,7 @@ def test_response_interpolation_error(table):
     r, th = 5.5 * np.sqrt(rng.random(250)), rng.uniform(0, 2 * math.pi, 250)
     r[150:] *= 0.3  # more points near the cilium, where the flow changes fastest
     X = np.column_stack([r * np.cos(th), r * np.sin(th)])
-    m = S.SurfaceModel(c, X, S.HEIGHT)
+    m = M.SurfaceModel(c, X, M.HEIGHT)
     assert m.pairs == X.shape[0]
     for chi, psi in zip(rng.uniform(0, m.resp.chi_hi, 3), rng.uniform(0, 2 * math.pi, 3)):
         un, _, _ = m._near_pairs(np.full(m.pairs, chi), (np.full(m.pairs, math.cos(psi)),
@@ -49,7 +51,7 @@ def test_response_interpolation_error(table):
         one = Carpet(c.bases, chi, table, wall=0.0, geometry="standing", azimuth=psi)
         uf = one.evaluate(m.X3[m.pk], CycleMean(), 0.0).velocity
         err = np.abs(un - uf).max() / np.abs(uf).max()
-        assert 1e-4 < err < S.RESPONSE_ERROR
+        assert 1e-4 < err < M.RESPONSE_ERROR
 
 
 def test_model_against_the_full_flow_and_its_gradient(table):
@@ -57,7 +59,7 @@ def test_model_against_the_full_flow_and_its_gradient(table):
     its pullback is the exact derivative of the model (central differences)."""
     c = _carpet(table)
     X = c.bases + 1.0
-    m = S.SurfaceModel(c, X, S.HEIGHT)
+    m = M.SurfaceModel(c, X, M.HEIGHT)
     rng = np.random.default_rng(0)
     chi, psi = rng.uniform(5, m.resp.chi_hi - 5, c.n), rng.uniform(0, 2 * math.pi, c.n)
     u, aux = m.flow(chi, psi)
@@ -116,7 +118,7 @@ def test_turning_the_problem_turns_the_layout(table):
     ang = np.angle(np.exp(1j * (np.arctan2(d2.achieved[:, 1], d2.achieved[:, 0])
                                 - np.arctan2(d1.achieved[:, 1], d1.achieved[:, 0]) - a)))
     assert np.sqrt(np.mean(ang ** 2)) < d1.residual_rms + d2.residual_rms + 1e-3
-    m1, m2 = S.SurfaceModel(c, X[keep], S.HEIGHT), S.SurfaceModel(turned, X[keep] @ R.T, S.HEIGHT)
+    m1, m2 = M.SurfaceModel(c, X[keep], M.HEIGHT), M.SurfaceModel(turned, X[keep] @ R.T, M.HEIGHT)
     u1, u2 = m1.flow(d1.chi_N, d1.azimuth)[0], m2.flow(d1.chi_N, d1.azimuth + a)[0]
     assert np.abs(u1[:, :2] @ R.T - u2[:, :2]).max() < 1e-3 * np.abs(u1).max()
 
@@ -189,7 +191,7 @@ def test_fabrication_tolerance_in_both_variables(table):
     r = np.angle((u[:, 0] + 1j * u[:, 1]) * np.exp(-1j * A))
     assert st.rms[0] == pytest.approx(math.sqrt(np.mean(r ** 2)), rel=0.1)
     with pytest.raises(ValueError, match="planar"):
-        tolerance_study(c, S.replace(d, azimuth=None), 0.05, sigma_psi=0.1)
+        tolerance_study(c, dataclasses.replace(d, azimuth=None), 0.05, sigma_psi=0.1)
 
 
 def test_velocity_target_made_by_a_known_layout(table):
@@ -201,7 +203,7 @@ def test_velocity_target_made_by_a_known_layout(table):
     psi = np.arctan2(c.bases[:, 1], c.bases[:, 0]) + math.pi / 2 + rng.normal(0, 0.2, c.n)
     known = Carpet(c.bases, chi, table, c.phases, wall=0.0, geometry="standing", azimuth=psi)
     X = control_points(c.bases, Frame(np.zeros(2), np.array([0.0, -1.0]), 2.0), "cells")
-    U = known.evaluate(np.column_stack([X, np.full(X.shape[0], S.HEIGHT)]), CycleMean(), 1e-4).velocity[:, :2]
+    U = known.evaluate(np.column_stack([X, np.full(X.shape[0], M.HEIGHT)]), CycleMean(), 1e-4).velocity[:, :2]
     d = S.design_surface(c, X, velocities=U, threshold=0.05)
     assert d.kind == "velocity" and d.residual_rms < 0.05 < d.local_rms
     assert d.residual_error <= 0.025

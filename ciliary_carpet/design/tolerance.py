@@ -58,7 +58,7 @@ def tolerance_study(carpet: Carpet, d: Design, sigma: float, samples: int = DEFA
     """The expected residual of design ``d`` on ``carpet`` (its designed carpet) and its spread
     under a relative chi_N error ``sigma`` (see :class:`ToleranceStudy`) and, for a standing
     carpet's design (``d.azimuth``), an azimuth error ``sigma_psi`` [rad] (psi_j -> psi_j +
-    sigma_psi eps'_j; its flow the surface design model, :class:`~ciliary_carpet.design.surface.SurfaceModel`,
+    sigma_psi eps'_j; its flow the surface design model, :class:`~ciliary_carpet.design.surface_model.SurfaceModel`,
     plus the full model's defect at the design)."""
     sg, sp = float(sigma), float(sigma_psi)
     if not (math.isfinite(sg) and sg >= 0):
@@ -71,7 +71,7 @@ def tolerance_study(carpet: Carpet, d: Design, sigma: float, samples: int = DEFA
         raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
     chi = np.asarray(d.chi_N, dtype=float)
     if d.azimuth is not None:
-        from ciliary_carpet.design.surface import SurfaceModel
+        from ciliary_carpet.design.surface_model import SurfaceModel
 
         psi = np.asarray(d.azimuth, dtype=float)
         sm = SurfaceModel(carpet, d.control, d.height)

@@ -15,7 +15,7 @@ from cilia_runtime.pool import InProcess
 from cilia_runtime.threads import threads_in_use
 
 from ciliary_carpet.carpet.carpet import CycleMean
-from ciliary_carpet.design.surface import pumping_curvature
+from ciliary_carpet.design.surface_model import pumping_curvature
 from ciliary_carpet.output.contract import MeanField, Output
 from ciliary_carpet.output.summary import summary_tasks
 from ciliary_carpet.output.vtkfiles import write_field, write_pathlines, write_points, write_pvd
