@@ -122,7 +122,7 @@ def _render_task(scene_path: str, out_root: str, overwrite: bool, reduced: bool,
             changed = inputs_differ(out, scene) if complete else []
             again = bool(changed) and only_toolkit_files(out)
             render(scene, out, overwrite=overwrite or resume or again, max_seconds=max_seconds, within=None if outside_allowed() else out_root,
-                   pool=pool_for_threads(places_that_fit(scene, threads_in_use()["numba"]), PRELOAD))
+                   pool=pool_for_threads(places_that_fit(scene.needs(), threads_in_use()["numba"]), PRELOAD))
             why = f" again: its inputs changed ({', '.join(changed)})" if again else ""
             rec.update(status="done", message=f"rendered{why}")
             rec.update(_verdict(out))
@@ -234,7 +234,8 @@ def _memory_per_task(scenes, reduced: bool, backend: str | None):
             continue
     if not loaded:
         return None
-    return lambda places: max(expected_memory(s, places) for s in loaded)
+    needs = [s.needs() for s in loaded]
+    return lambda places: max(expected_memory(n, places) for n in needs)
 
 
 def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str | None = None,

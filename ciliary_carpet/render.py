@@ -1,12 +1,14 @@
 """The main job: a scene file in, a folder of ParaView-ready outputs out.
 
 :func:`render` is a short pipeline: check what the scene needs against the machine
-(:func:`~ciliary_carpet.output.resources.check_resources`), design the layout (when the scene has a
-target), decide the render once (:class:`~ciliary_carpet.output.plan.RenderPlan`: the field grid,
-the beat, the seeds, the path-line model and duration), write each wanted output of the registry
-(:data:`~ciliary_carpet.output.outputs.OUTPUTS`, whose docstring lists the files: VTK files for
-ParaView, pictures, the ParaView script, ``summary.json`` and ``summary.md``), and move the
-finished folder into place.
+(:func:`~ciliary_carpet.scenes.resources.check_resources`), design the layout (when the scene has a
+target), decide the render once from the scene's render settings
+(:func:`~ciliary_carpet.scenes.assembly.render_settings`; :class:`~ciliary_carpet.output.plan.RenderPlan`:
+the field grid, the beat, the seeds, the path-line model and duration), write each wanted output
+of the registry (:data:`~ciliary_carpet.output.outputs.OUTPUTS`, whose docstring lists the files:
+VTK files for ParaView, pictures, the ParaView script, ``summary.json`` and ``summary.md``), and
+move the finished folder into place. The progress counts the outputs written, and within one
+its own steps as they finish (the path lines' tasks: :class:`~ciliary_carpet.output.contract.StageProgress`).
 ``ciliary-carpet.manifest`` names the files written: what the toolkit wrote (JSON, with sizes and
 SHA-256).
 
@@ -44,11 +46,12 @@ from cilia_runtime.progress import Progress
 
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, OutputFolder, is_complete, owned_files
-from ciliary_carpet.output.contract import SUMMARY, RenderContext
+from ciliary_carpet.output.contract import SUMMARY, RenderContext, StageProgress
 from ciliary_carpet.output.outputs import OUTPUTS
 from ciliary_carpet.output.plan import RenderPlan
-from ciliary_carpet.output.resources import ResourceError, check_resources
-from ciliary_carpet.scenes.assembly import carpet_for, design, load_table
+from ciliary_carpet.output.resources import ResourceError
+from ciliary_carpet.scenes.assembly import carpet_for, design, load_table, render_settings
+from ciliary_carpet.scenes.resources import check_resources
 from ciliary_carpet.scenes.scene import Scene, as_scene
 from ciliary_carpet.stokes import Auto, backend_named
 from cilia_runtime.pool import InProcess
@@ -85,6 +88,7 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     the same wherever they run (a pool's workers are made ready while the carpet is designed:
     ``pool.warm()``). ``scene``: a Scene or the path of a scene file (else a TypeError)."""
     scene = as_scene(scene, "render()")
+    resolved = scene.to_dict()  # the summary's copy of the scene
     with OutputFolder(out_dir, overwrite=overwrite, scene=scene, within=within) as folder:
         estimate = check_resources(scene, max_seconds=max_seconds)
         backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError here, before any work
@@ -103,18 +107,20 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         # table (now cached), range check, target and carpet: scenes.assembly
         d, carpet = design(scene) if scene.target.kind != "none" else (None, carpet_for(scene))
         clock = {"table": t_table, "design": _time.perf_counter() - t0 - t_table}
-        plan = RenderPlan.decide(scene, carpet, designed=d is not None, estimate=estimate)  # errors before any output
+        settings = render_settings(scene)
+        plan = RenderPlan.decide(settings, carpet, designed=d is not None, estimate=estimate)  # errors before outputs
         progress.note(plan.describe() + f" (design {clock['design']:.1f} s)")
         outputs = [o for o in (cls() for cls in OUTPUTS.values()) if o.wanted(plan)]
-        head = _header(plan, carpet)
+        head = _header(scene, plan, carpet)
         head["table"] = {"file": "default" if table_file is None else str(table_file), "built": built}
         if built:  # a [table.build] computed it for this render: what it cost
             head["table"].update(build_seconds=t_table, size_bytes=table_file.stat().st_size)
-        ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, head, clock, t0, pool=pool)
+        ctx = RenderContext(plan, carpet, d, folder.stage(), folder.path, head, clock, t0, resolved, pool=pool)
         progress.start(len(outputs), f"render {scene.name}", uniform=False)  # stages of unequal cost
         try:
             for k, o in enumerate(outputs, 1):
                 progress.stage(o.name)
+                ctx.progress = StageProgress(progress, k - 1)  # e.g. the path lines' tasks as they finish
                 o.write(ctx)
                 progress.update(k)
             folder.place()  # the manifest (sizes, hashes), then the swap
@@ -125,14 +131,14 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     return RenderResult(out_dir=folder.path, files=files, summary=ctx.summary)
 
 
-def _header(plan: RenderPlan, carpet) -> dict:
-    """The summary's first keys: the scene, the settings, the units and the beat; a standing
-    carpet's also ``geometry`` ("standing") and ``standing``: the wall's distance below the clamps,
-    the azimuths' range [degrees] and the target plane's height."""
+def _header(scene: Scene, plan: RenderPlan, carpet) -> dict:
+    """The summary's first keys of a render of ``scene`` with ``plan``: the scene, the settings,
+    the units and the beat; a standing carpet's also ``geometry`` ("standing") and ``standing``:
+    the wall's distance below the clamps, the azimuths' range [degrees] and the target plane's
+    height."""
     _, T, _ = plan.units
     beat = {k: (v * T if k != "beating" else v) for k, v in asdict(plan.beat).items()}
     beat["loop_until"] = plan.span * T
-    scene = plan.scene
     head = {"scene": scene.name, "source": scene.source_name, "package_version": PACKAGE_VERSION,
             "n_cilia": carpet.n, "tolerance": scene.tolerance, "units": "SI" if plan.scales is not None else "L, tau",
             "T0": plan.T0 * T, "backend": (carpet.backend if carpet.backend is not None else Auto()).describe(),

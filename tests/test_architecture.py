@@ -35,11 +35,7 @@ LAYERS = ("cilia_runtime", "single_cilium", "ciliary_carpet.stokes", "ciliary_ca
 ALLOWED_CYCLES: set[frozenset[str]] = set()
 ALLOWED_PRIVATE: set[str] = set()
 # Imports that go up the layers, until they are turned round (issue 44).
-ALLOWED_UPWARD: set[str] = {
-    "ciliary_carpet.output.figures -> ciliary_carpet.scenes.scene",
-    "ciliary_carpet.output.plan -> ciliary_carpet.scenes.scene",
-    "ciliary_carpet.output.resources -> ciliary_carpet.scenes.scene",
-}
+ALLOWED_UPWARD: set[str] = set()
 
 
 def _is_private(name: str) -> bool:

@@ -89,7 +89,7 @@ def drawn(monkeypatch):
 
 def test_design_picture_colours_and_labels(designed, drawn, tmp_path):
     scene, carpet, d = designed
-    figures.design_picture(tmp_path / "design.png", scene, carpet, d)
+    figures.design_picture(tmp_path / "design.png", scene.name, carpet, d)
     (fig,) = drawn
     assert texts_outside(fig) == []
     chi = carpet.chi_N
@@ -101,7 +101,7 @@ def test_design_picture_colours_and_labels(designed, drawn, tmp_path):
 
 def test_preview_colours_and_labels(designed, drawn, tmp_path):
     scene, carpet, d = designed
-    figures.preview(tmp_path / "preview.png", scene, carpet, None, None, d)
+    figures.preview(tmp_path / "preview.png", scene.name, carpet, None, None, d)
     (fig,) = drawn
     assert texts_outside(fig) == []
     chi = carpet.chi_N

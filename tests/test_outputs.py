@@ -16,6 +16,7 @@ from ciliary_carpet.output.contract import Output
 from ciliary_carpet.output.outputs import OUTPUTS
 from ciliary_carpet.render import render
 from ciliary_carpet.scenes.scene import load_scene
+from cilia_runtime.progress import Progress
 
 SCENE = ('[carpet]\nshape = [3, 3]\n[target]\nkind = "uniform"\nangle = 20.0\n[output]\nn_seeds = 4\n'
          'field_shape = [8, 8]\nsnapshots = 2\nframes = 2\n')
@@ -31,7 +32,8 @@ def test_registry_follows_the_contract():
 
 def test_every_file_comes_from_one_registered_output(tmp_path, monkeypatch):
     """A render with every output on: each file it wrote is named by exactly one output, each
-    output wrote a file, and the duration was worked out once (it probes the mean flow)."""
+    output wrote a file, and the duration was worked out once (it probes the mean flow). Its
+    progress moves within the path lines' stage as their tasks finish."""
     calls = []
     real = plan_module.pathline_duration
 
@@ -43,8 +45,21 @@ def test_every_file_comes_from_one_registered_output(tmp_path, monkeypatch):
     p = tmp_path / "s.toml"
     p.write_text(SCENE)
     out = tmp_path / "out"
-    res = render(load_scene(p), out)
+    seen = []
+
+    class Recorded(Progress):
+        def stage(self, name):
+            seen.append(name)
+
+        def update(self, done):
+            seen.append(done)
+
+    res = render(load_scene(p), out, progress=Recorded())
     assert len(calls) == 1
+    k = seen.index("pathlines")  # the stage's number: the updates before it count the outputs done
+    before = max(x for x in seen[:k] if not isinstance(x, str))
+    within = [x for x in seen[k + 1:seen.index(before + 1)] if not isinstance(x, str)]
+    assert within and all(before < x < before + 1 for x in within) and within == sorted(within)
     names = set(json.loads((out / MANIFEST).read_text())["files"]) - {MANIFEST}
     assert names == set(res.files) - {MANIFEST}
     by_output = {n: [o for o, cls in OUTPUTS.items() if any(re.fullmatch(f, n) for f in cls.files)] for n in names}

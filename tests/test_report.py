@@ -68,18 +68,20 @@ def test_render_prints_the_summarys_head_not_all_of_it(tmp_path, capsys):
 def test_auto_path_lines_follow_the_mean_flow_over_thousands_of_beats_and_say_so():
     from ciliary_carpet.output.plan import RenderPlan, pathline_model
     from ciliary_carpet.transport.flow import AUTO_RESOLVED_BEATS
-    from ciliary_carpet.output.resources import check_resources
-    from ciliary_carpet.scenes.assembly import assemble
+    from ciliary_carpet.scenes.resources import check_resources
+    from ciliary_carpet.scenes.assembly import assemble, render_settings
     from ciliary_carpet.scenes.scene import scene_from_dict
 
-    s = scene_from_dict({"carpet": {"shape": [2, 2]}, "tolerance": 1e-3})
+    s = render_settings(scene_from_dict({"carpet": {"shape": [2, 2]}, "tolerance": 1e-3}))
     assert pathline_model(s, 0.5 * AUTO_RESOLVED_BEATS) == ("resolved", "auto")
     model, why = pathline_model(s, 1670)
     assert model == "mean" and "1670 beats" in why and 'pathline_model = \\"resolved\\"' not in why
-    assert pathline_model(scene_from_dict({"output": {"pathline_model": "resolved"}}), 1670)[0] == "resolved"
+    resolved = render_settings(scene_from_dict({"output": {"pathline_model": "resolved"}}))
+    assert pathline_model(resolved, 1670)[0] == "resolved"
     # a slow carpet whose automatic duration is thousands of beats: the plan picks the mean flow and says so
     slow = scene_from_dict({"carpet": {"shape": [2, 2], "chi_N": 150.0}, "output": {"n_seeds": 4}})
-    plan = RenderPlan.decide(slow, assemble(slow).carpet(), designed=False, estimate=check_resources(slow))
+    plan = RenderPlan.decide(render_settings(slow), assemble(slow).carpet(), designed=False,
+                             estimate=check_resources(slow))
     line = plan.describe()
     beats = plan.duration / plan.beat.period
     assert line.startswith("render ") and "4 path lines" in line and f"{beats:.0f} beats" in line

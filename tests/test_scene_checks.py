@@ -188,13 +188,13 @@ def test_expected_memory_counts_the_field_grid():
 
     small = scene_from_dict({"output": {"field_shape": [80, 80]}})
     big = scene_from_dict({"output": {"field_shape": [1000, 1000]}})
-    grew = expected_memory(big) - expected_memory(small)
+    grew = expected_memory(big.needs()) - expected_memory(small.needs())
     n = 1000 * 1000 - 80 * 80
     assert grew >= n * 7 * 8
     assert grew >= n * 860  # an evaluation of the mean flow with its bound, at its peak (tracemalloc)
     no_field = scene_from_dict({"output": {"field_shape": [1000, 1000], "field": False, "snapshots": 0,
                                            "ftle": False}})
-    assert expected_memory(no_field) < expected_memory(small)
+    assert expected_memory(no_field.needs()) < expected_memory(small.needs())
 
 
 def test_design_result_owns_read_only_copies_of_its_arrays():

@@ -2,8 +2,8 @@
 output folder that holds them.
 
 :func:`ciliary_carpet.render.render` is the front door. Below it: :mod:`~ciliary_carpet.output.resources`
-(what a scene needs, checked before any work), :mod:`~ciliary_carpet.output.plan` (what a render
-will do, decided once), :mod:`~ciliary_carpet.output.outputs` (the outputs' registry, which also
+(what a render needs in memory and time, from numbers), :mod:`~ciliary_carpet.output.plan` (what
+a render will do, decided once from the scene's render settings), :mod:`~ciliary_carpet.output.outputs` (the outputs' registry, which also
 names the files a render owns) over their contract (:mod:`~ciliary_carpet.output.contract`) and
 the outputs, one class each, by kind (:mod:`~ciliary_carpet.output.layout`,
 :mod:`~ciliary_carpet.output.fields`, :mod:`~ciliary_carpet.output.tracers`,

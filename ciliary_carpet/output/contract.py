@@ -14,13 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
+from cilia_runtime.progress import Progress
+
 from ciliary_carpet.carpet.carpet import Carpet, CycleMean
 from ciliary_carpet.design import Design
 from ciliary_carpet.output.plan import FieldGrid, RenderPlan
 from ciliary_carpet.transport.flow import MeanFlow, SteadyMeanFlow
 from ciliary_carpet.transport.pathlines import PathLines
 
-__all__ = ["Output", "RenderContext", "MeanField", "SUMMARY"]
+__all__ = ["Output", "RenderContext", "MeanField", "StageProgress", "SUMMARY"]
 
 SUMMARY = "summary.json"
 """The summary's name in a render folder (with the manifest, what makes a folder complete)."""
@@ -42,13 +44,15 @@ class RenderContext:
 
     ``plan``, ``carpet`` (designed) and ``design`` (None without a target) are fixed; ``stage`` is
     the staging folder to write into and ``out_dir`` the folder as it will be once placed;
+    ``scene_resolved`` is the scene as a dict (``Scene.to_dict``: the summary's copy);
     ``summary`` and ``clock`` (seconds by stage, from ``started``) grow as outputs are written;
     ``mean_field`` and ``pathlines`` are left by their outputs for later ones (and a standing
     carpet's ``section_field``, its vertical section). ``pool`` says where the path lines' chunks
     and their error estimate's reference run (:mod:`~cilia_runtime.pool`; None: in this process).
     ``beside``: the summary's computations that ran in the path lines' pool
     (:func:`~ciliary_carpet.output.summary.summary_tasks`), by name, as
-    :class:`~cilia_runtime.pool.TaskResult` s.
+    :class:`~cilia_runtime.pool.TaskResult` s. ``progress`` reports the running output's own steps
+    (the render sets a :class:`StageProgress` for each; silent by default).
     """
 
     plan: RenderPlan
@@ -59,11 +63,13 @@ class RenderContext:
     summary: dict
     clock: dict
     started: float
+    scene_resolved: dict
     mean_field: MeanField | None = None
     pathlines: PathLines | None = None
     section_field: MeanField | None = None
     pool: object = None
     beside: dict = field(default_factory=dict)
+    progress: Progress = field(default_factory=Progress)
     _mean_flow: MeanFlow | None = field(default=None, init=False, repr=False)
 
     @contextmanager
@@ -79,7 +85,7 @@ class RenderContext:
         in-plane mean flow of its target plane z = h (what its FTLE takes; its path lines follow
         the 3D flow, :meth:`standing_mean_flow`)."""
         if self._mean_flow is None:
-            mf, tol = self.mean_field, self.plan.scene.tolerance
+            mf, tol = self.mean_field, self.plan.settings.tolerance
             if self.carpet.geometry == "standing":
                 g = self.plan.grid
                 if mf is None:
@@ -100,7 +106,26 @@ class RenderContext:
     def standing_mean_flow(self) -> SteadyMeanFlow:
         """A standing carpet's long-time flow in space: its cycle-mean flow evaluated directly at
         the scene's tolerance, in the path lines' domain (``plan.domain``)."""
-        return SteadyMeanFlow(self.carpet, self.plan.domain, tol=self.plan.scene.tolerance)
+        return SteadyMeanFlow(self.carpet, self.plan.domain, tol=self.plan.settings.tolerance)
+
+
+class StageProgress(Progress):
+    """One output's own progress, shown as part of the render's: the output's ``total`` steps
+    move ``render``'s count from ``before`` to ``before + 1`` (its ``start`` and ``close`` leave
+    the render's bar as it is; a note goes to the render's)."""
+
+    def __init__(self, render: Progress, before: float) -> None:
+        self.render, self.before, self.total = render, float(before), 0.0
+
+    def start(self, total: float, desc: str = "", uniform: bool = True) -> None:
+        self.total = float(total)
+
+    def update(self, done: float) -> None:
+        if self.total > 0:
+            self.render.update(self.before + min(float(done) / self.total, 1.0))
+
+    def note(self, message: str) -> None:
+        self.render.note(message)
 
 
 class Output(ABC):

@@ -68,19 +68,19 @@ class MeanFieldOutput(Output):
     files = (r"mean_field\.vti", r"mean_field_section\.vti")
 
     def wanted(self, plan):
-        return bool(plan.scene.output.field)
+        return bool(plan.settings.output.field)
 
     def write(self, ctx):
         grid, V = ctx.plan.grid, ctx.plan.units[2]
         with ctx.timed("mean_field"):
             pts = grid.points()
-            s = ctx.carpet.evaluate(pts, CycleMean(), tol=ctx.plan.scene.tolerance)
+            s = ctx.carpet.evaluate(pts, CycleMean(), tol=ctx.plan.settings.tolerance)
             ctx.mean_field = MeanField(grid, pts, s.velocity)
             _write_flow(ctx.stage / "mean_field.vti", grid, s, ctx.plan)
             sec = ctx.plan.section
             if sec is not None:  # a standing carpet: the vertical section, down to the wall
                 sp = sec.points()
-                ss = ctx.carpet.evaluate(sp, CycleMean(), tol=ctx.plan.scene.tolerance)
+                ss = ctx.carpet.evaluate(sp, CycleMean(), tol=ctx.plan.settings.tolerance)
                 ctx.section_field = MeanField(sec, sp, ss.velocity)
                 _write_flow(ctx.stage / "mean_field_section.vti", sec, ss, ctx.plan)
         ctx.summary["mean_field"] = {"points": int(pts.shape[0]), "fidelity": s.fidelity,
@@ -103,17 +103,17 @@ class SnapshotsOutput(Output):
     files = (r"snapshot_\d+\.vti", r"snapshots\.pvd", r"snapshot_section_\d+\.vti", r"snapshots_section\.pvd")
 
     def wanted(self, plan):
-        return plan.scene.output.snapshots > 0
+        return plan.settings.output.snapshots > 0
 
     def write(self, ctx):
         plan = ctx.plan
-        n, Tb, T = plan.scene.output.snapshots, plan.beat.period, plan.units[1]
+        n, Tb, T = plan.settings.output.snapshots, plan.beat.period, plan.units[1]
         with ctx.timed("snapshots"):
             pts = plan.grid.points()
             entries, fid = [], []
             for k in range(n):
                 t = k * Tb / n
-                s = ctx.carpet.evaluate(pts, Instant(t), tol=plan.scene.tolerance)
+                s = ctx.carpet.evaluate(pts, Instant(t), tol=plan.settings.tolerance)
                 entries.append(_write_flow(ctx.stage / f"snapshot_{k:03d}.vti", plan.grid, s, plan, time=t * T))
                 fid.append(s.fidelity)
             write_pvd(ctx.stage / "snapshots.pvd", _looped(entries, Tb * T, plan.span * T))
@@ -122,7 +122,7 @@ class SnapshotsOutput(Output):
                 sp, entries = sec.points(), []
                 for k in range(n):
                     t = k * Tb / n
-                    s = ctx.carpet.evaluate(sp, Instant(t), tol=plan.scene.tolerance)
+                    s = ctx.carpet.evaluate(sp, Instant(t), tol=plan.settings.tolerance)
                     entries.append(_write_flow(ctx.stage / f"snapshot_section_{k:03d}.vti", sec, s, plan, time=t * T))
                 write_pvd(ctx.stage / "snapshots_section.pvd", _looped(entries, Tb * T, plan.span * T))
         ctx.summary["snapshots"] = {"count": n, "fidelity": fid[0]}
@@ -136,11 +136,11 @@ class FramesOutput(Output):
     files = (r"cilia_\d+\.vtp", r"cilia\.pvd")
 
     def wanted(self, plan):
-        return plan.scene.output.frames > 0
+        return plan.settings.output.frames > 0
 
     def write(self, ctx):
         plan, c = ctx.plan, ctx.carpet
-        n, Tb, (L, T, V), sc = plan.scene.output.frames, plan.beat.period, plan.units, plan.scales
+        n, Tb, (L, T, V), sc = plan.settings.output.frames, plan.beat.period, plan.units, plan.scales
         f_scale = sc.viscosity_Pa_s * V / c.mu if sc is not None else 1.0
         # The shapes are made here, one frame after the other; the files are written by the
         # render's threads (VTK's writer and the disk let go of the interpreter: two threads write

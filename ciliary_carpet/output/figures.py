@@ -11,7 +11,6 @@ import numpy as np
 from cilia_runtime.files import usual_mode
 
 from ciliary_carpet.carpet.carpet import Carpet
-from ciliary_carpet.scenes.scene import Scene
 
 __all__ = ["chi_N_colours", "design_picture", "preview", "standing_preview"]
 
@@ -71,12 +70,13 @@ def _savefig(fig, path: Path) -> None:
         Path(tmp).unlink(missing_ok=True)
 
 
-def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
+def design_picture(path: Path, name: str, carpet: Carpet, d) -> None:
     """Three panels: target (grey) and achieved (blue) flow directions at the control points
     (at most :data:`ARROWS_MAX` of them, an even subset beyond) over the layout coloured by
     chi_N; the residual per control point; the layout coloured by chi_N (over its own range,
     :func:`chi_N_colours`) with the cilia of weak push (``d.near_cutoff``) ringed. ``d`` is the
-    :class:`~ciliary_carpet.design.result.Design`. Every label lies inside the canvas."""
+    :class:`~ciliary_carpet.design.result.Design`; ``name`` (the scene's) begins the title. Every
+    label lies inside the canvas."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -134,7 +134,7 @@ def design_picture(path: Path, scene: Scene, carpet: Carpet, d) -> None:
         ax.set_aspect("equal")
         ax.set_xlabel("x / L")
         ax.set_ylabel("y / L")
-    fig.suptitle(f"{scene.name}: design ({d.kind} target, {len(X)} control points; without the design, each "
+    fig.suptitle(f"{name}: design ({d.kind} target, {len(X)} control points; without the design, each "
                  f"cilium curved for the target on its own: rms {d.local_rms:.3g} {unit})", fontsize=11)
     _savefig(fig, path)
 
@@ -183,13 +183,14 @@ def _pathlines_from_above(ax, pl, bars: list, label: str) -> None:
     ax.plot(e[:, 0], e[:, 1], ".", color="k", ms=2)
 
 
-def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None:
+def preview(path: Path, name: str, carpet: Carpet, mean_field, pl, d) -> None:
     """The render at a glance: the mean flow's streamlines (coloured by mean speed), the path
     lines (coloured by time, their end points in black) and the cilia at t = 0 with their bases
     (coloured by chi_N); a colour bar for each colour. In the model's units (L, tau).
 
     ``mean_field`` is the render's :class:`~ciliary_carpet.output.contract.MeanField`, ``pl`` its
-    path lines and ``d`` its design, each None when the render has none."""
+    path lines and ``d`` its design, each None when the render has none; ``name`` (the scene's)
+    begins the title."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -215,7 +216,7 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
         cb = fig.colorbar(m, cax=fig.add_axes([0.735 + 0.09 * k, 0.17, 0.016, 0.67]))
         cb.set_label(label, fontsize=9)
         cb.ax.tick_params(labelsize=8)
-    title = scene.name
+    title = name
     if d is not None:
         unit = f"{np.degrees(d.residual_rms):.2g} deg" if d.kind == "angle" else f"{d.residual_rms:.1%}"
         title += f"  (design: {unit} rms off the target)"
@@ -227,7 +228,7 @@ def preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl, d) -> None
     _savefig(fig, path)
 
 
-def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -> None:
+def standing_preview(path: Path, name: str, height: float, carpet: Carpet, mean_field, pl) -> None:
     """A standing carpet at a glance, a plan view (looking down -z): the mean flow in the target
     plane z = h (streamlines of its in-plane velocity, coloured by that speed), the path lines
     projected on the plane (coloured by time, their end points in black), and the cilia's
@@ -236,7 +237,9 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
     its base. A colour bar for each colour. In the model's units (L, tau).
 
     ``mean_field`` is the render's :class:`~ciliary_carpet.output.contract.MeanField` on the
-    target plane and ``pl`` its path lines (3D), each None when the render has none."""
+    target plane and ``pl`` its path lines (3D), each None when the render has none; ``name`` (the
+    scene's) begins the title, ``height`` is the target plane's h [L] (the mean field's own height
+    when there is one)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -246,7 +249,7 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
     fig = plt.figure(figsize=(9.6, 6.5))
     ax = fig.add_axes([0.08, 0.09, 0.62, 0.83])
     bars = []
-    h = float(scene.output.height)
+    h = float(height)
     if mean_field is not None:
         h = float(mean_field.points[0, 2])
         _streamlines(ax, mean_field, bars, f"streamlines: mean speed at z = {h:.3g} L [L/tau]", 0.7, 0.9)
@@ -272,7 +275,7 @@ def standing_preview(path: Path, scene: Scene, carpet: Carpet, mean_field, pl) -
         cb.ax.tick_params(labelsize=8)
     psi = np.round(np.degrees(carpet.azimuth), 9)
     az = f"azimuth {psi.min():.3g} deg" if np.ptp(psi) < 1e-9 else f"azimuths {psi.min():.3g}..{psi.max():.3g} deg"
-    ax.set_title(f"{scene.name}: standing cilia ({az}), mean flow at z = {h:.3g} L, seen from above", fontsize=10)
+    ax.set_title(f"{name}: standing cilia ({az}), mean flow at z = {h:.3g} L, seen from above", fontsize=10)
     ax.set_aspect("equal")
     ax.autoscale_view()
     ax.set_xlabel("x / L")

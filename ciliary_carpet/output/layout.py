@@ -106,7 +106,7 @@ class DesignOutput(Output):
     files = (r"layout\.nc", r"design\.vtp", r"design\.png")
 
     def wanted(self, plan):
-        return plan.designed or plan.scene.carpet.geometry == "standing"
+        return plan.designed or plan.settings.geometry == "standing"
 
     def write(self, ctx):
         if ctx.design is None:  # a standing carpet's given layout
@@ -120,7 +120,7 @@ class DesignOutput(Output):
                      {"target": np.concatenate([d.target * (V if d.kind == "velocity" else 1.0), z], axis=1),
                       "achieved": np.concatenate([d.achieved * V, z], axis=1), "residual": d.residual,
                       **({"speed_ratio": d.speed_ratio} if d.speed_ratio is not None else {})})
-        design_picture(stage / "design.png", ctx.plan.scene, ctx.carpet, d)
+        design_picture(stage / "design.png", ctx.plan.settings.name, ctx.carpet, d)
         ctx.summary["design"] = design_summary(d, L)
 
 

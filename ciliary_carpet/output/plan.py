@@ -1,6 +1,8 @@
 """The render plan: what a render of a scene does, decided once, before any output is written.
 
-:meth:`RenderPlan.decide` takes the scene and its designed carpet and settles what the outputs
+:meth:`RenderPlan.decide` takes the scene's render settings (:class:`RenderSettings`: the values
+of its ``[output]`` section and the few others a render reads, as plain values) and the designed
+carpet and settles what the outputs
 (:mod:`ciliary_carpet.output.outputs`) share: the field grid (:class:`FieldGrid`), the cilia's
 beat (:class:`Beat`, the time base of what moves), the tracers' seeds (:func:`seed_points`), the
 flow they follow (:func:`pathline_model`) and for how long (:func:`pathline_duration`: computed
@@ -41,11 +43,10 @@ from ciliary_carpet.carpet.carpet import BLOB, Carpet, CycleMean, Scales
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.resources import Estimate
 from ciliary_carpet.output.vtkfiles import grid_points
-from ciliary_carpet.scenes.scene import Scene
 from ciliary_carpet.transport.flow import AUTO_RESOLVED_BEATS, MEAN_MODEL_ERROR
 from ciliary_carpet.transport.pathlines import check_output_size, check_seeds
 
-__all__ = ["RenderPlan", "FieldGrid", "Beat", "seed_points", "pathline_duration", "pathline_model",
+__all__ = ["RenderPlan", "RenderSettings", "FieldGrid", "Beat", "seed_points", "pathline_duration", "pathline_model",
            "standing_flow_direction", "SECTION_TOP", "DOMAIN_MARGIN"]
 
 SECTION_TOP = 2.0
@@ -59,6 +60,42 @@ to play."""
 DOMAIN_MARGIN = 10.0
 """A standing carpet's tracers are followed within this distance [L] of its bases and seeds
 across, and up to this far above the target plane (the planar default domain's margin)."""
+
+
+@dataclass(frozen=True, eq=False)
+class RenderSettings:
+    """What a render reads of its scene, as plain values (made from a scene by
+    :func:`~ciliary_carpet.scenes.assembly.render_settings`).
+
+    Attributes
+    ----------
+    name : str
+        The scene's name (titles, the progress lines).
+    source : str
+        What error messages name the scene by (its file).
+    output : object
+        The ``[output]`` section's values as attributes (``pathlines``, ``seeds``, ``n_seeds``,
+        ``periods``, ``pathline_model``, ``samples_per_period``, ``pathline_points``, ``ftle``,
+        ``field``, ``field_shape``, ``field_margin``, ``snapshots``, ``frames``, ``preview``,
+        ``height``).
+    tolerance : float
+        The flow's tolerance (the scene's ``tolerance``).
+    spacing : float
+        The carpet's spacing [L] (``[carpet] spacing``).
+    flow_direction : (2,) array
+        Where a straight filament pushes the fluid, d0 = -field direction (a planar carpet's
+        seeds and automatic duration).
+    geometry : str
+        "planar" or "standing" (``[carpet] geometry``).
+    """
+
+    name: str
+    source: str
+    output: object
+    tolerance: float
+    spacing: float
+    flow_direction: np.ndarray
+    geometry: str
 
 
 @dataclass(frozen=True)
@@ -87,30 +124,30 @@ class FieldGrid:
     box: tuple[float, float, float, float]
 
     @classmethod
-    def around(cls, scene: Scene, carpet: Carpet) -> "FieldGrid":
-        """The field grid of ``scene`` around ``carpet``'s bases."""
+    def around(cls, settings: RenderSettings, carpet: Carpet) -> "FieldGrid":
+        """The field grid of ``settings`` around ``carpet``'s bases."""
         b = carpet.bases
-        m = scene.output.field_margin
+        m = settings.output.field_margin
         lo, hi = b.min(0) - m - 1.0, b.max(0) + m + 1.0
-        nx, ny = scene.output.field_shape
-        z = float(scene.output.height) if scene.carpet.geometry == "standing" else 0.0
+        nx, ny = settings.output.field_shape
+        z = float(settings.output.height) if settings.geometry == "standing" else 0.0
         return cls(origin=(lo[0], lo[1], z),
                    spacing=((hi[0] - lo[0]) / max(nx - 1, 1), (hi[1] - lo[1]) / max(ny - 1, 1), 1.0),
                    shape=(nx, ny, 1), box=(lo[0], hi[0], lo[1], hi[1]))
 
     @classmethod
-    def section(cls, scene: Scene, carpet: Carpet) -> "FieldGrid":
+    def section(cls, settings: RenderSettings, carpet: Carpet) -> "FieldGrid":
         """A standing carpet's vertical section: the x-z plane through the centre of its bases
         (y = y_c), over the x range of :meth:`around` and from the substrate z = 0 up to
         SECTION_TOP times ``[output] height`` (at least SECTION_TOP L), with about twice as fine
         a step along z as along x (at most twice ``field_shape``'s ny points)."""
-        plane = cls.around(scene, carpet)
+        plane = cls.around(settings, carpet)
         b = carpet.bases
         yc = 0.5 * float(b[:, 1].min() + b[:, 1].max())
-        top = SECTION_TOP * max(float(scene.output.height), 1.0)
+        top = SECTION_TOP * max(float(settings.output.height), 1.0)
         nx = plane.shape[0]
         dx = plane.spacing[0]
-        nz = int(min(max(9, round(2.0 * top / dx) + 1), 2 * scene.output.field_shape[1]))
+        nz = int(min(max(9, round(2.0 * top / dx) + 1), 2 * settings.output.field_shape[1]))
         return cls(origin=(plane.origin[0], yc, 0.0), spacing=(dx, 1.0, top / (nz - 1)), shape=(nx, 1, nz),
                    box=(plane.box[0], plane.box[1], 0.0, top))
 
@@ -144,28 +181,28 @@ class Beat:
         return cls(float(np.median(p)), float(p.min()), float(p.max()), int(p.size))
 
 
-def seed_points(scene: Scene, carpet: Carpet) -> np.ndarray:
+def seed_points(settings: RenderSettings, carpet: Carpet) -> np.ndarray:
     """(k, 2) the tracers' start points [L] ((k, 3) for a standing carpet: :func:`_standing_seeds`): ``[output] seeds`` as given, or "line" (``n_seeds``
     across the carpet, one spacing upstream of it) or "grid" (about ``n_seeds`` between the
     cilia); a seed inside a filament is nudged across the flow until two blob sizes clear."""
-    o = scene.output
+    o = settings.output
     if carpet.geometry == "standing":
-        return _standing_seeds(scene, carpet)
+        return _standing_seeds(settings, carpet)
     if not isinstance(o.seeds, str):
         return np.asarray(o.seeds, dtype=float)
     b = carpet.bases
-    d0 = scene.field.flow_direction
+    d0 = settings.flow_direction
     cross = np.array([-d0[1], d0[0]])
     c = 0.5 * (b.min(0) + b.max(0))
     along = (b - c) @ d0
     across = (b - c) @ cross
     if o.seeds == "line":  # across the carpet, one spacing upstream of it
         s = np.linspace(across.min(), across.max(), o.n_seeds)
-        seeds = c + (along.min() - scene.carpet.spacing) * d0 + s[:, None] * cross
+        seeds = c + (along.min() - settings.spacing) * d0 + s[:, None] * cross
     else:
         n = max(2, int(round(math.sqrt(o.n_seeds))))  # grid: between the cilia
-        a = np.linspace(along.min(), along.max(), n) + 0.5 * scene.carpet.spacing
-        s = np.linspace(across.min(), across.max(), n) + 0.5 * scene.carpet.spacing
+        a = np.linspace(along.min(), along.max(), n) + 0.5 * settings.spacing
+        s = np.linspace(across.min(), across.max(), n) + 0.5 * settings.spacing
         A, S = np.meshgrid(a, s)
         seeds = c + A.ravel()[:, None] * d0 + S.ravel()[:, None] * cross
     # never inside a filament: nudge a seed across the flow until it is two blob sizes clear
@@ -187,13 +224,13 @@ def standing_flow_direction(carpet: Carpet) -> np.ndarray:
     return f / n if n > 1e-12 * max(1.0, float(np.abs(carpet.in_space("mean_thrust")).sum())) else np.array([1.0, 0.0])
 
 
-def _standing_seeds(scene: Scene, carpet: Carpet) -> np.ndarray:
+def _standing_seeds(settings: RenderSettings, carpet: Carpet) -> np.ndarray:
     """(k, 3) a standing carpet's seeds at the target plane's height h = ``[output] height``:
     explicit points (x, y) lifted to h; "grid": about ``n_seeds`` over the bases' footprint;
     "line": ``n_seeds`` across the carpet's surface flow (:func:`standing_flow_direction`), one
     spacing upstream of its bases. Above the cilia's tips (at most L high) for h > 1; a seed
     within two blob sizes of a filament is lifted until it clears."""
-    o = scene.output
+    o = settings.output
     h = float(o.height)
     b = carpet.bases
     if not isinstance(o.seeds, str):
@@ -208,7 +245,7 @@ def _standing_seeds(scene: Scene, carpet: Carpet) -> np.ndarray:
         c = 0.5 * (b.min(0) + b.max(0))
         along, across = (b - c) @ d0, (b - c) @ cross
         s = np.linspace(across.min(), across.max(), o.n_seeds)
-        xy = c + (along.min() - scene.carpet.spacing) * d0 + s[:, None] * cross
+        xy = c + (along.min() - settings.spacing) * d0 + s[:, None] * cross
     seeds = np.column_stack([xy, np.full(xy.shape[0], h)])
     clear = 2.0 * (carpet.blob or BLOB)
     for _ in range(100):
@@ -219,66 +256,67 @@ def _standing_seeds(scene: Scene, carpet: Carpet) -> np.ndarray:
     return seeds
 
 
-def _standing_duration(scene: Scene, carpet: Carpet) -> tuple[float, str]:
+def _standing_duration(settings: RenderSettings, carpet: Carpet) -> tuple[float, str]:
     """:func:`pathline_duration` of a standing carpet without ``[output] periods``: the crossing
     of its extent along the surface flow plus three spacings at the median mean speed in the
     target plane over its bases, times 1.25."""
     b = carpet.bases
     d0 = standing_flow_direction(carpet)
-    travel = float(np.ptp(b @ d0)) + 3.0 * scene.carpet.spacing
+    travel = float(np.ptp(b @ d0)) + 3.0 * settings.spacing
     probe = b[:: max(1, b.shape[0] // 200)]
-    probe = np.column_stack([probe, np.full(probe.shape[0], float(scene.output.height))])
-    u = carpet.velocity(probe, CycleMean(), max(scene.tolerance, 1e-3))
+    probe = np.column_stack([probe, np.full(probe.shape[0], float(settings.output.height))])
+    u = carpet.velocity(probe, CycleMean(), max(settings.tolerance, 1e-3))
     speed = float(np.median(np.linalg.norm(u[:, :2], axis=1)))
     if not (math.isfinite(speed) and speed > 0):
-        raise RenderError(f"{scene.source_name}: the carpet makes no mean flow at the target plane (median speed "
+        raise RenderError(f"{settings.source}: the carpet makes no mean flow at the target plane (median speed "
                           f"{speed:g}): set [output] periods for the path lines")
     return 1.25 * travel / speed, (f"auto: crossing {travel:.3g} L at the median mean speed {speed:.3g} L/tau at "
-                                   f"z = {scene.output.height:g} L")
+                                   f"z = {settings.output.height:g} L")
 
 
-def standing_domain(scene: Scene, carpet: Carpet, seeds: np.ndarray | None) -> tuple:
+def standing_domain(settings: RenderSettings, carpet: Carpet, seeds: np.ndarray | None) -> tuple:
     """(xmin, xmax, ymin, ymax, zmin, zmax) where a standing carpet's tracers are followed: the
     bases and seeds widened by :data:`DOMAIN_MARGIN` across, from the substrate z = 0 (a tracer
     that reaches the wall ends there, "left the domain") to :data:`DOMAIN_MARGIN` above the
     target plane."""
     pts = carpet.bases if seeds is None else np.concatenate([carpet.bases, seeds[:, :2]])
     lo, hi = pts.min(axis=0) - DOMAIN_MARGIN, pts.max(axis=0) + DOMAIN_MARGIN
-    top = max(float(scene.output.height), float(seeds[:, 2].max()) if seeds is not None else 0.0) + DOMAIN_MARGIN
+    top = max(float(settings.output.height), float(seeds[:, 2].max()) if seeds is not None else 0.0) + DOMAIN_MARGIN
     return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]), 0.0, top)
 
 
-def pathline_duration(scene: Scene, carpet: Carpet, T0: float) -> tuple[float, str]:
+def pathline_duration(settings: RenderSettings, carpet: Carpet, T0: float) -> tuple[float, str]:
     """Path-line duration and how it was chosen: ``[output] periods * T0`` when the scene sets
     it, else long enough to cross the carpet: 1.25 (extent along the flow + 3 spacings) / U, with
     U the median speed of the mean flow at points between the cilia."""
-    o = scene.output
+    o = settings.output
     if o.periods is not None:
         return float(o.periods) * T0, "scene"
     if carpet.geometry == "standing":
-        return _standing_duration(scene, carpet)
+        return _standing_duration(settings, carpet)
     b = carpet.bases
-    d0 = np.asarray(scene.field.flow_direction, dtype=float)
-    sp = scene.carpet.spacing
+    d0 = np.asarray(settings.flow_direction, dtype=float)
+    sp = settings.spacing
     travel = float(np.ptp(b @ d0)) + 3.0 * sp
     probe = b[:: max(1, b.shape[0] // 200)] + 0.5 * sp * (d0 + np.array([-d0[1], d0[0]]))
-    speed = float(np.median(np.linalg.norm(carpet.velocity(probe, CycleMean(), max(scene.tolerance, 1e-3))[:, :2], axis=1)))
+    u = carpet.velocity(probe, CycleMean(), max(settings.tolerance, 1e-3))
+    speed = float(np.median(np.linalg.norm(u[:, :2], axis=1)))
     if not (math.isfinite(speed) and speed > 0):
-        raise RenderError(f"{scene.source_name}: the carpet makes no mean flow (median speed {speed:g}): set "
+        raise RenderError(f"{settings.source}: the carpet makes no mean flow (median speed {speed:g}): set "
                           "[output] periods for the path lines")
     return 1.25 * travel / speed, f"auto: crossing {travel:.3g} L at the median mean speed {speed:.3g} L/tau"
 
 
-def pathline_model(scene: Scene, beats: float | None = None) -> tuple[str, str]:
+def pathline_model(settings: RenderSettings, beats: float | None = None) -> tuple[str, str]:
     """The flow the tracers follow and why, in words: ``[output] pathline_model``, "auto"
     resolved to "mean" when the scene's tolerance is at least
     :data:`~ciliary_carpet.transport.flow.MEAN_MODEL_ERROR` or the run lasts more than
     :data:`~ciliary_carpet.transport.flow.AUTO_RESOLVED_BEATS` ``beats``, else to "resolved"."""
-    m = scene.output.pathline_model
+    m = settings.output.pathline_model
     if m != "auto":
         return m, "scene"
-    if scene.tolerance >= MEAN_MODEL_ERROR:
-        return "mean", f"auto: the tolerance {scene.tolerance:g} allows the mean flow's error"
+    if settings.tolerance >= MEAN_MODEL_ERROR:
+        return "mean", f"auto: the tolerance {settings.tolerance:g} allows the mean flow's error"
     if beats is not None and beats > AUTO_RESOLVED_BEATS:
         return "mean", (f"auto: {beats:.0f} beats, more than {AUTO_RESOLVED_BEATS} to follow one by one; "
                         f"[output] pathline_model = \"resolved\" follows them")
@@ -287,12 +325,12 @@ def pathline_model(scene: Scene, beats: float | None = None) -> tuple[str, str]:
 
 @dataclass(frozen=True, eq=False)
 class RenderPlan:
-    """What a render of ``scene`` does (see the module docstring); made by :meth:`decide`.
+    """What a render of a scene does (see the module docstring); made by :meth:`decide`.
 
     Attributes
     ----------
-    scene : Scene
-        The scene (its ``[output]`` says which outputs are wanted).
+    settings : RenderSettings
+        The scene's render settings (its ``[output]`` says which outputs are wanted).
     estimate : Estimate
         The resource estimate the render was admitted with.
     designed : bool
@@ -323,7 +361,7 @@ class RenderPlan:
         planar one (the path lines' default domain).
     """
 
-    scene: Scene
+    settings: RenderSettings
     estimate: Estimate
     designed: bool
     T0: float
@@ -339,29 +377,29 @@ class RenderPlan:
     model_from: str | None = None
 
     @classmethod
-    def decide(cls, scene: Scene, carpet: Carpet, *, designed: bool, estimate: Estimate) -> "RenderPlan":
-        """The plan of a render of ``scene`` with its designed ``carpet``; raises what the scene's
+    def decide(cls, settings: RenderSettings, carpet: Carpet, *, designed: bool, estimate: Estimate) -> "RenderPlan":
+        """The plan of a render with ``settings`` and the designed ``carpet``; raises what the scene's
         settings make impossible (see the module docstring) before any output."""
-        o = scene.output
-        seeds = check_seeds(carpet, seed_points(scene, carpet)) if o.pathlines else None  # SeedError
+        o = settings.output
+        seeds = check_seeds(carpet, seed_points(settings, carpet)) if o.pathlines else None  # SeedError
         T0 = float(carpet.table.scalar("period", 0.0))
-        duration, how = pathline_duration(scene, carpet, T0) if (o.pathlines or o.ftle) else (None, None)
+        duration, how = pathline_duration(settings, carpet, T0) if (o.pathlines or o.ftle) else (None, None)
         if o.pathlines:  # PathLineError (output too large for memory)
             check_output_size(carpet, seeds.shape[0], duration, o.samples_per_period)
         standing = carpet.geometry == "standing"
         beat = Beat.of(carpet, T0)
-        model, why = (pathline_model(scene, duration / beat.period if beat.period > 0 else None) if o.pathlines
+        model, why = (pathline_model(settings, duration / beat.period if beat.period > 0 else None) if o.pathlines
                       else (None, None))
-        return cls(scene=scene, estimate=estimate, designed=designed, T0=T0, beat=beat,
-                   grid=FieldGrid.around(scene, carpet), scales=carpet.scales, seeds=seeds,
+        return cls(settings=settings, estimate=estimate, designed=designed, T0=T0, beat=beat,
+                   grid=FieldGrid.around(settings, carpet), scales=carpet.scales, seeds=seeds,
                    pathline_model=model, duration=duration,
-                   duration_from=how, section=FieldGrid.section(scene, carpet) if standing else None,
-                   domain=standing_domain(scene, carpet, seeds) if standing else None, model_from=why)
+                   duration_from=how, section=FieldGrid.section(settings, carpet) if standing else None,
+                   domain=standing_domain(settings, carpet, seeds) if standing else None, model_from=why)
 
     def describe(self) -> str:
         """What the render will compute, in a line, before it starts: the field grid, and the
         path lines' tracers, flow model and duration with how each was chosen."""
-        o = self.scene.output
+        o = self.settings.output
         nx, ny = self.grid.shape[:2]
         parts = [f"mean field on {nx} x {ny} points"]
         if o.pathlines:
@@ -373,7 +411,7 @@ class RenderPlan:
                          f"{beats:.0f} beats ({long})")
         if o.ftle:
             parts.append("the FTLE over a quarter of that" if o.pathlines else "the FTLE")
-        return f"render {self.scene.name}: " + "; ".join(parts)
+        return f"render {self.settings.name}: " + "; ".join(parts)
 
     @property
     def units(self) -> tuple[float, float, float]:
@@ -385,4 +423,4 @@ class RenderPlan:
     def span(self) -> float:
         """The time range of what moves [tau]: the path lines' duration, or one beat without them.
         The snapshots' and frames' collections repeat one beat until then (one clock)."""
-        return self.duration if self.scene.output.pathlines else self.beat.period
+        return self.duration if self.settings.output.pathlines else self.beat.period

@@ -1,7 +1,8 @@
-"""What a scene needs, checked before any work: :func:`check_resources` compares lower bounds of
-the memory and time a render needs (:class:`Estimate`) with what the machine has
-(:func:`available_memory`) and the time allowed, and refuses coordinates and ``[units]`` scales
-that would overflow."""
+"""What a render needs, from numbers: :func:`lower_bounds` compares lower bounds of the memory
+and time a render needs (:class:`Estimate`) with what the machine has (:func:`available_memory`)
+and the time allowed; :func:`expected_memory` is its expected peak (:class:`Needs`), and
+:func:`places_that_fit` the places that memory allows. The scene's side -- its keys read, its
+coordinates and ``[units]`` scales checked -- is :mod:`ciliary_carpet.scenes.resources`."""
 from __future__ import annotations
 
 import inspect
@@ -11,13 +12,12 @@ import os
 from dataclasses import dataclass
 
 from ciliary_carpet.output import RenderError
-from ciliary_carpet.scenes.scene import Scene, SceneError
 from ciliary_carpet.transport.pathlines import pathlines
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ResourceError", "Estimate", "check_resources", "available_memory", "expected_memory", "places_that_fit",
-           "MAX_PATHLINE_STEPS", "MAX_COORDINATE", "SCALE_RANGE"]
+__all__ = ["ResourceError", "Estimate", "Needs", "lower_bounds", "available_memory", "expected_memory",
+           "places_that_fit", "MAX_PATHLINE_STEPS", "MAX_COORDINATE", "SCALE_RANGE"]
 
 
 class ResourceError(RenderError):
@@ -41,7 +41,8 @@ SCALE_RANGE = (1e-100, 1e100)  # SI scales of [units] that keep every output fin
 class Estimate:
     """Lower bounds of what a render needs: ``memory_bytes``, Stokeslet ``pairs``, path-line
     ``steps`` (one per period of the flow at least) and ``seconds``; ``parts`` is the memory by
-    scene key, ``available_bytes`` what the machine has, ``limit_seconds`` the time allowed."""
+    part (named by the scene key that sets it), ``available_bytes`` what the machine has,
+    ``limit_seconds`` the time allowed."""
 
     memory_bytes: float
     pairs: float
@@ -109,24 +110,57 @@ points over 100 cilia, levels of detail at tol 1e-3), and the render keeps the p
 velocity and the bound of the grid (56 bytes per point) and the mean flow on it."""
 
 
-def expected_memory(scene: Scene, places: int = 1) -> float:
-    """The memory (bytes) a render of ``scene`` is expected to take at its peak, all its processes
-    together, with its path-line stage on ``places`` places
-    (:func:`~ciliary_carpet.transport.parallel.pool_for_threads`: this process and ``places - 1``
-    workers with their fork server).
+@dataclass(frozen=True)
+class Needs:
+    """What a render's peak memory depends on, as numbers (a scene's: ``Scene.needs()``).
 
-    Not a bound (:func:`check_resources` has the certain lower bounds): working-set peaks measured
+    Attributes
+    ----------
+    source : str
+        What warnings name the render by (its scene file).
+    n_cilia : int
+        The carpet's cilia.
+    standing : bool
+        Whether the carpet is a standing one.
+    coupled : bool
+        Whether the cilia are coupled through their mean flow.
+    field_points : float
+        The field grid's points when the render evaluates a field on it (the mean field, the
+        snapshots or the FTLE), else 0.
+    """
+
+    source: str
+    n_cilia: int
+    standing: bool
+    coupled: bool
+    field_points: float
+
+    @classmethod
+    def of(cls, what) -> "Needs":
+        """``what`` itself when it is a :class:`Needs`, else what its ``needs()`` gives (a Scene's)."""
+        return what if isinstance(what, cls) else what.needs()
+
+
+def expected_memory(needs, places: int = 1) -> float:
+    """The memory (bytes) a render is expected to take at its peak, all its processes together,
+    with its path-line stage on ``places`` places
+    (:func:`~ciliary_carpet.transport.parallel.pool_for_threads`: this process and ``places - 1``
+    workers with their fork server). ``needs``: a :class:`Needs`, or what gives one
+    (:meth:`Needs.of`: a Scene).
+
+    Not a bound (:func:`lower_bounds` has the certain lower bounds): working-set peaks measured
     on renders at 100, 900 and 10^4 cilia (``_PEAK_MIB``, the largest scene of each size),
     interpolated linearly in the number of cilia and beyond 10^4 by the last slope, times 1.46 for
     a standing carpet, each place after the second adding what the second did; a coupled carpet
     adds its table and trial carpets (:data:`_COUPLED_MIB`); plus the field
-    grid's (``output.field_shape``, :data:`_FIELD_BYTES_PER_POINT` per point; the measured renders'
+    grid's (``Needs.field_points``, :data:`_FIELD_BYTES_PER_POINT` per point; the measured renders'
     80 x 80 grids took a few MB of it); all times 1.15 as a margin.
     It sizes a batch's workers and a render's places to a memory limit
     (:func:`places_that_fit`)."""
     import numpy as np
 
-    n = float(scene.carpet.n_cilia)
+    needs = Needs.of(needs)
+    n = float(needs.n_cilia)
     sizes = np.array([a[0] for a in _PEAK_MIB], float)
     mib = []
     for col in (1, 2):
@@ -137,41 +171,40 @@ def expected_memory(scene: Scene, places: int = 1) -> float:
             mib.append(float(vals[-1] + (n - sizes[-1]) * (vals[-1] - vals[-2]) / (sizes[-1] - sizes[-2])))
     one, two = mib
     total = one + max(0, int(places) - 1) * (two - one)
-    if scene.carpet.geometry == "standing":
+    if needs.standing:
         total *= _STANDING
-    if scene.carpet.coupling == "mean":
+    if needs.coupled:
         here, per_place, per_cilium = _COUPLED_MIB
         total += here + max(0, int(places) - 1) * per_place + n * per_cilium
-    o = scene.output
-    field = float(o.field_shape[0]) * float(o.field_shape[1]) * _FIELD_BYTES_PER_POINT if (
-        o.field or o.snapshots > 0 or o.ftle) else 0.0
-    return (total * 2.0 ** 20 + field) * _PEAK_MARGIN
+    return (total * 2.0 ** 20 + float(needs.field_points) * _FIELD_BYTES_PER_POINT) * _PEAK_MARGIN
 
 
-def places_that_fit(scene: Scene, places: int) -> int:
+def places_that_fit(needs, places: int) -> int:
     """The most places, at most ``places``, whose :func:`expected_memory` fits what is available now
     (:func:`available_memory`: MemAvailable, a control group's limit; and what this process holds
-    already, which the estimate counts), at least one. A render
+    already, which the estimate counts), at least one. ``needs``: a :class:`Needs`, or what gives
+    one (:meth:`Needs.of`: a Scene). A render
     that does not fit in one place is warned about (it is still tried: the estimate is not a
     bound); one that gets fewer places than asked is logged."""
+    needs = Needs.of(needs)
     places = max(1, int(places))
     avail = available_memory()
     if not math.isfinite(avail):
         return places
     avail += _resident()  # the estimate counts this process's own memory, which it holds already
     p = places
-    while p > 1 and expected_memory(scene, p) > avail:
+    while p > 1 and expected_memory(needs, p) > avail:
         p -= 1
-    need = expected_memory(scene, p)
+    need = expected_memory(needs, p)
     if need > avail:
         logger.warning("%s: a render of %d cilia is expected to take about %s of memory at its peak, more than the "
                        "%s available (a container's or a batch job's limit, or the machine's): it may be killed "
                        "for want of memory; give it more, or make the carpet smaller",
-                       scene.source_name, scene.carpet.n_cilia, _gb(need), _gb(avail))
+                       needs.source, needs.n_cilia, _gb(need), _gb(avail))
     elif p < places:
         logger.warning("%s: path lines on %s instead of %d places: %d would take about %s of memory, more than "
-                       "the %s available", scene.source_name, "this process alone" if p == 1 else f"{p} places",
-                       places, places, _gb(expected_memory(scene, places)), _gb(avail))
+                       "the %s available", needs.source, "this process alone" if p == 1 else f"{p} places",
+                       places, places, _gb(expected_memory(needs, places)), _gb(avail))
     return p
 
 
@@ -193,73 +226,35 @@ def _gb(x: float) -> str:
     return f"{x / 1e9:.3g} GB"
 
 
-def check_resources(scene: Scene, *, max_seconds: float = 86400.0) -> Estimate:
-    """Check, before any work, that ``scene`` can be rendered: its coordinates and ``[units]``
-    scales are sane and lower bounds of the memory and time it needs fit the machine.
+def lower_bounds(source: str, parts: tuple, *, cilia: float, field_points: float, fields: int, tracers: float,
+                 steps: float, max_seconds: float = 86400.0) -> Estimate:
+    """Lower bounds of what a render needs (:class:`Estimate`), checked against the machine and the
+    time allowed: ``cilia``, ``field_points`` (of each of ``fields`` field evaluations),
+    ``tracers`` followed for ``steps`` steps; ``parts`` names the memory's three parts -- the
+    cilia's, the field's and the tracers' -- in that order (the scene keys that set them).
 
     The bounds count only what a render certainly needs (``_BYTES_PER_CILIUM`` etc. are far
-    below the measured costs), so a scene is refused only when it certainly cannot finish:
-    memory above what is available (MemAvailable, or RLIMIT_AS when set), time above
-    ``max_seconds``, or more path-line steps (one per period at least) than the integrator
-    allows. Raises :class:`ResourceError` (or :class:`~ciliary_carpet.scenes.scene.SceneError` for a
-    coordinate or unit out of range) naming the scene file, the key and the estimate."""
-    src = scene.source_name
-    c, o = scene.carpet, scene.output
-    # coordinates: typos such as 1e300 give NaN deep inside the design; refuse them by key
-    coords = {"carpet.origin": [c.origin], "carpet.points": c.points or (), "target.centre":
-              [scene.target.centre] if scene.target.centre is not None else (),
-              "target.control": c_ if not isinstance((c_ := scene.target.control), str) else (),
-              "output.seeds": o.seeds if not isinstance(o.seeds, str) else ()}
-    scalars = {"carpet.spacing": c.spacing, "target.line": scene.target.line,
-               "output.field_margin": o.field_margin}
-    for key, pts in coords.items():
-        for i, pt in enumerate(pts):
-            if max(abs(pt[0]), abs(pt[1])) > MAX_COORDINATE:
-                raise SceneError(f"{src}: {key}{'[%d]' % i if key != 'carpet.origin' else ''} = "
-                                 f"[{pt[0]:g}, {pt[1]:g}] is farther than {MAX_COORDINATE:g} L from the origin")
-    for key, v in scalars.items():
-        if abs(v) > MAX_COORDINATE:
-            raise SceneError(f"{src}: {key} = {v:g} is larger than {MAX_COORDINATE:g} L")
-    if scene.units is not None:
-        u = scene.units
-        lo, hi = SCALE_RANGE
-        derived = {"units.length_m": u.length_m, "units.time_s": u.time_s, "units.viscosity_Pa_s": u.viscosity_Pa_s,
-                   "units.length_m / units.time_s (velocity)": u.length_m / u.time_s,
-                   "units.viscosity_Pa_s * length_m / time_s (force per length)": u.viscosity_Pa_s * u.length_m / u.time_s}
-        for key, v in derived.items():
-            if not (math.isfinite(v) and lo <= v <= hi):
-                raise SceneError(f"{src}: {key} = {v:g} is outside [{lo:g}, {hi:g}]: the outputs in SI units would "
-                                 f"overflow or vanish; check the [units] section")
-    n = float(c.n_cilia)
-    p = float(o.field_shape[0]) * float(o.field_shape[1]) if (o.field or o.snapshots > 0) else 0.0
-    evals = p * (int(o.field) + o.snapshots)
-    k = float(len(o.seeds) if not isinstance(o.seeds, str) else o.n_seeds) if o.pathlines else 0.0
-    # periods = None: the duration is chosen later from the carpet's mean speed (pathline_duration);
-    # one period is a lower bound, and check_output_size checks the chosen one before any output
-    steps = float(max(1.0, math.ceil(o.periods if o.periods is not None else 1.0))) if o.pathlines else 0.0
-    parts = {"carpet.points" if c.lattice == "points" else "carpet.shape": n * _BYTES_PER_CILIUM,
-             "output.field_shape": p * _BYTES_PER_POINT,
-             "output.seeds" if not isinstance(o.seeds, str) else "output.n_seeds":
-                 k * (steps + 1.0) * _BYTES_PER_TRACER_STEP}
-    mem = sum(parts.values())
-    pairs = 3.0 * n * (evals + 7.0 * k * steps)
+    below the measured costs), so a render is refused only when it certainly cannot finish:
+    memory above what is available (:func:`available_memory`), or time above ``max_seconds``.
+    Raises :class:`ResourceError` naming ``source``, the part that takes most memory and the
+    estimate."""
+    memory = dict(zip(parts, (cilia * _BYTES_PER_CILIUM, field_points * _BYTES_PER_POINT,
+                             tracers * (steps + 1.0) * _BYTES_PER_TRACER_STEP)))
+    mem = sum(memory.values())
+    pairs = 3.0 * cilia * (field_points * fields + 7.0 * tracers * steps)
     seconds = pairs / _PAIRS_PER_SECOND + steps * _SECONDS_PER_STEP
     avail = available_memory()
-    est = Estimate(mem, pairs, steps, seconds, parts, avail, float(max_seconds))
-    what = (f"{c.n_cilia:g} cilia, {p:g} field points x {int(o.field) + o.snapshots} field(s), "
-            f"{k:g} tracers x {steps:g} steps")
-    if steps > MAX_PATHLINE_STEPS:
-        raise ResourceError(f"{src}: output.periods = {o.periods:g} needs at least {steps:g} path-line steps (one "
-                            f"per period of the flow), more than the integrator's {MAX_PATHLINE_STEPS}; lower "
-                            f"output.periods")
+    est = Estimate(mem, pairs, steps, seconds, memory, avail, float(max_seconds))
+    what = (f"{cilia:g} cilia, {field_points:g} field points x {fields} field(s), "
+            f"{tracers:g} tracers x {steps:g} steps")
     if mem > avail:
-        key = max(parts, key=parts.get)
-        raise ResourceError(f"{src}: the scene needs at least {_gb(mem)} of memory ({what}; most of it for {key}), "
+        key = max(memory, key=memory.get)
+        raise ResourceError(f"{source}: the scene needs at least {_gb(mem)} of memory ({what}; most of it for {key}), "
                             f"more than the {_gb(avail)} available; make {key} smaller")
     if seconds > max_seconds:
-        raise ResourceError(f"{src}: the scene needs at least {seconds / 3600:.3g} hours ({pairs:.3g} Stokeslet "
+        raise ResourceError(f"{source}: the scene needs at least {seconds / 3600:.3g} hours ({pairs:.3g} Stokeslet "
                             f"pairs at {_PAIRS_PER_SECOND:.2g}/s; {what}), more than the {max_seconds / 3600:.3g} "
                             f"hours allowed; make the carpet, the field or the path lines smaller (or raise "
                             f"--max-hours)")
-    logger.debug("resource estimate for %s: %s", src, est)
+    logger.debug("resource estimate for %s: %s", source, est)
     return est

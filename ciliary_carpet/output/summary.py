@@ -48,7 +48,7 @@ def summary_tasks(ctx: RenderContext, pool_only: bool = True) -> list:
     the render's pool has worker processes (in this process they run where the summary is made)."""
     if pool_only and getattr(ctx.pool, "workers", 1) < 2:
         return []
-    c, tol = ctx.carpet, min(ctx.plan.scene.tolerance, 1e-3)
+    c, tol = ctx.carpet, min(ctx.plan.settings.tolerance, 1e-3)
     out = [("omissions", Task("the summary: what the model leaves out", _omissions_summary, (c, tol), cost=0.0))]
     if c.coupled is None:  # uncoupled: the linear estimate of the coupling's size (each cilium's frame)
         out.append(("coupling", Task("the summary: the size of the coupling", _coupling_summary, (c, tol), cost=0.0)))
@@ -68,7 +68,7 @@ class SummaryOutput(Output):
         return True
 
     def write(self, ctx):
-        scene, summary = ctx.plan.scene, ctx.summary
+        summary = ctx.summary
         # what the model leaves out (interaction between cilia, the wall's drag, the viscosity), sized,
         # and the cilia's coupling through their mean flow: solved ("mean"), or its size estimated
         # ("none"); computed here, or beside the path lines (summary_tasks), then timed there
@@ -94,12 +94,12 @@ class SummaryOutput(Output):
             summary["omissions"]["units"] = OMISSIONS_UNITS
         ctx.clock["total"] = _time.perf_counter() - ctx.started
         summary["seconds"] = ctx.clock
-        summary["scene_resolved"] = scene.to_dict()
+        summary["scene_resolved"] = ctx.scene_resolved
         summary["threads"] = threads_in_use()  # the numba and BLAS threads (and batch workers) used
         bad = non_finite(summary)
         if bad:
             listed = "; ".join(f"{k} = {v}" for k, v in list(bad.items())[:3])
-            raise RenderError(f"{scene.source_name}: the render gave non-finite numbers ({listed}); nothing was "
+            raise RenderError(f"{ctx.plan.settings.source}: the render gave non-finite numbers ({listed}); nothing was "
                               f"written to {ctx.out_dir}")
         (ctx.stage / "summary.md").write_text(markdown(summary))
         (ctx.stage / SUMMARY).write_text(strict_json(summary, indent=2))

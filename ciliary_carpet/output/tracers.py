@@ -105,17 +105,18 @@ class PathLinesOutput(Output):
     together, biggest first, and the summary's own computations after them
     (:func:`~ciliary_carpet.output.summary.summary_tasks`): on two cores the reference, then those,
     run beside the path lines (the numbers do not depend on the pool; the timings are in
-    benchmarks/results/bench_pathlines_parallel.md)."""
+    benchmarks/results/bench_pathlines_parallel.md). Each task finished advances
+    ``ctx.progress``, so that the render's progress shows the path lines' share done."""
 
     name = "pathlines"
     files = (r"pathlines\.vtp", r"particles_\d+\.vtp", r"particles\.pvd")
 
     def wanted(self, plan):
-        return bool(plan.scene.output.pathlines)
+        return bool(plan.settings.output.pathlines)
 
     def write(self, ctx):
         plan, c = ctx.plan, ctx.carpet
-        o, tol, spacing = plan.scene.output, plan.scene.tolerance, plan.scene.carpet.spacing
+        o, tol, spacing = plan.settings.output, plan.settings.tolerance, plan.settings.spacing
         seeds, duration, model = plan.seeds, plan.duration, plan.pathline_model
         L, T, _ = plan.units
         pool = ctx.pool if ctx.pool is not None else InProcess()
@@ -134,7 +135,7 @@ class PathLinesOutput(Output):
             # and the summary's own computations, last: a worker takes them once the reference is done
             side = summary_tasks(ctx)
             clock = _time.perf_counter()
-            results = pool.run(tasks + [ref_task] + [t for _, t in side], shared=[c])
+            results = pool.run(tasks + [ref_task] + [t for _, t in side], shared=[c], progress=ctx.progress)
             wall = _time.perf_counter() - clock
             n = len(tasks)
             ctx.beside.update({name: r for (name, _), r in zip(side, results[n + 1:])})
@@ -173,16 +174,16 @@ class FtleOutput(Output):
     files = (r"ftle\.vti",)
 
     def wanted(self, plan):
-        return bool(plan.scene.output.ftle)
+        return bool(plan.settings.output.ftle)
 
     def write(self, ctx):
         plan, b = ctx.plan, ctx.carpet.bases
-        fs, T = plan.scene.output.field_shape, plan.units[1]
+        fs, T = plan.settings.output.field_shape, plan.units[1]
         nx, ny = max(3, fs[0] // 2), max(3, fs[1] // 2)
         with ctx.timed("ftle"):
             f = ftle_field(ctx.mean_flow(), (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
                            0.25 * plan.duration, rtol=1e-6,
-                           atol=1e-4 * plan.scene.carpet.spacing,
+                           atol=1e-4 * plan.settings.spacing,
                            **({"height": float(plan.grid.origin[2])} if ctx.carpet.geometry == "standing" else {}))
             ftle_to_vti(f, ctx.stage / "ftle.vti", scales=plan.scales)
         defined = np.isfinite(f.ftle)
@@ -206,11 +207,11 @@ class FtleOutput(Output):
         psi = float(np.angle(np.sum(np.exp(1j * d.azimuth) * np.abs(d.chi_N))))
         pump = replace(c, chi_N=np.full(c.n, chi_hi), azimuth=np.full(c.n, psi))
         g = plan.grid
-        mf = MeanField(g, g.points(), pump.velocity(g.points(), CycleMean(), plan.scene.tolerance))
+        mf = MeanField(g, g.points(), pump.velocity(g.points(), CycleMean(), plan.settings.tolerance))
         nx, ny = g.shape[:2]
         flow = MeanFlow.from_grid(pump, *g.lines(), mf.velocity.reshape(ny, nx, 3))
         b = c.bases
         f = ftle_field(flow, (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), shape, duration,
-                       rtol=1e-6, atol=1e-4 * plan.scene.carpet.spacing, height=float(g.origin[2]))
+                       rtol=1e-6, atol=1e-4 * plan.settings.spacing, height=float(g.origin[2]))
         return {"mixing_number": f.mixing_number, "chi_N": chi_hi, "azimuth_deg": math.degrees(psi) % 360.0,
                 "defined_fraction": float(np.mean(np.isfinite(f.ftle)))}

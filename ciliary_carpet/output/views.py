@@ -19,14 +19,17 @@ class PreviewOutput(Output):
     files = (r"preview\.png",)
 
     def wanted(self, plan):
-        return bool(plan.scene.output.preview)
+        return bool(plan.settings.output.preview)
 
     def write(self, ctx):
         with ctx.timed("preview"):
             if ctx.carpet.geometry == "standing":
-                standing_preview(ctx.stage / "preview.png", ctx.plan.scene, ctx.carpet, ctx.mean_field, ctx.pathlines)
+                s = ctx.plan.settings
+                standing_preview(ctx.stage / "preview.png", s.name, s.output.height, ctx.carpet, ctx.mean_field,
+                                 ctx.pathlines)
             else:
-                preview(ctx.stage / "preview.png", ctx.plan.scene, ctx.carpet, ctx.mean_field, ctx.pathlines, ctx.design)
+                preview(ctx.stage / "preview.png", ctx.plan.settings.name, ctx.carpet, ctx.mean_field, ctx.pathlines,
+                        ctx.design)
 
 
 class ParaViewOutput(Output):
@@ -39,5 +42,5 @@ class ParaViewOutput(Output):
         return True
 
     def write(self, ctx):
-        write_script(ctx.stage / SCRIPT, ctx.out_dir, si=ctx.plan.scales is not None, scene=ctx.plan.scene.name,
+        write_script(ctx.stage / SCRIPT, ctx.out_dir, si=ctx.plan.scales is not None, scene=ctx.plan.settings.name,
                      geometry=ctx.carpet.geometry)

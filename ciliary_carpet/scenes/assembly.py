@@ -3,9 +3,10 @@ and the carpet designed for its target.
 
 This module is the one route from a :class:`~ciliary_carpet.scenes.scene.Scene` (the file format,
 which builds nothing) to objects: :func:`assemble` builds them all, :func:`load_table`,
-:func:`frame_of`, :func:`target_of` and :func:`carpet_for` one each, and :func:`design` designs
+:func:`frame_of`, :func:`target_of` and :func:`carpet_for` one each, :func:`design` designs
 the carpet for the scene's target (the design layer, :mod:`ciliary_carpet.design`, works on the
-objects alone). The render and the command line build what they need here. The table is the
+objects alone), and :func:`render_settings` gives the values a render's plan and outputs read
+(:class:`~ciliary_carpet.output.plan.RenderSettings`). The render and the command line build what they need here. The table is the
 scene's (:func:`load_table`: the shipped one, a file, or one computed first with
 ``[table.build]``; cached) and is checked against ``carpet.chi_N``; the target is resolved against
 the table (its default angle) and the carpet's frame; the carpet is built on demand with the
@@ -37,6 +38,7 @@ from ciliary_carpet.design.frame import Frame
 from ciliary_carpet.design.patterns import ANGLE_KINDS
 from ciliary_carpet.design.target import Target
 from ciliary_carpet.design.target_design import design_standing_target, design_target
+from ciliary_carpet.output.plan import RenderSettings
 from ciliary_carpet.scenes.target_spec import resolve_target
 
 if TYPE_CHECKING:
@@ -45,7 +47,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 __all__ = ["Assembly", "assemble", "carpet_for", "design", "check_table_range", "load_table", "frame_of", "target_of",
-           "TableBuildError"]
+           "render_settings", "TableBuildError"]
 
 
 class TableBuildError(DesignError):
@@ -54,6 +56,15 @@ class TableBuildError(DesignError):
     failing row and the ``[table.build]`` keys to change."""
 
 _TABLE_CACHE: dict = {}
+
+
+def render_settings(scene: "Scene") -> RenderSettings:
+    """The values a render of ``scene`` reads
+    (:class:`~ciliary_carpet.output.plan.RenderSettings`): its name and file, its ``[output]``
+    section, tolerance, carpet spacing and geometry, and the flow direction of its field."""
+    return RenderSettings(name=scene.name, source=scene.source_name, output=scene.output, tolerance=scene.tolerance,
+                          spacing=scene.carpet.spacing, flow_direction=scene.field.flow_direction,
+                          geometry=scene.carpet.geometry)
 
 
 def load_table(scene: "Scene", progress: Progress | None = None) -> ThrustTable:

@@ -522,6 +522,15 @@ class Scene:
     def source_name(self) -> str:
         return str(self.source) if self.source is not None else f"<scene {self.name}>"
 
+    def needs(self):
+        """What a render of the scene's peak memory depends on, as numbers
+        (:class:`~ciliary_carpet.output.resources.Needs`, :func:`ciliary_carpet.scenes.resources.needs`):
+        what :func:`~ciliary_carpet.output.resources.expected_memory` and
+        :func:`~ciliary_carpet.output.resources.places_that_fit` take."""
+        from ciliary_carpet.scenes.resources import needs
+
+        return needs(self)
+
     def to_dict(self) -> dict:
         """The resolved scene, defaults filled in, as plain TOML/JSON types (keys that are None,
         i.e. decided later or absent, are left out; ``source`` is not a scene key and is not
