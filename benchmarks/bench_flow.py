@@ -455,6 +455,7 @@ def bench_longtime(quick: bool, emit) -> dict:
     from ciliary_carpet.transport.flow import MeanFlow, ResolvedFlow
     from ciliary_carpet.transport.pathlines import pathlines
     from ciliary_carpet.output.plan import FieldGrid, pathline_duration, seed_points
+    from ciliary_carpet.scenes.assembly import render_settings
     from ciliary_carpet.scenes.scene import load_scene
 
     scene = load_scene(Path(__file__).parent.parent / "designs" / "uniform_deflection.toml")
@@ -464,9 +465,9 @@ def bench_longtime(quick: bool, emit) -> dict:
         warnings.simplefilter("ignore", UserWarning)
         _, c = design(scene)
     T0 = float(np.nanmin(c.periods))
-    duration, how = pathline_duration(scene, c, T0)
-    seeds = seed_points(scene, c)[:: (1 if quick else 5)]
-    box = FieldGrid.around(scene, c).box
+    duration, how = pathline_duration(render_settings(scene), c, T0)
+    seeds = seed_points(render_settings(scene), c)[:: (1 if quick else 5)]
+    box = FieldGrid.around(render_settings(scene), c).box
     emit(f"## Long-time model vs time-resolved path lines ({scene.name}, {c.n} cilia, {seeds.shape[0]} tracers, "
          f"{duration / T0:.0f} beats; {how})\n")
     t0 = time.perf_counter()

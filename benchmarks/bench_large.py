@@ -125,11 +125,12 @@ def _design(scene_path: Path):
     from ciliary_carpet.cli import _scene
     from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.output.plan import RenderPlan
-    from ciliary_carpet.output.resources import check_resources
+    from ciliary_carpet.scenes.assembly import render_settings
+    from ciliary_carpet.scenes.resources import check_resources
 
     scene = _scene(str(scene_path), False, None)
     _, c = design(scene)
-    return c, RenderPlan.decide(scene, c, designed=True, estimate=check_resources(scene)), scene.carpet.spacing
+    return c, RenderPlan.decide(render_settings(scene), c, designed=True, estimate=check_resources(scene)), scene.carpet.spacing
 
 
 def _fine(c, seeds, duration: float, spacing: float, cache: Path | None, n: int) -> tuple[np.ndarray, float]:
@@ -234,14 +235,15 @@ def fields(stride: int) -> str:
     from ciliary_carpet.cli import _scene
     from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.output.plan import RenderPlan
-    from ciliary_carpet.output.resources import check_resources
+    from ciliary_carpet.scenes.assembly import render_settings
+    from ciliary_carpet.scenes.resources import check_resources
     from ciliary_carpet.stokes import FMM, Stokeslet
     from ciliary_carpet.stokes.fmm import fmm_available
 
     with tempfile.TemporaryDirectory() as tmp:
         scene = _scene(str(scaled_scene(30, Path(tmp), field=400)), False, None)
     _, c = design(scene)
-    plan = RenderPlan.decide(scene, c, designed=True, estimate=check_resources(scene))
+    plan = RenderPlan.decide(render_settings(scene), c, designed=True, estimate=check_resources(scene))
     pts = plan.grid.points()
     sub = np.arange(0, pts.shape[0], stride)
     tol, n_snap, Tb = scene.tolerance, 10, plan.beat.period

@@ -100,7 +100,7 @@ def main(argv=None) -> int:
             scene = load_scene(path)
             for threads in (1, 2):
                 top, wall, rc = peak(path, threads)
-                est = expected_memory(scene, threads)
+                est = expected_memory(scene.needs(), threads)
                 rows.append((scene.name, scene.carpet.n_cilia, scene.carpet.geometry, threads, top, est, wall, rc))
                 flag = "" if est >= top else "  ** below the peak **"
                 print(f"{scene.name} ({scene.carpet.n_cilia} cilia) on {threads}: {top / 2**20:.0f} MiB, estimate "

@@ -88,12 +88,13 @@ def _prepared(scene_path: Path):
     """The scene's plan and designed carpet, as a render makes them."""
     from ciliary_carpet.scenes.assembly import design
     from ciliary_carpet.output.plan import RenderPlan
-    from ciliary_carpet.output.resources import check_resources
+    from ciliary_carpet.scenes.assembly import render_settings
+    from ciliary_carpet.scenes.resources import check_resources
     from ciliary_carpet.scenes.scene import load_scene
 
     scene = load_scene(scene_path)
     d, carpet = design(scene)
-    plan = RenderPlan.decide(scene, carpet, designed=d is not None, estimate=check_resources(scene, max_seconds=1e9))
+    plan = RenderPlan.decide(render_settings(scene), carpet, designed=d is not None, estimate=check_resources(scene, max_seconds=1e9))
     return scene, plan, carpet, d
 
 

@@ -44,6 +44,8 @@ The machinery is this module's rather than :mod:`concurrent.futures`': a process
 fails every pending task when one worker dies (no isolation), cannot say which task a dead
 worker ran nor how it ended, has no way to stop its workers at once (only to wait for their
 tasks), and no way for this process to run tasks alongside its workers or to share idle cores.
+
+One concept over 500 lines: the process pool, its workers, their shared cores and their stop.
 """
 from __future__ import annotations
 

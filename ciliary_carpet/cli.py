@@ -84,7 +84,7 @@ def _cmd_render(a) -> int:
     if a.threads is not None:
         budget = replace(budget, numba=a.threads)
     # the path lines on as many processes as numba threads (one: in this process), as memory allows
-    pool = pool_for_threads(places_that_fit(scene, budget.numba), PRELOAD)
+    pool = pool_for_threads(places_that_fit(scene.needs(), budget.numba), PRELOAD)
     with budget.applied():
         res = render(scene, a.output, overwrite=a.overwrite, progress=TqdmProgress(delay=0.5),
                      max_seconds=a.max_hours * 3600, pool=pool)

@@ -42,6 +42,8 @@ at |U| < 0.9), at most 0.36 of the estimate (0.72 with a factor 1, 0.41 from the
 point alone) and a median 1/21 of it; the period within 1.9e-4 (relative), the angle 1.8e-4 rad
 (benchmarks/bench_table_flow.py, results in benchmarks/results/bench_table_flow.md section 4;
 asserted in tests/test_table_flow.py).
+
+One concept over 500 lines: the table over the background flow and its interpolation.
 """
 from __future__ import annotations
 

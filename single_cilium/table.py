@@ -29,6 +29,8 @@ neighbour of the last), and a flow's first cycle of the chunk (or the first afte
 branch) starts from the neighbouring flow's cycle at the same chi_N instead of the Hopf mode;
 continuation in chi_N carries the rest. The costs of these starts are in
 ``benchmarks/results/bench_table_flow.md``.
+
+One concept over 500 lines: the build of a thrust table, its rows, resume and file.
 """
 from __future__ import annotations
 

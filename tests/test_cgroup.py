@@ -171,14 +171,14 @@ def test_real_groups_limit_cores_and_memory(tmp_path):
                 "from cilia_runtime.threads import cores;"
                 "from ciliary_carpet.output.resources import available_memory, places_that_fit;"
                 "from ciliary_carpet.scenes.scene import load_scene;"
-                f"print(cores(), available_memory(), places_that_fit(load_scene({str(scene)!r}), 2))")
+                f"print(cores(), available_memory(), places_that_fit(load_scene({str(scene)!r}).needs(), 2))")
         out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
         assert out.returncode == 0, out.stderr
         n, avail, places = out.stdout.split()
         assert int(n) == 1
         assert 0 < float(avail) < 600 << 20
         # a 10 x 10 carpet: one place (about 0.46 GB with what the process holds) fits, two (0.70) do not
-        assert int(places) == 1 and "instead of 2 places" in out.stderr
+        assert int(places) == 1 and "instead of 2 processes" in out.stderr
     finally:
         for d in (cpu, mem):
             if d.exists():
@@ -207,13 +207,13 @@ def test_expected_memory_follows_the_measured_peaks(tmp_path):
         c = _scene(tmp_path, f"[carpet]\nshape = [{side}, {side}]\n")  # coupled: the default
         here, per_place, per_cilium = r._COUPLED_MIB
         for places in (1, 2, 3):
-            assert r.expected_memory(c, places) - r.expected_memory(s, places) == pytest.approx(
+            assert r.expected_memory(c.needs(), places) - r.expected_memory(s.needs(), places) == pytest.approx(
                 (here + (places - 1) * per_place + n * per_cilium) * r._PEAK_MARGIN * mib)
-        assert r.expected_memory(s, 1) == pytest.approx(one * r._PEAK_MARGIN * mib + f)
-        assert r.expected_memory(s, 2) == pytest.approx(two * r._PEAK_MARGIN * mib + f)
-        assert r.expected_memory(s, 3) == pytest.approx((2 * two - one) * r._PEAK_MARGIN * mib + f)
+        assert r.expected_memory(s.needs(), 1) == pytest.approx(one * r._PEAK_MARGIN * mib + f)
+        assert r.expected_memory(s.needs(), 2) == pytest.approx(two * r._PEAK_MARGIN * mib + f)
+        assert r.expected_memory(s.needs(), 3) == pytest.approx((2 * two - one) * r._PEAK_MARGIN * mib + f)
     sizes = [4, 30, 60, 100, 150]
-    one = [r.expected_memory(_scene(tmp_path, f"[carpet]\nshape = [{k}, {k}]\ncoupling = \"none\"\n"), 1)
+    one = [r.expected_memory(_scene(tmp_path, f"[carpet]\nshape = [{k}, {k}]\ncoupling = \"none\"\n").needs(), 1)
            for k in sizes]
     assert all(a <= b for a, b in zip(one, one[1:]))
     # beyond 10^4 cilia: the last slope, at least linear
@@ -221,28 +221,28 @@ def test_expected_memory_follows_the_measured_peaks(tmp_path):
     assert one[-1] == pytest.approx((a2 + (22500 - n2) * (a2 - a1) / (n2 - n1)) * r._PEAK_MARGIN * mib + f)
     planar = _scene(tmp_path, '[carpet]\nshape = [12, 12]\ncoupling = "none"\n')
     standing = _scene(tmp_path, '[carpet]\ngeometry = "standing"\nshape = [12, 12]\ncoupling = "none"\n')
-    assert r.expected_memory(standing, 2) == pytest.approx(r._STANDING * (r.expected_memory(planar, 2) - f) + f)
+    assert r.expected_memory(standing.needs(), 2) == pytest.approx(r._STANDING * (r.expected_memory(planar.needs(), 2) - f) + f)
 
 
 def test_places_follow_the_memory_available(tmp_path, monkeypatch, caplog):
     from ciliary_carpet.output import resources as r
 
     s = _scene(tmp_path, "[carpet]\nshape = [10, 10]\n")
-    one, two = r.expected_memory(s, 1), r.expected_memory(s, 2)
+    one, two = r.expected_memory(s.needs(), 1), r.expected_memory(s.needs(), 2)
     monkeypatch.setattr(r, "_resident", lambda: 0.0)
     for avail, want in ((math.inf, 4), (two * 1.01, 2), (two * 0.99, 1), (one * 1.01, 1)):
         monkeypatch.setattr(r, "available_memory", lambda a=avail: a)
         caplog.clear()
-        assert r.places_that_fit(s, 4 if math.isinf(avail) else 2) == want
-        assert ("instead of 2 places" in caplog.text) == (want == 1)
+        assert r.places_that_fit(s.needs(), 4 if math.isinf(avail) else 2) == want
+        assert ("instead of 2 processes" in caplog.text) == (want == 1)
     monkeypatch.setattr(r, "available_memory", lambda: one * 0.5)
     caplog.clear()
-    assert r.places_that_fit(s, 2) == 1
+    assert r.places_that_fit(s.needs(), 2) == 1
     assert "may be killed for want of memory" in caplog.text
     # what this process holds already counts as available: the estimate includes it
     monkeypatch.setattr(r, "available_memory", lambda: two * 0.6)
     monkeypatch.setattr(r, "_resident", lambda: two * 0.5)
-    assert r.places_that_fit(s, 2) == 2
+    assert r.places_that_fit(s.needs(), 2) == 2
 
 
 @pytest.mark.slow

@@ -43,6 +43,8 @@ once per carpet:
   orders and their rigorous bounds (the bound, the calibration ``LOD_SLACK`` and what was measured);
 * :mod:`~ciliary_carpet.carpet.plan` and :mod:`~ciliary_carpet.carpet.traversal`: the cost model, the grid and the ranged sums of each
   evaluation.
+
+One concept over 500 lines: the carpet model, its checks and its front door to the flow.
 """
 from __future__ import annotations
 

@@ -67,6 +67,8 @@ drag of a straight filament along the field, d Fbar_j / d U_j = -eta L (t t^T + 
 (t the field direction in each cilium's 2D frame: ``rotation[:, 1]``, e_z's (0, 1) for a standing
 cilium), the linear coupled flow solves (I - A B) U = M(0): how far the uncoupled flow M(0) is from
 it is the coupling's size in the summary of an uncoupled carpet.
+
+One concept over 500 lines: the coupled solve, its operator and its estimates.
 """
 from __future__ import annotations
 

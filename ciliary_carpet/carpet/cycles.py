@@ -25,6 +25,8 @@ Still cilia (chi_N off the flutter branch) stand in their equilibrium shape with
 :class:`CycleMoments` is the same moment code (:func:`sample_moments`) as smooth functions of
 chi_N: the cycle means of F and D, the centre offset and the radius of one cilium in the field
 frame, interpolated by cubic splines in chi_N (the design model's, :mod:`ciliary_carpet.design.model`).
+
+One concept over 500 lines: the cycle data and the compiled kernels that build and read it.
 """
 from __future__ import annotations
 

@@ -89,8 +89,9 @@ and its verdict :mod:`ciliary_carpet.design.target_design`. This module holds th
 control points inside swept regions weighed (:func:`_weigh_control_points`), the problem and its
 objective (:class:`_Objective`), the local layout (:func:`_local_layout`), the passes
 (:func:`_passes`, each :func:`_solve_pass`), the final check (:func:`_final_check`) and the result
-(:func:`_result`). It is above 500 lines because the objective's parts and the steps that share
-them are read together.
+(:func:`_result`).
+
+One concept over 500 lines: the planar design's solve, its objective and the steps that share it.
 """
 from __future__ import annotations
 

@@ -52,6 +52,8 @@ alone carry the coupling (the defect correction).
 Also here: the objective's angle term (:func:`angle_objective`, :func:`angle_terms`), the speed
 floor's reference (:func:`floor_reference`), the sweep out of local minima (:func:`sweep`) and the
 threads of a solve (:func:`solver_threads`).
+
+One concept over 500 lines: the design model's flow, its carriers and their exact gradient.
 """
 from __future__ import annotations
 

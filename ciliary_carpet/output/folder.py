@@ -65,8 +65,8 @@ recorded without a hash, so that the folder is never up to date for it
 a file replaced by an older one, is noticed. A folder whose manifest records no inputs is not up
 to date for any scene.
 
-The module is longer than most (about 860 lines) because these guarantees are one mechanism:
-ownership, staging, the lock, the journal and the swap rely on each other and are tested together.
+One concept over 500 lines: ownership, staging, the lock, the journal and the swap are one
+mechanism, relying on each other and tested together.
 """
 from __future__ import annotations
 

@@ -135,18 +135,13 @@ class Needs:
     coupled: bool
     field_points: float
 
-    @classmethod
-    def of(cls, what) -> "Needs":
-        """``what`` itself when it is a :class:`Needs`, else what its ``needs()`` gives (a Scene's)."""
-        return what if isinstance(what, cls) else what.needs()
 
-
-def expected_memory(needs, places: int = 1) -> float:
+def expected_memory(needs: Needs, places: int = 1) -> float:
     """The memory (bytes) a render is expected to take at its peak, all its processes together,
-    with its path-line stage on ``places`` places
-    (:func:`~ciliary_carpet.transport.parallel.pool_for_threads`: this process and ``places - 1``
-    workers with their fork server). ``needs``: a :class:`Needs`, or what gives one
-    (:meth:`Needs.of`: a Scene).
+    with its path lines run in ``places`` processes
+    (:func:`~cilia_runtime.pool.pool_for_threads`: this process and ``places - 1``
+    workers with their fork server). ``needs``: the render's :class:`Needs`
+    (:meth:`Scene.needs <ciliary_carpet.scenes.scene.Scene.needs>`).
 
     Not a bound (:func:`lower_bounds` has the certain lower bounds): working-set peaks measured
     on renders at 100, 900 and 10^4 cilia (``_PEAK_MIB``, the largest scene of each size),
@@ -159,7 +154,6 @@ def expected_memory(needs, places: int = 1) -> float:
     (:func:`places_that_fit`)."""
     import numpy as np
 
-    needs = Needs.of(needs)
     n = float(needs.n_cilia)
     sizes = np.array([a[0] for a in _PEAK_MIB], float)
     mib = []
@@ -179,14 +173,12 @@ def expected_memory(needs, places: int = 1) -> float:
     return (total * 2.0 ** 20 + float(needs.field_points) * _FIELD_BYTES_PER_POINT) * _PEAK_MARGIN
 
 
-def places_that_fit(needs, places: int) -> int:
-    """The most places, at most ``places``, whose :func:`expected_memory` fits what is available now
-    (:func:`available_memory`: MemAvailable, a control group's limit; and what this process holds
-    already, which the estimate counts), at least one. ``needs``: a :class:`Needs`, or what gives
-    one (:meth:`Needs.of`: a Scene). A render
-    that does not fit in one place is warned about (it is still tried: the estimate is not a
-    bound); one that gets fewer places than asked is logged."""
-    needs = Needs.of(needs)
+def places_that_fit(needs: Needs, places: int) -> int:
+    """The most processes for the path lines, at most ``places``, whose :func:`expected_memory`
+    fits what is available now (:func:`available_memory`: MemAvailable, a control group's limit;
+    and what this process holds already, which the estimate counts), at least one. ``needs``: the
+    render's :class:`Needs`. A render that does not fit in one process is warned about (it is
+    still tried: the estimate is not a bound); one that gets fewer processes than asked is logged."""
     places = max(1, int(places))
     avail = available_memory()
     if not math.isfinite(avail):
@@ -202,8 +194,8 @@ def places_that_fit(needs, places: int) -> int:
                        "for want of memory; give it more, or make the carpet smaller",
                        needs.source, needs.n_cilia, _gb(need), _gb(avail))
     elif p < places:
-        logger.warning("%s: path lines on %s instead of %d places: %d would take about %s of memory, more than "
-                       "the %s available", needs.source, "this process alone" if p == 1 else f"{p} places",
+        logger.warning("%s: path lines in %s instead of %d processes: %d would take about %s of memory, more "
+                       "than the %s available", needs.source, "this process alone" if p == 1 else f"{p} processes",
                        places, places, _gb(expected_memory(needs, places)), _gb(avail))
     return p
 

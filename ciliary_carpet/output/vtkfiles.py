@@ -26,8 +26,8 @@ see a half-written file, and on any failure the temporary is removed and an exis
 left untouched. A folder or file that cannot be written -- a full disk included -- raises
 :class:`OutputError`, one line naming the file and the reason ("no space left on device").
 
-The module is longer than most (about 610 lines): one writer per kind of VTK data set, each with the
-validation of its arguments, sharing the checks and the atomic write above.
+One concept over 500 lines: the VTK writers, one per kind of data set, sharing the checks and the
+atomic write above.
 """
 from __future__ import annotations
 

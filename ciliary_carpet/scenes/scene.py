@@ -31,6 +31,8 @@ width and centre) are stored as ``None`` here and resolved with the objects (the
 scene describes (table, carpet, target) are built by :mod:`ciliary_carpet.scenes.assembly`, the
 only route from a scene to objects (this module is the file format: it reads and checks, and
 builds nothing).
+
+One concept over 500 lines: the scene file's schema, one section per table, and its checks.
 """
 from __future__ import annotations
 

@@ -35,6 +35,8 @@ about ``n`` (:func:`chunks`: consecutive seeds, the membership fixed by the numb
 order (:func:`join_pathlines`); ``pool`` (:mod:`~cilia_runtime.pool`) says where
 they run, in this process or in worker processes, with the same numbers. Each chunk pays the
 per-time overhead of its own flow evaluations (:data:`CHUNK_SIZE` for what that costs).
+
+One concept over 500 lines: the path-line integrator, its chunks and its result.
 """
 from __future__ import annotations
 
