@@ -277,7 +277,7 @@ def bench_levels(quick: bool, emit) -> dict:
     from ciliary_carpet.carpet.carpet import CycleMean, Instant
     from ciliary_carpet.stokes import Direct as _Direct
 
-    orig = (_Direct.dense, _Direct.ranged)  # the evaluator's sums (their structure-of-arrays copies included)
+    orig = (_Direct.dense, _Direct.ranged)  # the backend's sums (their structure-of-arrays copies included)
     _Direct.dense, _Direct.ranged = timed(orig[0]), timed(orig[1])
     emit("## Levels of detail vs the resolved sum (1000 points in and around the carpet)\n")
     emit("Error: max over the points of |u - u_resolved| / |u_resolved|. Instantaneous field at t = 0.37 "

@@ -15,7 +15,7 @@ as the reference's, the step cap halved), which checks that the estimate holds.
 Fields (``--fields``): a 30 x 30 designed carpet, the scene's field box on a 400 x 400 grid: the
 mean field and 10 snapshots by the toolkit (``Carpet.evaluate`` at the scene's tolerance), by
 the resolved sum (``tol = 0``: every source of every cilium, the plain dense sum) and by the FMM
-evaluator (``fmm3dpy``, the singular Stokeslet, the carpet's regularised one has no FMM: the
+backend (``fmm3dpy``, the singular Stokeslet, the carpet's regularised one has no FMM: the
 resolved sources through :func:`~ciliary_carpet.carpet.traversal.dense_sum`), in the same run.
 The resolved sum over 160 000 points (10^11 pairs for the mean field) is evaluated on every
 ``--stride``-th point and its time scaled to the whole grid (a dense sum's time is linear in

@@ -13,7 +13,7 @@ Carpets (:mod:`ciliary_carpet.carpet`)
     Carpet (``carpet.evaluate(points, when=Instant(t) | CycleMean(), tol)`` -> FlowSample),
     Instant, CycleMean, FlowSample, layout (lattices of base points and phases).
 Flow sums (:mod:`ciliary_carpet.stokes`)
-    stokeslet_velocity, Wall, backend_named: sums of point forces, by evaluator.
+    stokeslet_velocity, Wall, backend_named: sums of point forces, by backend.
 Design (:mod:`ciliary_carpet.design`)
     design_layout (a carpet's curvatures for control points), Design, DesignError, reachability,
     tolerance_study, Target, Frame, PATTERNS.

@@ -267,7 +267,7 @@ def batch(scenes, out_root, *, executor: Executor | None = None, scheduler: str 
     ``overwrite``, and reported as failed; files ciliary-carpet did not write are never changed
     (:func:`~ciliary_carpet.render.render`). So a batch without ``overwrite`` after an edit
     renders exactly the scenes whose inputs changed.
-    ``backend`` (a name of :data:`~ciliary_carpet.stokes.evaluator.BACKENDS`) overrides the scenes'.
+    ``backend`` (a name of :data:`~ciliary_carpet.stokes.dispatch.BACKENDS`) overrides the scenes'.
     ``scheduler_timeout`` bounds the wait for ``scheduler`` to answer as a Dask scheduler (default
     20 s, or ``CILIA_SCHEDULER_TIMEOUT``): an address that does not (e.g. the dashboard's HTTP port)
     is an OSError after that wait, as is a scheduler that has no worker and gets none within it

@@ -7,7 +7,7 @@
 
 Options before the command: ``--debug`` (show the traceback of a failure), ``--allow-outside-paths``
 (let scene files name table and target files outside their own folder), ``--max-hours H`` (the time
-a scene may need, default 24), ``--backend NAME`` (the evaluator of the flow sums, overriding the scenes'
+a scene may need, default 24), ``--backend NAME`` (the backend of the flow sums, overriding the scenes'
 ``backend``: auto, direct, fmm, cuda, cuda-fp32, cuda-fp32-acc64), ``-v`` (log progress).
 
 Exit status: 0 success; 1 some scenes of a batch failed (each with its reason), or an internal
@@ -202,7 +202,7 @@ def main(argv=None) -> int:
     ap.add_argument("--max-hours", type=float, default=24.0,
                     help="refuse scenes estimated to need longer than this (default 24)")
     ap.add_argument("--backend", choices=BACKENDS, default=None,
-                    help="evaluator of the flow sums, overriding the scenes' backend (cuda: an NVIDIA GPU, "
+                    help="backend of the flow sums, overriding the scenes' backend (cuda: an NVIDIA GPU, "
                          "pip install 'cilia-flow[gpu]')")
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("render", help="design (if the scene has a target), run the flow, write VTK/PNG/summary")

@@ -162,7 +162,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[frozenset[str]]:
 
 def test_the_scan_sees_the_packages():
     assert len(MODULES) > 40
-    assert "ciliary_carpet.stokes.direct" in GRAPH["ciliary_carpet.stokes.evaluator"]
+    assert "ciliary_carpet.stokes.direct" in GRAPH["ciliary_carpet.stokes.dispatch"]
     assert "ciliary_carpet.stokes.kernel" in GRAPH["ciliary_carpet.stokes.direct"]
     assert "ciliary_carpet.stokes" in GRAPH["ciliary_carpet.carpet.carpet"]
 
@@ -218,7 +218,7 @@ def test_known_faults_still_exist():
 
 def test_the_flow_sums_layer():
     """ciliary_carpet.stokes: kernel at the bottom (it imports nothing of the package), the CUDA
-    evaluator below the registry, and the rest of the package importing the layer through its
+    backend below the registry, and the rest of the package importing the layer through its
     front door (ciliary_carpet.stokes) only."""
     stokes = {m for m in MODULES if m.startswith("ciliary_carpet.stokes.")}
     assert not GRAPH["ciliary_carpet.stokes.kernel"]

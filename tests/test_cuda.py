@@ -1,4 +1,4 @@
-"""The CUDA evaluator (ciliary_carpet.stokes.cuda): its kernels under numba's CUDA simulator against the
+"""The CUDA backend (ciliary_carpet.stokes.cuda): its kernels under numba's CUDA simulator against the
 CPU kernels (dense and ranged, every kernel, fp64 to 1e-12, fp32 within its stated bound), and the
 clear error where no GPU is usable.
 

@@ -42,11 +42,11 @@ def _cells(c):
     return control_points(c.bases, Frame.from_bases(c.bases, 2.0, c.direction), "cells")
 
 
-def test_the_carpets_evaluator_runs_every_sum_of_the_design_model(table):
-    """The carpet's evaluator (a scene's ``backend``, ``--backend`` on the command line) runs every
+def test_the_carpets_backend_runs_every_sum_of_the_design_model(table):
+    """The carpet's backend (a scene's ``backend``, ``--backend`` on the command line) runs every
     Stokeslet sum of the design model: the near field's table, the near pairs' kernel blocks, the
     carrier sum and its adjoint, and the speed floor's reference (local: ranged; every cilium:
-    dense). (The floor's reference once summed with the default evaluator whatever was asked.)"""
+    dense). (The floor's reference once summed with the default backend whatever was asked.)"""
     from dataclasses import dataclass
 
     from ciliary_carpet.stokes import Direct

@@ -626,12 +626,12 @@ def test_the_direct_loops_were_compiled_for_these_pair_formulas():
     assert direct._compiled_for() == direct._FINGERPRINT
 
 
-def test_ranged_sums_of_an_evaluator_without_them_run_on_direct_and_say_so(caplog):
+def test_ranged_sums_of_a_backend_without_them_run_on_direct_and_say_so(caplog):
     """FMM does no ranged sums: the front door runs them on Direct, logs it, and FMM's description
     says so; calling FMM.ranged itself is an error, not a silent fallback."""
     import logging
 
-    from ciliary_carpet.stokes import BACKENDS, backend_named, ranged_evaluator
+    from ciliary_carpet.stokes import BACKENDS, backend_named, ranged_backend
 
     T, S, F = random_case(20, 30, seed=41)
     ptr = np.arange(0, 2 * len(T) + 1, 2)
@@ -639,17 +639,17 @@ def test_ranged_sums_of_an_evaluator_without_them_run_on_direct_and_say_so(caplo
     assert not FMM.ranged_sums and Direct.ranged_sums and Auto.ranged_sums
     with pytest.raises(NotImplementedError, match="no ranged sums"):
         FMM().ranged(Stokeslet(), T, S, F, ptr, ranges, 1.0)
-    with caplog.at_level(logging.INFO, logger="ciliary_carpet.stokes.evaluator"):
+    with caplog.at_level(logging.INFO, logger="ciliary_carpet.stokes.dispatch"):
         u = stokeslet_velocity_ranges(T, S, F, ptr, ranges, backend=FMM(1e-9))
     assert np.array_equal(u, stokeslet_velocity_ranges(T, S, F, ptr, ranges, backend=Direct()))
     assert "fmm (fmm3dpy, eps 1e-09; ranged sums: direct, CPU) does no ranged sums: they run on direct" in caplog.text
-    assert isinstance(ranged_evaluator(FMM()), Direct) and ranged_evaluator(Auto()) == Auto()
+    assert isinstance(ranged_backend(FMM()), Direct) and ranged_backend(Auto()) == Auto()
     for name in BACKENDS:
         if name.startswith("cuda"):
             continue  # needs a GPU (tests/test_cuda.py)
         b = backend_named(name)
         if not b.ranged_sums:
-            assert ranged_evaluator(b).describe().split(" (")[0] in b.describe()
+            assert ranged_backend(b).describe().split(" (")[0] in b.describe()
 
 
 def test_a_greens_function_without_its_pair_or_reference_cannot_be_made():
@@ -714,14 +714,14 @@ def test_fp32_precision_is_checked_and_described():
 
 def test_in_fp32_moves_only_the_cpu_sums():
     """The path lines' far sums run in fp32 where the ranged sums would run on the CPU in fp64
-    (Auto without a GPU, Direct); any other evaluator is kept (a GPU keeps its own precision)."""
+    (Auto without a GPU, Direct); any other backend is kept (a GPU keeps its own precision)."""
     from ciliary_carpet.stokes import in_fp32
 
     assert in_fp32(Auto()) == Direct("fp32") and in_fp32(Direct()) == Direct("fp32")
     assert in_fp32(FMM()) == Direct("fp32")  # FMM's ranged sums run on Direct
     assert in_fp32(Direct("fp32")) == Direct("fp32")
 
-    class Unhashable(Direct):  # a user's evaluator: kept as it is, and no TypeError from the cache
+    class Unhashable(Direct):  # a user's backend: kept as it is, and no TypeError from the cache
         __hash__ = None
 
     mine = Unhashable()

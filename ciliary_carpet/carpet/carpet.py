@@ -135,7 +135,7 @@ class Carpet:
         where it came from (``"filaments"`` or ``"given"``).
     wall : distance h > 0 of a no-slip wall z = -h below the plane, or None (free space).
     scales : optional :class:`Scales` for output in SI units.
-    backend : evaluator of the sums (:mod:`ciliary_carpet.stokes`); default Auto.
+    backend : backend of the sums (:mod:`ciliary_carpet.stokes`); default Auto.
     blob : regularisation length eps of the Stokeslets (:data:`BLOB`, the filament radius), > 0
         and at most half the smallest distance between base points; None: singular Stokeslets
         (the flow is then unbounded at the filaments).
@@ -450,7 +450,7 @@ class Carpet:
         """(M, 3) the velocity of :meth:`evaluate` without its error bound (which costs a pass over
         every pair of a point and a cilium): for integrators that evaluate the flow many times.
         ``precision="fp32"`` sums the far cilia's carriers in single precision on the CPU
-        (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`; their rounding error,
+        (:func:`~ciliary_carpet.stokes.dispatch.in_fp32`; their rounding error,
         :func:`~ciliary_carpet.stokes.precision.fp32_error_bound`, is some 1e-7 of the velocity, far
         inside the levels of detail's ``tol``); the resolved near field stays in fp64."""
         if precision not in ("fp64", "fp32"):

@@ -230,7 +230,7 @@ class FlowSums:
 
     def precision(self, precision: str) -> str:
         """The precision the far carriers' sums run in: ``"fp32"`` where it is asked for and the
-        sums run on the CPU (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`), else ``"fp64"``."""
+        sums run on the CPU (:func:`~ciliary_carpet.stokes.dispatch.in_fp32`), else ``"fp64"``."""
         if precision == "fp32" and in_fp32(self.backend if self.backend is not None else _AUTO) == _FP32:
             return "fp32"
         return "fp64"

@@ -4,7 +4,7 @@ Given the thresholds R1, R2, R3 of every cilium (:meth:`~.bounds.Bounds.threshol
 target x (M, 3) sums cilium j at the cheapest order its distance |x - c_j| reaches: its monopole
 carrier (R >= R1), its three dipole carriers (R >= R2), its six quadrupole carriers (R >= R3), or
 its resolved line sources (closer; :class:`~.blocks.ResolvedSources`). All of it is two sparse
-"ranged" sums of the evaluator (:meth:`Backend.ranged <ciliary_carpet.stokes.backend.Backend.ranged>`):
+"ranged" sums of the backend (:meth:`Backend.ranged <ciliary_carpet.stokes.backend.Backend.ranged>`):
 one over the carriers of every cilium (monopoles, then dipoles, then quadrupoles, cilia sorted
 by grid cell: :meth:`~.carriers.Carriers.positions`), read where they lie, one over the
 resolved blocks; each target reads a list of row ranges of them (CSR: ``ptr`` (M + 1,),
@@ -26,7 +26,7 @@ from numba import njit, prange
 
 from ciliary_carpet.carpet.blocks import ResolvedSources
 from ciliary_carpet.carpet.plan import Plan
-from ciliary_carpet.stokes import Direct, Kernel, in_fp32, ranged_evaluator, ranged_fp32
+from ciliary_carpet.stokes import Direct, Kernel, in_fp32, ranged_backend, ranged_fp32
 from ciliary_carpet.stokes import stokeslet_velocity
 
 __all__ = ["Summed", "flow_sum", "dense_sum"]
@@ -386,19 +386,19 @@ def dense_sum(targets: np.ndarray, js: np.ndarray, sources: ResolvedSources, ker
 
 
 def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, n: int,
-             kernel: Kernel, evaluator, mu: float, grouped: bool = False, precision: str = "fp64") -> Summed:
+             kernel: Kernel, backend, mu: float, grouped: bool = False, precision: str = "fp64") -> Summed:
     """Per target (M, 3) the ranged sums (module docstring): every cilium of the ``n`` at the
     order the ``plan`` gives it at its distance, its carriers with ``forces`` (10 n_p, 3) (in the
     order of ``plan.carriers``; or an :class:`~.instants.InstantForces`, whose quadrupoles the
-    ranges read are made first), or its resolved ``sources``; ``evaluator`` runs the sums. With
+    ranges read are made first), or its resolved ``sources``; ``backend`` runs the sums. With
     ``grouped`` (and a plan with :class:`FarGroups`) the far cilia go by groups, the forces then
     holding the groups' carriers after the cilia's (10 n_p + 6 G rows). The sources are laid
     out as coordinate rows (3, K) and handed over as their (K, 3) transposes: the direct sums
     read that layout without a copy. With ``precision="fp32"`` the carriers' sum runs in fp32 on
-    the CPU where ``evaluator``'s would run on it in fp64
-    (:func:`~ciliary_carpet.stokes.evaluator.in_fp32`), over the plan's carriers rounded once
+    the CPU where ``backend``'s would run on it in fp64
+    (:func:`~ciliary_carpet.stokes.dispatch.in_fp32`), over the plan's carriers rounded once
     (:meth:`Plan.rounded`)."""
-    evaluator = ranged_evaluator(evaluator)  # one without ranged sums (the FMM) has them run on Direct
+    backend = ranged_backend(backend)  # one without ranged sums (the FMM) has them run on Direct
     m = targets.shape[0]
     sj = plan.order
     n_car = 10 * sj.size
@@ -411,7 +411,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     if uptr[-1] > _MAX_ROWS and m > 1:
         cut = np.searchsorted(uptr, np.arange(1, -(-int(uptr[-1]) // _MAX_ROWS)) * _MAX_ROWS)
         cut = np.unique(np.clip(cut, 1, m - 1))
-        return Summed.joined([flow_sum(t, plan, forces, sources, n, kernel, evaluator, mu, grouped, precision)
+        return Summed.joined([flow_sum(t, plan, forces, sources, n, kernel, backend, mu, grouped, precision)
                               for t in np.split(targets, cut)])
     # The carriers: one ranged sum over the plan's carriers as they are (coordinate rows, no
     # copy; the resolved cilia's ranges left empty), their forces made where the sum reads
@@ -420,13 +420,13 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
         forces = forces.for_ranges(ranges)
     u = np.zeros((m, 3))
     if n_car and ptr[-1]:
-        # the evaluator directly: every array here is made and checked by this function
-        if precision == "fp32" and in_fp32(evaluator) == _FP32:
+        # the backend directly: every array here is made and checked by this function
+        if precision == "fp32" and in_fp32(backend) == _FP32:
             shift, pos32 = plan.rounded(kernel, grouped)
             u += ranged_fp32(kernel, targets, pos32, shift, forces, ptr, ranges, mu)
         else:
             pos = plan.grouped_soa if grouped else plan.carriers_soa
-            u += evaluator.ranged(kernel, targets, pos.T, forces, ptr, ranges, mu)
+            u += backend.ranged(kernel, targets, pos.T, forces, ptr, ranges, mu)
     # The resolved blocks are made and summed in chunks of cilia of at most _CHUNK_SOURCES
     # sources (the resolved mean flow has 4160 per cilium: a whole carpet's would take hundreds
     # of MB, and fresh memory costs more than the sum); an instantaneous flow's (65 sources per
@@ -435,7 +435,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
     kept = sources.located(used) if used.size else None
     if kept is not None:
         src, frc, slot = kept
-        u += evaluator.ranged(kernel, targets, src, frc, rptr, _kept_ranges(res_j, slot, blk), mu)
+        u += backend.ranged(kernel, targets, src, frc, rptr, _kept_ranges(res_j, slot, blk), mu)
     elif used.size:
         per = max(1, _CHUNK_SOURCES // blk)
         local = np.zeros(n, np.int64)
@@ -446,7 +446,7 @@ def flow_sum(targets: np.ndarray, plan: Plan, forces, sources: ResolvedSources, 
             rng = np.empty((res_j.size, 2), np.int64)
             _block_ranges(res_j, local, per, k, blk, rng)
             sources.fill(jc, src.T, frc.T)
-            u += evaluator.ranged(kernel, targets, src.T, frc.T, rptr, rng, mu)
+            u += backend.ranged(kernel, targets, src.T, frc.T, rptr, rng, mu)
     cnt = counts.sum(axis=0)
     return Summed(velocity=u, orders=cnt[:3], resolved=int(res_j.size), ranges=int(ptr[-1]),
                   sources=int(cnt[0] + 3 * cnt[1] + 6 * cnt[2] + 6 * cnt[3] + res_j.size * blk), grouped=int(cnt[3]))

@@ -265,7 +265,7 @@ class Assembly:
     def carpet(self, chi_N=None) -> Carpet:
         """The scene's carpet with curvatures ``chi_N`` (scalar or (N,); default the scene's
         ``carpet.chi_N``): its base points, initial phases, field direction, wall, units, blob
-        size, the evaluator of its sums (the scene's ``backend``) and its geometry (a standing
+        size, the backend of its sums (the scene's ``backend``) and its geometry (a standing
         carpet's azimuths, ``carpet.azimuth`` in degrees, converted to radians). A coupled carpet whose
         solve did not converge raises :class:`~ciliary_carpet.carpet.coupling.CouplingError` (exit 3 on
         the command line) with its residual history."""

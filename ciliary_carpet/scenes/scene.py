@@ -450,7 +450,7 @@ class Scene:
     output: OutputSpec = _field(default_factory=OutputSpec)
     tolerance: float = key(1e-3, "error tolerance of the flow model (levels of detail), relative to the cilia's "
                            "far-field magnitudes", lo=0, hi=1, lo_open=True, hi_open=True)
-    backend: str = key("auto", "evaluator of the flow sums: `\"auto\"` the GPU when one is usable, else the CPU; "
+    backend: str = key("auto", "backend of the flow sums: `\"auto\"` the GPU when one is usable, else the CPU; "
                        "`\"cuda\"` an NVIDIA GPU (`pip install cilia-flow[gpu]`; fp64, or fp32 within the bound of "
                        "`ciliary_carpet.stokes.cuda`), checked when a render starts; `--backend` on the command line "
                        "overrides it", "str", choices=BACKENDS)

@@ -1,4 +1,4 @@
-"""Stokes flow of point forces: Green's functions and the evaluators that sum them.
+"""Stokes flow of point forces: Green's functions and the backends that sum them.
 
 ``u(x_i) = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j``, the one sum every flow of the package is made of.
 This package is the layer's front door: the names below are all a user or another layer needs.
@@ -8,15 +8,15 @@ Its modules, each one noun, from the bottom up:
     The Green's functions ``G`` (:class:`Kernel` and its registry :data:`KERNELS`): each one's pair
     formula, numpy reference, level-of-detail constants and symmetry.
 :mod:`~ciliary_carpet.stokes.backend`
-    :class:`Backend`, the contract of an evaluator, and the inputs it may assume.
+    :class:`Backend`, the contract of a backend, and the inputs it may assume.
 :mod:`~ciliary_carpet.stokes.direct`, :mod:`~ciliary_carpet.stokes.fmm`, :mod:`~ciliary_carpet.stokes.cuda`
-    The evaluators: :class:`Direct` (numba, CPU), :class:`FMM` (fmm3dpy), :class:`Cuda` (NVIDIA GPU).
+    The backends: :class:`Direct` (numba, CPU), :class:`FMM` (fmm3dpy), :class:`Cuda` (NVIDIA GPU).
 :mod:`~ciliary_carpet.stokes.precision`
     Single precision: the shift and rounding of the inputs and the error bound that the fp32
     sums of :class:`Direct` and :class:`Cuda` share.
-:mod:`~ciliary_carpet.stokes.evaluator`
+:mod:`~ciliary_carpet.stokes.dispatch`
     The front doors :func:`stokeslet_velocity` and :func:`stokeslet_velocity_ranges`, the choice
-    :class:`Auto`, and the evaluators by name (:data:`BACKENDS`, :func:`backend_named`).
+    :class:`Auto`, and the backends by name (:data:`BACKENDS`, :func:`backend_named`).
 :mod:`~ciliary_carpet.stokes.reference`
     :func:`stokeslet_velocity_numpy`, the plain-numpy reference.
 :mod:`~ciliary_carpet.stokes.treecode`
@@ -25,12 +25,12 @@ Its modules, each one noun, from the bottom up:
 from ciliary_carpet.stokes.backend import Backend
 from ciliary_carpet.stokes.cuda import Cuda, CudaUnavailableError, cuda_available
 from ciliary_carpet.stokes.direct import Direct, ranged_fp32
-from ciliary_carpet.stokes.evaluator import (
+from ciliary_carpet.stokes.dispatch import (
     BACKENDS,
     Auto,
     backend_named,
     in_fp32,
-    ranged_evaluator,
+    ranged_backend,
     stokeslet_velocity,
     stokeslet_velocity_ranges,
 )
@@ -59,7 +59,7 @@ __all__ = [
     "Wall", "Kernel", "Stokeslet", "Blake", "RegularisedStokeslet", "RegularisedBlake", "KERNELS", "make_kernel",
     "C1_FREE", "C1_WALL", "C2_FREE", "C2_WALL", "C3_FREE", "C3_WALL",
     "Backend", "Direct", "FMM", "Cuda", "CudaUnavailableError", "cuda_available", "Auto", "BACKENDS",
-    "backend_named", "ranged_evaluator", "in_fp32", "ranged_fp32", "fp32_sources", "fp32_error_bound",
+    "backend_named", "ranged_backend", "in_fp32", "ranged_fp32", "fp32_sources", "fp32_error_bound",
     "FMM_CROSSOVER_PAIRS",
     "stokeslet_velocity", "stokeslet_velocity_ranges", "stokeslet_velocity_numpy", "Treecode", "QUADRUPOLE", "QUADRUPOLE_INV",
 ]

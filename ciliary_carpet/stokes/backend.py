@@ -1,31 +1,31 @@
-"""The evaluator of velocity sums: the contract every evaluator meets, and the inputs it may assume.
+"""The backend of velocity sums: the contract every backend meets, and the inputs it may assume.
 
-An evaluator (:class:`Backend`) says *how* the velocity of point forces in Stokes flow,
+A backend (:class:`Backend`) says *how* the velocity of point forces in Stokes flow,
 
 .. math::
 
     u(x_i) = \\frac{1}{8 \\pi \\mu} \\sum_j G(x_i, \\xi_j) f_j,
 
 is summed for a Green's function ``G`` (:class:`~ciliary_carpet.stokes.kernel.Kernel`, which says
-*what* is summed). The evaluators are :class:`~ciliary_carpet.stokes.direct.Direct`,
+*what* is summed). The backends are :class:`~ciliary_carpet.stokes.direct.Direct`,
 :class:`~ciliary_carpet.stokes.fmm.FMM`, :class:`~ciliary_carpet.stokes.cuda.Cuda` and
-:class:`~ciliary_carpet.stokes.evaluator.Auto`; :mod:`ciliary_carpet.stokes.evaluator` registers
+:class:`~ciliary_carpet.stokes.dispatch.Auto`; :mod:`ciliary_carpet.stokes.dispatch` registers
 them by name and holds the front doors that validate the inputs (:func:`validated`,
 :func:`validated_ranges`) and call them.
 
 The contract (like ``scipy.integrate.OdeSolver``)
 -------------------------------------------------
-An evaluator is a frozen dataclass subclass of :class:`Backend` (its fields: its settings,
+A backend is a frozen dataclass subclass of :class:`Backend` (its fields: its settings,
 validated in ``__post_init__``), registered in
-:data:`~ciliary_carpet.stokes.evaluator.BACKENDS` under a name, and provides
+:data:`~ciliary_carpet.stokes.dispatch.BACKENDS` under a name, and provides
 
 ``dense(kernel, targets, sources, forces, mu) -> (M, 3)``
     The velocity at every target of every source.
 ``ranged_sums`` : bool (class attribute)
     Whether it implements ``ranged``. The front door
-    (:func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity_ranges`) runs the ranged sums of
-    an evaluator without them on :func:`~ciliary_carpet.stokes.evaluator.ranged_evaluator`'s
-    choice (the CPU's direct sum) and logs it; such an evaluator's ``describe()`` says so.
+    (:func:`~ciliary_carpet.stokes.dispatch.stokeslet_velocity_ranges`) runs the ranged sums of
+    a backend without them on :func:`~ciliary_carpet.stokes.dispatch.ranged_backend`'s
+    choice (the CPU's direct sum) and logs it; such a backend's ``describe()`` says so.
 ``ranged(kernel, targets, sources, forces, ptr, ranges, mu) -> (M, 3)`` (when ``ranged_sums``)
     The velocity at each target of its listed source blocks: for target ``i`` the sources ``j``
     in ``ranges[k, 0] : ranges[k, 1]`` for every ``k`` in ``ptr[i] : ptr[i + 1]`` (a CSR list;
@@ -34,7 +34,7 @@ validated in ``__post_init__``), registered in
     Whether it can sum this Green's function (the base class: every one). ``dense`` and
     ``ranged`` raise ValueError for one it cannot.
 ``describe() -> str``
-    One line naming the evaluator, its settings and where its sums run (for summaries).
+    One line naming the backend, its settings and where its sums run (for summaries).
 
 Both sums may assume what :func:`validated` and :func:`validated_ranges` establish: ``targets``
 (M, 3), ``sources`` (N, 3), ``forces`` (N, 3) C-contiguous finite float64 arrays, ``M, N >= 1``
@@ -59,7 +59,7 @@ __all__ = ["Backend", "validated", "validated_ranges", "kernel_of"]
 
 
 class Backend(ABC):
-    """Evaluator of velocity sums for any :class:`~ciliary_carpet.stokes.kernel.Kernel` (base class;
+    """Backend of velocity sums for any :class:`~ciliary_carpet.stokes.kernel.Kernel` (base class;
     the contract is in the module docstring)."""
 
     ranged_sums: ClassVar[bool] = False
@@ -77,11 +77,11 @@ class Backend(ABC):
                                   f"call stokeslet_velocity_ranges, which runs them elsewhere")
 
     def supports(self, kernel: Kernel) -> bool:
-        """Whether this evaluator sums ``kernel`` (the base class: every Green's function)."""
+        """Whether this backend sums ``kernel`` (the base class: every Green's function)."""
         return True
 
     def describe(self) -> str:
-        """One line naming the evaluator (for summaries)."""
+        """One line naming the backend (for summaries)."""
         return type(self).__name__.lower()
 
 
@@ -120,7 +120,7 @@ def kernel_of(kernel: Kernel | None, wall: Wall | None) -> Kernel:
 
 def validated(kernel: Kernel, targets: Any, sources: Any, forces: Any, mu: Any
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """``(targets, sources, forces, mu)`` as an evaluator may assume them (module docstring):
+    """``(targets, sources, forces, mu)`` as a backend may assume them (module docstring):
     (M, 3), (N, 3), (N, 3) float64 arrays ((K, 2) padded with z = 0) and a float.
 
     Raises

@@ -1,7 +1,7 @@
-"""The velocity sums on an NVIDIA GPU: the :class:`Cuda` evaluator (numba-cuda kernels).
+"""The velocity sums on an NVIDIA GPU: the :class:`Cuda` backend (numba-cuda kernels).
 
 :class:`Cuda` is a :class:`~ciliary_carpet.stokes.backend.Backend`: it evaluates the dense sum and the
-ranged (near-field) sum (:mod:`ciliary_carpet.stokes.evaluator`),
+ranged (near-field) sum (:mod:`ciliary_carpet.stokes.dispatch`),
 ``u(x_i) = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j``, for every
 :class:`~ciliary_carpet.stokes.kernel.Kernel` (free space, Blake's wall, regularised, regularised with
 wall, and any other of :data:`~ciliary_carpet.stokes.kernel.KERNELS`), with the same conventions
@@ -87,7 +87,7 @@ the kernels must reach it as a global name, which numba's simulator swaps for it
 
 
 class CudaUnavailableError(RuntimeError):
-    """The CUDA evaluator cannot run here; the message names what is missing."""
+    """The CUDA backend cannot run here; the message names what is missing."""
 
 
 # ------------------------------------------------------------------------------- availability
@@ -298,7 +298,7 @@ def _ranged_kernel(code: int, precision: str, threads: int):
     return ranged
 
 
-# ------------------------------------------------------------------------------- the evaluator
+# ------------------------------------------------------------------------------- the backend
 @dataclass(frozen=True)
 class Cuda(Backend):
     """Dense and ranged velocity sums on an NVIDIA GPU (numba-cuda kernels), every kernel.

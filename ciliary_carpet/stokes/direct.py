@@ -1,4 +1,4 @@
-"""The direct O(M N) velocity sums on the CPU: the :class:`Direct` evaluator (numba loops).
+"""The direct O(M N) velocity sums on the CPU: the :class:`Direct` backend (numba loops).
 
 ``u(x_i) = 1/(8 pi mu) sum_j G(x_i, xi_j) f_j`` summed pair by pair, for every Green's function
 of :data:`~ciliary_carpet.stokes.kernel.KERNELS`: parallel over targets (``prange``, numba's
@@ -284,7 +284,7 @@ def _guard_cache() -> None:
 _guard_cache()
 
 
-# --------------------------------------------------------------------------- the evaluator
+# --------------------------------------------------------------------------- the backend
 def _soa(a: np.ndarray, z_shift: float | None = None) -> np.ndarray:
     """(K, 3) -> a C-contiguous (3, K) float64 array (structure of arrays), z shifted by
     ``-z_shift``: a copy where the layout or the shift needs one (the caller's array is never

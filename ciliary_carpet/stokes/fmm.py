@@ -1,9 +1,9 @@
-"""The Stokes fast multipole method of ``fmm3dpy``: the :class:`FMM` evaluator (dense sums of the
+"""The Stokes fast multipole method of ``fmm3dpy``: the :class:`FMM` backend (dense sums of the
 singular free-space Stokeslet; an optional dependency, ``pip install cilia-flow[fmm]``).
 
 Throughput and the crossover with :class:`~ciliary_carpet.stokes.direct.Direct` are measured by
 ``benchmarks/bench_flow.py`` (``benchmarks/results/bench_kernel.md``):
-:data:`FMM_CROSSOVER_PAIRS` is where :class:`~ciliary_carpet.stokes.evaluator.Auto` switches.
+:data:`FMM_CROSSOVER_PAIRS` is where :class:`~ciliary_carpet.stokes.dispatch.Auto` switches.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ __all__ = ["FMM", "FMM_CROSSOVER_PAIRS", "fmm_available"]
 
 logger = logging.getLogger(__name__)
 
-#: Default :class:`~ciliary_carpet.stokes.evaluator.Auto` threshold on ``M * N``: below it the
+#: Default :class:`~ciliary_carpet.stokes.dispatch.Auto` threshold on ``M * N``: below it the
 #: direct sum is used. The measured crossover (benchmarks/results/bench_kernel.md; 2 cores, AMD
 #: EPYC Zen 3) of the numba direct sum (1.5e9 pairs/s) and the serial fmm3dpy 2.1.0 wheel at
 #: eps = 1e-12 (64 s for M = N = 1e5) on random points in the unit cube: M = N ~ 1e6,
@@ -58,8 +58,8 @@ class FMM(Backend):
     ``stfmm3d`` computes ``sum_j (1/(8 pi)) G^S(x - xi_j) f_j`` (its Stokeslet carries the
     ``1/(8 pi)``; checked numerically), and omits coincident pairs; the result is divided by
     ``mu``. The pip wheel of fmm3dpy 2.1.0 runs on one thread. No ranged sums
-    (``ranged_sums`` False): :func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity_ranges`
-    (and a carpet's sums, through :func:`~ciliary_carpet.stokes.evaluator.ranged_evaluator`)
+    (``ranged_sums`` False): :func:`~ciliary_carpet.stokes.dispatch.stokeslet_velocity_ranges`
+    (and a carpet's sums, through :func:`~ciliary_carpet.stokes.dispatch.ranged_backend`)
     runs them on :class:`~ciliary_carpet.stokes.direct.Direct`, as :meth:`describe` says.
 
     Parameters
@@ -69,9 +69,9 @@ class FMM(Backend):
     direct_otherwise : bool, default False
         What a dense sum of another kernel (a wall, a blob) does: False, a ValueError; True, it
         runs on :class:`~ciliary_carpet.stokes.direct.Direct` (logged once per process and
-        kernel type). The evaluator a scene's or the command line's ``backend = "fmm"`` names
+        kernel type). The backend a scene's or the command line's ``backend = "fmm"`` names
         has it True (a carpet's Green's function is regularised: the FMM then runs none of its
-        sums, and :meth:`describe`, which the render's summary quotes, says which evaluator
+        sums, and :meth:`describe`, which the render's summary quotes, says which backend
         runs which sums).
 
     Raises

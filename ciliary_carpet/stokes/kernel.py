@@ -1,9 +1,9 @@
 """Green's functions of Stokes flow: which tensor ``G`` a velocity sum uses.
 
 A :class:`Kernel` says *what* is summed, ``u(x) = 1/(8 pi mu) sum_j G(x, xi_j) f_j``; an
-evaluator (:class:`~ciliary_carpet.stokes.backend.Backend`: numba CPU, FMM, CUDA) says *how*.
+backend (:class:`~ciliary_carpet.stokes.backend.Backend`: numba CPU, FMM, CUDA) says *how*.
 Each Green's function is written here once, as one class: its per-pair formula (compiled by
-every evaluator), its plain-numpy reference, its level-of-detail Taylor constants and its
+every backend), its plain-numpy reference, its level-of-detail Taylor constants and its
 symmetry. :data:`KERNELS` registers them; :func:`make_kernel` picks one from a wall and a blob
 size. Four Green's functions:
 
@@ -55,7 +55,7 @@ The pair formulas
 Each class's ``pair`` is a scalar numba function of one (target, source) pair, inlined by the
 CPU loops (:mod:`ciliary_carpet.stokes.direct`) and compiled a second time from its Python source
 (``.py_func``) into CUDA device functions (:mod:`ciliary_carpet.stokes.cuda`). Their constants
-are the module globals named in :data:`PAIR_CONSTANTS`, not literals, so that the CUDA evaluator
+are the module globals named in :data:`PAIR_CONSTANTS`, not literals, so that the CUDA backend
 can compile an fp32 copy with fp32 constants (a float literal would promote every fp32 operation
 it touches to fp64 under numba's typing), and their one special function is the global
 :func:`rsqrt`, which the GPU copies bind to the hardware's reciprocal square root. They are
@@ -186,7 +186,7 @@ class Kernel(ABC):
     """A Green's function of Stokes flow (base class; the module docstring lists them).
 
     A new Green's function is a frozen dataclass subclass, registered in :data:`KERNELS` under its
-    :attr:`name`; nothing else needs to change (the evaluators dispatch on :attr:`pair`). It
+    :attr:`name`; nothing else needs to change (the backends dispatch on :attr:`pair`). It
     provides
 
     ``name`` : str (class attribute)

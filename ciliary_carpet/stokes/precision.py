@@ -1,4 +1,4 @@
-"""Single-precision sums: what the CPU's and the GPU's fp32 evaluators share.
+"""Single-precision sums: what the CPU's and the GPU's fp32 backends share.
 
 :class:`~ciliary_carpet.stokes.direct.Direct` (``"fp32"``) and
 :class:`~ciliary_carpet.stokes.cuda.Cuda` (``"fp32"``, ``"fp32-acc64"``) round their inputs to

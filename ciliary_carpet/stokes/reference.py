@@ -1,6 +1,6 @@
 """The plain-numpy reference of the velocity sums (slow; for tests and benchmarks).
 
-:func:`stokeslet_velocity_numpy` evaluates :func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity`
+:func:`stokeslet_velocity_numpy` evaluates :func:`~ciliary_carpet.stokes.dispatch.stokeslet_velocity`
 through each Green's function's own numpy reference
 (:meth:`~ciliary_carpet.stokes.kernel.Kernel.reference`: free space in the vector form
 ``(f (r^2 + 2 eps^2) + R (R.f)) / (r^2 + eps^2)^{3/2}``, the walls as full 3x3 tensors written term
@@ -21,11 +21,11 @@ __all__ = ["stokeslet_velocity_numpy"]
 def stokeslet_velocity_numpy(targets: Any, sources: Any, forces: Any, mu: float = 1.0,
                              wall: Wall | None = None, *, chunk_pairs: int = 65536,
                              kernel: Kernel | None = None) -> np.ndarray:
-    """Plain-numpy reference of :func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity`.
+    """Plain-numpy reference of :func:`~ciliary_carpet.stokes.dispatch.stokeslet_velocity`.
 
     Vectorised over all pairs of a chunk of targets (about ``chunk_pairs`` pairs at a time, which
     bounds the memory: a few hundred bytes per pair of the chunk). Same arguments, conventions
-    and validation as :func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity`; always exact
+    and validation as :func:`~ciliary_carpet.stokes.dispatch.stokeslet_velocity`; always exact
     (no FMM).
     """
     k = kernel_of(kernel, wall)

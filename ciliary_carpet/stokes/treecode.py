@@ -23,9 +23,9 @@ benchmarks/bench_design.py: relative velocity error about 1e-4 at the default 0.
 of 1,000 and 10,000 cilia).
 
 The interaction lists are built once per geometry (vectorised level by level); both sums are
-then one ranged sum of the evaluator each (any evaluator, as
-:func:`~ciliary_carpet.stokes.evaluator.stokeslet_velocity_ranges` runs it), their fixed points
-and lists checked once, at construction, and kept in the evaluator's layout (coordinate rows):
+then one ranged sum of the backend each (any backend, as
+:func:`~ciliary_carpet.stokes.dispatch.stokeslet_velocity_ranges` runs it), their fixed points
+and lists checked once, at construction, and kept in the backend's layout (coordinate rows):
 each sum then checks and converts only its forces (checked and copied every time, the points
 took a quarter of a design's ranged sums at 10^4 cilia). The adjoint uses the same lists
 transposed: each leaf and each far cell gathers the control points that see it into a
@@ -41,7 +41,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ciliary_carpet.stokes.backend import Backend, validated, validated_ranges
-from ciliary_carpet.stokes.evaluator import Auto, ranged_evaluator
+from ciliary_carpet.stokes.dispatch import Auto, ranged_backend
 from ciliary_carpet.stokes.kernel import Kernel
 
 __all__ = ["Treecode", "THETA", "LEAF", "QUADRUPOLE", "QUADRUPOLE_INV"]
@@ -122,7 +122,7 @@ class Treecode:
     kernel : a reciprocal Green's function (:mod:`ciliary_carpet.stokes.kernel`: every kernel there,
         singular or regularised, free or with the wall; one whose ``symmetric`` is False is refused).
     mu : viscosity.
-    backend : the evaluator of the sums.
+    backend : the backend of the sums.
     theta : opening angle in (0, 1) (:data:`THETA`); ``leaf``: leaf size (:data:`LEAF`).
 
     :meth:`apply` (S, 3) forces -> (P, 3) velocities; :meth:`adjoint` (P, 3) weights -> (S, 3),
@@ -203,7 +203,7 @@ class Treecode:
         self.work = {"pairs": int(np.sum(self._ranges[:, 1] - self._ranges[:, 0])), "direct_pairs": P * S,
                      "cells": C, "near_pairs": int(nk.size), "far_pairs": int(fk.size)}
         # the fixed points and lists of both sums, checked once and kept as (3, K) rows (an (K, 3)
-        # view of them reaches the evaluator without a copy)
+        # view of them reaches the backend without a copy)
         fwd = validated(kernel, self._x, self._pts, np.zeros_like(self._pts), mu)[:2]
         adj = validated(kernel, self._pts, self._adj_src, np.zeros_like(self._adj_src), mu)[:2]
         self._ptr, self._ranges = validated_ranges(self._ptr, self._ranges, P, self._pts.shape[0])
@@ -211,7 +211,7 @@ class Treecode:
                                                            self._adj_src.shape[0])
         self._fwd = tuple(np.ascontiguousarray(a.T).T for a in fwd)
         self._adj = tuple(np.ascontiguousarray(a.T).T for a in adj)
-        self._evaluator = ranged_evaluator(backend if backend is not None else Auto())
+        self._backend = ranged_backend(backend if backend is not None else Auto())
 
     def _sum(self, points: tuple, forces: np.ndarray, ptr: np.ndarray, ranges: np.ndarray) -> np.ndarray:
         """The ranged sum of ``forces`` over the checked ``points`` (targets, sources) and lists."""
@@ -219,7 +219,7 @@ class Treecode:
             raise ValueError("forces contains NaN or inf")
         if ranges.shape[0] == 0 or points[1].shape[0] == 0:
             return np.zeros((points[0].shape[0], 3))
-        return self._evaluator.ranged(self.kernel, points[0], points[1], forces, ptr, ranges, self.mu)
+        return self._backend.ranged(self.kernel, points[0], points[1], forces, ptr, ranges, self.mu)
 
     def apply(self, forces: np.ndarray) -> np.ndarray:
         """(P, 3) velocities at the targets of ``forces`` (S, 3) at the sources."""

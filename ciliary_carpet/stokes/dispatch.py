@@ -1,4 +1,4 @@
-"""Velocity of point forces in Stokes flow: the front doors, and the choice of evaluator.
+"""Velocity of point forces in Stokes flow: the front doors, and the choice of backend.
 
 The velocity at ``x`` of point forces ``f_j`` at ``xi_j`` in a fluid of viscosity ``mu`` is
 
@@ -10,7 +10,7 @@ with ``G`` a Green's function (:mod:`ciliary_carpet.stokes.kernel`: the Stokesle
 Blake's tensor above a no-slip :class:`~ciliary_carpet.stokes.kernel.Wall`, their regularised
 versions). :func:`stokeslet_velocity` sums every source for every target;
 :func:`stokeslet_velocity_ranges` sums, per target, over a sparse list of source index ranges
-(near-field corrections). Both validate their inputs and hand them to an evaluator
+(near-field corrections). Both validate their inputs and hand them to a backend
 (:class:`~ciliary_carpet.stokes.backend.Backend`, whose docstring is the contract a new one
 meets).
 
@@ -25,16 +25,16 @@ Conventions shared by every function here:
 * sources and targets lie on or above the wall (a source on it makes no flow);
 * ``M = 0`` or ``N = 0`` give zeros of shape ``(M, 3)``.
 
-The evaluators, by the names a scene or the command line gives (:data:`BACKENDS`,
+The backends, by the names a scene or the command line gives (:data:`BACKENDS`,
 :func:`backend_named`): :class:`Auto` (``"auto"``, the default), which picks the GPU when one is
 usable, else :class:`~ciliary_carpet.stokes.direct.Direct` or
 :class:`~ciliary_carpet.stokes.fmm.FMM`; ``"direct"``, the O(MN) sums compiled with numba;
 ``"fmm"``, the fast multipole method of ``fmm3dpy`` (the singular free-space Stokeslet only:
 the dense sums of other kernels run on :class:`~ciliary_carpet.stokes.direct.Direct`; optional
-dependency ``pip install cilia-flow[fmm]``; no ranged sums: :func:`ranged_evaluator` runs them on
+dependency ``pip install cilia-flow[fmm]``; no ranged sums: :func:`ranged_backend` runs them on
 :class:`~ciliary_carpet.stokes.direct.Direct`; both said in the log and in ``describe()``); ``"cuda"``,
 ``"cuda-fp32"``, ``"cuda-fp32-acc64"``, :class:`~ciliary_carpet.stokes.cuda.Cuda`, both sums on
-an NVIDIA GPU (optional dependency ``pip install cilia-flow[gpu]``). A new evaluator is one module
+an NVIDIA GPU (optional dependency ``pip install cilia-flow[gpu]``). A new backend is one module
 (a :class:`~ciliary_carpet.stokes.backend.Backend`) plus its entry in ``_NAMED`` here.
 """
 from __future__ import annotations
@@ -54,7 +54,7 @@ from ciliary_carpet.stokes.direct import Direct
 from ciliary_carpet.stokes.fmm import FMM, FMM_CROSSOVER_PAIRS, fmm_available
 from ciliary_carpet.stokes.kernel import Kernel, Wall, make_kernel
 
-__all__ = ["Auto", "BACKENDS", "backend_named", "in_fp32", "ranged_evaluator", "stokeslet_velocity",
+__all__ = ["Auto", "BACKENDS", "backend_named", "in_fp32", "ranged_backend", "stokeslet_velocity",
            "stokeslet_velocity_ranges"]
 
 logger = logging.getLogger(__name__)
@@ -97,7 +97,7 @@ class Auto(Backend):
         object.__setattr__(self, "eps", float(self.eps))
 
     def choose(self, m: int, n: int, kernel: Kernel | Wall | None = None) -> Backend:
-        """The evaluator of the dense sum of ``m`` targets, ``n`` sources and ``kernel`` (a Wall or
+        """The backend of the dense sum of ``m`` targets, ``n`` sources and ``kernel`` (a Wall or
         None stand for the singular kernels with and without wall)."""
         gpu = _gpu()
         if gpu is not None:
@@ -135,14 +135,14 @@ _NAMED: dict[str, Callable[[], Backend]] = {
     "cuda-fp32": functools.partial(Cuda, "fp32"),
     "cuda-fp32-acc64": functools.partial(Cuda, "fp32-acc64"),
 }
-"""The registry of evaluators: how each name of :data:`BACKENDS` is built."""
+"""The registry of backends: how each name of :data:`BACKENDS` is built."""
 
 BACKENDS: tuple[str, ...] = tuple(_NAMED)
 """Backend names of scenes and the command line (:func:`backend_named`)."""
 
 
 def backend_named(name: str) -> Backend:
-    """The evaluator called ``name`` (:data:`BACKENDS`): ``"auto"`` :class:`Auto`, ``"direct"``
+    """The backend called ``name`` (:data:`BACKENDS`): ``"auto"`` :class:`Auto`, ``"direct"``
     :class:`~ciliary_carpet.stokes.direct.Direct`, ``"fmm"`` :class:`~ciliary_carpet.stokes.fmm.FMM` (``direct_otherwise=True``),
     ``"cuda"`` :class:`~ciliary_carpet.stokes.cuda.Cuda` in fp64, ``"cuda-fp32"`` /
     ``"cuda-fp32-acc64"`` the same in fp32 / fp32 summed in fp64 (error bound:
@@ -168,10 +168,10 @@ def _told(asked: str, ran: str) -> None:
     logger.info("%s does no ranged sums: they run on %s", asked, ran)
 
 
-def ranged_evaluator(backend: Backend) -> Backend:
-    """The evaluator that runs ``backend``'s ranged sums: itself when it does them
+def ranged_backend(backend: Backend) -> Backend:
+    """The backend that runs ``backend``'s ranged sums: itself when it does them
     (:attr:`~ciliary_carpet.stokes.backend.Backend.ranged_sums`), else
-    :class:`~ciliary_carpet.stokes.direct.Direct` (logged, once per process and evaluator)."""
+    :class:`~ciliary_carpet.stokes.direct.Direct` (logged, once per process and backend)."""
     if backend.ranged_sums:
         return backend
     ran = Direct()
@@ -180,7 +180,7 @@ def ranged_evaluator(backend: Backend) -> Backend:
 
 
 def in_fp32(backend: Backend) -> Backend:
-    """The evaluator of ``backend``'s ranged sums where they may run in fp32 (the far cilia's
+    """The backend of ``backend``'s ranged sums where they may run in fp32 (the far cilia's
     carriers of path lines, whose error budget is far above fp32's: ``ResolvedFlow(precision=
     "fp32")``, :mod:`ciliary_carpet.transport.flow`): :class:`~ciliary_carpet.stokes.direct.Direct`
     ``("fp32")`` where they would run on the CPU's ``Direct()`` (:class:`Auto` without a GPU, or
@@ -194,7 +194,7 @@ def in_fp32(backend: Backend) -> Backend:
 
 @functools.lru_cache(maxsize=16)
 def _in_fp32(backend: Backend) -> Backend:
-    run = ranged_evaluator(backend)
+    run = ranged_backend(backend)
     if isinstance(run, Auto):
         run = _gpu() or Direct()
     return Direct("fp32") if run == Direct() else backend
@@ -284,7 +284,7 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
     backend : Backend, optional
         Default :class:`Auto` (the GPU when usable, else
         :class:`~ciliary_carpet.stokes.direct.Direct`); one without ranged sums has them run by
-        :func:`ranged_evaluator`'s choice.
+        :func:`ranged_backend`'s choice.
     kernel : Kernel, optional
 
     Returns
@@ -305,4 +305,4 @@ def stokeslet_velocity_ranges(targets: Any, sources: Any, forces: Any, ptr: Any,
     backend = _backend(backend)
     if M == 0 or N == 0 or r.shape[0] == 0:
         return np.zeros((M, 3))
-    return ranged_evaluator(backend).ranged(k, t, s, f, p, r, m)
+    return ranged_backend(backend).ranged(k, t, s, f, p, r, m)
