@@ -45,7 +45,7 @@ class Reachability:
     0.21); on 20 x 12 cilia 26.6 deg, 20 and 25 meet (0.009, 0.023), 30 and 40 miss (0.060,
     0.19).
 
-    Width (patterns with a transition width, :attr:`~ciliary_carpet.design.target.Pattern.has_width`:
+    Width (patterns with a transition width, :attr:`~ciliary_carpet.design.patterns.Pattern.has_width`:
     focus, spread, shear; on a carpet without a wall; ``None`` otherwise).
     width_min: the narrowest transition width at which the target's pattern (its kind and
     amplitude) meets its residual threshold on this carpet, estimated; 0 when even a step does
