@@ -40,15 +40,13 @@ import time as _time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
-
 from cilia_runtime.progress import Progress
 
 from ciliary_carpet.output import RenderError
 from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, OutputFolder, is_complete, owned_files
 from ciliary_carpet.output.contract import SUMMARY, RenderContext, StageProgress
 from ciliary_carpet.output.outputs import OUTPUTS
-from ciliary_carpet.output.plan import RenderPlan
+from ciliary_carpet.output.plan import GEOMETRY_OUTPUTS, RenderPlan
 from ciliary_carpet.output.resources import ResourceError
 from ciliary_carpet.scenes.assembly import carpet_for, design, load_table, render_settings
 from ciliary_carpet.scenes.resources import check_resources
@@ -81,9 +79,9 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     False, when a file it would replace was not written by a render (or was changed since), when
     another render is writing ``out_dir``, when ``out_dir`` resolves outside ``within`` (a
     batch's output root), or when the result is not finite; nothing in ``out_dir`` is changed
-    then. ``pool`` (:mod:`~ciliary_carpet.transport.parallel`: :class:`InProcess
-    <ciliary_carpet.transport.parallel.InProcess>`, the default, or a :class:`ProcessPool
-    <ciliary_carpet.transport.parallel.ProcessPool>`, e.g. ``pool_for_threads(n)`` for ``n`` cores)
+    then. ``pool`` (:mod:`~cilia_runtime.pool`: :class:`InProcess
+    <cilia_runtime.pool.InProcess>`, the default, or a :class:`ProcessPool
+    <cilia_runtime.pool.ProcessPool>`, e.g. ``pool_for_threads(n)`` for ``n`` cores)
     says where the path lines' chunks and their error estimate's reference run; the numbers are
     the same wherever they run (a pool's workers are made ready while the carpet is designed:
     ``pool.warm()``). ``scene``: a Scene or the path of a scene file (else a TypeError)."""
@@ -143,11 +141,5 @@ def _header(scene: Scene, plan: RenderPlan, carpet) -> dict:
             "n_cilia": carpet.n, "tolerance": scene.tolerance, "units": "SI" if plan.scales is not None else "L, tau",
             "T0": plan.T0 * T, "backend": (carpet.backend if carpet.backend is not None else Auto()).describe(),
             "beat": beat}
-    if carpet.geometry == "standing":  # (a planar summary has no geometry key)
-        psi = np.round(np.degrees(carpet.azimuth), 9)
-        head["geometry"] = "standing"
-        head["standing"] = {"wall_below_clamps": carpet.wall * plan.units[0] if carpet.wall is not None else None,
-                            "azimuth_deg": {"min": float(psi.min()), "max": float(psi.max()),
-                                            "median": float(np.median(psi))},
-                            "target_height": float(scene.output.height) * plan.units[0]}
+    head.update(GEOMETRY_OUTPUTS[carpet.geometry].summary(carpet, plan.settings, plan.units[0]))
     return head

@@ -767,3 +767,28 @@ def test_kept_mean_blocks_give_the_same_flow(table, monkeypatch):
             np.testing.assert_array_equal(k.velocity(x, CycleMean(), 1e-3), want)
     assert c.sums.mean_blocks.count > 3 and small.sums.mean_blocks.count == 3
     assert pickle.loads(pickle.dumps(c)).sums.mean_blocks.count == 0
+
+
+def test_geometry_places_shapes_centres_heights_and_floor(table):
+    """What the omissions, the frames and the path lines ask a carpet's geometry (carpet/geometry.py):
+    the filaments and force centres in space, the mean heights above the wall, the floor a
+    tracer's stage is held above; a planar carpet's in its plane z = 0."""
+    rng = np.random.default_rng(5)
+    b, chi, ph = layout.square(2, 2, 2.0), rng.uniform(40, 100, 4), rng.random(4)
+    planar = Carpet(b, chi, table, ph, wall=0.5)
+    standing = Carpet(b, chi, table, ph, wall=0.25, geometry="standing", azimuth=rng.uniform(0, 2 * math.pi, 4))
+    js = np.array([1, 3])
+    pos, frc, phs = planar.placement.shapes(planar, 0.3, js)
+    p2, f2, q2 = planar.state(0.3, js)
+    assert pos.shape == p2.shape[:2] + (3,) and np.all(pos[..., 2] == 0) and np.all(frc[..., 2] == 0)
+    np.testing.assert_array_equal(pos[..., :2], p2)
+    np.testing.assert_array_equal(frc[..., :2], f2)
+    np.testing.assert_array_equal(phs, q2)
+    for got, want in zip(standing.placement.shapes(standing, 0.3, js), standing.state_in_space(0.3, js)):
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(planar.placement.centres(planar, js)[:, :2], planar.centres[js])
+    np.testing.assert_array_equal(standing.placement.centres(standing, js), standing.in_space("centres", js))
+    assert planar.placement.mean_heights(planar) is None and planar.placement.floor(0.5) is None
+    h = standing.placement.mean_heights(standing)
+    np.testing.assert_array_equal(h, standing.in_space("centres")[:, 2] + 0.25)
+    assert np.all(h > 0.25) and standing.placement.floor(0.25) == -0.25 and standing.placement.floor(None) is None

@@ -23,7 +23,8 @@ each cilium's 2D frame and place their carriers through the same map.
 :class:`Geometry` is the rest of what differs between the two, as one object per geometry
 (:data:`GEOMETRIES`, by name): the azimuths a carpet takes, where its wall may lie, the map of its
 cilia's frames, the reach of a beat, the points its flow is asked at, the distance from its
-filaments. A new geometry (cilia on a curved surface, say) is one subclass implementing these
+filaments, its cilia's shapes and force centres in space, their heights above the wall and the
+floor a tracer's stage is held above. A new geometry (cilia on a curved surface, say) is one subclass implementing these
 methods and an entry in :data:`GEOMETRIES`; a :class:`~ciliary_carpet.carpet.carpet.Carpet` asks
 its geometry and never tests its name.
 """
@@ -109,6 +110,11 @@ def standing(bases: np.ndarray, psi: np.ndarray) -> Embedding:
     return Embedding(np.concatenate([b, np.zeros((n, 1))], axis=1), axes)
 
 
+def _pad(p: np.ndarray) -> np.ndarray:
+    """``p`` (..., 2) with a zero third component: points or vectors of the plane z = 0 in space."""
+    return np.concatenate([p, np.zeros(p.shape[:-1] + (1,))], axis=-1)
+
+
 def wrap(psi) -> np.ndarray:
     """Azimuths wrapped into [0, 2 pi)."""
     return np.mod(np.asarray(psi, dtype=float), 2.0 * math.pi)
@@ -156,6 +162,26 @@ class Geometry:
         at time ``t``."""
         raise NotImplementedError
 
+    def shapes(self, carpet, t: float, js=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``carpet``'s filaments (of cilia ``js``, default all) at time ``t`` in space: positions
+        (N, n_s, 3), forces per length on the fluid (N, n_s, 3) and phases (N,)."""
+        raise NotImplementedError
+
+    def centres(self, carpet, js) -> np.ndarray:
+        """(len(js), 3) the force centres of ``carpet``'s cilia ``js`` in space."""
+        raise NotImplementedError
+
+    def mean_heights(self, carpet) -> np.ndarray | None:
+        """(N,) each cilium's mean height (its force centre's) above ``carpet``'s wall, or None where
+        every filament lies at the wall's distance (or there is no wall)."""
+        raise NotImplementedError
+
+    def floor(self, wall: float | None) -> float | None:
+        """The height z below which a point is outside the fluid and a tracer's integration stage
+        is held on the wall (no slip: the flow there is zero), for a wall ``wall`` below the clamps;
+        None where points are left alone."""
+        raise NotImplementedError
+
 
 class Planar(Geometry):
     """Every filament in the plane z = 0, the field in it along ``direction``; a wall parallel below
@@ -191,6 +217,19 @@ class Planar(Geometry):
         p = np.asarray(points, dtype=float)[:, :2]
         pos, _, _ = carpet.state(t)
         return cKDTree(pos.reshape(-1, 2)).query(p)[0]
+
+    def shapes(self, carpet, t, js=None):
+        pos, frc, ph = carpet.state(t, js)
+        return _pad(pos), _pad(frc), ph
+
+    def centres(self, carpet, js):
+        return _pad(carpet.centres[js])
+
+    def mean_heights(self, carpet):
+        return None
+
+    def floor(self, wall):
+        return None
 
 
 class Standing(Geometry):
@@ -244,6 +283,20 @@ class Standing(Geometry):
         p = carpet.targets(points)
         pos = carpet.state_in_space(t)[0]
         return cKDTree(pos.reshape(-1, 3)).query(p)[0]
+
+    def shapes(self, carpet, t, js=None):
+        return carpet.state_in_space(t, js)
+
+    def centres(self, carpet, js):
+        return carpet.in_space("centres", js)
+
+    def mean_heights(self, carpet):
+        if carpet.wall is None:
+            return None
+        return carpet.in_space("centres")[:, 2] + float(carpet.wall)
+
+    def floor(self, wall):
+        return None if wall is None else -float(wall)
 
 
 GEOMETRIES: dict[str, Geometry] = {g.name: g for g in (Planar(), Standing())}

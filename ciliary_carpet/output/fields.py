@@ -150,15 +150,9 @@ class FramesOutput(Output):
             jobs, pending = [], []
             for k in range(n):
                 t = k * Tb / n
-                if c.geometry == "standing":  # in space: each beat plane turned by its azimuth
-                    pos, f, ph = c.state_in_space(t)
-                    args = (pos * L, c.s * L, np.arange(c.n), c.chi_N, ph)
-                    kw = dict(drag=f * f_scale, time=t * T)
-                else:
-                    pos, f, ph = c.state(t)
-                    z = np.zeros(pos.shape[:2] + (1,))
-                    args = (np.concatenate([pos * L, z], -1), c.s * L, np.arange(c.n), c.chi_N, ph)
-                    kw = dict(drag=np.concatenate([f * f_scale, z], -1), time=t * T)
+                pos, f, ph = c.placement.shapes(c, t)  # in space (a standing beat plane turned by its azimuth)
+                args = (pos * L, c.s * L, np.arange(c.n), c.chi_N, ph)
+                kw = dict(drag=f * f_scale, time=t * T)
                 if len(pending) > writers:
                     pending.pop(0).result()
                 pending.append(pool.submit(write_cilia, ctx.stage / f"cilia_{k:03d}.vtp", *args, **kw))

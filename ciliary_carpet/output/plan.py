@@ -47,7 +47,7 @@ from ciliary_carpet.transport.flow import AUTO_RESOLVED_BEATS, MEAN_MODEL_ERROR
 from ciliary_carpet.transport.pathlines import check_output_size, check_seeds
 
 __all__ = ["RenderPlan", "RenderSettings", "FieldGrid", "Beat", "seed_points", "pathline_duration", "pathline_model",
-           "standing_flow_direction", "SECTION_TOP", "DOMAIN_MARGIN"]
+           "standing_flow_direction", "SECTION_TOP", "DOMAIN_MARGIN", "GeometryOutputs", "GEOMETRY_OUTPUTS"]
 
 SECTION_TOP = 2.0
 """A standing carpet's vertical section reaches this many times the target plane's height
@@ -86,7 +86,8 @@ class RenderSettings:
         Where a straight filament pushes the fluid, d0 = -field direction (a planar carpet's
         seeds and automatic duration).
     geometry : str
-        "planar" or "standing" (``[carpet] geometry``).
+        "planar" or "standing" (``[carpet] geometry``); :attr:`outputs` is what the render does
+        differently for it.
     """
 
     name: str
@@ -96,6 +97,11 @@ class RenderSettings:
     spacing: float
     flow_direction: np.ndarray
     geometry: str
+
+    @property
+    def outputs(self) -> "GeometryOutputs":
+        """What the render does differently for the carpet's geometry (:data:`GEOMETRY_OUTPUTS`)."""
+        return GEOMETRY_OUTPUTS[self.geometry]
 
 
 @dataclass(frozen=True)
@@ -130,7 +136,7 @@ class FieldGrid:
         m = settings.output.field_margin
         lo, hi = b.min(0) - m - 1.0, b.max(0) + m + 1.0
         nx, ny = settings.output.field_shape
-        z = float(settings.output.height) if settings.geometry == "standing" else 0.0
+        z = settings.outputs.field_height(settings)
         return cls(origin=(lo[0], lo[1], z),
                    spacing=((hi[0] - lo[0]) / max(nx - 1, 1), (hi[1] - lo[1]) / max(ny - 1, 1), 1.0),
                    shape=(nx, ny, 1), box=(lo[0], hi[0], lo[1], hi[1]))
@@ -185,9 +191,12 @@ def seed_points(settings: RenderSettings, carpet: Carpet) -> np.ndarray:
     """(k, 2) the tracers' start points [L] ((k, 3) for a standing carpet: :func:`_standing_seeds`): ``[output] seeds`` as given, or "line" (``n_seeds``
     across the carpet, one spacing upstream of it) or "grid" (about ``n_seeds`` between the
     cilia); a seed inside a filament is nudged across the flow until two blob sizes clear."""
+    return GEOMETRY_OUTPUTS[carpet.geometry].seed_points(settings, carpet)
+
+
+def _planar_seeds(settings: RenderSettings, carpet: Carpet) -> np.ndarray:
+    """(k, 2) a planar carpet's seeds (:func:`seed_points`)."""
     o = settings.output
-    if carpet.geometry == "standing":
-        return _standing_seeds(settings, carpet)
     if not isinstance(o.seeds, str):
         return np.asarray(o.seeds, dtype=float)
     b = carpet.bases
@@ -292,8 +301,13 @@ def pathline_duration(settings: RenderSettings, carpet: Carpet, T0: float) -> tu
     o = settings.output
     if o.periods is not None:
         return float(o.periods) * T0, "scene"
-    if carpet.geometry == "standing":
-        return _standing_duration(settings, carpet)
+    return GEOMETRY_OUTPUTS[carpet.geometry].duration(settings, carpet)
+
+
+def _planar_duration(settings: RenderSettings, carpet: Carpet) -> tuple[float, str]:
+    """:func:`pathline_duration` of a planar carpet without ``[output] periods``: the crossing of
+    its extent along the flow direction plus three spacings at the median mean speed between its
+    cilia, times 1.25."""
     b = carpet.bases
     d0 = np.asarray(settings.flow_direction, dtype=float)
     sp = settings.spacing
@@ -386,15 +400,15 @@ class RenderPlan:
         duration, how = pathline_duration(settings, carpet, T0) if (o.pathlines or o.ftle) else (None, None)
         if o.pathlines:  # PathLineError (output too large for memory)
             check_output_size(carpet, seeds.shape[0], duration, o.samples_per_period)
-        standing = carpet.geometry == "standing"
+        geometry = GEOMETRY_OUTPUTS[carpet.geometry]
         beat = Beat.of(carpet, T0)
         model, why = (pathline_model(settings, duration / beat.period if beat.period > 0 else None) if o.pathlines
                       else (None, None))
         return cls(settings=settings, estimate=estimate, designed=designed, T0=T0, beat=beat,
                    grid=FieldGrid.around(settings, carpet), scales=carpet.scales, seeds=seeds,
                    pathline_model=model, duration=duration,
-                   duration_from=how, section=FieldGrid.section(settings, carpet) if standing else None,
-                   domain=standing_domain(settings, carpet, seeds) if standing else None, model_from=why)
+                   duration_from=how, section=geometry.section(settings, carpet),
+                   domain=geometry.domain(settings, carpet, seeds), model_from=why)
 
     def describe(self) -> str:
         """What the render will compute, in a line, before it starts: the field grid, and the
@@ -424,3 +438,96 @@ class RenderPlan:
         """The time range of what moves [tau]: the path lines' duration, or one beat without them.
         The snapshots' and frames' collections repeat one beat until then (one clock)."""
         return self.duration if self.settings.output.pathlines else self.beat.period
+
+
+class GeometryOutputs:
+    """What a render does differently for a carpet geometry (one object per geometry,
+    :data:`GEOMETRY_OUTPUTS` by name; the model's side is the carpet's
+    :class:`~ciliary_carpet.carpet.geometry.Geometry`): the field grid's height, the tracers'
+    seeds and automatic duration, the vertical section and the tracers' domain, the FTLE's
+    options and the summary's keys of the geometry."""
+
+    name: str
+
+    def field_height(self, settings: RenderSettings) -> float:
+        """The height z [L] of the field grid's plane (:meth:`FieldGrid.around`)."""
+        raise NotImplementedError
+
+    def seed_points(self, settings: RenderSettings, carpet: Carpet) -> np.ndarray:
+        """The tracers' start points [L] (:func:`seed_points`)."""
+        raise NotImplementedError
+
+    def duration(self, settings: RenderSettings, carpet: Carpet) -> tuple[float, str]:
+        """The path lines' automatic duration and how it was chosen (:func:`pathline_duration`)."""
+        raise NotImplementedError
+
+    def section(self, settings: RenderSettings, carpet: Carpet) -> FieldGrid | None:
+        """The vertical section the field outputs also sample (None: none)."""
+        return None
+
+    def domain(self, settings: RenderSettings, carpet: Carpet, seeds: np.ndarray | None) -> tuple | None:
+        """Where the tracers are followed (None: the path lines' default domain)."""
+        return None
+
+    def ftle_options(self, plan: "RenderPlan") -> dict:
+        """The keyword arguments the FTLE field takes for this geometry."""
+        return {}
+
+    def summary(self, carpet: Carpet, settings: RenderSettings, length: float) -> dict:
+        """The summary's keys of this geometry (``length``: L in the summary's length unit)."""
+        return {}
+
+
+class PlanarOutputs(GeometryOutputs):
+    """A planar carpet's render: the field in its plane z = 0, seeds and duration along its flow
+    direction; no section, the default domain, no summary keys (a planar summary has no geometry key)."""
+
+    name = "planar"
+
+    def field_height(self, settings):
+        return 0.0
+
+    def seed_points(self, settings, carpet):
+        return _planar_seeds(settings, carpet)
+
+    def duration(self, settings, carpet):
+        return _planar_duration(settings, carpet)
+
+
+class StandingOutputs(GeometryOutputs):
+    """A standing carpet's render: the field in the target plane z = ``[output] height`` and a
+    vertical section, seeds and duration along its surface flow, the tracers' domain above the
+    substrate; the FTLE in the target plane; the summary's ``geometry`` and ``standing`` keys."""
+
+    name = "standing"
+
+    def field_height(self, settings):
+        return float(settings.output.height)
+
+    def seed_points(self, settings, carpet):
+        return _standing_seeds(settings, carpet)
+
+    def duration(self, settings, carpet):
+        return _standing_duration(settings, carpet)
+
+    def section(self, settings, carpet):
+        return FieldGrid.section(settings, carpet)
+
+    def domain(self, settings, carpet, seeds):
+        return standing_domain(settings, carpet, seeds)
+
+    def ftle_options(self, plan):
+        return {"height": float(plan.grid.origin[2])}
+
+    def summary(self, carpet, settings, length):
+        psi = np.round(np.degrees(carpet.azimuth), 9)
+        return {"geometry": "standing",
+                "standing": {"wall_below_clamps": carpet.wall * length if carpet.wall is not None else None,
+                             "azimuth_deg": {"min": float(psi.min()), "max": float(psi.max()),
+                                             "median": float(np.median(psi))},
+                             "target_height": float(settings.output.height) * length}}
+
+
+GEOMETRY_OUTPUTS: dict[str, GeometryOutputs] = {g.name: g for g in (PlanarOutputs(), StandingOutputs())}
+"""What a render does differently per carpet geometry, by name (the keys of
+:data:`~ciliary_carpet.carpet.geometry.GEOMETRIES`)."""

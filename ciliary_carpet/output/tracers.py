@@ -184,7 +184,7 @@ class FtleOutput(Output):
             f = ftle_field(ctx.mean_flow(), (b[:, 0].min(), b[:, 0].max(), b[:, 1].min(), b[:, 1].max()), (nx, ny),
                            0.25 * plan.duration, rtol=1e-6,
                            atol=1e-4 * plan.settings.spacing,
-                           **({"height": float(plan.grid.origin[2])} if ctx.carpet.geometry == "standing" else {}))
+                           **plan.settings.outputs.ftle_options(plan))
             ftle_to_vti(f, ctx.stage / "ftle.vti", scales=plan.scales)
         defined = np.isfinite(f.ftle)
         ctx.summary["mixing"] = {"mixing_number": f.mixing_number,

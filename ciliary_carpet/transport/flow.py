@@ -97,11 +97,13 @@ def above_wall(carpet: "Carpet", x: np.ndarray) -> np.ndarray:
     """``x`` (M, 3) with the points below a standing carpet's wall moved up onto it (a copy; ``x``
     itself otherwise): the flow there is the wall's, zero (no slip). An integrator's stage may
     land below the wall for a tracer close to it; the tracer itself stops at the wall, where the
-    path lines' domain ends (a render's standing domain starts at the substrate). Planar carpets,
-    and standing ones in free space, are left alone."""
-    if getattr(carpet, "geometry", "planar") != "standing" or carpet.wall is None:
+    path lines' domain ends (a render's standing domain starts at the substrate). The wall's
+    height is the carpet's geometry's :meth:`~ciliary_carpet.carpet.geometry.Geometry.floor`:
+    planar carpets, and standing ones in free space, are left alone."""
+    placement = getattr(carpet, "placement", None)
+    z = None if placement is None else placement.floor(carpet.wall)
+    if z is None:
         return x
-    z = -float(carpet.wall)
     if np.all(x[:, 2] >= z):
         return x
     x = np.array(x, dtype=float)

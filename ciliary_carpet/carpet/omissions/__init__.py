@@ -30,7 +30,6 @@ from ciliary_carpet.carpet.omissions.interaction import (N_CILIA, N_INSTANTS, SP
                                                          beat_speeds, interaction, mean_push)
 from ciliary_carpet.carpet.omissions.oscillation import (N_OSCILLATION, PERIOD_GROUP, coupling_change, drag_tensor,
                                                          oscillation, period_groups, thrust_shift)
-from ciliary_carpet.carpet.omissions.own_flow import pad
 from ciliary_carpet.carpet.omissions.report import Omissions
 from ciliary_carpet.carpet.omissions.wall_drag import wall_drag_formula, wall_drag_ratios, wall_effect
 
@@ -54,7 +53,6 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
                          f"{n_oscillation!r}")
     n_o = int(n_oscillation)
     tol = float(tol)
-    standing = carpet.geometry == "standing"
     s = carpet.s
     n_s = s.size
     w = simpson(n_s)
@@ -91,7 +89,7 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
     # the oscillating part: the others' flow at the force centres, in space, at the instants of each
     # period group; the group at the median period T shares the interaction's
     groups = period_groups(periods[js], T, PERIOD_GROUP) if nj else []
-    centres3 = carpet.in_space("centres", js) if standing else pad(carpet.centres[js])
+    centres3 = carpet.placement.centres(carpet, js)
     at_centres = [(np.full((n_o, g.size, 3), np.nan), np.empty((n_o, g.size * n_s, 3)),
                    np.empty((n_o, g.size * n_s, 3))) for _, g in groups]
     shared = {}
@@ -138,10 +136,9 @@ def omissions(carpet: Carpet, tol: float = 1e-4, n_cilia: int = N_CILIA, n_insta
         thrust_shift_of_coupling_median=_stats(shift_coupling)[0],
         thrust_shift_of_coupling_max=_stats(shift_coupling)[2], oscillation_instants=n_o,
         oscillation_groups=len(groups), oscillation_window=window,
-        **({} if not standing else dict(
-            geometry="standing", wall_height_min=None if heights is None else float(heights.min()),
-            wall_height_max=None if heights is None else float(heights.max()), wall_drag_along_max=low[0],
-            wall_drag_across_max=low[1])))
+        geometry=carpet.geometry, wall_height_min=None if heights is None else float(heights.min()),
+        wall_height_max=None if heights is None else float(heights.max()), wall_drag_along_max=low[0],
+        wall_drag_across_max=low[1])
 
 
 def _stats(r: np.ndarray) -> tuple[float, float, float]:

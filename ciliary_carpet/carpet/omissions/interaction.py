@@ -120,7 +120,7 @@ def interaction(carpet: Carpet, js: np.ndarray, instants: np.ndarray, pts: np.nd
     :func:`~ciliary_carpet.carpet.omissions.oscillation.oscillation`): at the shared instants the
     centres join the evaluation, and the flow there and the cilia's own lines are written into
     those arrays."""
-    standing = carpet.geometry == "standing"
+    geometry = carpet.placement
     nj, n_s = js.size, carpet.s.size
     bases = carpet.bases
     ratio = np.full((2, instants.size, nj), np.nan)
@@ -133,16 +133,10 @@ def interaction(carpet: Carpet, js: np.ndarray, instants: np.ndarray, pts: np.nd
     spread_k = set(np.unique(np.linspace(0, instants.size, n_spread, endpoint=False).astype(int)).tolist())
     near, far = [], []
     for k, t in enumerate(instants):
-        if standing:  # in space: each cilium in its beat plane
-            pos3, frc3, _ = carpet.state_in_space(t, js)
-            targets = np.ascontiguousarray(pos3[:, pts].reshape(-1, 3))
-            src = np.ascontiguousarray(pos3.reshape(-1, 3))
-            force = np.ascontiguousarray((frc3 * w[None, :, None]).reshape(-1, 3))
-        else:
-            pos, frc, _ = carpet.state(t, js)
-            targets = pad(pos[:, pts].reshape(-1, 2))  # (nj * 2, 3)
-            src = pad(pos.reshape(-1, 2))
-            force = pad((frc * w[None, :, None]).reshape(-1, 2))
+        pos3, frc3, _ = geometry.shapes(carpet, t, js)  # in space: each cilium in its frame
+        targets = np.ascontiguousarray(pos3[:, pts].reshape(-1, 3))  # (nj * 2, 3)
+        src = np.ascontiguousarray(pos3.reshape(-1, 3))
+        force = np.ascontiguousarray((frc3 * w[None, :, None]).reshape(-1, 3))
         m = shared.get(k)
         if m is None:
             sample = carpet.evaluate(targets, Instant(t), tol)
@@ -161,24 +155,13 @@ def interaction(carpet: Carpet, js: np.ndarray, instants: np.ndarray, pts: np.nd
         with np.errstate(divide="ignore", invalid="ignore"):
             pointwise[:, k] = (ind / own).T
         err = max(err, float(np.max(bound.reshape(nj, 2) / vrms)))
-        if k in spread_k and standing:  # the same, in space
+        if k in spread_k:  # the same carpet, bases spread by SPREAD: every pair resolved
             shift = pad((spread - 1.0) * bases)
-            p_all, f_all, _ = carpet.state_in_space(t)
+            p_all, f_all, _ = geometry.shapes(carpet, t)
             all_src = (p_all + shift[:, None, :]).reshape(-1, 3)
             all_frc = (f_all * w[None, :, None]).reshape(-1, 3)
             tg = (pos3[:, pts] + shift[js][:, None, :]).reshape(-1, 3)
             own_src = (pos3 + shift[js][:, None, :]).reshape(-1, 3)
-            u2 = stokeslet_velocity(tg, all_src, all_frc, carpet.mu, kernel=carpet.kernel, backend=carpet.backend) \
-                - own_flow(carpet, tg, own_src, force, 2, n_s)
-            far.append(np.linalg.norm(u2, axis=1).reshape(nj, 2)[:, 1] / vrms[:, 1])
-            near.append(ratio[1, k])
-        elif k in spread_k:  # the same carpet, bases spread by SPREAD: every pair resolved
-            shift = (spread - 1.0) * bases
-            p_all, f_all, _ = carpet.state(t)
-            all_src = pad((p_all + shift[:, None, :]).reshape(-1, 2))
-            all_frc = pad((f_all * w[None, :, None]).reshape(-1, 2))
-            tg = pad((pos[:, pts] + shift[js][:, None, :]).reshape(-1, 2))
-            own_src = pad((pos + shift[js][:, None, :]).reshape(-1, 2))
             u2 = stokeslet_velocity(tg, all_src, all_frc, carpet.mu, kernel=carpet.kernel, backend=carpet.backend) \
                 - own_flow(carpet, tg, own_src, force, 2, n_s)
             far.append(np.linalg.norm(u2, axis=1).reshape(nj, 2)[:, 1] / vrms[:, 1])

@@ -79,7 +79,7 @@ import numpy as np
 
 from ciliary_carpet.carpet.carpet import Carpet, Instant
 from ciliary_carpet.carpet.cycles import simpson
-from ciliary_carpet.carpet.omissions.own_flow import own_flow, own_line, pad
+from ciliary_carpet.carpet.omissions.own_flow import own_flow, own_line
 
 __all__ = ["drag_tensor", "thrust_shift", "period_groups", "oscillation", "coupling_change", "N_OSCILLATION",
            "PERIOD_GROUP"]
@@ -186,12 +186,11 @@ def oscillation(carpet: Carpet, js: np.ndarray, groups: list, at_centres: list, 
     nj = js.size
     if int(np.count_nonzero(carpet.flutter)) <= 1:  # no other cilium beats: nothing to size
         return np.full(nj, np.nan), np.full((nj, 2), np.nan), math.nan
-    standing = carpet.geometry == "standing"
     n_s = carpet.s.size
     w = simpson(n_s)
     axes = carpet.embedding.axes[js]  # (len(js), 3, 2): the part of a flow each cilium can feel
     U = np.einsum("jab,ja->jb", axes, um)
-    centres3 = carpet.in_space("centres", js) if standing else pad(carpet.centres[js])
+    centres3 = carpet.placement.centres(carpet, js)
     Ks = np.moveaxis(_drag_samples(carpet, xs), 1, 0)  # (n_phase, len(js), 2, 2)
     periods = carpet.periods[js]
     osc, shift, window = np.full(nj, np.nan), np.zeros((nj, 2)), 0.0

@@ -26,11 +26,8 @@ def own_flow(carpet: Carpet, targets: np.ndarray, src: np.ndarray, frc: np.ndarr
 def own_line(carpet: Carpet, t: float, js: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The resolved lines of cilia ``js`` at time ``t`` in space: sources and forces times the
     Simpson weights ``w``, (len(js) x n_s, 3) each (what the carpet sums for them at ``t``)."""
-    if carpet.geometry == "standing":
-        pos, frc, _ = carpet.state_in_space(t, js)
-        return pos.reshape(-1, 3), (frc * w[None, :, None]).reshape(-1, 3)
-    pos, frc, _ = carpet.state(t, js)
-    return pad(pos.reshape(-1, 2)), pad((frc * w[None, :, None]).reshape(-1, 2))
+    pos, frc, _ = carpet.placement.shapes(carpet, t, js)
+    return pos.reshape(-1, 3), (frc * w[None, :, None]).reshape(-1, 3)
 
 
 def others_mean_flow_in_space(carpet: Carpet, js: np.ndarray, tol: float) -> np.ndarray:

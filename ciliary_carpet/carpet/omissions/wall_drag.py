@@ -129,9 +129,8 @@ def wall_effect(carpet: Carpet, a: float) -> tuple[float | None, np.ndarray | No
     ``lowest`` the same at the lowest mean height of a standing carpet (NaN otherwise) and
     ``regime`` in words."""
     h = None if carpet.wall is None else float(carpet.wall)
-    heights = None
-    if carpet.geometry == "standing" and h is not None:  # each cilium's mean height above the wall: its force centre's
-        heights = carpet.in_space("centres")[:, 2] + h
+    heights = carpet.placement.mean_heights(carpet)  # each cilium's (its force centre's), None: all at h
+    if heights is not None:
         h = float(np.median(heights))
     along, across = wall_drag_ratios(h, a)
     low = wall_drag_ratios(float(heights.min()), a) if heights is not None else (math.nan, math.nan)
