@@ -42,7 +42,7 @@ def _run(args, limit: float = 60.0) -> tuple[subprocess.CompletedProcess, float]
 
 
 def _one_line(err: str) -> str:
-    lines = [ln for ln in err.strip().splitlines() if ln.strip() and "it/s]" not in ln]
+    lines = [ln for ln in err.strip().splitlines() if ln.strip() and "it/s]" not in ln and "%|" not in ln]  # not the bars
     assert len(lines) == 1 and "Traceback" not in err, err
     return lines[0]
 
