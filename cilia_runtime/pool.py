@@ -274,12 +274,23 @@ def _order(tasks: Sequence[Task]) -> list[int]:
     return sorted(range(len(tasks)), key=lambda i: (-float(tasks[i].cost), i))
 
 
+_TRACKER_QUIET = "ignore::UserWarning:multiprocessing.resource_tracker"
+"""The warnings filter the resource tracker of this process's workers starts with: a worker
+stopped by SIGKILL (:func:`stop`, after its grace) cannot unregister the named semaphore numba's
+parallel layer makes in it (its process lock), which the tracker then removes itself; its
+"leaked semaphore" warning on stderr would be noise after a stop that left nothing else behind."""
+
+
 def worker_context(preload: Sequence[str] = ()):
     """The multiprocessing context of worker processes: a fork server, or spawn where there is
     none; never fork. ``preload``: modules the fork server imports once, before it forks any
-    worker (it takes those of the first call that starts it: one fork server per process)."""
+    worker (it takes those of the first call that starts it: one fork server per process). The
+    resource tracker the workers share starts with :data:`_TRACKER_QUIET`."""
     import multiprocessing as mp
+    import sys
 
+    if _TRACKER_QUIET not in sys.warnoptions:  # the tracker takes this process's -W options when it starts
+        sys.warnoptions.append(_TRACKER_QUIET)
     if "forkserver" in mp.get_all_start_methods():
         ctx = mp.get_context("forkserver")
         if preload:
