@@ -260,7 +260,7 @@ def test_a_render_in_a_real_memory_limit_takes_one_place(tmp_path):
     scene = tmp_path / "s.toml"
     scene.write_text("[carpet]\nshape = [3, 3]\n[output]\nn_seeds = 4\nperiods = 1\nfield_shape = [8, 8]\n"
                      "snapshots = 0\nframes = 2\npreview = false\n")
-    s = r.expected_memory(_scene(tmp_path, "[carpet]\nshape = [3, 3]\n"), 1)
+    s = r.expected_memory(_scene(tmp_path, "[carpet]\nshape = [3, 3]\n").needs(), 1)
     limit = int(s + 60 * 2 ** 20)  # one place and a little: two do not fit (two - one is about 240 MB)
     try:
         try:
