@@ -274,7 +274,7 @@ def test_a_render_in_a_real_memory_limit_takes_one_place(tmp_path):
                               str(tmp_path / "out"), "--threads", "2", "--json"],
                              capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
-        assert "path lines on this process alone instead of 2 places" in out.stderr
+        assert "path lines in this process alone instead of 2 processes" in out.stderr
         import json
 
         summ = json.loads((tmp_path / "out" / "summary.json").read_text())
