@@ -118,7 +118,7 @@ class CycleMean:
     """The cycle-mean (steady, time-averaged) flow: each cilium's flow averaged over its own cycle,
     resolved as the average over the table's phase samples, its carriers holding its cycle-mean
     moments (:attr:`Carriers.of_mean <ciliary_carpet.carpet.carriers.Carriers.of_mean>`). Its cheap
-    pairs count as level ``mean``; the far cilia stay quadrupoles (:mod:`~.plan`)."""
+    pairs count as level ``mean``; the far cilia stay quadrupoles (:mod:`~ciliary_carpet.carpet.plan`)."""
 
     level: ClassVar[str] = "mean"
     far: ClassVar[int | None] = 2
