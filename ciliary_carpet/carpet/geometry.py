@@ -30,6 +30,7 @@ its geometry and never tests its name.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 import math
 from dataclasses import dataclass
 from typing import ClassVar
@@ -120,67 +121,67 @@ def wrap(psi) -> np.ndarray:
     return np.mod(np.asarray(psi, dtype=float), 2.0 * math.pi)
 
 
-class Geometry:
+class Geometry(ABC):
     """Where a carpet's cilia beat: the methods a :class:`~ciliary_carpet.carpet.carpet.Carpet`
     asks of its geometry (module docstring). A subclass sets :attr:`name` and implements each
     method; arrays are per cilium (N,) or per point (M, 3), lengths in L, angles in radians."""
 
     name: ClassVar[str]
 
+    @abstractmethod
     def azimuths(self, azimuth, direction: float, n: int) -> np.ndarray | None:
         """The carpet's ``azimuth`` checked and normalised for its ``n`` cilia under a field of
         ``direction`` (None where the geometry takes none); ValueError naming what is wrong."""
-        raise NotImplementedError
 
+    @abstractmethod
     def check_wall(self, wall: float | None, filament_radius: float) -> None:
         """ValueError when ``wall`` (the distance of a no-slip plane below the clamps, or None)
         cannot be this geometry's wall for filaments of radius ``filament_radius``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def frames(self, bases: np.ndarray, azimuth: np.ndarray | None, rotation: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, Embedding | None]:
         """Where each cilium's cycle is placed in its 2D frame and how the frame lies in space:
         (bases in the frame (N, 2), rotation of the field frame into it (2, 2), the
         :class:`Embedding`, None for the plane z = 0)."""
-        raise NotImplementedError
 
     def check_cycles(self, cycles, chi_N: np.ndarray) -> None:
         """ValueError when a cilium's beat leaves the fluid (its cycle data ``cycles``, a
         :class:`~ciliary_carpet.carpet.cycles.CycleData`, and curvatures ``chi_N`` (N,))."""
 
+    @abstractmethod
     def reach(self, centre: np.ndarray, bases: np.ndarray, radius: np.ndarray) -> np.ndarray:
         """(N,) how far each cilium's beat reaches from its base (at most the length 1), from its
         force centre ``centre`` (N, 2) and swept radius ``radius`` (N,) in its frame."""
-        raise NotImplementedError
 
+    @abstractmethod
     def targets(self, p: np.ndarray) -> np.ndarray:
         """(M, 3) the points ``p`` (M, 2) or (M, 3) (finite) the flow is asked at, in space."""
-        raise NotImplementedError
 
+    @abstractmethod
     def filament_distance(self, carpet, points: np.ndarray, t: float) -> np.ndarray:
         """(M,) the distance of ``points`` from the nearest sampled filament point of ``carpet``
         at time ``t``."""
-        raise NotImplementedError
 
+    @abstractmethod
     def shapes(self, carpet, t: float, js=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``carpet``'s filaments (of cilia ``js``, default all) at time ``t`` in space: positions
         (N, n_s, 3), forces per length on the fluid (N, n_s, 3) and phases (N,)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def centres(self, carpet, js) -> np.ndarray:
         """(len(js), 3) the force centres of ``carpet``'s cilia ``js`` in space."""
-        raise NotImplementedError
 
+    @abstractmethod
     def mean_heights(self, carpet) -> np.ndarray | None:
         """(N,) each cilium's mean height (its force centre's) above ``carpet``'s wall, or None where
         every filament lies at the wall's distance (or there is no wall)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def floor(self, wall: float | None) -> float | None:
         """The height z below which a point is outside the fluid and a tracer's integration stage
         is held on the wall (no slip: the flow there is zero), for a wall ``wall`` below the clamps;
         None where points are left alone."""
-        raise NotImplementedError
 
 
 class Planar(Geometry):

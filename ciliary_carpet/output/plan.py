@@ -34,6 +34,7 @@ plane; and the tracers are followed in a box from the substrate up (:func:`stand
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 import math
 from dataclasses import dataclass
 
@@ -440,7 +441,7 @@ class RenderPlan:
         return self.duration if self.settings.output.pathlines else self.beat.period
 
 
-class GeometryOutputs:
+class GeometryOutputs(ABC):
     """What a render does differently for a carpet geometry (one object per geometry,
     :data:`GEOMETRY_OUTPUTS` by name; the model's side is the carpet's
     :class:`~ciliary_carpet.carpet.geometry.Geometry`): the field grid's height, the tracers'
@@ -449,17 +450,17 @@ class GeometryOutputs:
 
     name: str
 
+    @abstractmethod
     def field_height(self, settings: RenderSettings) -> float:
         """The height z [L] of the field grid's plane (:meth:`FieldGrid.around`)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def seed_points(self, settings: RenderSettings, carpet: Carpet) -> np.ndarray:
         """The tracers' start points [L] (:func:`seed_points`)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def duration(self, settings: RenderSettings, carpet: Carpet) -> tuple[float, str]:
         """The path lines' automatic duration and how it was chosen (:func:`pathline_duration`)."""
-        raise NotImplementedError
 
     def section(self, settings: RenderSettings, carpet: Carpet) -> FieldGrid | None:
         """The vertical section the field outputs also sample (None: none)."""
