@@ -85,11 +85,11 @@ Layout. The design model is :mod:`ciliary_carpet.design.model`, the result
 :mod:`ciliary_carpet.design.result`, what a carpet can make :mod:`ciliary_carpet.design.reachability`,
 the fabrication tolerance :mod:`ciliary_carpet.design.tolerance`, the design for a resolved target
 and its verdict :mod:`ciliary_carpet.design.target_design`. This module holds the solve,
-:func:`design_layout`, in named steps: the settings checked (:func:`_checked_settings`), the
-control points inside swept regions weighed (:func:`_weigh_control_points`), the problem and its
-objective (:class:`_Objective`), the local layout (:func:`_local_layout`), the passes
-(:func:`_passes`, each :func:`_solve_pass`), the final check (:func:`_final_check`) and the result
-(:func:`_result`).
+:func:`design_layout`, in named steps: the settings checked (:func:`checked_settings`), the
+control points inside swept regions weighed (:func:`weigh_control_points`), the problem and its
+objective (:class:`DesignProblem`), the local layout (:func:`_local_layout`), the passes
+(:func:`_passes`, each :func:`_solve_pass`), the final check (:func:`final_check`) and the result
+(:func:`design_result`).
 
 One concept over 500 lines: the planar design's solve, its objective and the steps that share it.
 """
@@ -233,23 +233,23 @@ def design_layout(carpet: Carpet, control, *, angles=None, velocities=None, cili
     Returns the best layout by the objective on the full model's flow among the local layout
     and the passes (:attr:`Design.returned`); ``carpet_with(design, carpet)`` is its carpet."""
     clock = _time.perf_counter()
-    X = _checked_settings(control, angles, velocities, speed_floor, floor_weight, regularization, smoothness,
+    X = checked_settings(control, angles, velocities, speed_floor, floor_weight, regularization, smoothness,
                           robust_sigma, robust_samples, inside_swept, threshold)
-    X, angles, velocities, w_pts, inside_info, done = _weigh_control_points(carpet, X, spacing, inside_swept,
+    X, angles, velocities, w_pts, inside_info, done = weigh_control_points(carpet, X, spacing, inside_swept,
                                                                             sample_weights, angles, velocities)
     check_tol = max(tol, 3e-2) if check_tol is None else float(check_tol)
-    ob = _Objective(carpet, X, w_pts, angles, velocities, cilium_angles, clip, check_tol=check_tol,
+    ob = DesignProblem(carpet, X, w_pts, angles, velocities, cilium_angles, clip, check_tol=check_tol,
                     speed_floor=speed_floor, floor_weight=floor_weight, regularization=regularization,
                     smoothness=smoothness, spacing=spacing, floor_radius=floor_radius, robust_sigma=float(robust_sigma),
                     robust_samples=robust_samples, robust_seed=robust_seed, near_radius=near_radius)
     best = _local_layout(ob)
     rms_loc, J_loc = best["rms"], best["J"]
     best, res = _passes(ob, best, outer=outer, ftol=ftol, maxiter=maxiter, sweeps=sweeps, threshold=threshold)
-    chi, u, resid, rms, r_err = _final_check(ob, best, threshold, check_tol)
-    return _result(ob, best, res, chi, u, resid, rms, r_err, rms_loc, J_loc, inside_info, done, threshold, clock)
+    chi, u, resid, rms, r_err = final_check(ob, best, threshold, check_tol)
+    return design_result(ob, best, res, chi, u, resid, rms, r_err, rms_loc, J_loc, inside_info, done, threshold, clock)
 
 
-def _checked_settings(control, angles, velocities, speed_floor, floor_weight, regularization, smoothness,
+def checked_settings(control, angles, velocities, speed_floor, floor_weight, regularization, smoothness,
                       robust_sigma, robust_samples, inside_swept, threshold) -> np.ndarray:
     """The control points (P, 2) of :func:`design_layout`, its settings checked: a TargetError for
     control points that are not finite (P, 2) points, a ValueError naming any setting out of range."""
@@ -279,7 +279,7 @@ def _checked_settings(control, angles, velocities, speed_floor, floor_weight, re
     return X
 
 
-def _weigh_control_points(carpet: Carpet, X: np.ndarray, spacing, inside_swept: str, sample_weights, angles,
+def weigh_control_points(carpet: Carpet, X: np.ndarray, spacing, inside_swept: str, sample_weights, angles,
                           velocities) -> tuple:
     """The control points inside a swept region used (the regularised mean flow is bounded and
     resolved there, see NearField), down-weighted or dropped as ``inside_swept`` asks, and the
@@ -320,17 +320,21 @@ def _weigh_control_points(carpet: Carpet, X: np.ndarray, spacing, inside_swept: 
     return X, angles, velocities, w_pts, inside_info, done
 
 
-class _Objective:
+class DesignProblem:
     """The design problem of one :func:`design_layout` call: the targets at the control points
     (``kind`` "angle": unit directions; "velocity": velocities), the local layout ``chi0``, the
     floor's reference speeds, the regularisers' neighbours, the robust objective's samples, the
     near field, and the work counters; its methods are the residual, the full-model check, the
-    data term and the objective J (module docstring)."""
+    data term and the objective J (module docstring).
+
+    ``chi0`` (N,) replaces the local layout (the regularisers' centre and the first iterate) and
+    ``scale`` the curvature scale chi_c of the regularisers: a program's states share both
+    (:mod:`ciliary_carpet.design.program`)."""
 
     def __init__(self, carpet: Carpet, X: np.ndarray, w_pts: np.ndarray, angles, velocities, cilium_angles,
                  clip: bool, *, check_tol: float, speed_floor: float, floor_weight: float, regularization: float,
                  smoothness: float, spacing, floor_radius, robust_sigma: float, robust_samples: int,
-                 robust_seed: int, near_radius: float):
+                 robust_seed: int, near_radius: float, chi0=None, scale: float | None = None):
         t: ThrustTable = carpet.table
         self.carpet, self.X, self.w_pts, self.check_tol = carpet, X, w_pts, check_tol
         self.speed_floor, self.floor_weight = speed_floor, floor_weight
@@ -367,6 +371,10 @@ class _Objective:
             self.kind = "velocity"
             self.target = U
             self.chi0 = np.clip(carpet.chi_N, -b1, b1)
+        if chi0 is not None:  # a program's joint local layout (design.program)
+            self.chi0 = np.broadcast_to(np.asarray(chi0, dtype=float), (N,)).copy()
+        if scale is not None:  # a program's common curvature scale
+            self.b1 = float(scale)
         self.scaleU = float(np.sum(w_pts[:, None] * self.target ** 2)) if self.kind == "velocity" else 1.0
         if self.kind == "velocity" and self.scaleU == 0:
             raise TargetError("target velocities are all zero")
@@ -479,7 +487,7 @@ class _Objective:
         return self.wrms(e)
 
 
-def _local_layout(ob: _Objective) -> dict:
+def _local_layout(ob: DesignProblem) -> dict:
     """The local layout, the first iterate, measured with the full model: the first "best"
     (rms residual, objective J, curvatures, flow, residuals, label, carpet, solver result, bound)."""
     c_loc, u_loc, e_loc = ob.check(ob.chi0)
@@ -490,7 +498,7 @@ def _local_layout(ob: _Objective) -> dict:
             "label": "local", "carpet": c_loc, "res": None, "bound": e_loc}
 
 
-def _solve_pass(ob: _Objective, p: int, chi: np.ndarray, u_prev: np.ndarray, c_prev: Carpet, *, ftol: float,
+def _solve_pass(ob: DesignProblem, p: int, chi: np.ndarray, u_prev: np.ndarray, c_prev: Carpet, *, ftol: float,
                 maxiter: int, sweeps: int) -> tuple:
     """Pass ``p``: the design model at ``chi`` corrected by the full model's defect there
     (``u_prev`` on ``c_prev``), minimised by L-BFGS-B in x = chi / chi_c, then swept out of
@@ -548,7 +556,7 @@ def _solve_pass(ob: _Objective, p: int, chi: np.ndarray, u_prev: np.ndarray, c_p
     return res, J_scale
 
 
-def _passes(ob: _Objective, best: dict, *, outer: int, ftol: float, maxiter: int, sweeps: int, threshold) -> tuple:
+def _passes(ob: DesignProblem, best: dict, *, outer: int, ftol: float, maxiter: int, sweeps: int, threshold) -> tuple:
     """At most ``outer`` passes (:func:`_solve_pass`), each measured with the full model and kept
     when its objective J on the full model's flow beats the best so far; stopped once the design
     model agrees with the full model within 5%, a pass gained under 2%, or (given a
@@ -584,7 +592,7 @@ def _passes(ob: _Objective, best: dict, *, outer: int, ftol: float, maxiter: int
     return best, res
 
 
-def _final_check(ob: _Objective, best: dict, threshold, check_tol: float) -> tuple:
+def final_check(ob: DesignProblem, best: dict, threshold, check_tol: float) -> tuple:
     """The returned layout's (chi, flow, residuals, rms residual, error bar): with a
     ``threshold``, checked once more at a tolerance picked so that the error bar is at most half
     of it (the bound scales about like the tolerance; the resolved sum, tol = 0, has none). The
@@ -607,7 +615,7 @@ def _final_check(ob: _Objective, best: dict, threshold, check_tol: float) -> tup
     return chi, u, resid, rms, r_err
 
 
-def _result(ob: _Objective, best: dict, res, chi, u, resid, rms: float, r_err: float, rms_loc: float, J_loc: float,
+def design_result(ob: DesignProblem, best: dict, res, chi, u, resid, rms: float, r_err: float, rms_loc: float, J_loc: float,
             inside_info: dict, done: str, threshold, clock: float) -> Design:
     """The :class:`~ciliary_carpet.design.result.Design` of the returned layout, with its summary
     line (the residual and its bar, the local layout's, which layout was returned, the cilia
