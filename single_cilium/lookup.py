@@ -29,12 +29,32 @@ from .params import CiliumParams
 from .tablefile import (FIELDS, ODD, REGIMES, REST_FIELDS, REST_SCALARS, SAFETY, SCALARS, U_DIMS, TableError,
                         coiled, read, regime_of, validate)
 
-__all__ = ["ThrustTable", "DEFAULT_FILE", "DEFAULT_FLOW_FILE"]
+__all__ = ["ThrustTable", "DEFAULT_FILE", "DEFAULT_FLOW_FILE", "FLOW_FILE_150", "SHIPPED_FIELDS", "SHIPPED_TABLES",
+           "shipped_field"]
 
 DEFAULT_FILE = "table_chiE200_eta1.nc"
+"""The shipped table over chi_N in still fluid (chi_E = 200, eta = 1)."""
 DEFAULT_FLOW_FILE = "flow_chiE200_eta1.nc"
 """The shipped table over the background flow (chi_E = 200, eta = 1): what a coupled carpet of
 that field reads (:meth:`ThrustTable.default` with ``flow=True``)."""
+FLOW_FILE_150 = "flow_chiE150_eta1.nc"
+"""The shipped table over the background flow for chi_E = 150, eta = 1 (the grid of
+:data:`DEFAULT_FLOW_FILE`); its flow U = 0 is that field's still-fluid table."""
+SHIPPED_FIELDS = (150.0, 200.0)
+"""The field strengths chi_E (eta = 1) whose tables ship with single_cilium
+(:meth:`ThrustTable.default`)."""
+SHIPPED_TABLES = {150.0: (FLOW_FILE_150, FLOW_FILE_150), 200.0: (DEFAULT_FILE, DEFAULT_FLOW_FILE)}
+"""Each shipped field's files in ``single_cilium/data``: (the still-fluid table's, the table over
+the background flow's); a field shipped only over the flow names that file twice (its still-fluid
+table is the flow U = 0 of it, :meth:`ThrustTable.in_still_fluid`)."""
+
+
+def shipped_field(chi_E: float) -> float | None:
+    """The shipped field (:data:`SHIPPED_FIELDS`) equal to ``chi_E`` within 1e-9 relative, or
+    None when no table ships for it."""
+    x = float(chi_E)
+    return next((c for c in SHIPPED_FIELDS if abs(c - x) <= 1e-9 * max(abs(c), abs(x))), None)
+
 _THRUST = ("thrust_x", "thrust_y", "thrust_norm", "thrust_angle")
 _STEADY = ("stable", "flutter", "divergence")  # rows with a steady state (its force and spectrum)
 #: what :meth:`ThrustTable.rest` serves: the steady state's force, force per length and leading eigenvalue
@@ -233,13 +253,34 @@ class ThrustTable:
         return cls(read(path), str(path))
 
     @classmethod
-    def default(cls, flow: bool = False) -> "ThrustTable":
-        """A shipped table for (chi_E, eta) = (200, 1): over chi_N in still fluid, or with
-        ``flow`` over the background flow too (U_par, U_perp in [-1.5, 1.5] L/tau, spacing 0.5:
-        every flow a carpet of that field sustains, below 0.87 L/tau, with margin; its
-        interpolation error against fresh cycles is in benchmarks/results/bench_table_flow.md).
-        Regenerate with ``python -m single_cilium.table`` (``--flow``)."""
-        return cls.load(resources.files("single_cilium") / "data" / (DEFAULT_FLOW_FILE if flow else DEFAULT_FILE))
+    def default(cls, flow: bool = False, chi_E: float = 200.0) -> "ThrustTable":
+        """A shipped table for the field ``chi_E`` (one of :data:`SHIPPED_FIELDS`, within 1e-9
+        relative) and eta = 1: over chi_N in still fluid, or with ``flow`` over the background
+        flow too (U_par, U_perp in [-1.5, 1.5] L/tau, spacing 0.5: for chi_E = 200 every flow a
+        carpet of that field sustains, below 0.87 L/tau, with margin; its interpolation error
+        against fresh cycles is in benchmarks/results/bench_table_flow.md).
+
+        chi_E = 200 ships both tables; chi_E = 150 ships the table over the flow only, and its
+        still-fluid table is that table's flow U = 0 (:meth:`in_still_fluid`: its own rows, 20
+        over chi_N). Regenerate the chi_E = 200 tables with ``python -m single_cilium.table``
+        (``--flow``).
+
+        Raises
+        ------
+        TableError
+            For a field that does not ship (naming the shipped ones): a scene computes its table
+            with ``table.file`` and ``[table.build]``, code with
+            :func:`single_cilium.table.build_table`.
+        """
+        c = shipped_field(chi_E)
+        if c is None:
+            raise TableError(f"no table ships for chi_E = {chi_E:g}: the shipped tables are for chi_E = "
+                             f"{' or '.join(f'{x:g}' for x in SHIPPED_FIELDS)} (eta = 1); compute one for this field "
+                             f"(a scene: table.file with a [table.build] section; code: "
+                             f"single_cilium.table.build_table)")
+        still, over_flow = SHIPPED_TABLES[c]
+        table = cls.load(resources.files("single_cilium") / "data" / (over_flow if flow else still))
+        return table if flow or still != over_flow else table.in_still_fluid()
 
     def cutoff(self, chi_E: float | None = None, *, U_par: float | None = None,
                U_perp: float | None = None) -> float:

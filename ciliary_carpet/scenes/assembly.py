@@ -24,6 +24,7 @@ import numpy as np
 
 import single_cilium.table as _table
 from cilia_runtime.progress import Progress
+from single_cilium.lookup import SHIPPED_FIELDS, shipped_field
 from single_cilium.table import TableError, ThrustTable
 
 from single_cilium.radau import ConvergenceError
@@ -70,35 +71,47 @@ def render_settings(scene: "Scene") -> RenderSettings:
 def load_table(scene: "Scene", progress: Progress | None = None) -> ThrustTable:
     """The scene's thrust table (``[table]``): loaded, built first if asked (``[table.build]``), and check that it is for the scene's field.
 
+    ``file = "default"`` is the table shipped for the scene's ``field.chi_E``
+    (:data:`~single_cilium.lookup.SHIPPED_FIELDS`, within 1e-9 relative; eta = 1): over the
+    background flow for a coupled carpet, over chi_N in still fluid for ``coupling = "none"``
+    (:meth:`~single_cilium.table.ThrustTable.default`).
+
     A build says first, through ``progress`` (:class:`~cilia_runtime.progress.Progress`: its
     ``note``, then a bar over the rows), what it computes and how long that is expected to take
     (:func:`build_estimate`).
 
-    Tables are cached per (file, modification time), so repeated loads are free; treat the
-    returned table as read-only.
+    Tables are cached per (file, modification time; a shipped one per field and coupling), so
+    repeated loads are free; treat the returned table as read-only.
 
     Raises
     ------
     SceneError
-        If the file is missing and there is no ``[table.build]``, if it is not a readable
-        table, or if its (chi_E, eta) differ from ``[field]`` by more than 1e-9 relative.
+        If ``file = "default"`` and no table ships for ``field.chi_E``, if the file is missing
+        and there is no ``[table.build]``, if it is not a readable table, or if its (chi_E, eta)
+        differ from ``[field]`` by more than 1e-9 relative.
     """
     src = scene.source_name
     spec = scene.table
     p = spec.path(scene)
     if p is None:
         flow = scene.carpet.coupling == "mean"
-        key = ("default", flow)
+        chi_E = shipped_field(scene.field.chi_E)
+        if chi_E is None:
+            raise SceneError(
+                f"{src}: table.file = \"default\" is a shipped table, and tables ship for {_shipped()} "
+                f"(eta = 1), but [field] asks chi_E = {scene.field.chi_E:g}: name a table file with a "
+                f"[table.build] section to compute it for this field (takes minutes; the estimate is said first)")
+        key = ("default", flow, chi_E)
         table = _TABLE_CACHE.get(key)
         if table is None:
-            table = _TABLE_CACHE[key] = ThrustTable.default(flow=flow)
+            table = _TABLE_CACHE[key] = ThrustTable.default(flow=flow, chi_E=chi_E)
         where = "the shipped table" + (" over the background flow" if flow else "")
     else:
         if not p.exists():
             if spec.build is None:
                 raise SceneError(
                     f"{src}: table.file '{spec.file}' not found (looked for {p.absolute()}); fix the path, "
-                    f"use file = \"default\" for the shipped table (chi_E = 200, eta = 1), or add a "
+                    f"use file = \"default\" for the shipped table ({_shipped()}, eta = 1), or add a "
                     f"[table.build] section (n, degree) to compute it there (takes minutes)")
             _check_build_paths(scene, p)
             _build(scene, p, progress)
@@ -121,6 +134,12 @@ def load_table(scene: "Scene", progress: Progress | None = None) -> ThrustTable:
         raise SceneError(f"{src}: {where} is for {got}, but [field] asks {want}; use a table built "
                          f"for this field (table.file with [table.build]) or change [field]")
     return table
+
+
+def _shipped() -> str:
+    """The shipped fields, as messages say them ("chi_E = 150 or chi_E = 200")."""
+    return " or ".join(f"chi_E = {c:g}" for c in SHIPPED_FIELDS)
+
 
 def _check_build_paths(scene: "Scene", p: Path) -> None:
     """Just before a build: when ``table.file`` lies below the scene's folder, the row folder

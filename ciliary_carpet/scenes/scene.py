@@ -23,7 +23,11 @@ scene's geometry are a SceneError. ``field.direction`` is in DEGREES, anticlockw
 straight filament pushes fluid along ``d0 = -field direction`` (:attr:`FieldSpec.flow_direction`).
 
 Sections (all optional): top level (name, description, tolerance, backend), ``[field]``, ``[table]``
-(+ ``[table.build]``), ``[carpet]``, ``[target]``, ``[output]``, ``[units]``.
+(+ ``[table.build]``), ``[carpet]``, ``[target]``, ``[output]``, ``[units]``, and a program's
+states ``[[state]]`` (:class:`StateSpec`: one layout designed for several field strengths, each
+state with its ``chi_E``, its ``[state.target]`` and its ``[state.table]``; a program has no
+``[target]``, ``[table]`` or ``field.chi_E`` of its own; each state's own scene is
+:func:`~ciliary_carpet.scenes.states.state_scenes`).
 
 Values that depend on the thrust table or on the carpet's geometry (the default target angle,
 width and centre) are stored as ``None`` here and resolved with the objects (the target
@@ -48,12 +52,13 @@ from pathlib import Path
 import numpy as np
 
 import single_cilium.table as _table
+from single_cilium.lookup import SHIPPED_FIELDS
 
 from ciliary_carpet.carpet import layout
 from ciliary_carpet.carpet.carpet import BLOB, sbt_viscosity
 from ciliary_carpet.carpet.coupling import COUPLINGS
 from ciliary_carpet.carpet.geometry import GEOMETRIES
-from ciliary_carpet.scenes.paths import check_name, check_scene_paths
+from ciliary_carpet.scenes.paths import check_derived, check_input, check_name, check_scene_paths, table_parts
 from ciliary_carpet.transport.flow import AUTO_RESOLVED_BEATS, FLOWS, MEAN_MODEL_ERROR
 from ciliary_carpet.scenes.schema import SceneError, Section, key, keys_of, markdown_table, read, reader, section, values
 from ciliary_carpet.stokes import BACKENDS
@@ -63,8 +68,8 @@ from ciliary_carpet.scenes.target_spec import TargetSpec
 logger = logging.getLogger(__name__)
 
 __all__ = ["SceneError", "Scene", "FieldSpec", "TableSpec", "TableBuild", "CarpetSpec", "TargetSpec",
-           "OutputSpec", "Units", "load_scene", "scene_from_dict", "as_scene", "reference", "LATTICES", "PHASES",
-           "TARGET_KINDS"]
+           "OutputSpec", "Units", "StateSpec", "load_scene", "scene_from_dict", "as_scene", "reference", "LATTICES",
+           "PHASES", "TARGET_KINDS", "MIN_STATES"]
 
 LATTICES = ("row", "square", "hexagonal", "points")
 MIN_SPACING = 1.0
@@ -89,6 +94,11 @@ PHASES = ("random", "synchronous", "wave")
 TARGET_KINDS = KINDS
 SEEDS = ("line", "grid")
 SECTIONS = ("field", "table", "carpet", "target", "output", "units")
+STATE = "state"
+"""The TOML key of a program's states, an array of tables (``[[state]]``)."""
+MIN_STATES = 2
+"""The fewest states a program has (one field is a plain scene: ``[field]`` and ``[target]``)."""
+_SHIPPED = " or ".join(f"{c:g}" for c in SHIPPED_FIELDS)
 
 
 # ------------------------------------------------------------------------------ sections
@@ -144,6 +154,12 @@ class TableBuild(Section):
     flow_points: int = key(5, "values per flow component with `flow` (odd: U = 0 is a flow of the grid)", "int", lo=3,
                            hi=101)
 
+    @classmethod
+    def parse(cls, src: str, data, section: str = "table.build") -> dict:
+        """The keyword arguments of the ``[table.build]`` table ``data`` (file ``src``; ``section``:
+        its dotted name in messages, ``"state[1].table.build"`` for a state's)."""
+        return read(src, TableBuild, data, section)[1]
+
 
 @section
 @dataclass(frozen=True)
@@ -155,26 +171,29 @@ class TableSpec(Section):
 
     SECTION = "table"
 
-    file: str = key("default", '`"default"`: a table shipped with single_cilium (chi_E = 200, eta = 1): over the '
-                    'background flow for a coupled carpet (`carpet.coupling = "mean"`, the default), over chi_N in '
-                    'still fluid for `coupling = "none"`; else a NetCDF table path, relative to the scene file. Its '
-                    "(chi_E, eta) must match `[field]` (relative 1e-9)", "str")
+    file: str = key("default", '`"default"`: the table shipped with single_cilium for the field\'s chi_E '
+                    f'({_SHIPPED}; eta = 1; another field is an error): over the background flow for a coupled '
+                    'carpet (`carpet.coupling = "mean"`, the default), over chi_N in still fluid for '
+                    '`coupling = "none"`; else a NetCDF table path, relative to the scene file. Its (chi_E, eta) must '
+                    "match `[field]` (relative 1e-9)", "str")
     build: TableBuild | None = key(None, "the `[table.build]` section", "table")
 
     @classmethod
-    def parse(cls, src: str, data) -> dict:
-        r, kw = read(src, TableSpec, data)
+    def parse(cls, src: str, data, section: str = "table") -> dict:
+        """The keyword arguments of the ``[table]`` table ``data`` (file ``src``; ``section``: its
+        dotted name in messages, ``"state[1].table"`` for a state's)."""
+        r, kw = read(src, TableSpec, data, section)
         file = kw["file"]
         if not file.strip():
             raise r.fail("file", '"default" or a table path', file)
         kw["build"] = None
         if r.has("build"):
-            kw["build"] = TableBuild(**TableBuild.parse(src, r.data["build"]))
+            kw["build"] = TableBuild(**TableBuild.parse(src, r.data["build"], f"{section}.build"))
             if kw["build"].flow is not None and kw["build"].flow_points % 2 == 0:
-                raise SceneError(f"{src}: table.build.flow_points must be odd (U = 0, still fluid, must be a flow of "
-                                 f"the grid), got {kw['build'].flow_points}")
+                raise SceneError(f"{src}: {section}.build.flow_points must be odd (U = 0, still fluid, must be a flow "
+                                 f"of the grid), got {kw['build'].flow_points}")
             if file == "default":
-                raise SceneError(f'{src}: [table.build] needs table.file to name where the table is written '
+                raise SceneError(f'{src}: [{section}.build] needs {section}.file to name where the table is written '
                                  f'(file = "default" is the shipped table)')
         return kw
 
@@ -237,7 +256,7 @@ class CarpetSpec(Section):
                                   shown=f"float, [1/{VISCOSITY_FACTOR:g}, {VISCOSITY_FACTOR:g}] x the filaments'")
     coupling: str = key("mean", '`"mean"`: each cilium beats in the mean flow the others make at it, solved '
                         "self-consistently (the flow a carpet really makes; needs a table over the background flow: "
-                        'the shipped one for chi_E = 200, eta = 1, else `[table.build]`); `"none"`: each beats as '
+                        f'the shipped one for chi_E = {_SHIPPED}, eta = 1, else `[table.build]`); `"none"`: each beats as '
                         "in still fluid (the uncoupled model: faster flows than the cilia can sustain)", "str",
                         choices=COUPLINGS)
     blob: float = key(BLOB, "blob size of the regularised Stokeslets in L: the filament radius (the flow stays "
@@ -432,11 +451,87 @@ class Units(Section):
 
 @section
 @dataclass(frozen=True)
+class StateSpec(Section):
+    """``[[state]]``: one state of a program, a scene whose one layout of cilia (one chi_N per
+    cilium) is designed for several field strengths at once: the state's field strength
+    ``chi_E``, the flow the carpet is to make in it (``target``, a :class:`TargetSpec` given by the
+    ``[state.target]`` table, with the keys of ``[target]``; every kind but "none"), its weight in
+    the joint design, and its thrust table (``table``, a :class:`TableSpec` given by
+    ``[state.table]`` and ``[state.table.build]``; default the table shipped for ``chi_E``). The
+    program's other sections (``[field]`` without ``chi_E``, ``[carpet]``, ``[output]``, ...)
+    hold for every state; :func:`~ciliary_carpet.scenes.states.state_scenes` gives each state's
+    own scene. In messages the states are ``state[0]``, ``state[1]``, ... in file order."""
+
+    SECTION = STATE
+
+    name: str = key(doc="the state's name, unique in the program: a file name (the state's scene is named "
+                    "`<scene name>_<name>`)", type="str")
+    chi_E: float = key(doc="the state's field strength L kappa_E, one per state (two within 1e-9 relative are "
+                       "duplicate states); its table is the one shipped for it (chi_E = " + _SHIPPED + ") or "
+                       "`[state.table.build]`'s", lo=-CHI_E_MAX, hi=CHI_E_MAX,
+                       what=f"a nonzero number in [-{CHI_E_MAX:g}, {CHI_E_MAX:g}]",
+                       shown=f"float in [-{CHI_E_MAX:g}, {CHI_E_MAX:g}], not 0")
+    weight: float = key(1.0, "the state's weight in the joint design (its share of the objective, relative to the "
+                        "other states')", lo=0, lo_open=True)
+    target: TargetSpec | None = key(None, "`[state.target]`: the flow the carpet is to make in this state, with the "
+                                    "keys of `[target]` (any kind but `\"none\"`: a state without a target is an "
+                                    "error)", "custom", shown="table", default_shown="required")
+    table: TableSpec = key(TableSpec(), "`[state.table]` (and `[state.table.build]`): the state's thrust table, with "
+                           "the keys of `[table]`; its (chi_E, eta) must match the state's chi_E and `field.eta`",
+                           "custom", shown="table", default_shown='`file = "default"`')
+
+    @classmethod
+    def parse(cls, src: str, data, index: int | None = None, base_dir=None) -> dict:
+        """The keyword arguments of one ``[[state]]`` table ``data`` (file ``src``; ``index``: its
+        place in the file, for the dotted keys of messages, ``state[index].chi_E``; with
+        ``base_dir``, a target's "points" file must exist there); SceneError naming the key
+        otherwise."""
+        sec = STATE if index is None else f"{STATE}[{index}]"
+        r, kw = read(src, StateSpec, data, sec)
+        for k in ("name", "chi_E"):
+            if not r.has(k):
+                raise SceneError(f"{src}: {sec}.{k} is required (each [[state]] gives its name and its field "
+                                 f"strength chi_E)")
+        if not kw["name"].strip():
+            raise r.fail("name", "a non-empty string", kw["name"])
+        check_name(src, r.key("name"), kw["name"])
+        if kw["chi_E"] == 0.0:
+            raise r.fail("chi_E", keys_of(StateSpec)["chi_E"][0].accepted() + " (a state is a field: 0 is none)",
+                         r.data["chi_E"])
+        if not r.has("target"):
+            raise SceneError(f"{src}: {sec}.target is missing: a state without a target; give the state a "
+                             f"[state.target] table, with the keys of [target] (kind, angle, ...)")
+        kw["target"] = TargetSpec(**TargetSpec.parse(src, r.data["target"], base_dir, f"{sec}.target"))
+        if kw["target"].kind == "none":
+            raise SceneError(f'{src}: {sec}.target.kind = "none": a state without a target; each state of a '
+                             f'program is designed for a flow (a layout without a target is a plain scene)')
+        kw["table"] = TableSpec(**TableSpec.parse(src, r.data.get("table", {}), f"{sec}.table"))
+        return kw
+
+    def to_dict(self) -> dict:
+        """The state as TOML types: its keys, ``target`` and ``table`` as tables."""
+        d = {k: getattr(self, k) for k in ("name", "chi_E", "weight") if getattr(self, k) is not None}
+        if self.target is not None:
+            d["target"] = self.target.to_dict() if isinstance(self.target, TargetSpec) else self.target
+        d["table"] = self.table.to_dict() if isinstance(self.table, TableSpec) else self.table
+        return d
+
+
+@section
+@dataclass(frozen=True)
 class Scene:
     """A validated scene (see the module docstring and ``designs/README.md``): the top-level keys
     below, the sections ``field``, ``table``, ``carpet``, ``target``, ``output`` and ``units``
-    (None: dimensionless), and ``source``: the scene file (None for scenes made in memory), for
-    relative paths and messages."""
+    (None: dimensionless), ``states`` (a program's :class:`StateSpec`, ``[[state]]``; empty for
+    a scene of one field) and ``source``: the scene file (None for scenes made in memory), for
+    relative paths and messages.
+
+    A program (at least :data:`MIN_STATES` states) has no ``[target]`` and no ``[table]`` of
+    its own (its states have them) and its ``[field]`` gives no ``chi_E``: its ``field.chi_E``
+    is its first state's, so that what reads ``[field]`` alone sees one of its fields, and a
+    standing program's ``output.height``, when not given, is left to each state's scene (the
+    height of its target). :func:`~ciliary_carpet.scenes.states.state_scenes` gives the scene of
+    each state."""
 
     SECTION = ""
 
@@ -454,6 +549,7 @@ class Scene:
                        "`\"cuda\"` an NVIDIA GPU (`pip install cilia-flow[gpu]`; fp64, or fp32 within the bound of "
                        "`ciliary_carpet.stokes.cuda`), checked when a render starts; `--backend` on the command line "
                        "overrides it", "str", choices=BACKENDS)
+    states: tuple[StateSpec, ...] = ()
     units: Units | None = None
     source: Path | None = None
 
@@ -469,8 +565,40 @@ class Scene:
                 raise SceneError(f"<Scene>: {k} must be a {cls.__name__}, got {type(v).__name__}")
         if self.source is not None:
             object.__setattr__(self, "source", Path(self.source))
+        states = tuple(self.states) if isinstance(self.states, (list, tuple)) else self.states
+        if not isinstance(states, tuple) or not all(isinstance(x, StateSpec) for x in states):
+            raise SceneError(f"<Scene>: states must be a tuple of StateSpec, got {self.states!r}")
+        object.__setattr__(self, "states", states)
+        self._state_rules()
         self._geometry_rules()
         self._viscosity_rule()
+
+    def _state_rules(self) -> None:
+        """The rules of a program (:attr:`states`; none without states): at least
+        :data:`MIN_STATES` states, unique names (each giving a valid scene name,
+        ``<name>_<state name>``), no two fields within 1e-9 relative, no ``[target]`` or
+        ``[table]`` of its own; sets ``field.chi_E`` to the first state's."""
+        if not self.states:
+            return
+        src = self.source_name if self.source is not None else "<scene>"
+        _check_state_count(src, len(self.states))
+        if self.target.kind != "none":
+            raise SceneError(f"{src}: target is ambiguous in a scene with [[state]] (each state has its own "
+                             f"target): move [target] into the states, as [state.target]")
+        if self.table != TableSpec():
+            raise SceneError(f"{src}: table is ambiguous in a scene with [[state]] (each state has its own table): "
+                             f"move [table] into the states, as [state.table]")
+        for i, st in enumerate(self.states):
+            for j, other in enumerate(self.states[:i]):
+                if st.name == other.name:
+                    raise SceneError(f"{src}: state[{i}].name = {st.name!r} is state[{j}]'s name too: the states' "
+                                     f"names must be unique (each state's scene is named after it)")
+                if abs(st.chi_E - other.chi_E) <= 1e-9 * max(abs(st.chi_E), abs(other.chi_E)):
+                    raise SceneError(f"{src}: state[{i}].chi_E = {st.chi_E:g} is state[{j}]'s field too (within 1e-9 "
+                                     f"relative): duplicate states; each state is another field strength")
+            check_name(src, f"state[{i}].name", f"{self.name}_{st.name}")
+        if self.field.chi_E != self.states[0].chi_E:
+            object.__setattr__(self, "field", replace(self.field, chi_E=self.states[0].chi_E))
 
     def _viscosity_rule(self) -> None:
         """``carpet.viscosity`` within :data:`VISCOSITY_FACTOR` of the filaments' own viscosity
@@ -496,24 +624,33 @@ class Scene:
                 raise SceneError(f"{src}: field.direction must be 0 (or absent) for carpet.geometry = \"standing\": the "
                                  f"field is along +z, normal to the substrate; turn the cilia with carpet.azimuth "
                                  f"(got field.direction = {self.field.direction:g})")
+            for where, t in self._targets():
+                if t.kind != "none" and t.kind not in STANDING_KINDS:
+                    raise SceneError(f"{src}: {where}.kind = \"{t.kind}\" is a planar carpet's deflection pattern; a "
+                                     f"standing carpet's target is a surface flow: {where}.kind = "
+                                     f"{', '.join(repr(k) for k in STANDING_KINDS)}")
+            # the plane the fields and seeds use is the target's, when there is one (a program's states
+            # each have theirs: their scenes resolve it)
             t = self.target
-            if t.kind != "none" and t.kind not in STANDING_KINDS:
-                raise SceneError(f"{src}: target.kind = \"{t.kind}\" is a planar carpet's deflection pattern; a "
-                                 f"standing carpet's target is a surface flow: target.kind = "
-                                 f"{', '.join(repr(k) for k in STANDING_KINDS)}")
-            # the plane the fields and seeds use is the target's, when there is one
-            h = (t.height if t.kind != "none" else 1.5) if o.height is None else o.height
+            h = o.height
+            if h is None and not self.states:
+                h = t.height if t.kind != "none" else 1.5
             o = replace(o, seeds="grid" if o.seeds is None else o.seeds, height=h)
         else:
             if o.height is not None:
                 raise SceneError(f"{src}: output.height applies only to carpet.geometry = \"standing\" (a planar "
                                  f"carpet's fields lie in its own plane z = 0)")
-            if self.target.kind in SURFACE_KINDS:
-                raise SceneError(f"{src}: target.kind = \"{self.target.kind}\" is a surface flow of a standing carpet "
-                                 f"(carpet.geometry = \"standing\"); a planar carpet's targets are deflections")
+            for where, t in self._targets():
+                if t.kind in SURFACE_KINDS:
+                    raise SceneError(f"{src}: {where}.kind = \"{t.kind}\" is a surface flow of a standing carpet "
+                                     f"(carpet.geometry = \"standing\"); a planar carpet's targets are deflections")
             o = replace(o, seeds="line" if o.seeds is None else o.seeds)
         if o is not self.output:
             object.__setattr__(self, "output", o)
+
+    def _targets(self) -> list[tuple[str, TargetSpec]]:
+        """(dotted name, target) of the scene's ``[target]`` and of each state's."""
+        return [("target", self.target)] + [(f"state[{i}].target", st.target) for i, st in enumerate(self.states)]
 
     @property
     def base_dir(self) -> Path:
@@ -536,12 +673,17 @@ class Scene:
     def to_dict(self) -> dict:
         """The resolved scene, defaults filled in, as plain TOML/JSON types (keys that are None,
         i.e. decided later or absent, are left out; ``source`` is not a scene key and is not
-        included). ``scene_from_dict(s.to_dict(), s.source)`` gives ``s`` back."""
+        included). ``scene_from_dict(s.to_dict(), s.source)`` gives ``s`` back. A program's states
+        are the list ``"state"`` (``[[state]]``), and it has no ``"target"``, no ``"table"`` and no
+        ``field.chi_E`` (its states give them)."""
         d = {"name": self.name, "description": self.description, "tolerance": self.tolerance, "backend": self.backend,
              "field": self.field.to_dict(), "table": self.table.to_dict(), "carpet": self.carpet.to_dict(),
              "target": self.target.to_dict(), "output": self.output.to_dict()}
         if self.units is not None:
             d["units"] = self.units.to_dict()
+        if self.states:
+            del d["field"]["chi_E"], d["table"], d["target"]
+            d[STATE] = [st.to_dict() for st in self.states]
         return d
 
     def reduced(self, max_cilia: int = 16, n_seeds: int = 10, field_shape=(16, 16), periods: float = 2,
@@ -611,7 +753,8 @@ def reference() -> dict[str, str]:
             "`[target]`": markdown_table(TargetSpec, kinds=True),
             "Target kinds": kinds_table(),
             "`[output]`": markdown_table(OutputSpec),
-            "`[units]`": markdown_table(Units)}
+            "`[units]`": markdown_table(Units),
+            "`[[state]]`": markdown_table(StateSpec)}
 
 
 # ------------------------------------------------------------------------------ parsing
@@ -653,14 +796,16 @@ def scene_from_dict(data: dict, source=None, *, allow_outside: bool = False) -> 
     src = str(source) if source is not None else "<scene>"
     if not isinstance(data, dict):
         raise SceneError(f"{src}: a scene must be a table of keys, got {type(data).__name__}")
-    reader(src, Scene, data, extra=SECTIONS)  # unknown keys
-    top = _top_kw(src, {k: v for k, v in data.items() if k not in SECTIONS},
+    reader(src, Scene, data, extra=SECTIONS + (STATE,))  # unknown keys
+    top = _top_kw(src, {k: v for k, v in data.items() if k not in SECTIONS + (STATE,)},
                   source.stem if source is not None else "scene")
     base = source.parent if source is not None else Path.cwd()
     check_scene_paths(src, data, base, allow_outside=allow_outside)
+    states = _states(src, data, base, allow_outside) if STATE in data else ()
     sec = {k: data.get(k, {}) for k in SECTIONS}
     return Scene(
         **top,
+        states=states,
         field=FieldSpec(**FieldSpec.parse(src, sec["field"])),
         table=TableSpec(**TableSpec.parse(src, sec["table"])),
         carpet=CarpetSpec(**CarpetSpec.parse(src, sec["carpet"])),
@@ -669,6 +814,55 @@ def scene_from_dict(data: dict, source=None, *, allow_outside: bool = False) -> 
         units=Units(**Units.parse(src, sec["units"])) if "units" in data else None,
         source=source,
     )
+
+
+def _check_state_count(src: str, n: int) -> None:
+    """SceneError unless a program's ``n`` states are at least :data:`MIN_STATES`."""
+    if n < MIN_STATES:
+        raise SceneError(f"{src}: state: a program needs at least {MIN_STATES} [[state]] tables (one layout, several "
+                         f"fields), got {n}; a single field is a plain scene: chi_E in [field] and its [target]")
+
+
+def _states(src: str, data: dict, base: Path, allow_outside: bool) -> tuple[StateSpec, ...]:
+    """The :class:`StateSpec` of the ``[[state]]`` tables of the parsed TOML ``data`` (file
+    ``src``, folder ``base``), after the rules only the file shows: ``state`` an array of
+    tables, no ``[target]``, ``[table]`` or ``field.chi_E`` beside it, and each state's
+    ``table.file`` and ``target.file`` below the scene's folder (unless ``allow_outside``)."""
+    raw = data[STATE]
+    if isinstance(raw, dict):
+        raise SceneError(f"{src}: state must be an array of tables, one [[state]] per state (double brackets), "
+                         f"got a single table [state]")
+    if not isinstance(raw, list):
+        raise SceneError(f"{src}: state must be an array of tables, one [[state]] per state, got {raw!r}")
+    for k in ("target", "table"):
+        if k in data:
+            raise SceneError(f"{src}: [{k}] is ambiguous in a scene with [[state]] (each state has its own {k}): "
+                             f"move it into the states, as [state.{k}]")
+    if isinstance(data.get("field"), dict) and "chi_E" in data["field"]:
+        raise SceneError(f"{src}: field.chi_E is ambiguous in a scene with [[state]] (each state has its own field "
+                         f"strength): move it into the states, as state.chi_E")
+    _check_state_count(src, len(raw))
+    out = []
+    for i, d in enumerate(raw):
+        if isinstance(d, dict):
+            _check_state_paths(src, f"{STATE}[{i}]", d, base, allow_outside)
+        out.append(StateSpec(**StateSpec.parse(src, d, i, base)))
+    return tuple(out)
+
+
+def _check_state_paths(src: str, sec: str, d: dict, base: Path, allow_outside: bool) -> None:
+    """The path rules of :func:`~ciliary_carpet.scenes.paths.check_scene_paths` for the state
+    ``sec``'s ``table.file`` (unless "default"; with ``build``, its row folder too) and
+    ``target.file``, before anything is opened. Values of the wrong type are left to the
+    state's own checks."""
+    for part, skip in (("table", "default"), ("target", None)):
+        t = d.get(part)
+        v = t.get("file") if isinstance(t, dict) else None
+        if isinstance(v, str) and v.strip() and v != skip:
+            full = check_input(src, f"{sec}.{part}.file", v, base, allow_outside=allow_outside)
+            if part == "table" and isinstance(t.get("build"), dict):
+                check_derived(src, f"{sec}.table.file", "the table build's row folder", table_parts(full), base,
+                              allow_outside=allow_outside)
 
 
 def _top_kw(src, data, default_name="scene") -> dict:

@@ -110,15 +110,16 @@ class TargetSpec(Section):
         "`sigma_psi` > 0, both sampled)", "bool", kinds=DESIGNED_KINDS)
 
     @classmethod
-    def parse(cls, src: str, data, base_dir=None) -> dict:
+    def parse(cls, src: str, data, base_dir=None, section: str = "target") -> dict:
         """The keyword arguments of the ``[target]`` table ``data`` (from file ``src``; with
-        ``base_dir``, a "points" file must exist there); SceneError naming the key otherwise."""
-        r = reader(src, TargetSpec, data)
+        ``base_dir``, a "points" file must exist there); SceneError naming the key otherwise.
+        ``section``: the table's dotted name in messages (``"state[1].target"`` for a state's)."""
+        r = reader(src, TargetSpec, data, section)
         spec = keys_of(TargetSpec)
         kind = r.get("kind", *spec["kind"])
         for k, (s, _) in spec.items():  # before the values: the clearer message
             if r.has(k) and s.kinds is not None and kind not in s.kinds:
-                raise SceneError(f"{src}: target.{k} does not apply to kind = \"{kind}\" (it is used by kind = "
+                raise SceneError(f"{src}: {section}.{k} does not apply to kind = \"{kind}\" (it is used by kind = "
                                  f"{', '.join(repr(x) for x in s.kinds)})")
         kw = values(r, TargetSpec)
         if PATTERN_OF[kind].surface:
@@ -131,16 +132,16 @@ class TargetSpec(Section):
         file = kw["file"]
         if "file" in PATTERN_OF[kind].keys:
             if file is None:
-                raise SceneError(f"{src}: target.file is required with kind = \"{kind}\" (a CSV with columns "
+                raise SceneError(f"{src}: {section}.file is required with kind = \"{kind}\" (a CSV with columns "
                                  f"x, y, u, v or a NetCDF file with variables x, y, u, v)")
             if not file.strip():
                 raise r.fail("file", "a file path", file)
             p = Path(file).expanduser()
             if base_dir is not None and not (p if p.is_absolute() else base_dir / p).is_file():
-                raise SceneError(f"{src}: target.file '{file}' not found (looked for {(base_dir / p).absolute()})")
+                raise SceneError(f"{src}: {section}.file '{file}' not found (looked for {(base_dir / p).absolute()})")
         if kw["robust"] and not (kw["sigma"] > 0 or kw.get("sigma_psi", 0.0) > 0):
-            raise r.fail("robust", "false unless target.sigma > 0 (or, standing carpets, target.sigma_psi > 0: it "
-                         "designs for the fabrication tolerance)", kw["robust"])
+            raise r.fail("robust", f"false unless {section}.sigma > 0 (or, standing carpets, {section}.sigma_psi > 0: "
+                         "it designs for the fabrication tolerance)", kw["robust"])
         return kw
 
     def to_dict(self) -> dict:
