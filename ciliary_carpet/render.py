@@ -70,7 +70,8 @@ class RenderResult:
 
 
 def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress | None = None,
-           max_seconds: float = 86400.0, within=None, pool=None) -> RenderResult:
+           max_seconds: float = 86400.0, within=None, pool=None, designed=None, program: dict | None = None
+           ) -> RenderResult:
     """Render ``scene`` into ``out_dir`` (see the module docstring for what is written and
     :mod:`ciliary_carpet.output.folder` for the output-folder rules). Raises SceneError, TargetError,
     TableError or DesignError for a scene that cannot be rendered, ResourceError when it
@@ -84,8 +85,16 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
     <cilia_runtime.pool.ProcessPool>`, e.g. ``pool_for_threads(n)`` for ``n`` cores)
     says where the path lines' chunks and their error estimate's reference run; the numbers are
     the same wherever they run (a pool's workers are made ready while the carpet is designed:
-    ``pool.warm()``). ``scene``: a Scene or the path of a scene file (else a TypeError)."""
+    ``pool.warm()``). ``scene``: a Scene or the path of a scene file (else a TypeError).
+
+    A program scene (``[[state]]``) is :func:`render_program`'s: one folder per state.
+    ``designed``: (Design, Carpet) of a layout designed elsewhere (a program's, in this scene's
+    field), rendered instead of designing the scene's target; ``program``: the program's record,
+    kept in the summary under ``program``."""
     scene = as_scene(scene, "render()")
+    if scene.states:
+        return render_program(scene, out_dir, overwrite=overwrite, progress=progress, max_seconds=max_seconds,
+                              within=within, pool=pool)
     resolved = scene.to_dict()  # the summary's copy of the scene
     with OutputFolder(out_dir, overwrite=overwrite, scene=scene, within=within) as folder:
         estimate = check_resources(scene, max_seconds=max_seconds)
@@ -103,13 +112,18 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         load_table(scene, progress=progress)  # a [table.build] says what it computes, and shows its rows
         t_table = _time.perf_counter() - t0
         # table (now cached), range check, target and carpet: scenes.assembly
-        d, carpet = design(scene) if scene.target.kind != "none" else (None, carpet_for(scene))
+        if designed is not None:
+            d, carpet = designed
+        else:
+            d, carpet = design(scene) if scene.target.kind != "none" else (None, carpet_for(scene))
         clock = {"table": t_table, "design": _time.perf_counter() - t0 - t_table}
         settings = render_settings(scene)
         plan = RenderPlan.decide(settings, carpet, designed=d is not None, estimate=estimate)  # errors before outputs
         progress.note(plan.describe() + f" (design {clock['design']:.1f} s)")
         outputs = [o for o in (cls() for cls in OUTPUTS.values()) if o.wanted(plan)]
         head = _header(scene, plan, carpet)
+        if program is not None:
+            head["program"] = program
         head["table"] = {"file": "default" if table_file is None else str(table_file), "built": built}
         if built:  # a [table.build] computed it for this render: what it cost
             head["table"].update(build_seconds=t_table, size_bytes=table_file.stat().st_size)
@@ -143,3 +157,77 @@ def _header(scene: Scene, plan: RenderPlan, carpet) -> dict:
             "beat": beat}
     head.update(GEOMETRY_OUTPUTS[carpet.geometry].summary(carpet, plan.settings, plan.units[0]))
     return head
+
+
+PROGRAM_FILES = ("program.json", "program.md", "program.nc")
+"""What a program's render writes next to its states' folders: the program's summary (strict
+JSON and Markdown) and its layout (NetCDF, :func:`~ciliary_carpet.design.program.program_dataset`)."""
+
+
+def render_program(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress | None = None,
+                   max_seconds: float = 86400.0, within=None, pool=None) -> RenderResult:
+    """Render a program scene (``[[state]]``): design one layout for every state
+    (:func:`~ciliary_carpet.scenes.program.design_program_scene`), then render it in each
+    state's field into ``out_dir/<state name>/`` (a complete render folder each, with the
+    output-folder rules of :func:`render`; its summary holds the program under ``program``),
+    and write :data:`PROGRAM_FILES` into ``out_dir``: the states' residuals with their error
+    bars, the limiting state, the switch between states (how many beats the cilia take to settle
+    after the field changes, :func:`~ciliary_carpet.design.program_reach.switch_transient`) and the
+    layout. ``out_dir`` holding program files from an earlier render is refused unless
+    ``overwrite``; nothing else in it is touched."""
+    from cilia_runtime.files import strict_json, write_bytes, write_netcdf
+
+    from ciliary_carpet.design.program import program_dataset
+    from ciliary_carpet.output.report import program_markdown
+    from ciliary_carpet.scenes.program import design_program_scene
+    from ciliary_carpet.scenes.states import state_scenes
+
+    out = Path(out_dir)
+    if within is not None:
+        import os
+
+        root, real = Path(os.path.realpath(within)), Path(os.path.realpath(out))
+        if real != root and root not in real.parents:
+            raise RenderError(f"{out} resolves to {real}, outside the output folder {root}; nothing was written")
+    old = [f for f in PROGRAM_FILES if (out / f).exists()]
+    if old and not overwrite:
+        raise RenderError(f"{out} already holds a program's render ({', '.join(old)}); pass overwrite to replace "
+                          "the files a render wrote there")
+    for _, sc in state_scenes(scene):  # every state's resources and backend before any work
+        check_resources(sc, max_seconds=max_seconds)
+        backend_named(sc.backend)
+    progress = progress if progress is not None else Progress()
+    t0 = _time.perf_counter()
+    progress.note(f"render {scene.name}: designing one layout of {scene.carpet.n_cilia} cilia for "
+                  f"{len(scene.states)} field states ({', '.join(s.name for s in scene.states)})")
+    prog, states = design_program_scene(scene)
+    t_design = _time.perf_counter() - t0
+    record = prog.summary()
+    record["switch"] = _switches(states)
+    results = []
+    for st in states:
+        rec = dict(record, state=st.name)
+        r = render(st.scene, out / st.name, overwrite=overwrite, progress=progress, max_seconds=max_seconds,
+                   within=within, pool=pool, designed=(st.design, st.carpet), program=rec)
+        results.append(r)
+    record["seconds"] = {"design": t_design, "total": _time.perf_counter() - t0}
+    record["scene"], record["source"] = scene.name, scene.source_name
+    record["folders"] = {st.name: st.name for st in states}
+    out.mkdir(parents=True, exist_ok=True)
+    write_netcdf(program_dataset(prog), out / "program.nc")
+    write_bytes(out / "program.md", program_markdown(record).encode())
+    write_bytes(out / "program.json", (strict_json(record, indent=1) + "\n").encode())
+    files = tuple(PROGRAM_FILES) + tuple(f"{st.name}/{f}" for st, r in zip(states, results) for f in r.files)
+    logger.info("rendered the program %s into %s in %.1f s", scene.name, out, record["seconds"]["total"])
+    return RenderResult(out_dir=out, files=files, summary=record)
+
+
+def _switches(states) -> list[dict]:
+    """Per state: how long the cilia take to settle after the field switches to it."""
+    from ciliary_carpet.design.program_reach import switch_transient
+
+    out = []
+    for st in states:
+        tr = switch_transient(st.carpet.table.in_still_fluid(), st.design.chi_N)
+        out.append({"to": st.name, "chi_E": float(st.carpet.table.chi_E), **tr.summary()})
+    return out

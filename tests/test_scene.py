@@ -215,11 +215,11 @@ def test_table_default_is_the_shipped_table(tmp_path):
 
 
 def test_table_mismatched_field(tmp_path):
-    s = load_scene(write(tmp_path, "[field]\nchi_E = 150\n"))
+    s = load_scene(write(tmp_path, "[field]\nchi_E = 170\n"))  # no table ships for 170
     with pytest.raises(SceneError) as e:
         load_table(s)
     msg = str(e.value)
-    assert str(s.source) in msg and "chi_E = 200" in msg and "chi_E = 150" in msg
+    assert str(s.source) in msg and "chi_E = 200" in msg and "chi_E = 170" in msg
     s = load_scene(write(tmp_path, "[field]\neta = 1.000001\n"))
     with pytest.raises(SceneError, match="eta"):
         load_table(s)

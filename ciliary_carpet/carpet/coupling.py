@@ -80,6 +80,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.sparse.linalg import LinearOperator, gmres
 
+from single_cilium.tablefile import TableError
+
 from ciliary_carpet.stokes import Wall, make_kernel, stokeslet_velocity_ranges
 
 logger = logging.getLogger(__name__)
@@ -94,6 +96,9 @@ RTOL = 1e-3
 """Default relative residual of the coupled solve."""
 DU = 1e-3
 """Step (L / tau) of the central differences of the mean thrust in the flow."""
+RESPONSE_CHI_SAMPLES = 257
+"""Curvatures at which :meth:`CouplingResponse.forces` samples each cilium's thrust in its frozen
+flow (uniform over the table's chi_N range, both signs)."""
 DENSE_CILIA = 2000
 """Most cilia of a :class:`CouplingResponse` (dense: 4 N^2 numbers, 128 MB at 2000)."""
 GMRES_RTOL = 1e-6
@@ -521,12 +526,38 @@ class CouplingResponse:
         self._lu = lu_factor(np.eye(2 * n) - PA)
         self._table, self._rot = carpet.table, carpet.rotation
         self._flow = _field_frame(carpet, U)
+        self._coef = self._grid = None
 
     def forces(self, chi, nu: int = 0) -> np.ndarray:
         """(N, 2) the cilia's mean forces (each cilium's 2D frame: the lab plane of a planar carpet,
         the beat plane of a standing one) at curvatures ``chi`` in the coupled state's flows U
-        (frozen), or their chi derivatives (``nu = 1``): the table's thrust at (chi_j, U_j)."""
-        return _thrust(self._table, np.asarray(chi, dtype=float), nu=nu, **self._flow) @ self._rot.T
+        (frozen), or their chi derivatives (``nu = 1``): the table's thrust at (chi_j, U_j),
+        sampled once per cilium at :data:`RESPONSE_CHI_SAMPLES` curvatures over the table's range
+        and interpolated by a cubic spline in chi (its derivative for ``nu = 1``; the table
+        itself interpolates its chi_N rows by splines, and the design corrects the model by the
+        full model's defect, so this only saves the table's per-call cost)."""
+        if self._coef is None:
+            from scipy.interpolate import CubicSpline
+
+            top = float(self._table.chi_N_range[1])
+            self._grid = g = np.linspace(-top, top, RESPONSE_CHI_SAMPLES)
+            n = self.n
+            flow = {k: np.tile(v, g.size) for k, v in self._flow.items()}
+            try:
+                T = _thrust(self._table, np.tile(g[:, None], (1, n)).ravel(), **flow).reshape(g.size, n, 2)
+            except TableError:  # a curvature of the grid the table does not serve: the table at each call
+                self._coef = False
+            else:
+                self._coef = CubicSpline(g, np.nan_to_num(T), axis=0).c  # (4, G - 1, N, 2)
+        if self._coef is False:
+            return _thrust(self._table, np.asarray(chi, dtype=float), nu=nu, **self._flow) @ self._rot.T
+        g = self._grid
+        c = np.clip(np.asarray(chi, dtype=float), g[0], g[-1])
+        i = np.clip(np.searchsorted(g, c, side="right") - 1, 0, g.size - 2)
+        t = (c - g[i])[:, None]
+        a = self._coef[:, i, np.arange(self.n), :]  # (4, N, 2)
+        v = ((a[0] * t + a[1]) * t + a[2]) * t + a[3] if nu == 0 else (3.0 * a[0] * t + 2.0 * a[1]) * t + a[2]
+        return v @ self._rot.T
 
     def apply(self, dF: np.ndarray) -> np.ndarray:
         """(N, 2) Q dF."""

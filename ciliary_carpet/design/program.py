@@ -220,7 +220,8 @@ rank u_j = frac(a1 x_j / h + a2 y_j / h) of a cilium at (x_j, y_j) on a lattice 
 spreads any fraction of the cilia evenly over the carpet (ordered dithering)."""
 
 
-def mixture_layout(parts: list, grid: np.ndarray, bases: np.ndarray, spacing: float | None) -> np.ndarray | None:
+def mixture_layout(parts: list, grid: np.ndarray, bases: np.ndarray, spacing: float | None,
+                   flows: list | None = None) -> np.ndarray | None:
     """The joint local layout: per cilium a curvature drawn from the best local *mixture* of
     curvatures (module docstring), or None when no state has an angle target.
 
@@ -238,7 +239,12 @@ def mixture_layout(parts: list, grid: np.ndarray, bases: np.ndarray, spacing: fl
     common speed; each cilium then takes the curvature at which the cumulative fractions pass
     its rank u_j (:data:`DITHER`), so that neighbouring cilia realise the mixture. Where one
     curvature serves every state the mixture is that curvature. Cilia asking the same angles (to
-    1e-3 rad) share one program."""
+    1e-3 rad) share one program.
+
+    ``flows``: per state (of ``parts``) None, or the background flow (2,) [L/tau, lab frame] the
+    cilia beat in (a coupled carpet: the median of the others' flow at the cilia), at which the
+    thrusts F_s are then read off the state's table over the flow (a cilium that rests in still
+    fluid may beat in a flow, and the flow turns and slows the thrust)."""
     from scipy.optimize import linprog
 
     angle_parts = [(st, ob, want) for st, ob, want in parts if want is not None]
@@ -246,10 +252,23 @@ def mixture_layout(parts: list, grid: np.ndarray, bases: np.ndarray, spacing: fl
         return None
     S, G = len(angle_parts), grid.size
     Ft = []  # per state (G, 2) relative thrust in the lab frame
-    for st, ob, want in angle_parts:
-        m = ob.mom(grid)["F"] @ st.carpet.rotation.T
+    flows = [None] * len(parts) if flows is None else list(flows)
+    for (st, ob, want), U in zip(angle_parts, [f for f, (_, _, w) in zip(flows, parts) if w is not None]):
         F0 = ob.mom(np.zeros(1))["F"][0]
-        Ft.append(m / float(np.hypot(*F0)))
+        if U is None:
+            m = ob.mom(grid)["F"]
+        else:
+            u = st.carpet.rotation.T @ np.asarray(U, dtype=float)  # field frame: (U_perp, U_par)
+            (p0, p1), (q0, q1) = st.carpet.table.U_range
+            up, uq = float(np.clip(u[1], p0, p1)), float(np.clip(u[0], -q1, q1))
+            a = np.abs(grid)
+            sg = np.where(grid < 0, -1.0, 1.0)
+            # the mirror image: chi_N -> -chi_N is x -> -x, so a negative chi_N in U_perp is |chi_N| in -U_perp
+            q = np.clip(sg * uq, q0, q1)
+            tx = np.array([st.carpet.table.scalar("thrust_x", ai, U_par=up, U_perp=qi) for ai, qi in zip(a, q)])
+            ty = np.array([st.carpet.table.scalar("thrust_y", ai, U_par=up, U_perp=qi) for ai, qi in zip(a, q)])
+            m = np.column_stack([sg * np.nan_to_num(tx), np.nan_to_num(ty)])
+        Ft.append((m @ st.carpet.rotation.T) / float(np.hypot(*F0)))
     d0 = [st.carpet.rotation @ np.array([0.0, -1.0]) for st, _, _ in angle_parts]  # straight flow, lab frame
     base = [math.atan2(d[1], d[0]) for d in d0]
     W = np.array([float(st.weight) for st, _, _ in angle_parts])
@@ -406,8 +425,6 @@ def design_program(states, *, tol: float = 1e-3, check_tol: float | None = None,
     chi0 = mixture_layout(parts, grid, carpets[0].bases, states[0].spacing)
     if chi0 is None:
         chi0 = np.clip(carpets[0].chi_N, -B, B)
-    for ob in obs:
-        ob.chi0 = chi0.copy()
     W = np.array([float(s.weight) for s in states])
     counters = {"iterations": 0, "evaluations": 0, "checks": 0, "sweeps": 0, "swept_cilia": 0, "passes": 0}
 
@@ -422,8 +439,27 @@ def design_program(states, *, tol: float = 1e-3, check_tol: float | None = None,
     def score(chi, checked) -> float:
         return float(sum(w * ob.score(u, chi, c) for w, ob, (c, u, _) in zip(W, obs, checked)))
 
+    for ob in obs:
+        ob.chi0 = chi0.copy()
     checked = check_all(chi0)
     J_loc = score(chi0, checked)
+    # coupled carpets: the mixture again, with each state's thrusts in the flow its cilia beat in
+    for _ in range(2 if any(c.coupled is not None for c, _, _ in checked) else 0):
+        flows = [None if c.coupled is None else np.median(c.coupled.background, axis=0) for c, _, _ in checked]
+        chi1 = mixture_layout(parts, grid, carpets[0].bases, states[0].spacing, flows)
+        if chi1 is None:
+            break
+        for ob in obs:
+            ob.chi0 = chi1.copy()
+        checked1 = check_all(chi1)
+        J1 = score(chi1, checked1)
+        logger.info("program: mixture layout in the coupled flows %s: objective %.4g (before %.4g)",
+                    ", ".join(f"({f[0]:.3g}, {f[1]:.3g})" for f in flows if f is not None), J1, J_loc)
+        if not J1 < J_loc:
+            for ob in obs:
+                ob.chi0 = chi0.copy()
+            break
+        chi0, checked, J_loc = chi1, checked1, J1
     local = [(ob.wrms(ob.residual(u)), ob.score(u, chi0, c)) for ob, (c, u, _) in zip(obs, checked)]
     best = {"chi": chi0.copy(), "J": J_loc, "checked": checked, "label": "local", "res": None}
     logger.info("program: joint local layout, objective %.4g; rms %s", J_loc,

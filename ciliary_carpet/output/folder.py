@@ -267,13 +267,15 @@ def scene_inputs(scene) -> dict[str, Path]:
     ``"target.file"`` (when the target names one), as absolute paths."""
     from importlib import resources
 
-    from single_cilium.lookup import DEFAULT_FILE, DEFAULT_FLOW_FILE
+    from single_cilium.lookup import DEFAULT_FILE, DEFAULT_FLOW_FILE, SHIPPED_TABLES, shipped_field
 
     found: dict[str, Path] = {}
     if getattr(scene, "source", None) is not None:
         found["scene"] = Path(scene.source)
     table = scene.table.path(scene)
-    shipped = DEFAULT_FLOW_FILE if scene.carpet.coupling == "mean" else DEFAULT_FILE
+    field = shipped_field(scene.field.chi_E)
+    still, flow = SHIPPED_TABLES[field] if field is not None else (DEFAULT_FILE, DEFAULT_FLOW_FILE)
+    shipped = flow if scene.carpet.coupling == "mean" else still
     found["table.file"] = table if table is not None else Path(str(resources.files("single_cilium") / "data"
                                                                    / shipped))
     target_file = getattr(scene.target, "file", None)

@@ -15,7 +15,7 @@ from ciliary_carpet.design.inverse import NEAR_CUTOFF_FRACTION
 from ciliary_carpet.output.plan import ANIMATION_STEPS, DOMAIN_MARGIN
 from ciliary_carpet.design.patterns import PATTERNS
 
-__all__ = ["markdown"]
+__all__ = ["markdown", "program_markdown"]
 
 _TWO_SIDED = {p.name for p in PATTERNS if p.two_sided}
 _SUMMED = {"mean": "far from the cilium from its cycle-averaged forces",
@@ -49,6 +49,8 @@ def markdown(s: dict) -> str:
     lines = [f"# {s['scene']}", ""]
     if scene.get("description"):
         lines += [scene["description"] + ".", ""]
+    if s.get("program"):
+        lines += _program_state(s["program"]) + [""]
     units = ("SI: lengths in m, times in s, speeds in m/s" if si else
              "lengths in L (the cilium's length), times in tau (the filament's relaxation time), speeds in L/tau")
     lines.append(f"Scene `{s['source']}`: {s['n_cilia']} cilia; {units}.")
@@ -382,3 +384,52 @@ def _pathlines(p: dict, dur, Lu: str, Vu: str, standing: bool = False) -> list:
                    "estimate, not a bound.")
     return out
 
+
+
+def _program_state(p: dict) -> list:
+    """The lines of a program state's render: which state of which program, and the others."""
+    me = p["state"]
+    others = ", ".join(f"{q['name']} (chi_E = {q['chi_E']:g}: rms {_g(q['residual_rms'])} rad, "
+                       f"{'met' if q['met'] else 'NOT met'})" for q in p["states"] if q["name"] != me)
+    return [f"State **{me}** of a program: one layout of curvatures made for several field strengths; this folder "
+            f"shows the flow at this state's field. The other states: {others} (their folders are next to this "
+            "one; `program.md` above compares them)."]
+
+
+def program_markdown(p: dict) -> str:
+    """``program.md`` from a program render's record (``program.json``): the states' verdicts with
+    their error bars, the limiting state, the resting cilia and the switch between states."""
+    lines = [f"# {p['scene']}: a program of {len(p['states'])} field states", ""]
+    lim = p.get("limiting")
+    ok = all(q["met"] for q in p["states"])
+    lines.append(f"**Verdict: {'every state met' if ok else 'NOT every state met'}, in the coupled model of each "
+                 "state's field** (one layout of curvatures chi_N for all states; each state's residual is measured "
+                 "with the full flow model of that field, its error bar bounds what the model's tolerance can move).")
+    lines.append("")
+    lines += ["| state | chi_E | weight | rms residual (rad) | error bar (rad) | threshold (rad) | met | cilia at rest |",
+              "|---|---:|---:|---:|---:|---:|---|---:|"]
+    for q in p["states"]:
+        thr = "-" if q["threshold"] is None else _g(q["threshold"])
+        lines.append(f"| {q['name']} | {q['chi_E']:g} | {q['weight']:g} | {_g(q['residual_rms'])} | "
+                     f"{_g(q['residual_error'], 2)} | {thr} | {'yes' if q['met'] else 'NO'} | {q['resting']} |")
+    lines.append("")
+    if lim is not None:
+        lines.append(f"Limiting state: **{lim['state']}**, its rms residual at {lim['residual_over_threshold']:.2f} "
+                     "of its threshold" + (" (above 1: not met)." if lim["residual_over_threshold"] > 1 else "."))
+        lines.append("")
+    sw = p.get("switch") or []
+    if sw:
+        lines.append("## The switch")
+        lines.append("")
+        for q in sw:
+            lines.append(f"- to {q['to']} (chi_E = {q['chi_E']:g}): {q.get('statement', '')}")
+        lines.append("")
+    lines.append("## Files")
+    lines.append("")
+    lines.append("One folder per state (`" + "/`, `".join(q["name"] for q in p["states"]) + "/`), each a complete "
+                 "render: path lines, fields, cilia frames, preview and `open_in_paraview.py` for that field. "
+                 "`program.nc` holds the layout (chi_N per cilium, which cilia rest in which state, each state's "
+                 "control points and residuals); `program.json` these numbers.")
+    lines.append("")
+    lines.append(f"Design: {p['message']}")
+    return "\n".join(lines) + "\n"
