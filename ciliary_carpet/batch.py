@@ -109,6 +109,10 @@ def _render_task(scene_path: str, out_root: str, overwrite: bool, reduced: bool,
         scene = read_scene(scene_path, reduced, backend)
         out = Path(out_root) / scene.name
         rec["out_dir"] = str(out)
+        if scene.states:  # a program: a folder per state and program.json beside them
+            rec.update(_render_program_task(scene, out, out_root, overwrite, max_seconds))
+            rec["seconds"] = _time.perf_counter() - clock
+            return rec
         complete = not overwrite and is_complete(out)
         if complete and is_complete(out, scene=scene):  # made with these settings from these inputs
             rec.update(status="skipped", message="complete and up to date")
@@ -129,6 +133,43 @@ def _render_task(scene_path: str, out_root: str, overwrite: bool, reduced: bool,
     except Exception as exc:  # noqa: BLE001 -- one failing scene must not stop the others
         rec.update(status="failed", message=one_line(exc, scene_path))
     rec["seconds"] = _time.perf_counter() - clock
+    return rec
+
+
+def _program_record(out: Path) -> dict | None:
+    """A program render's record (its ``program.json``), or None where there is none that this
+    toolkit wrote (it is not strict JSON with the program's ``states``)."""
+    try:
+        p = json.loads((out / "program.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return p if isinstance(p, dict) and isinstance(p.get("states"), list) else None
+
+
+def _render_program_task(scene, out: Path, out_root: str, overwrite: bool, max_seconds: float) -> dict:
+    """A program scene of a batch: skipped when its program record and every state's folder are
+    complete and current (:func:`is_complete` with the state's scene), else rendered
+    (:func:`~ciliary_carpet.render.render_program`; its own earlier files are replaced, a
+    state's folder by the output-folder rules); the record's verdict: every state met or not."""
+    from ciliary_carpet.scenes.states import state_scenes
+
+    pairs = state_scenes(scene)
+    old = _program_record(out)
+    if not overwrite and old is not None and all(is_complete(out / spec.name, scene=sc) for spec, sc in pairs):
+        rec = {"status": "skipped", "message": "complete and up to date"}
+    else:
+        again = old is not None and all(only_toolkit_files(out / spec.name) for spec, _ in pairs
+                                        if (out / spec.name).is_dir())
+        render(scene, out, overwrite=overwrite or again, max_seconds=max_seconds,
+               within=None if outside_allowed() else out_root)
+        rec = {"status": "done", "message": f"rendered a program of {len(pairs)} states"}
+    p = _program_record(out) or {}
+    states = p.get("states") or []
+    if states:
+        worst = max(states, key=lambda q: (q["residual_rms"] / q["threshold"]) if q.get("threshold") else 0.0)
+        rec.update(verdict="met" if all(q.get("met") for q in states) else "not met",
+                   residual=worst.get("residual_rms"), threshold=worst.get("threshold"), residual_unit="rad")
+        rec["message"] += f" (limiting state: {worst.get('name')})"
     return rec
 
 

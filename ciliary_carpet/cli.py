@@ -2,8 +2,13 @@
 
     ciliary-carpet render designs/NAME.toml -o out/NAME [--overwrite] [--reduced] [--json]
     ciliary-carpet design designs/NAME.toml -o layout.nc [--overwrite]
+    ciliary-carpet reach designs/PROGRAM.toml [--json]
     ciliary-carpet batch designs/*.toml -o out/ [-j N] [--scheduler ADDRESS [--scheduler-timeout S]] [--overwrite]
                          [--reduced] [--json]
+
+A program scene (``[[state]]``: one layout for several field strengths) renders into a folder per
+state with ``program.md`` beside them; ``design`` writes its layout; ``reach`` says, before any
+design, what pairs of flows its cilia can make in its fields.
 
 Options before the command: ``--debug`` (show the traceback of a failure), ``--allow-outside-paths``
 (let scene files name table and target files outside their own folder), ``--max-hours H`` (the time
@@ -39,6 +44,7 @@ from ciliary_carpet.output.resources import places_that_fit
 from ciliary_carpet.render import RenderError, check_resources, render
 from ciliary_carpet.scenes.paths import ALLOW_ENV
 from ciliary_carpet.scenes.scene import SceneError
+from ciliary_carpet.scenes.states import state_scenes
 from ciliary_carpet.stokes import BACKENDS, backend_named
 
 logger = logging.getLogger(__name__)
@@ -91,8 +97,14 @@ def _cmd_render(a) -> int:
     s = res.summary
     try:
         if a.json:
-            _emit(strict_json({"out_dir": str(res.out_dir), "files": list(res.files), "design": s.get("design"),
+            _emit(strict_json({"out_dir": str(res.out_dir), "files": list(res.files),
+                               **({"program": s} if scene.states else {"design": s.get("design")}),
                                "seconds": s["seconds"]}) + "\n")
+        elif scene.states:  # a program: its verdict and the states' table; each state's folder has its own
+            head = (res.out_dir / "program.md").read_text().split("\n## ", 1)[0].rstrip()
+            _emit(head + "\n\n")
+            _emit(f"wrote {len(res.files)} files to {res.out_dir} (a folder per state: "
+                  f"{', '.join(s.name for s in scene.states)}); the whole summary: {res.out_dir / 'program.md'}\n")
         else:  # the summary's head (title, scene, verdict); the whole of it is one file away
             head = (res.out_dir / "summary.md").read_text().split("\n## ", 1)[0].rstrip()
             _emit(head + "\n\n")
@@ -139,14 +151,44 @@ def _layout_file(given: str, overwrite: bool) -> Path:
 def _cmd_design(a) -> int:
     out = _layout_path(a.output, a.overwrite)
     scene = read_scene(a.scene, a.reduced, a.backend)
-    check_resources(scene, max_seconds=a.max_hours * 3600)
+    if not scene.states:
+        check_resources(scene, max_seconds=a.max_hours * 3600)
     backend_named(scene.backend)  # backend "cuda" without a GPU: CudaUnavailableError before any work
+    if scene.states:  # a program: one layout for every state
+        from ciliary_carpet.design.program import program_dataset
+        from ciliary_carpet.scenes.program import design_program_scene
+
+        for _, sc in state_scenes(scene):
+            check_resources(sc, max_seconds=a.max_hours * 3600)
+        prog, _ = design_program_scene(scene)
+        write_netcdf(program_dataset(prog), out)
+        through = f" (the file the symbolic link {a.output} points to)" if str(out) != a.output else ""
+        _emit(f"{prog.message}\nwrote {out}{through}\n")
+        return 0
     d, carpet = design(scene)
     if d is None:
         raise SceneError(f"{scene.source_name}: the scene has no [target] to design for")
     write_netcdf(d.to_dataset(carpet), out)
     through = f" (the file the symbolic link {a.output} points to)" if str(out) != a.output else ""
     _emit(f"{d.message}\nwrote {out}{through}\n")
+    return 0
+
+
+def _cmd_reach(a) -> int:
+    """What flows a program's cilia can make in its fields: per state the reachable thrust angles,
+    per pair of states the angle pairs one curvature makes, and the curvatures that beat in one
+    field only (:func:`~ciliary_carpet.design.program_reach.program_reachability`)."""
+    from ciliary_carpet.design.program_reach import program_reachability
+    from ciliary_carpet.scenes.assembly import load_table
+
+    scene = read_scene(a.scene, False, a.backend)
+    if not scene.states:
+        raise SceneError(f"{scene.source_name}: reach compares the field states of a program ([[state]]); this "
+                         "scene has one field (its reachable angles are in its render's summary)")
+    pairs = state_scenes(scene)
+    tables = [load_table(sc).in_still_fluid() for _, sc in pairs]
+    r = program_reachability(tables, [spec.name for spec, _ in pairs])
+    _emit(strict_json(r.summary()) + "\n" if a.json else r.describe().rstrip() + "\n")
     return 0
 
 
@@ -222,6 +264,9 @@ def main(argv=None) -> int:
     d.add_argument("-o", "--output", required=True, help="layout file (.nc)")
     d.add_argument("--overwrite", action="store_true")
     d.add_argument("--reduced", action="store_true")
+    q = sub.add_parser("reach", help="what pairs of flows a program's cilia can make in its fields (before designing)")
+    q.add_argument("scene")
+    q.add_argument("--json", action="store_true", help="print the figures as strict JSON")
     b = sub.add_parser("batch", help="render many scenes (a process per scene, or a Dask cluster), resumable")
     b.add_argument("scenes", nargs="+")
     b.add_argument("-o", "--output", required=True, help="output root; each scene goes to OUTPUT/NAME")
@@ -248,7 +293,7 @@ def main(argv=None) -> int:
     try:
         # SIGTERM, SIGHUP: the Ctrl-C cleanup, exit 128 + signum; warnings as plain lines, once each
         with terminate_as_interrupt(), plain_warnings():
-            return {"render": _cmd_render, "design": _cmd_design, "batch": _cmd_batch}[a.cmd](a)
+            return {"render": _cmd_render, "design": _cmd_design, "reach": _cmd_reach, "batch": _cmd_batch}[a.cmd](a)
     except StdoutError as exc:
         print(f"ciliary-carpet: {exc.strerror}", file=sys.stderr)
         return 2

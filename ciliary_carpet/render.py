@@ -104,9 +104,10 @@ def render(scene: Scene, out_dir, *, overwrite: bool = False, progress: Progress
         progress = progress if progress is not None else Progress()
         t0 = _time.perf_counter()
         n = scene.carpet.n_cilia
-        progress.note(f"render {scene.name}: " + (f"designing the curvatures of {n} cilia for the "
-                                                   f"{scene.target.kind} target" if scene.target.kind != "none"
-                                                   else f"building the carpet of {n} cilia"))
+        progress.note(f"render {scene.name}: " + (
+            f"the program's layout of {n} cilia in this state's field (chi_E = {scene.field.chi_E:g})"
+            if designed is not None else f"designing the curvatures of {n} cilia for the {scene.target.kind} target"
+            if scene.target.kind != "none" else f"building the carpet of {n} cilia"))
         table_file = scene.table.path(scene)
         built = table_file is not None and not table_file.exists()
         load_table(scene, progress=progress)  # a [table.build] says what it computes, and shows its rows

@@ -653,7 +653,7 @@ class ThrustTable:
             f = self._angle
         lo, hi = float(vals.min()), float(vals.max())
         a = abs(angle)
-        if lo - 1e-12 <= a < lo:  # the straight filament's angle is 0 up to round-off
+        if a < lo <= 1e-6:  # the straight filament's angle is 0 up to round-off (a table over the flow: its interpolation)
             a = lo
         if not lo <= a <= hi:
             raise TableError(f"thrust angle {angle:.6g} is not achievable with this field: |angle| must lie in "
