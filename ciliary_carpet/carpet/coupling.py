@@ -96,7 +96,7 @@ RTOL = 1e-3
 """Default relative residual of the coupled solve."""
 DU = 1e-3
 """Step (L / tau) of the central differences of the mean thrust in the flow."""
-RESPONSE_CHI_SAMPLES = 257
+RESPONSE_CHI_SAMPLES = 97
 """Curvatures at which :meth:`CouplingResponse.forces` samples each cilium's thrust in its frozen
 flow (uniform over the table's chi_N range, both signs)."""
 DENSE_CILIA = 2000

@@ -329,7 +329,9 @@ class DesignProblem:
 
     ``chi0`` (N,) replaces the local layout (the regularisers' centre and the first iterate) and
     ``scale`` the curvature scale chi_c of the regularisers: a program's states share both
-    (:mod:`ciliary_carpet.design.program`)."""
+    (:mod:`ciliary_carpet.design.program`). ``carpet_of`` (set after construction; None: the
+    carpet with other curvatures) makes the full model's carpet of curvatures chi, its later
+    calls warm-started from the last carpet it made (a coupled solve starts from its flows)."""
 
     def __init__(self, carpet: Carpet, X: np.ndarray, w_pts: np.ndarray, angles, velocities, cilium_angles,
                  clip: bool, *, check_tol: float, speed_floor: float, floor_weight: float, regularization: float,
@@ -371,6 +373,7 @@ class DesignProblem:
             self.kind = "velocity"
             self.target = U
             self.chi0 = np.clip(carpet.chi_N, -b1, b1)
+        self.carpet_of, self._last = None, None  # a program's state: see design.program.StateProblem
         if chi0 is not None:  # a program's joint local layout (design.program)
             self.chi0 = np.broadcast_to(np.asarray(chi0, dtype=float), (N,)).copy()
         if scale is not None:  # a program's common curvature scale
@@ -416,7 +419,12 @@ class DesignProblem:
         counters = self.counters
         counters["checks"] += 1
         t0 = _time.perf_counter()
-        c = _with_chi(self.carpet, chi) if c is None else c
+        if c is None:
+            if self.carpet_of is None:
+                c = _with_chi(self.carpet, chi)
+            else:  # the full model's carpet made elsewhere, warm-started from the last one
+                c = self.carpet_of(chi) if self._last is None else _with_chi(self._last, chi)
+                self._last = c
         t1 = _time.perf_counter()
         s = c.evaluate(self.X, CycleMean(), tol=self.check_tol if ctol is None else ctol)
         counters["seconds_carpets"] += t1 - t0

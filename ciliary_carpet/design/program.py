@@ -37,6 +37,7 @@ import math
 import time as _time
 import warnings
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 from scipy.interpolate import PPoly
@@ -69,7 +70,10 @@ class StateProblem:
     angle each cilium is asked at its force centre ``cilium_angles`` (N,) (angle targets; default
     the angle of the nearest control point), the state's ``weight`` in the joint objective, its
     acceptance ``threshold`` on the rms residual, and the single-state design settings
-    (:func:`~ciliary_carpet.design.inverse.design_layout`)."""
+    (:func:`~ciliary_carpet.design.inverse.design_layout`). ``carpet_of(chi)``: the full model's
+    carpet of curvatures chi (N,) in this state, where ``carpet`` is a cheaper stand-in for the
+    design model (e.g. an uncoupled carpet of the same table in still fluid, and ``carpet_of`` the
+    coupled one); None: ``carpet`` with the curvatures chi."""
 
     name: str
     carpet: Carpet
@@ -83,6 +87,7 @@ class StateProblem:
     spacing: float | None = None
     inside_swept: str = "use"
     sample_weights: np.ndarray | None = None
+    carpet_of: Callable[[np.ndarray], Carpet] | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.name, str) and self.name):
@@ -155,13 +160,13 @@ class Program:
 
 
 def state_problem(name: str, target: Target, carpet: Carpet, bases: np.ndarray, frame: Frame, *, spacing: float,
-                  weight: float = 1.0) -> StateProblem:
+                  weight: float = 1.0, carpet_of: Callable[[np.ndarray], Carpet] | None = None) -> StateProblem:
     """The :class:`StateProblem` of a resolved single-state ``target`` (any planar kind) on
     ``carpet`` (the state's field; ``bases`` (N, 2) and ``frame`` the target's frame of them),
     set up as :func:`~ciliary_carpet.design.target_design.design_target` sets up a single-state
     design: an angle target asked at its control points and, per cilium, at the straight
     filament's force centre; a velocity target at its sample points with their weights."""
-    common = dict(name=name, carpet=carpet, weight=weight, threshold=target.threshold(),
+    common = dict(name=name, carpet=carpet, weight=weight, threshold=target.threshold(), carpet_of=carpet_of,
                   speed_floor=target.speed_floor, spacing=spacing, inside_swept=target.inside_swept)
     if target.is_angle:
         mom = cycle_moments(carpet.table)
@@ -241,9 +246,9 @@ def mixture_layout(parts: list, grid: np.ndarray, bases: np.ndarray, spacing: fl
     curvature serves every state the mixture is that curvature. Cilia asking the same angles (to
     1e-3 rad) share one program.
 
-    ``flows``: per state (of ``parts``) None, or the background flow (2,) [L/tau, lab frame] the
-    cilia beat in (a coupled carpet: the median of the others' flow at the cilia), at which the
-    thrusts F_s are then read off the state's table over the flow (a cilium that rests in still
+    ``flows``: per state (of ``parts``) None, or (the background flow (2,) [L/tau, lab frame] the
+    cilia beat in -- a coupled carpet's median of the others' flow at the cilia --, the state's
+    table over the flow), at which the thrusts F_s are then read off that table (a cilium that rests in still
     fluid may beat in a flow, and the flow turns and slows the thrust)."""
     from scipy.optimize import linprog
 
@@ -258,15 +263,16 @@ def mixture_layout(parts: list, grid: np.ndarray, bases: np.ndarray, spacing: fl
         if U is None:
             m = ob.mom(grid)["F"]
         else:
+            U, table = U
             u = st.carpet.rotation.T @ np.asarray(U, dtype=float)  # field frame: (U_perp, U_par)
-            (p0, p1), (q0, q1) = st.carpet.table.U_range
+            (p0, p1), (q0, q1) = table.U_range
             up, uq = float(np.clip(u[1], p0, p1)), float(np.clip(u[0], -q1, q1))
             a = np.abs(grid)
             sg = np.where(grid < 0, -1.0, 1.0)
             # the mirror image: chi_N -> -chi_N is x -> -x, so a negative chi_N in U_perp is |chi_N| in -U_perp
             q = np.clip(sg * uq, q0, q1)
-            tx = np.array([st.carpet.table.scalar("thrust_x", ai, U_par=up, U_perp=qi) for ai, qi in zip(a, q)])
-            ty = np.array([st.carpet.table.scalar("thrust_y", ai, U_par=up, U_perp=qi) for ai, qi in zip(a, q)])
+            tx = np.array([table.scalar("thrust_x", ai, U_par=up, U_perp=qi) for ai, qi in zip(a, q)])
+            ty = np.array([table.scalar("thrust_y", ai, U_par=up, U_perp=qi) for ai, qi in zip(a, q)])
             m = np.column_stack([sg * np.nan_to_num(tx), np.nan_to_num(ty)])
         Ft.append((m @ st.carpet.rotation.T) / float(np.hypot(*F0)))
     d0 = [st.carpet.rotation @ np.array([0.0, -1.0]) for st, _, _ in angle_parts]  # straight flow, lab frame
@@ -419,6 +425,7 @@ def design_program(states, *, tol: float = 1e-3, check_tol: float | None = None,
             A = np.broadcast_to(np.asarray(ang, dtype=float), (X.shape[0],))
             want = A[cKDTree(X).query(s.carpet.centres)[1]] if s.cilium_angles is None else \
                 np.broadcast_to(np.asarray(s.cilium_angles, dtype=float), (N,))
+        ob.carpet_of = s.carpet_of
         obs.append(ob)
         infos.append((inside_info, done))
         parts.append((s, ob, want))
@@ -444,8 +451,9 @@ def design_program(states, *, tol: float = 1e-3, check_tol: float | None = None,
     checked = check_all(chi0)
     J_loc = score(chi0, checked)
     # coupled carpets: the mixture again, with each state's thrusts in the flow its cilia beat in
-    for _ in range(2 if any(c.coupled is not None for c, _, _ in checked) else 0):
-        flows = [None if c.coupled is None else np.median(c.coupled.background, axis=0) for c, _, _ in checked]
+    for _ in range(1 if any(c.coupled is not None for c, _, _ in checked) else 0):
+        flows = [None if c.coupled is None else (np.median(c.coupled.background, axis=0), c.table)
+                 for c, _, _ in checked]
         chi1 = mixture_layout(parts, grid, carpets[0].bases, states[0].spacing, flows)
         if chi1 is None:
             break
@@ -454,7 +462,7 @@ def design_program(states, *, tol: float = 1e-3, check_tol: float | None = None,
         checked1 = check_all(chi1)
         J1 = score(chi1, checked1)
         logger.info("program: mixture layout in the coupled flows %s: objective %.4g (before %.4g)",
-                    ", ".join(f"({f[0]:.3g}, {f[1]:.3g})" for f in flows if f is not None), J1, J_loc)
+                    ", ".join(f"({f[0][0]:.3g}, {f[0][1]:.3g})" for f in flows if f is not None), J1, J_loc)
         if not J1 < J_loc:
             for ob in obs:
                 ob.chi0 = chi0.copy()

@@ -20,7 +20,7 @@ from ciliary_carpet.carpet.carpet import Carpet
 from ciliary_carpet.design.program import Program, design_program, state_problem
 from ciliary_carpet.design.result import Design, DesignError
 from ciliary_carpet.design.tolerance import tolerance_study
-from ciliary_carpet.scenes.assembly import assemble
+from ciliary_carpet.scenes.assembly import Assembly, assemble
 from ciliary_carpet.scenes.schema import SceneError
 from ciliary_carpet.scenes.states import state_scenes
 
@@ -61,8 +61,13 @@ def design_program_scene(scene: "Scene") -> tuple[Program, tuple[DesignedState, 
     problems, targets = [], []
     for spec, sc in pairs:
         built = assemble(sc)
-        problems.append(state_problem(spec.name, built.target, built.carpet(), built.bases, built.frame,
-                                      spacing=sc.carpet.spacing, weight=spec.weight))
+        carpet, carpet_of = built.carpet, built.carpet
+        if sc.carpet.coupling == "mean":  # the design model's stand-in: the same table in still fluid, uncoupled
+            still = Assembly(replace(sc, carpet=replace(sc.carpet, coupling="none")), built.table.in_still_fluid(),
+                             built.bases, built.frame, built.target)
+            carpet = still.carpet
+        problems.append(state_problem(spec.name, built.target, carpet(), built.bases, built.frame,
+                                      spacing=sc.carpet.spacing, weight=spec.weight, carpet_of=carpet_of))
         targets.append(built.target)
     smoothness = max(t.smoothness for t in targets)
     prog = design_program(problems, tol=scene.tolerance, smoothness=smoothness)
