@@ -174,6 +174,11 @@ def _cmd_design(a) -> int:
     return 0
 
 
+REACH_FLOW = 0.5
+"""The background flow [L/tau] at which ``reach`` says how far a field's cutoff moves: the order of the
+others' flow at a coupled carpet's cilia (a uniform carpet at chi_E = 200 levels off at 0.81)."""
+
+
 def _cmd_reach(a) -> int:
     """What flows a program's cilia can make in its fields: per state the reachable thrust angles,
     per pair of states the angle pairs one curvature makes, and the curvatures that beat in one
@@ -186,9 +191,25 @@ def _cmd_reach(a) -> int:
         raise SceneError(f"{scene.source_name}: reach compares the field states of a program ([[state]]); this "
                          "scene has one field (its reachable angles are in its render's summary)")
     pairs = state_scenes(scene)
-    tables = [load_table(sc).in_still_fluid() for _, sc in pairs]
-    r = program_reachability(tables, [spec.name for spec, _ in pairs])
-    _emit(strict_json(r.summary()) + "\n" if a.json else r.describe().rstrip() + "\n")
+    full = [load_table(sc) for _, sc in pairs]
+    r = program_reachability([t.in_still_fluid() for t in full], [spec.name for spec, _ in pairs])
+    # a coupled carpet's cilia beat in the others' flow, which moves each field's cutoff
+    moved = {}
+    for (spec, _), t in zip(pairs, full):
+        (p0, p1), (q0, q1) = t.U_range
+        if p0 < p1 and q0 < q1:
+            u = min(REACH_FLOW, p1, q1)
+            cs = [t.cutoff(U_par=p, U_perp=q) for p in (-u, 0.0, u) for q in (-u, 0.0, u)]
+            moved[spec.name] = (u, min(cs), max(cs))
+    if a.json:
+        s = r.summary()
+        s["cutoff_in_flow"] = {k: {"flow": u, "min": lo, "max": hi} for k, (u, lo, hi) in moved.items()}
+        _emit(strict_json(s) + "\n")
+    else:
+        lines = [f"In a flow of up to {u:g} L/tau along or across the field (the coupled model: each cilium beats in "
+                 f"the others' flow) the flutter cutoff of '{k}' moves between {lo:.1f} and {hi:.1f}: cilia near it may beat or "
+                 "rest as the flow decides." for k, (u, lo, hi) in moved.items()]
+        _emit(r.describe().rstrip() + "\n" + "".join(x + "\n" for x in lines))
     return 0
 
 

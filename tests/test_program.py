@@ -240,3 +240,23 @@ def test_a_standing_program_is_refused_by_name(tmp_path):
 
     with pytest.raises(SceneError, match="a program .* designs planar carpets"):
         design_program_scene(load_scene(p))
+
+
+def test_a_state_with_sigma_studies_the_programs_fabrication_tolerance(tmp_path):
+    """sigma > 0 in a state's target: that state's design carries the tolerance study of the
+    program's layout in its field (how its flow degrades under a relative chi_N scatter)."""
+    text = STEER.format(low=0.0, high=20.0, extra="").replace(
+        'angle = 20.0\nresidual = 0.1\n', 'angle = 20.0\nresidual = 0.1\nsigma = 0.05\nsamples = 4\n')
+    p = tmp_path / "tol.toml"
+    p.write_text(text)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        prog, states = design_program_scene(load_scene(p))
+    low, high = prog.designs
+    assert low.tolerance is None and high.tolerance is not None
+    t = high.tolerance
+    json.dumps(t, allow_nan=False)
+    assert t["sigma"] == 0.05 and t["samples"] == 4
+    # the study's nominal layout is the program's, measured in this state's field
+    assert math.isclose(t["nominal_rms"], high.residual_rms, rel_tol=0.05)
+    assert t["p90_rms"] >= t["p10_rms"] > 0

@@ -150,7 +150,8 @@ class Program:
         return {
             "states": [{"name": n, "chi_E": float(d.carpet.table.chi_E) if d.carpet is not None else None,
                         "weight": w, "residual_rms": float(d.residual_rms), "residual_error": float(d.residual_error),
-                        "threshold": d.threshold, "met": m, "resting": len(r), "kind": d.kind}
+                        "threshold": d.threshold, "met": m, "resting": len(r), "kind": d.kind,
+                        "model": "uncoupled" if d.carpet is None or d.carpet.coupled is None else "coupled"}
                        for n, d, w, m, r in zip(self.states, self.designs, self.weights, self.met, self.resting)],
             "bound": self.bound, "objective": self.objective, "local_objective": self.local_objective,
             "returned": self.returned, "status": self.status, "message": self.message,

@@ -402,9 +402,11 @@ def program_markdown(p: dict) -> str:
     lines = [f"# {p['scene']}: a program of {len(p['states'])} field states", ""]
     lim = p.get("limiting")
     ok = all(q["met"] for q in p["states"])
-    lines.append(f"**Verdict: {'every state met' if ok else 'NOT every state met'}, in the coupled model of each "
-                 "state's field** (one layout of curvatures chi_N for all states; each state's residual is measured "
-                 "with the full flow model of that field, its error bar bounds what the model's tolerance can move).")
+    models = {q.get("model", "coupled") for q in p["states"]}
+    model = f"the {models.pop()} model" if len(models) == 1 else "each state's own model (see the table)"
+    lines.append(f"**Verdict: {'every state met' if ok else 'NOT every state met'}, in {model} of each state's "
+                 "field** (one layout of curvatures chi_N for all states; each state's residual is measured with "
+                 "the full flow model of that field, its error bar bounds what the model's tolerance can move).")
     lines.append("")
     lines += ["| state | chi_E | weight | rms residual (rad) | error bar (rad) | threshold (rad) | met | cilia at rest |",
               "|---|---:|---:|---:|---:|---:|---|---:|"]
@@ -421,8 +423,15 @@ def program_markdown(p: dict) -> str:
     if sw:
         lines.append("## The switch")
         lines.append("")
+        lines.append("Each state's folder shows its steady beat. The flow while the cilia settle after the field is "
+                     "switched is not rendered; how long they take, in beats of the new field (from each cilium's "
+                     "Floquet multiplier: an upper estimate for a cilium switched between two beats, whose large "
+                     "first deviation decays faster):")
+        lines.append("")
         for q in sw:
-            lines.append(f"- to {q['to']} (chi_E = {q['chi_E']:g}): {q.get('statement', '')}")
+            st = q.get("statement", "")
+            st = st[0].upper() + st[1:] if st else st
+            lines.append(f"- To **{q['to']}** (chi_E = {q['chi_E']:g}). {st}")
         lines.append("")
     lines.append("## Files")
     lines.append("")
