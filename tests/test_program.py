@@ -260,3 +260,15 @@ def test_a_state_with_sigma_studies_the_programs_fabrication_tolerance(tmp_path)
     # the study's nominal layout is the program's, measured in this state's field
     assert math.isclose(t["nominal_rms"], high.residual_rms, rel_tol=0.05)
     assert t["p90_rms"] >= t["p10_rms"] > 0
+
+
+def test_a_batch_renders_a_program_and_then_skips_it(tmp_path):
+    from ciliary_carpet.batch import batch
+
+    sc = scene(tmp_path)
+    recs = batch([str(sc.source)], str(tmp_path / "out"), jobs=1)
+    assert recs[0]["status"] == "done" and recs[0]["verdict"] == "met", recs
+    assert (tmp_path / "out" / "steer" / "program.json").is_file()
+    assert (tmp_path / "out" / "steer" / "high" / "summary.json").is_file()
+    recs = batch([str(sc.source)], str(tmp_path / "out"), jobs=1)
+    assert recs[0]["status"] == "skipped" and recs[0]["verdict"] == "met", recs
