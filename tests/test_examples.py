@@ -92,3 +92,13 @@ def test_standing_carpet():
     ex = load("standing_carpet")
     assert ex.mixer_rms < 0.1 and ex.mixer_error < 0.05
     assert ex.wall_speed < 1e-12  # no slip on the substrate
+
+
+@pytest.mark.slow
+def test_program_switch():
+    ex = load("program_switch")
+    # one cilium's angle changes by at most 0.149 rad between chi_E = 150 and 200 (the tables)
+    assert ex.largest_change == pytest.approx(0.149, abs=2e-3)
+    # the mixture of cilia meets both fields: 0.1 rad each, error bars at most half of it
+    assert ex.low_rms <= 0.1 and ex.high_rms <= 0.1 and max(ex.low_error, ex.high_error) <= 0.05
+    assert ex.resting_low > 0
