@@ -272,3 +272,20 @@ def test_a_batch_renders_a_program_and_then_skips_it(tmp_path):
     assert (tmp_path / "out" / "steer" / "high" / "summary.json").is_file()
     recs = batch([str(sc.source)], str(tmp_path / "out"), jobs=1)
     assert recs[0]["status"] == "skipped" and recs[0]["verdict"] == "met", recs
+
+
+def test_a_states_weight_trades_its_residual_against_the_others(tmp_path):
+    """Opposite turns that one layout cannot both meet: weighting a state 4x lowers its residual
+    and raises the other's (the weight is its share of the joint objective)."""
+    def residuals(w_low):
+        text = STEER.format(low=-30.0, high=30.0, extra="").replace(
+            'name = "low"\nchi_E = 150\n', f'name = "low"\nchi_E = 150\nweight = {w_low}\n')
+        p = tmp_path / f"w{w_low}.toml"
+        p.write_text(text.replace('name = "steer"', f'name = "w{int(w_low)}"'))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            prog, _ = design_program_scene(load_scene(p))
+        return [d.residual_rms for d in prog.designs]
+
+    even, favour_low = residuals(1.0), residuals(4.0)
+    assert favour_low[0] < even[0] and favour_low[1] > even[1]
