@@ -289,3 +289,42 @@ def test_a_states_weight_trades_its_residual_against_the_others(tmp_path):
 
     even, favour_low = residuals(1.0), residuals(4.0)
     assert favour_low[0] < even[0] and favour_low[1] > even[1]
+
+
+def test_a_states_table_is_built_on_demand_with_an_estimate_first(tmp_path, monkeypatch):
+    """A state whose field has no table yet names one with [state.table.build]: the build is
+    announced with its time estimate and computed for that state's chi_E (the computation itself
+    is replaced here by a copy of the shipped table of that field: minutes saved)."""
+    import shutil
+    from importlib import resources
+    from pathlib import Path
+
+    import single_cilium.table as table_mod
+    from cilia_runtime.progress import Progress
+    from ciliary_carpet.scenes.assembly import load_table
+    from single_cilium.lookup import SHIPPED_TABLES
+
+    calls = []
+
+    def fake_build(chi_E, eta, chi_N, *, path, **kw):
+        calls.append((float(chi_E), float(eta), "U_par" in kw and kw["U_par"] is not None))
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(resources.files("single_cilium") / "data" / SHIPPED_TABLES[150.0][1], path)
+
+    monkeypatch.setattr(table_mod, "build_table", fake_build)
+    text = STEER.format(low=0.0, high=20.0, extra="").replace('coupling = "none"\n', "").replace(
+        'name = "low"\nchi_E = 150\n',
+        'name = "low"\nchi_E = 150\n[state.table]\nfile = "tables/low.nc"\n[state.table.build]\n')
+    p = tmp_path / "built.toml"
+    p.write_text(text.replace('name = "steer"', 'name = "built"'))
+    notes = []
+
+    class Notes(Progress):
+        def note(self, msg):
+            notes.append(msg)
+
+    (spec, low), _ = state_scenes(load_scene(p))
+    t = load_table(low, progress=Notes())
+    assert calls == [(150.0, 1.0, True)]  # the coupled default: over the background flow
+    assert t.chi_E == 150.0 and (tmp_path / "tables" / "low.nc").is_file()
+    assert any("building the thrust table" in n and "chi_E = 150" in n and "min on" in n for n in notes)
