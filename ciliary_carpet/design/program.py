@@ -22,9 +22,10 @@ model's defect, minimised by L-BFGS-B in x = chi / B; a Gauss-Seidel sweep over 
 common grid of curvatures (:func:`joint_sweep`, both signs, every state's change of objective
 summed) takes the layout out of local minima (switching a cilium on or off is such a move); each
 pass is measured with every state's full model, and the best layout by the full models' J is
-returned (never worse than the joint local layout). The joint local layout: each cilium at the
-curvature of the common grid that minimises the states' weighted single-cilium objectives (its
-own thrust's angle error and floor, at the angle each state asks at its force centre).
+returned (never worse than the joint local layout). The joint local layout is the mixture layout
+(:func:`mixture_layout`): per neighbourhood, the fractions of curvatures whose summed thrust
+points along every state's target (a linear program), realised by ordered dithering; on a coupled
+carpet made once more with each state's thrusts read in the flow its cilia beat in.
 
 Each state's residual then carries its error bar, made at most half its threshold by a final
 check at a tolerance chosen for it (:func:`~ciliary_carpet.design.inverse.final_check`), and its
@@ -206,8 +207,8 @@ def _check_states(states) -> list[StateProblem]:
     b0 = states[0].carpet.bases
     for s in states:
         if s.carpet.geometry != "planar":
-            raise ValueError(f"state {s.name!r}: design_program takes planar carpets (a standing carpet's "
-                             "program is design_surface_program)")
+            raise ValueError(f"state {s.name!r}: design_program takes planar carpets (programs of standing "
+                             "carpets are not available)")
         if s.carpet.bases.shape != b0.shape or not np.array_equal(s.carpet.bases, b0):
             raise ValueError(f"state {s.name!r}: every state must be the same carpet (bases) in another field")
         if not s.carpet.table.in_still_fluid().flutter_range[1] > 0:
