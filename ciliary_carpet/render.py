@@ -43,7 +43,8 @@ from pathlib import Path
 from cilia_runtime.progress import Progress
 
 from ciliary_carpet.output import RenderError
-from ciliary_carpet.output.folder import MANIFEST, PACKAGE_VERSION, OutputFolder, is_complete, owned_files
+from ciliary_carpet.output.folder import (MANIFEST, PACKAGE_VERSION, OutputFolder, is_complete, only_toolkit_files,
+                                         owned_files)
 from ciliary_carpet.output.contract import SUMMARY, RenderContext, StageProgress
 from ciliary_carpet.output.outputs import OUTPUTS
 from ciliary_carpet.output.plan import GEOMETRY_OUTPUTS, RenderPlan
@@ -194,6 +195,9 @@ def render_program(scene: Scene, out_dir, *, overwrite: bool = False, progress: 
     if old and not overwrite:
         raise RenderError(f"{out} already holds a program's render ({', '.join(old)}); pass overwrite to replace "
                           "the files a render wrote there")
+    if old and not _program_files_ours(out):
+        raise RenderError(f"{out} holds {', '.join(old)} that a program's render did not write (program.json is not "
+                          "one); nothing was written: render into another folder")
     for _, sc in state_scenes(scene):  # every state's resources and backend before any work
         check_resources(sc, max_seconds=max_seconds)
         backend_named(sc.backend)
@@ -208,8 +212,11 @@ def render_program(scene: Scene, out_dir, *, overwrite: bool = False, progress: 
     results = []
     for st in states:
         rec = dict(record, state=st.name)
-        r = render(st.scene, out / st.name, overwrite=overwrite, progress=progress, max_seconds=max_seconds,
-                   within=within, pool=pool, designed=(st.design, st.carpet), program=rec)
+        # a state's folder left by an interrupted program render (no program files yet) holds only
+        # the toolkit's files: replaced as with overwrite (others' files never are)
+        again = not old and (out / st.name).is_dir() and only_toolkit_files(out / st.name)
+        r = render(st.scene, out / st.name, overwrite=overwrite or again, progress=progress,
+                   max_seconds=max_seconds, within=within, pool=pool, designed=(st.design, st.carpet), program=rec)
         results.append(r)
     record["seconds"] = {"design": t_design, "total": _time.perf_counter() - t0}
     record["scene"], record["source"] = scene.name, scene.source_name
@@ -221,6 +228,17 @@ def render_program(scene: Scene, out_dir, *, overwrite: bool = False, progress: 
     files = tuple(PROGRAM_FILES) + tuple(f"{st.name}/{f}" for st, r in zip(states, results) for f in r.files)
     logger.info("rendered the program %s into %s in %.1f s", scene.name, out, record["seconds"]["total"])
     return RenderResult(out_dir=out, files=files, summary=record)
+
+
+def _program_files_ours(out: Path) -> bool:
+    """Whether ``out/program.json`` is a program render's record (strict JSON with its states)."""
+    import json
+
+    try:
+        p = json.loads((out / "program.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(p, dict) and isinstance(p.get("states"), list) and "scene" in p
 
 
 def _switches(states) -> list[dict]:

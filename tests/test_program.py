@@ -328,3 +328,20 @@ def test_a_states_table_is_built_on_demand_with_an_estimate_first(tmp_path, monk
     assert calls == [(150.0, 1.0, True)]  # the coupled default: over the background flow
     assert t.chi_E == 150.0 and (tmp_path / "tables" / "low.nc").is_file()
     assert any("building the thrust table" in n and "chi_E = 150" in n and "min on" in n for n in notes)
+
+
+def test_a_program_render_never_replaces_files_it_did_not_write_and_resumes_an_interrupted_one(tmp_path):
+    sc = scene(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "program.json").write_text("my notes\n")
+    with pytest.raises(Exception, match="did not write"):
+        render(sc, out, overwrite=True)
+    assert (out / "program.json").read_text() == "my notes\n"
+    # an interrupted render: a state's folder written, the program files not yet
+    out2 = tmp_path / "out2"
+    render(sc, out2)
+    for f in ("program.json", "program.md", "program.nc"):
+        (out2 / f).unlink()
+    render(sc, out2)  # no overwrite needed: the state folders hold only the toolkit's files
+    assert (out2 / "program.json").is_file()
