@@ -1,6 +1,6 @@
 """Programs: one curvature layout for several field strengths (design.program, scenes.program,
-render_program, the command line). Small uncoupled carpets keep these fast; the bundled coupled
-programs render in tests/test_render.py."""
+render_program, the command line). Small uncoupled carpets keep these fast; the renders of a
+program and the bundled coupled programs (tests/test_render.py) are in the slow set."""
 import json
 import math
 import warnings
@@ -185,6 +185,7 @@ def test_program_dataset_holds_the_layout_and_every_state(steered):
     np.testing.assert_array_equal(ds.chi_N.values, prog.chi_N)
 
 
+@pytest.mark.slow  # renders (or designs twice): the slow set keeps the default run short
 def test_render_of_a_program_writes_a_folder_per_state(tmp_path):
     sc = scene(tmp_path)
     res = render(sc, tmp_path / "out")
@@ -262,6 +263,7 @@ def test_a_state_with_sigma_studies_the_programs_fabrication_tolerance(tmp_path)
     assert t["p90_rms"] >= t["p10_rms"] > 0
 
 
+@pytest.mark.slow  # renders (or designs twice): the slow set keeps the default run short
 def test_a_batch_renders_a_program_and_then_skips_it(tmp_path):
     from ciliary_carpet.batch import batch
 
@@ -274,6 +276,7 @@ def test_a_batch_renders_a_program_and_then_skips_it(tmp_path):
     assert recs[0]["status"] == "skipped" and recs[0]["verdict"] == "met", recs
 
 
+@pytest.mark.slow  # renders (or designs twice): the slow set keeps the default run short
 def test_a_states_weight_trades_its_residual_against_the_others(tmp_path):
     """Opposite turns that one layout cannot both meet: weighting a state 4x lowers its residual
     and raises the other's (the weight is its share of the joint objective)."""
@@ -330,6 +333,7 @@ def test_a_states_table_is_built_on_demand_with_an_estimate_first(tmp_path, monk
     assert any("building the thrust table" in n and "chi_E = 150" in n and "min on" in n for n in notes)
 
 
+@pytest.mark.slow  # renders (or designs twice): the slow set keeps the default run short
 def test_a_program_render_never_replaces_files_it_did_not_write_and_resumes_an_interrupted_one(tmp_path):
     sc = scene(tmp_path)
     out = tmp_path / "out"
